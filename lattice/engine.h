@@ -1,0 +1,106 @@
+/// @file engine.h
+/// @brief The typed facade of libvasl that the server (and tests) call: projects, ingest,
+///        render, inspection. It orchestrates the flows of ARCHITECTURE.md ("The main flows")
+///        over store/, ingest/, fusion/ and render/. No gRPC or protobuf types here.
+/// @details Errors are absl::Status with messages a user can act on:
+///          INVALID_ARGUMENT for bad input, NOT_FOUND for an unknown project or version,
+///          ALREADY_EXISTS for a duplicate project or scan name, RESOURCE_EXHAUSTED for limits,
+///          INTERNAL only for bugs. Bad input never changes a project.
+/// @warning Thread-safe: any number of concurrent renders and reads; ingests into one project
+///          are serialised (one writer per project), ingests into different projects run in
+///          parallel.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/geometry/pose.h"
+#include "lattice/ingest/scan_input.h"
+#include "lattice/records/records.h"
+#include "lattice/render/render.h"
+#include "lattice/store/project_store.h"
+
+namespace vasl {
+
+/// Limits on what a client controls (ARCHITECTURE.md "Errors and limits").
+struct EngineLimits {
+  int64_t max_points_per_scan = 50'000'000;
+  int64_t max_panoramas_per_scan = 16;
+  int64_t max_image_bytes = 512ll << 20;     ///< one encoded image
+  int64_t max_image_pixels = 16384ll * 8192;  ///< one decoded image
+  int max_render_width_px = 16384;
+  int max_render_height_px = 8192;
+};
+
+/// Summary of a project (catalog + HEAD version).
+struct ProjectInfo {
+  std::string name;
+  std::string description;
+  double vossel_size_m = 0.0;
+  int64_t head_version = 0;
+  int64_t scan_count = 0;
+  int64_t vossel_count = 0;
+  int64_t record_count = 0;
+  std::string created_utc;
+};
+
+using ingest::LidarData;
+using ingest::PanoramaData;
+using ingest::ScanInput;
+using ingest::Progress;
+using ingest::ProgressFn;
+using render::RenderImage;
+using render::RenderRequest;
+
+struct IngestResult {
+  int64_t scan_id = 0;
+  int64_t version = 0;          ///< the committed version
+  int64_t vossel_count = 0;     ///< vossels in the new version
+  int64_t record_count = 0;     ///< records in the new version
+  int64_t new_vossels = 0;      ///< vossels this scan added
+  double seconds = 0.0;         ///< wall time of the whole ingest
+  std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
+};
+
+class Engine {
+ public:
+  /// Opens (creating if needed) the data directory holding one folder per project.
+  static absl::StatusOr<std::unique_ptr<Engine>> Open(const std::filesystem::path& data_dir,
+                                                      const EngineLimits& limits = {});
+  ~Engine();
+
+  const EngineLimits& limits() const;
+
+  /// Project names: 1-63 characters of [a-z0-9._-], starting with a letter or digit.
+  absl::StatusOr<ProjectInfo> CreateProject(const std::string& name,
+                                            const store::ProjectSettings& settings);
+  absl::StatusOr<ProjectInfo> GetProject(const std::string& name);
+  absl::StatusOr<std::vector<ProjectInfo>> ListProjects();
+  absl::StatusOr<std::vector<store::ScanInfo>> ListScans(const std::string& project);
+
+  /// The ingest flow: validate (nothing is stored if this fails) → store blobs → voxelise →
+  /// normals → visibility → records → fuse → atomic commit. `progress` may be empty.
+  absl::StatusOr<IngestResult> IngestScan(const std::string& project, const ScanInput& scan,
+                                          const ProgressFn& progress = {});
+
+  /// The render flow (§8) on an immutable snapshot.
+  absl::StatusOr<RenderImage> Render(const std::string& project, const RenderRequest& request);
+
+  /// Record attributes of a version (0: HEAD) with type, codec and stride.
+  absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(const std::string& project,
+                                                                     int64_t version);
+  /// Directory of a committed version (0: HEAD) holding its .vdb files.
+  absl::StatusOr<std::filesystem::path> VersionDir(const std::string& project, int64_t version);
+
+ private:
+  struct Impl;
+  explicit Engine(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace vasl

@@ -1,0 +1,45 @@
+/// @file equirect.h
+/// @brief The equirectangular projection π_eqr of 360° panoramas (VASL-MODEL §2.1).
+/// @details Continuous pixel coordinates: pixel (i, j) spans [i, i+1) × [j, j+1) and has its
+///          centre at (i + 0.5, j + 0.5). Column 0 starts at azimuth +π (sensor −x), azimuth 0
+///          (sensor +x) is the image centre column, azimuth increases toward +y going left;
+///          row 0 looks up (+z). Columns wrap at the seam.
+#pragma once
+
+#include <cmath>
+
+#include <Eigen/Core>
+
+namespace vasl::geometry {
+
+/// Size of an equirectangular raster, pixels.
+struct EquirectSize {
+  int width_px = 0;   ///< W: columns, spanning 2π of azimuth.
+  int height_px = 0;  ///< H: rows, spanning π of elevation.
+};
+
+/// §2.1 forward: sensor-frame direction (need not be unit, must be non-zero) to continuous
+/// pixel coordinates (u, v) with u in [0, W) and v in [0, H].
+Eigen::Vector2d EquirectProject(const Eigen::Vector3d& d_sensor, const EquirectSize& size);
+
+/// §2.1 inverse: continuous pixel coordinates to a unit sensor-frame direction.
+Eigen::Vector3d EquirectUnproject(double u_px, double v_px, const EquirectSize& size);
+
+/// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1).
+Eigen::Vector2d EquirectAngles(const Eigen::Vector3d& d_sensor);
+
+/// Wraps a column index into [0, W) across the seam (§2.1).
+inline int WrapColumn(int i, int width_px) {
+  const int m = i % width_px;
+  return m < 0 ? m + width_px : m;
+}
+
+/// Angular pitch of one pixel: Δφ = 2π/W (azimuth), Δψ = π/H (elevation), radians.
+inline double AzimuthPitchRad(const EquirectSize& s) { return 2.0 * M_PI / s.width_px; }
+inline double ElevationPitchRad(const EquirectSize& s) { return M_PI / s.height_px; }
+
+/// §3: the angular sampling of one equirect pixel at elevation ψ,
+/// θ_pix = max(Δψ, cosψ·Δφ), radians.
+double EquirectPixelAngleRad(double elevation_rad, const EquirectSize& size);
+
+}  // namespace vasl::geometry

@@ -1,0 +1,47 @@
+/// @file scan_input.h
+/// @brief What a capture rig sends for one scan: LiDAR points, pose, sensor model, panoramas.
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "lattice/geometry/pose.h"
+#include "lattice/records/records.h"
+
+namespace vasl::ingest {
+
+/// LiDAR part of a scan: points in the sensor frame.
+struct LidarData {
+  std::vector<float> xyz_sensor_m;  ///< 3 floats per point, sensor frame, metres
+  std::vector<float> intensity;     ///< empty, or one per point (linear, any scale)
+  double divergence_rad = 0.3e-3;   ///< full beam divergence θ_div (§3)
+};
+
+/// One equirectangular panorama of a scan (§2.1), with its own pose.
+struct PanoramaData {
+  std::string name;                 ///< unique within the scan, e.g. "cam0"
+  geometry::Pose pose;              ///< T_world_camera; the panorama's sensor frame (§2.1)
+  records::Modality modality = records::Modality::kRgb;  ///< kRgb or kIr
+  std::string encoded_image;        ///< PNG, JPEG, EXR or TIFF bytes (OpenImageIO decodes)
+  double angular_resolution_rad = 0.0;  ///< 0: from the image size (§3 θ_pix)
+};
+
+/// One scan as sent by a capture rig.
+struct ScanInput {
+  std::string scan_name;            ///< client's scan id, unique in the project
+  std::string rig;                  ///< rig / device name (provenance)
+  std::string captured_utc;         ///< capture time, ISO 8601 (may be empty)
+  geometry::Pose pose;              ///< T_world_scanner of the LiDAR
+  LidarData lidar;
+  std::vector<PanoramaData> panoramas;
+};
+
+/// Progress of a long operation: stage name and fraction of the whole in [0, 1].
+struct Progress {
+  std::string stage;
+  double fraction = 0.0;
+};
+using ProgressFn = std::function<void(const Progress&)>;
+
+}  // namespace vasl::ingest

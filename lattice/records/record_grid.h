@@ -1,0 +1,46 @@
+/// @file record_grid.h
+/// @brief The records of a version as an OpenVDB PointDataGrid, and the geometry and fused
+///        values as plain OpenVDB grids (VASL-MODEL §6, RECORDS-NOTES.md).
+/// @details records.vdb holds one PointDataGrid "records": one point per record, position left
+///          uniform (records sit at vossel centres), attributes per §6 with quantising codecs.
+///          geometry.vdb holds "index" (Int32), "count" (Int32), "centroid" (Vec3s, world m),
+///          "normal" (Vec3s), "covariance_diag"/"covariance_off" (Vec3s, m²).
+///          fused-<profile>.vdb holds per modality "<modality>.value" (Vec3s or float),
+///          "<modality>.weight" and "<modality>.uncertainty" (float).
+///          All files open in `vdb_print`, Houdini and pyopenvdb.
+#pragma once
+
+#include <filesystem>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/records/records.h"
+
+namespace vasl::records {
+
+/// Writes geometry (all vossels) to `path` (geometry.vdb).
+absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path);
+/// Reads geometry.vdb; rebuilds the index grid and the flat arrays in vossel order.
+absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path);
+
+/// Writes the records as a PointDataGrid to `path` (records.vdb), blosc-compressed.
+/// `records` must be sorted by vossel (RecordSet::SortByVossel).
+absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& records,
+                          const std::filesystem::path& path);
+/// Reads records.vdb back into flat arrays (sorted by vossel), given the version's geometry.
+absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
+                                      const std::filesystem::path& path);
+/// Lists the attributes of the PointDataGrid in `path` with type, codec and stride.
+absl::StatusOr<std::vector<AttributeInfo>> ListRecordAttributes(const std::filesystem::path& path);
+
+/// Writes / reads fused values (fused-<profile>.vdb).
+absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused,
+                        const std::filesystem::path& path);
+absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
+                                      const std::filesystem::path& path);
+
+/// Rebuilds `geometry.index_grid` and renumbers vossels into canonical order (leaf order, then
+/// voxel offset) from `geometry.coord`; returns old→new index map. Arrays are permuted.
+std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry);
+
+}  // namespace vasl::records

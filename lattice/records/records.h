@@ -1,0 +1,122 @@
+/// @file records.h
+/// @brief In-memory layout of one project version: vossel geometry (VASL-MODEL §1), the
+///        observation records (§6) and the fused values (§7), as flat arrays.
+/// @details Hot loops (fusion, reweight, render) read these contiguous arrays. On disk the same
+///          data lives in OpenVDB files (records.vdb: a PointDataGrid, one point per record;
+///          geometry.vdb and fused-<profile>.vdb: plain grids), see record_grid.h.
+///
+///          Vossel order: vossel indices run over the index grid's leaf nodes in tree order and,
+///          inside a leaf, in voxel-offset order. Records are sorted by vossel index (then by
+///          scan), so that each leaf's records are contiguous per voxel in offset order, which is
+///          exactly what a PointDataGrid needs (RECORDS-NOTES pitfall 2).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <openvdb/openvdb.h>
+
+namespace vasl::records {
+
+/// What kind of observation a record holds (§6). The integer values are stored on disk.
+enum class Modality : int8_t {
+  kUnspecified = 0,
+  kLidar = 1,    ///< LiDAR return: value[0] = intensity
+  kRgb = 2,      ///< RGB camera: value[0..2] = linear R, G, B
+  kIr = 3,       ///< infrared camera: value[0]
+  kRadar = 4,    ///< radar amplitude: value[0]
+  kDerived = 5,  ///< back-projected (§10): value[0..2] = R, G, B
+};
+inline constexpr int kModalityCount = 6;
+
+/// Channels a modality fills in `value`.
+inline int ChannelCount(Modality m) { return (m == Modality::kRgb || m == Modality::kDerived) ? 3 : 1; }
+const char* ModalityName(Modality m);
+
+/// Bits of RecordSet::flags (§6).
+enum RecordFlag : int8_t {
+  kFlagDerived = 1 << 0,      ///< derived (back-projected) rather than raw
+  kFlagInvalidated = 1 << 1,  ///< excluded by a hard invalidation (e.g. flare)
+};
+
+/// Confidence factors kept apart per record (§6, §9), each in [0, 1].
+enum ConfidenceFactor : int { kConfSaturation = 0, kConfFlare = 1, kConfDirt = 2, kConfCodec = 3 };
+inline constexpr int kConfidenceCount = 4;
+inline constexpr int kValueChannels = 3;
+
+/// Geometry of the vossels of one version (§1), indexed by vossel index.
+struct VosselGeometry {
+  /// Vossel edge h, metres; the grid transform is createLinearTransform(h) (cell-centred).
+  double vossel_size_m = 0.02;
+  /// Active voxel value = vossel index; background -1. Its topology is the lattice.
+  openvdb::Int32Grid::Ptr index_grid;
+  /// Index-space coordinate k of each vossel; its centre is h·k (§1).
+  std::vector<openvdb::Coord> coord;
+  /// Number of measured points that fell in the vossel, all scans.
+  std::vector<int32_t> point_count;
+  /// Mean of the points in the vossel, world metres.
+  std::vector<Eigen::Vector3f> centroid_m;
+  /// Unit surface normal from PCA over the neighbourhood (§1); zero when undetermined.
+  std::vector<Eigen::Vector3f> normal;
+  /// Position covariance of the points in the vossel, world m², (xx, xy, xz, yy, yz, zz).
+  std::vector<std::array<float, 6>> covariance_m2;
+
+  size_t size() const { return coord.size(); }
+};
+
+/// The observation records of a version (§6), structure of arrays, sorted by (vossel, scan).
+struct RecordSet {
+  std::vector<int32_t> vossel;        ///< vossel index into VosselGeometry
+  std::vector<int32_t> scan;          ///< observation source id (catalog `sources.id`)
+  std::vector<int8_t> modality;       ///< Modality
+  std::vector<float> value;           ///< kValueChannels per record, linear radiometry
+  std::vector<float> range_m;         ///< r_{k,m}, metres
+  std::vector<float> cos_inc;         ///< cosθ_{k,m} in [0, 1]
+  std::vector<float> foot_major_m;    ///< s_major, metres (§3)
+  std::vector<float> foot_minor_m;    ///< s_minor, metres (§3)
+  std::vector<float> uv_px;           ///< 2 per record: continuous pixel coords in the source image
+  std::vector<float> vis;             ///< V_{k,m} in [0, 1] (§5)
+  std::vector<float> conf;            ///< kConfidenceCount per record, each in [0, 1] (§9)
+  std::vector<int8_t> flags;          ///< RecordFlag bits
+  std::vector<int32_t> batch;         ///< ingest or back-projection batch id
+
+  size_t size() const { return vossel.size(); }
+  void Reserve(size_t n);
+  void Resize(size_t n);
+  /// Appends record `i` of `other`.
+  void AppendFrom(const RecordSet& other, size_t i);
+  /// Reorders the records by (vossel, scan, modality); stable.
+  void SortByVossel();
+};
+
+/// Fused values of one modality under one profile (§7), per vossel.
+struct FusedModality {
+  int channels = 0;
+  std::vector<float> value;        ///< channels per vossel: C_k
+  std::vector<float> weight;       ///< Σ_m w_{k,m}; 0 where the vossel has no usable record
+  std::vector<float> uncertainty;  ///< U_k (§7)
+};
+
+/// All fused values of a version under one weighting profile (§7).
+struct FusedValues {
+  std::string profile;                     ///< profile name
+  std::map<Modality, FusedModality> by_modality;
+};
+
+}  // namespace vasl::records
+
+namespace vasl::records {
+
+/// One attribute of the record PointDataGrid as stored on disk (what `vasl inspect` lists).
+struct AttributeInfo {
+  std::string name;   ///< attribute name, e.g. "range"
+  std::string type;   ///< value type name, e.g. "float", "vec3s", "int16"
+  std::string codec;  ///< codec name, e.g. "null", "trnc", "ufxpt8"
+  int stride = 1;     ///< values per record
+};
+
+}  // namespace vasl::records

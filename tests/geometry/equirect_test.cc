@@ -1,0 +1,127 @@
+// VASL-MODEL §2.1 equirectangular projection, §2.2 pinhole projection.
+#include "lattice/geometry/equirect.h"
+
+#include <random>
+
+#include <gtest/gtest.h>
+
+#include "lattice/geometry/pinhole.h"
+#include "lattice/geometry/pose.h"
+
+namespace vasl::geometry {
+namespace {
+
+double AngleBetween(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+  return std::atan2(a.cross(b).norm(), a.dot(b));
+}
+
+// Claim (§2.1): π_eqr⁻¹(π_eqr(d)) = d for every direction; tolerance 1e-9 rad.
+TEST(EquirectTest, ForwardInverseRoundTrip) {
+  std::mt19937_64 rng(7);
+  std::normal_distribution<double> n(0.0, 1.0);
+  const EquirectSize size{4096, 2048};
+  double worst = 0.0;
+  for (int i = 0; i < 100000; ++i) {
+    const Eigen::Vector3d d = Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+    const Eigen::Vector2d uv = EquirectProject(d, size);
+    ASSERT_GE(uv.x(), 0.0);
+    ASSERT_LT(uv.x(), size.width_px);
+    ASSERT_GE(uv.y(), 0.0);
+    ASSERT_LE(uv.y(), size.height_px);
+    worst = std::max(worst, AngleBetween(d, EquirectUnproject(uv.x(), uv.y(), size)));
+  }
+  std::printf("equirect round trip: worst angular error %.3g rad over 100000 directions\n", worst);
+  EXPECT_LT(worst, 1e-9);
+}
+
+// Claim (§2.1): the axis conventions: +x at the centre column, +y to the left of it (u < W/2),
+// row 0 looks up, and pixel centres sit at half-integer coordinates.
+TEST(EquirectTest, AxisConventions) {
+  const EquirectSize size{360, 180};
+  EXPECT_NEAR(EquirectProject({1, 0, 0}, size).x(), 180.0, 1e-12);
+  EXPECT_NEAR(EquirectProject({1, 0, 0}, size).y(), 90.0, 1e-12);
+  EXPECT_NEAR(EquirectProject({0, 1, 0}, size).x(), 90.0, 1e-12);
+  EXPECT_NEAR(EquirectProject({0, -1, 0}, size).x(), 270.0, 1e-12);
+  EXPECT_NEAR(EquirectProject({0, 0, 1}, size).y(), 0.0, 1e-12);
+  EXPECT_NEAR(EquirectProject({0, 0, -1}, size).y(), 180.0, 1e-12);
+  // Centre of pixel (0, 0): the first column's middle azimuth, just below the zenith.
+  const Eigen::Vector2d a = EquirectAngles(EquirectUnproject(0.5, 0.5, size));
+  EXPECT_NEAR(a[0], M_PI - M_PI / 360.0, 1e-12);
+  EXPECT_NEAR(a[1], M_PI / 2 - M_PI / 360.0, 1e-12);
+}
+
+// Claim (§2.1): columns wrap at the seam. Directions just either side of azimuth ±π land at
+// u ≈ 0 and u ≈ W, and WrapColumn maps neighbours across the seam to adjacent columns.
+TEST(EquirectTest, SeamWrap) {
+  const EquirectSize size{1000, 500};
+  const double eps = 1e-6;
+  const Eigen::Vector2d left = EquirectProject({-1, std::sin(eps), 0}, size);   // φ = π − ε
+  const Eigen::Vector2d right = EquirectProject({-1, -std::sin(eps), 0}, size);  // φ = −π + ε
+  EXPECT_NEAR(left.x(), 0.0, 1e-3);
+  EXPECT_NEAR(right.x(), size.width_px, 1e-3);
+  EXPECT_LT(right.x(), size.width_px);
+  // Exactly at the seam φ = −π is mapped into [0, W).
+  const Eigen::Vector2d seam = EquirectProject({-1, -0.0, 0}, size);
+  EXPECT_GE(seam.x(), 0.0);
+  EXPECT_LT(seam.x(), size.width_px);
+  EXPECT_EQ(WrapColumn(-1, 1000), 999);
+  EXPECT_EQ(WrapColumn(1000, 1000), 0);
+  EXPECT_EQ(WrapColumn(2003, 1000), 3);
+  // The unprojection of u and u + W is the same direction.
+  EXPECT_LT(AngleBetween(EquirectUnproject(3.25, 100.5, size),
+                         EquirectUnproject(3.25 + size.width_px, 100.5, size)),
+            1e-12);
+}
+
+// Claim (§3): θ_pix = max(Δψ, cosψ·Δφ).
+TEST(EquirectTest, PixelAngleUsesMetricFactor) {
+  const EquirectSize size{2000, 1000};  // Δφ = Δψ = π/1000
+  EXPECT_NEAR(EquirectPixelAngleRad(0.0, size), M_PI / 1000, 1e-15);
+  EXPECT_NEAR(EquirectPixelAngleRad(1.2, size), M_PI / 1000, 1e-15);  // Δψ dominates off the equator
+  const EquirectSize wide{1000, 1000};  // Δφ = 2π/1000 > Δψ
+  EXPECT_NEAR(EquirectPixelAngleRad(0.3, wide), std::cos(0.3) * 2 * M_PI / 1000, 1e-15);
+}
+
+// Claim (§2.2): pinhole project → unproject returns the ray, with distortion, to 1e-9 rad.
+TEST(PinholeTest, ForwardInverseRoundTrip) {
+  PinholeIntrinsics k;
+  k.width_px = 4000;
+  k.height_px = 3000;
+  k.fx_px = 2900;
+  k.fy_px = 2910;
+  k.cx_px = 2001.5;
+  k.cy_px = 1498.25;
+  k.k1 = -0.08;
+  k.k2 = 0.02;
+  k.k3 = -0.001;
+  k.p1 = 2e-4;
+  k.p2 = -1e-4;
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> u(0.0, k.width_px), v(0.0, k.height_px);
+  double worst = 0.0;
+  for (int i = 0; i < 20000; ++i) {
+    const Eigen::Vector3d ray = PinholeUnproject({u(rng), v(rng)}, k);
+    const auto uv = PinholeProject(ray * 7.3, k);
+    ASSERT_TRUE(uv.has_value());
+    worst = std::max(worst, AngleBetween(ray, PinholeUnproject(*uv, k)));
+  }
+  std::printf("pinhole round trip: worst angular error %.3g rad\n", worst);
+  EXPECT_LT(worst, 1e-9);
+  EXPECT_FALSE(PinholeProject({0, 0, -1}, k).has_value());
+}
+
+// Claim (§2): a pose maps sensor to world and back; NaN in a pose is rejected.
+TEST(PoseTest, RoundTripAndValidation) {
+  auto pose = MakePose({1, 2, 3}, {0.1, -0.2, 0.3, 0.9});
+  ASSERT_TRUE(pose.ok());
+  const Eigen::Vector3d p(0.4, -5, 2);
+  EXPECT_LT((pose->WorldToSensor(pose->SensorToWorld(p)) - p).norm(), 1e-12);
+  EXPECT_EQ(MakePose({NAN, 0, 0}, {0, 0, 0, 1}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(MakePose({0, 0, 0}, {0, 0, 0, 0}).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(MakePose({0, 0, 0}, {0, NAN, 0, 1}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace vasl::geometry
