@@ -1,0 +1,132 @@
+#include "lattice/fusion/fuse.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/fusion/weight.h"
+#include "lattice/geometry/footprint.h"
+
+namespace vasl::fusion {
+
+using records::Modality;
+
+absl::Status ValidateProfile(const WeightingProfile& p) {
+  const auto bad = [&p](const char* what) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("weighting profile '", p.name, "': ", what));
+  };
+  for (double e : {p.alpha, p.beta, p.rho, p.lambda_src, p.theta_max_rad, p.proximity_m}) {
+    if (!std::isfinite(e) || e < 0.0) return bad("exponents, λ_src, θ_max and ρ_p must be finite and ≥ 0");
+  }
+  for (double k : p.kappa) {
+    if (!std::isfinite(k) || k < 0.0) return bad("confidence exponents κ must be finite and ≥ 0");
+  }
+  if (!(p.v_min >= 0.0 && p.v_min <= 1.0)) return bad("V_min must lie in [0, 1]");
+  for (const auto& [scan, g] : p.scan_gain) {
+    if (!std::isfinite(g) || g < 0.0) return bad("scan gains g_m must be finite and ≥ 0");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t vossel_count,
+                                          double vossel_size_m, const WeightingProfile& profile) {
+  if (absl::Status s = ValidateProfile(profile); !s.ok()) return s;
+  const size_t n = recs.size();
+  // Offsets of each vossel's records (records are sorted by vossel).
+  std::vector<size_t> begin(vossel_count + 1, 0);
+  for (size_t i = 0; i < n; ++i) {
+    const int32_t k = recs.vossel[i];
+    if (k < 0 || size_t(k) >= vossel_count || (i > 0 && recs.vossel[i - 1] > k)) {
+      return absl::InternalError("Fuse: records are not sorted by a valid vossel index");
+    }
+    ++begin[size_t(k) + 1];
+  }
+  for (size_t k = 0; k < vossel_count; ++k) begin[k + 1] += begin[k];
+
+  bool present[records::kModalityCount] = {};
+  for (int8_t m : recs.modality) present[int(FusedChannelOf(Modality(m)))] = true;
+  records::FusedValues out;
+  out.profile = profile.name;
+  records::FusedModality* channel[records::kModalityCount] = {};
+  for (int m = 1; m < records::kModalityCount; ++m) {
+    if (!present[m]) continue;
+    records::FusedModality& f = out.by_modality[Modality(m)];
+    f.channels = records::ChannelCount(Modality(m));
+    f.value.assign(vossel_count * f.channels, 0.0f);
+    f.weight.assign(vossel_count, 0.0f);
+    f.uncertainty.assign(vossel_count, 0.0f);
+    channel[m] = &f;
+  }
+  const double target_m = geometry::TargetResolutionM(vossel_size_m);
+
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
+                    [&](const tbb::blocked_range<size_t>& range) {
+    for (size_t k = range.begin(); k != range.end(); ++k) {
+      const size_t b = begin[k], e = begin[k + 1];
+      if (b == e) continue;
+      double range_min[records::kModalityCount];
+      std::fill(std::begin(range_min), std::end(range_min), HUGE_VAL);
+      if (profile.proximity_m > 0.0) {
+        for (size_t i = b; i < e; ++i) {
+          const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+          range_min[c] = std::min(range_min[c], double(recs.range_m[i]));
+        }
+      }
+      double sum_w[records::kModalityCount] = {};
+      double sum_wc[records::kModalityCount][records::kValueChannels] = {};
+      double sum_wcc[records::kModalityCount][records::kValueChannels] = {};
+      double best_w[records::kModalityCount] = {};
+      size_t best_i[records::kModalityCount] = {};
+      for (size_t i = b; i < e; ++i) {
+        if (recs.flags[i] & records::kFlagInvalidated) continue;
+        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+        const auto g = profile.scan_gain.find(recs.scan[i]);
+        WeightInputs in;
+        in.vis = recs.vis[i];
+        in.cos_inc = recs.cos_inc[i];
+        in.foot_major_m = recs.foot_major_m[i];
+        in.foot_minor_m = recs.foot_minor_m[i];
+        in.conf = &recs.conf[i * records::kConfidenceCount];
+        in.scan = recs.scan[i];
+        in.derived = (recs.flags[i] & records::kFlagDerived) != 0;
+        in.range_m = recs.range_m[i];
+        in.range_min_m = float(range_min[c]);
+        const double w = RecordWeight(profile, in, target_m,
+                                      g == profile.scan_gain.end() ? 1.0 : g->second);
+        if (!(w > 0.0)) continue;
+        const float* v = &recs.value[i * records::kValueChannels];
+        sum_w[c] += w;
+        for (int ch = 0; ch < records::kValueChannels; ++ch) {
+          sum_wc[c][ch] += w * v[ch];
+          sum_wcc[c][ch] += w * double(v[ch]) * v[ch];
+        }
+        if (w > best_w[c]) {
+          best_w[c] = w;
+          best_i[c] = i;
+        }
+      }
+      for (int c = 1; c < records::kModalityCount; ++c) {
+        if (!(sum_w[c] > 0.0)) continue;
+        records::FusedModality& f = *channel[c];
+        double variance = 0.0;
+        for (int ch = 0; ch < f.channels; ++ch) {
+          const double mean = sum_wc[c][ch] / sum_w[c];
+          variance += std::max(0.0, sum_wcc[c][ch] / sum_w[c] - mean * mean);
+          f.value[k * f.channels + ch] = float(
+              profile.mode == FusionMode::kNearest ? recs.value[best_i[c] * records::kValueChannels + ch]
+                                                   : mean);
+        }
+        variance /= f.channels;
+        f.weight[k] = float(sum_w[c]);
+        f.uncertainty[k] = float(std::sqrt(variance + 1.0 / sum_w[c]));  // spread ⊕ 1/sqrt(Σw)
+      }
+    }
+  });
+  return out;
+}
+
+}  // namespace vasl::fusion

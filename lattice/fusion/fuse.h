@@ -1,0 +1,25 @@
+/// @file fuse.h
+/// @brief Fusion and reweighting (VASL-MODEL §7): one pass over the records.
+#pragma once
+
+#include "absl/status/statusor.h"
+#include "lattice/fusion/profile.h"
+#include "lattice/records/records.h"
+
+namespace vasl::fusion {
+
+/// The channel a record fuses into: derived records fuse into the RGB channels they edit (§10),
+/// every other modality into its own (§7).
+inline records::Modality FusedChannelOf(records::Modality m) {
+  return m == records::Modality::kDerived ? records::Modality::kRgb : m;
+}
+
+/// §7 fusion: for every vossel and channel, C_k = Σ w C / Σ w and
+/// U_k = sqrt(Σ w (C − C_k)² / Σ w) ⊕ 1/sqrt(Σ w) (the spread taken over the channels' mean),
+/// with w from RecordWeight. Reads records only: no visibility, projection or image sampling.
+/// `records` must be sorted by vossel. Parallel over vossels (TBB).
+/// Reweighting a stored project is this call with another profile.
+absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& records, size_t vossel_count,
+                                          double vossel_size_m, const WeightingProfile& profile);
+
+}  // namespace vasl::fusion
