@@ -1,0 +1,90 @@
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/ingest/sources.h"
+
+namespace vasl::ingest {
+namespace {
+
+// The sRGB EOTF (IEC 61966-2-1), encoded [0,1] → linear.
+float SrgbToLinear(float c) {
+  return c <= 0.04045f ? c / 12.92f : std::pow((c + 0.055f) / 1.055f, 2.4f);
+}
+
+// A file-name extension OpenImageIO can pick a reader by, from the magic bytes.
+const char* SniffExtension(std::string_view b) {
+  auto starts = [&b](std::string_view magic) {
+    return b.size() >= magic.size() && b.substr(0, magic.size()) == magic;
+  };
+  if (starts("\x89PNG")) return ".png";
+  if (starts("\xFF\xD8\xFF")) return ".jpg";
+  if (starts(std::string_view("\x76\x2f\x31\x01", 4))) return ".exr";
+  if (starts(std::string_view("II*\0", 4)) || starts(std::string_view("MM\0*", 4))) return ".tif";
+  return nullptr;
+}
+
+}  // namespace
+
+absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
+                                        int64_t max_pixels) {
+  using namespace OIIO;
+  const char* ext = SniffExtension(bytes);
+  if (ext == nullptr) {
+    return absl::InvalidArgumentError(
+        "image bytes are not PNG, JPEG, EXR or TIFF (unrecognised signature)");
+  }
+  // OpenImageIO reads these formats from memory through an IOProxy.
+  Filesystem::IOMemReader reader(const_cast<char*>(bytes.data()), bytes.size());
+  ImageSpec config;
+  config.attribute("oiio:ioproxy", TypeDesc::PTR, &reader);
+  std::unique_ptr<ImageInput> in = ImageInput::open(std::string("memory") + ext, &config);
+  if (!in) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("image bytes do not decode as ", ext + 1, ": ", OIIO::geterror()));
+  }
+  const ImageSpec& spec = in->spec();
+  if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
+    return absl::InvalidArgumentError("decoded image is empty");
+  }
+  if (int64_t(spec.width) * spec.height > max_pixels) {
+    return absl::ResourceExhaustedError(absl::StrCat("image of ", spec.width, "x", spec.height,
+                                                     " pixels exceeds the limit of ", max_pixels));
+  }
+  std::vector<float> all(size_t(spec.width) * spec.height * spec.nchannels);
+  if (!in->read_image(0, 0, 0, spec.nchannels, TypeDesc::FLOAT, all.data())) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("image bytes do not decode: ", in->geterror()));
+  }
+  in->close();
+  const bool is_float = spec.format.basetype == TypeDesc::FLOAT ||
+                        spec.format.basetype == TypeDesc::HALF ||
+                        spec.format.basetype == TypeDesc::DOUBLE;
+  const std::string color_space = spec.get_string_attribute("oiio:ColorSpace");
+  const bool linear_already = is_float || color_space == "Linear" || color_space == "linear";
+
+  LinearImage out;
+  out.width_px = spec.width;
+  out.height_px = spec.height;
+  out.channels = single_channel ? 1 : 3;
+  out.clip_value = is_float ? 0.0f : 1.0f;
+  const size_t n = size_t(spec.width) * spec.height;
+  out.pixels.resize(n * out.channels);
+  const int nc = spec.nchannels;
+  for (size_t p = 0; p < n; ++p) {
+    for (int c = 0; c < out.channels; ++c) {
+      const float v = all[p * nc + (nc >= 3 ? c : 0)];  // gray (± alpha) is replicated
+      out.pixels[p * out.channels + c] = linear_already ? v : SrgbToLinear(v);
+    }
+  }
+  return out;
+}
+
+}  // namespace vasl::ingest

@@ -1,0 +1,238 @@
+#include "lattice/ingest/sample.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include "lattice/geometry/footprint.h"
+
+namespace vasl::ingest {
+namespace {
+
+using records::RecordSet;
+
+// Bilinear read of a linear image at continuous pixel coordinates (§2.1: pixel centres at
+// half-integers); columns wrap across the seam, rows clamp.
+void SampleBilinear(const LinearImage& img, double u, double v, float* out, bool* clipped) {
+  const double x = u - 0.5, y = v - 0.5;
+  const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
+  const double fx = x - i0, fy = y - j0;
+  const int W = img.width_px, H = img.height_px, C = img.channels;
+  const int ia = geometry::WrapColumn(i0, W), ib = geometry::WrapColumn(i0 + 1, W);
+  const int ja = std::clamp(j0, 0, H - 1), jb = std::clamp(j0 + 1, 0, H - 1);
+  const float* p00 = &img.pixels[(size_t(ja) * W + ia) * C];
+  const float* p10 = &img.pixels[(size_t(ja) * W + ib) * C];
+  const float* p01 = &img.pixels[(size_t(jb) * W + ia) * C];
+  const float* p11 = &img.pixels[(size_t(jb) * W + ib) * C];
+  bool clip = false;
+  for (int c = 0; c < C; ++c) {
+    out[c] = float((1 - fy) * ((1 - fx) * p00[c] + fx * p10[c]) + fy * ((1 - fx) * p01[c] + fx * p11[c]));
+    if (img.clip_value > 0.0f) {
+      const float lim = 0.999f * img.clip_value;
+      clip |= p00[c] >= lim || p10[c] >= lim || p01[c] >= lim || p11[c] >= lim;
+    }
+  }
+  *clipped = clip;
+}
+
+// Appends one record with every field set.
+void PushRecord(RecordSet& s, int32_t vossel, int32_t scan, records::Modality m,
+                const float* value, int channels, double range, double cos_inc,
+                const geometry::SurfaceFootprint& foot, const Eigen::Vector2d& uv, float vis,
+                float conf_saturation, int32_t batch) {
+  s.vossel.push_back(vossel);
+  s.scan.push_back(scan);
+  s.modality.push_back(int8_t(m));
+  for (int c = 0; c < records::kValueChannels; ++c) s.value.push_back(c < channels ? value[c] : 0.0f);
+  s.range_m.push_back(float(range));
+  s.cos_inc.push_back(float(cos_inc));
+  s.foot_major_m.push_back(float(foot.major_m));
+  s.foot_minor_m.push_back(float(foot.minor_m));
+  s.uv_px.push_back(float(uv.x()));
+  s.uv_px.push_back(float(uv.y()));
+  s.vis.push_back(vis);
+  s.conf.push_back(conf_saturation);
+  for (int f = 1; f < records::kConfidenceCount; ++f) s.conf.push_back(1.0f);
+  s.flags.push_back(0);
+  s.batch.push_back(batch);
+}
+
+// Concatenates thread-local record sets.
+RecordSet Concatenate(tbb::enumerable_thread_specific<RecordSet>& parts) {
+  RecordSet out;
+  size_t n = 0;
+  for (const RecordSet& p : parts) n += p.size();
+  out.Reserve(n);
+  for (const RecordSet& p : parts)
+    for (size_t i = 0; i < p.size(); ++i) out.AppendFrom(p, i);
+  return out;
+}
+
+// Unit normal of vossel k, or the direction toward `o` when the vossel has none.
+Eigen::Vector3d NormalOr(const records::VosselGeometry& g, size_t k, const Eigen::Vector3d& toward) {
+  const Eigen::Vector3d n = g.normal[k].cast<double>();
+  return n.squaredNorm() > 0.5 ? n : toward;
+}
+
+}  // namespace
+
+RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
+                       const std::vector<float>& vis) {
+  const geometry::EquirectSize size{cam.image.width_px, cam.image.height_px};
+  const double target = geometry::TargetResolutionM(g.vossel_size_m);
+  const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
+  // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
+  const double node[3] = {-std::sqrt(3.0), 0.0, std::sqrt(3.0)};
+  const double weight[3] = {1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0};
+  tbb::enumerable_thread_specific<RecordSet> parts;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 2048), [&](const tbb::blocked_range<size_t>& r) {
+    RecordSet& out = parts.local();
+    for (size_t k = r.begin(); k != r.end(); ++k) {
+      if (!(vis[k] > 0.0f)) continue;
+      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
+      const Eigen::Vector3d to_cam = cam.pose.o_world - x;
+      const double range = to_cam.norm();
+      if (range < 1e-3) continue;
+      const Eigen::Vector3d v_hat = to_cam / range;
+      const Eigen::Vector3d n = NormalOr(g, k, v_hat);
+      const double cos_inc = geometry::CosIncidence(n, x, cam.pose.o_world);  // §3
+      const Eigen::Vector3d d_cam = R_cam_world * (x - cam.pose.o_world);
+      const Eigen::Vector2d uv = geometry::EquirectProject(d_cam, size);
+      const double psi = std::asin(std::clamp(d_cam.z() / range, -1.0, 1.0));
+      const double theta_pix = cam.angular_resolution_rad > 0.0
+                                   ? cam.angular_resolution_rad
+                                   : geometry::EquirectPixelAngleRad(psi, size);  // §3
+      const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, theta_pix, cos_inc);
+      const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
+      const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
+      float value[3] = {0, 0, 0};
+      double clipped_weight = 0.0;
+      if (sk_major == 0.0 && sk_minor == 0.0) {
+        bool clipped;
+        SampleBilinear(cam.image, uv.x(), uv.y(), value, &clipped);
+        clipped_weight = clipped ? 1.0 : 0.0;
+      } else {
+        // Major axis: the view direction projected on the tangent plane (§3).
+        Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;
+        if (t_major.squaredNorm() < 1e-12) {
+          t_major = n.cross(std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY());
+        }
+        t_major.normalize();
+        const Eigen::Vector3d t_minor = n.cross(t_major);
+        double acc[3] = {0, 0, 0};
+        for (int a = 0; a < 3; ++a) {
+          for (int b = 0; b < 3; ++b) {
+            const Eigen::Vector3d p = x + node[a] * sk_major * t_major + node[b] * sk_minor * t_minor;
+            const Eigen::Vector2d q = geometry::EquirectProject(R_cam_world * (p - cam.pose.o_world), size);
+            float s[3];
+            bool clipped;
+            SampleBilinear(cam.image, q.x(), q.y(), s, &clipped);
+            const double w = weight[a] * weight[b];
+            for (int c = 0; c < cam.image.channels; ++c) acc[c] += w * s[c];
+            if (clipped) clipped_weight += w;
+          }
+        }
+        for (int c = 0; c < 3; ++c) value[c] = float(acc[c]);
+      }
+      PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.image.channels, range, cos_inc,
+                 foot, uv, vis[k], float(1.0 - clipped_weight), cam.batch);
+    }
+  });
+  return Concatenate(parts);
+}
+
+RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar,
+                      const DepthPanorama& depth, const std::vector<float>& vis) {
+  const size_t nv = g.size();
+  const double h = g.vossel_size_m;
+  // Mean intensity of this LiDAR's returns per vossel (thread-local dense sums).
+  struct Sums {
+    std::vector<double> sum;
+    std::vector<int32_t> count;
+  };
+  tbb::enumerable_thread_specific<Sums> local([nv] { return Sums{std::vector<double>(nv, 0.0), std::vector<int32_t>(nv, 0)}; });
+  const Eigen::Matrix3d R = lidar.pose.q_world_sensor.toRotationMatrix();
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, lidar.point_count(), 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
+    Sums& s = local.local();
+    auto acc = g.index_grid->getConstAccessor();
+    for (size_t i = r.begin(); i != r.end(); ++i) {
+      const Eigen::Vector3d p(lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1], lidar.xyz_sensor_m[3 * i + 2]);
+      if (p.x() == 0.0 && p.y() == 0.0 && p.z() == 0.0) continue;  // "no return" marker
+      const Eigen::Vector3d x = R * p + lidar.pose.o_world;
+      // Same binning as BuildGeometry, in float like it, so that every return finds its vossel.
+      const Eigen::Vector3f xf = x.cast<float>();
+      const openvdb::Coord c(int(std::round(xf.x() / h)), int(std::round(xf.y() / h)), int(std::round(xf.z() / h)));
+      int32_t k;
+      if (!acc.probeValue(c, k)) continue;
+      s.sum[k] += lidar.intensity.empty() ? 1.0 : double(lidar.intensity[i]);
+      ++s.count[k];
+    }
+  });
+  std::vector<double> sum(nv, 0.0);
+  std::vector<int32_t> count(nv, 0);
+  for (const Sums& s : local) {
+    for (size_t k = 0; k < nv; ++k) {
+      sum[k] += s.sum[k];
+      count[k] += s.count[k];
+    }
+  }
+  const Eigen::Matrix3d R_sensor_world = R.transpose();
+  tbb::enumerable_thread_specific<RecordSet> parts;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 2048), [&](const tbb::blocked_range<size_t>& r) {
+    RecordSet& out = parts.local();
+    for (size_t k = r.begin(); k != r.end(); ++k) {
+      if (count[k] == 0 || !(vis[k] > 0.0f)) continue;
+      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
+      const Eigen::Vector3d to_sensor = lidar.pose.o_world - x;
+      const double range = to_sensor.norm();
+      if (range < 1e-3) continue;
+      const Eigen::Vector3d n = NormalOr(g, k, to_sensor / range);
+      const double cos_inc = geometry::CosIncidence(n, x, lidar.pose.o_world);
+      const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, lidar.divergence_rad, cos_inc);
+      const Eigen::Vector2d uv = geometry::EquirectProject(R_sensor_world * (x - lidar.pose.o_world), depth.size);
+      const float value = float(sum[k] / count[k]);
+      PushRecord(out, int32_t(k), lidar.id, records::Modality::kLidar, &value, 1, range, cos_inc, foot, uv,
+                 vis[k], 1.0f, lidar.batch);
+    }
+  });
+  return Concatenate(parts);
+}
+
+RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
+                       const std::function<void(size_t, size_t)>& on_source) {
+  const double tau = DepthToleranceM(g.vossel_size_m);
+  const size_t total = sources.lidars.size() + sources.cameras.size();
+  size_t done = 0;
+  std::vector<RecordSet> parts;
+  for (const LidarSource& lidar : sources.lidars) {
+    // Pixel pitch of the scan: its returns spread over the sphere, W·H ≈ 2·H² ≈ points.
+    const double pitch = M_PI / std::sqrt(std::max<double>(lidar.point_count(), 2048) / 2.0);
+    const DepthPanorama depth = RenderDepthPanorama(g, lidar.pose, DepthPanoramaSize(pitch), lidar.divergence_rad);
+    parts.push_back(SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau)));
+    if (on_source) on_source(++done, total);
+  }
+  for (const CameraSource& cam : sources.cameras) {
+    const geometry::EquirectSize image_size{cam.image.width_px, cam.image.height_px};
+    const double pitch = cam.angular_resolution_rad > 0.0 ? cam.angular_resolution_rad
+                                                          : geometry::ElevationPitchRad(image_size);
+    const double dilation = cam.angular_resolution_rad > 0.0
+                                ? cam.angular_resolution_rad
+                                : geometry::EquirectPixelAngleRad(0.0, image_size);
+    const DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
+    parts.push_back(SampleCamera(g, cam, ComputeVisibility(g, depth, tau)));
+    if (on_source) on_source(++done, total);
+  }
+  RecordSet all;
+  size_t n = 0;
+  for (const RecordSet& p : parts) n += p.size();
+  all.Reserve(n);
+  for (const RecordSet& p : parts)
+    for (size_t i = 0; i < p.size(); ++i) all.AppendFrom(p, i);
+  all.SortByVossel();
+  return all;
+}
+
+}  // namespace vasl::ingest

@@ -1,0 +1,59 @@
+/// @file sources.h
+/// @brief Decoded observation sources as the ingest stages consume them: the LiDAR of a scan
+///        (points in its sensor frame) and its cameras (linear images), each with its pose and
+///        its source id (the `scan` field of its records, VASL-MODEL §6).
+#pragma once
+
+#include <cstdint>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/geometry/pose.h"
+#include "lattice/records/records.h"
+
+namespace vasl::ingest {
+
+/// A decoded image, row-major, row 0 at the top, linear radiometry.
+struct LinearImage {
+  int width_px = 0;
+  int height_px = 0;
+  int channels = 0;            ///< 1 or 3
+  std::vector<float> pixels;   ///< width·height·channels values
+  float clip_value = 0.0f;     ///< linear value at which the encoding clips (1 for 8/16-bit); 0: none
+};
+
+/// Decodes PNG, JPEG, EXR or TIFF bytes with OpenImageIO. Integer encodings are taken as sRGB
+/// and linearised; float encodings are linear already. Keeps 3 channels (gray is replicated)
+/// or, with `single_channel`, the first. INVALID_ARGUMENT when the bytes do not decode or the
+/// image is empty; RESOURCE_EXHAUSTED above `max_pixels`.
+absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
+                                        int64_t max_pixels);
+
+/// The LiDAR of a scan.
+struct LidarSource {
+  int32_t id = 0;                     ///< source id (record `scan`)
+  int32_t batch = 0;                  ///< batch of its records
+  geometry::Pose pose;                ///< T_world_scanner
+  double divergence_rad = 0.3e-3;     ///< θ_div (§3)
+  std::vector<float> xyz_sensor_m;    ///< 3 per point, sensor frame
+  std::vector<float> intensity;       ///< 1 per point; empty: every return counts as 1
+  size_t point_count() const { return xyz_sensor_m.size() / 3; }
+};
+
+/// An equirectangular camera of a scan (§2.1).
+struct CameraSource {
+  int32_t id = 0;                     ///< source id (record `scan`)
+  int32_t batch = 0;
+  geometry::Pose pose;                ///< T_world_camera
+  records::Modality modality = records::Modality::kRgb;
+  LinearImage image;
+  double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
+};
+
+struct SourceSet {
+  std::vector<LidarSource> lidars;
+  std::vector<CameraSource> cameras;
+};
+
+}  // namespace vasl::ingest

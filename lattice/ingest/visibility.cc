@@ -1,0 +1,157 @@
+#include "lattice/ingest/visibility.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <memory>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+namespace vasl::ingest {
+namespace {
+
+uint32_t FloatBits(float f) {
+  uint32_t u;
+  std::memcpy(&u, &f, 4);
+  return u;
+}
+float BitsFloat(uint32_t u) {
+  float f;
+  std::memcpy(&f, &u, 4);
+  return f;
+}
+
+// Two unit vectors orthogonal to n (unit) and to each other.
+void TangentBasis(const Eigen::Vector3d& n, Eigen::Vector3d& t1, Eigen::Vector3d& t2) {
+  const Eigen::Vector3d a = std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+  t1 = n.cross(a).normalized();
+  t2 = n.cross(t1);
+}
+
+}  // namespace
+
+geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
+  int height = int(std::lround(M_PI / std::max(pitch_rad, 1e-6)));
+  height = std::clamp(height, 32, max_width_px / 2);
+  return {2 * height, height};
+}
+
+DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geometry::Pose& pose,
+                                  const geometry::EquirectSize& size, double divergence_rad) {
+  DepthPanorama out;
+  out.pose = pose;
+  out.size = size;
+  const int W = size.width_px, H = size.height_px;
+  const size_t npix = size_t(W) * H;
+  std::unique_ptr<std::atomic<uint32_t>[]> depth(new std::atomic<uint32_t>[npix]);
+  const uint32_t inf_bits = FloatBits(std::numeric_limits<float>::infinity());
+  for (size_t p = 0; p < npix; ++p) depth[p].store(inf_bits, std::memory_order_relaxed);
+
+  // Pixel-centre directions, separable: d = (cosψ cosφ, cosψ sinφ, sinψ).
+  std::vector<double> cos_phi(W), sin_phi(W), cos_psi(H), sin_psi(H);
+  for (int i = 0; i < W; ++i) {
+    const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+    cos_phi[i] = std::cos(phi);
+    sin_phi[i] = std::sin(phi);
+  }
+  for (int j = 0; j < H; ++j) {
+    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    cos_psi[j] = std::cos(psi);
+    sin_psi[j] = std::sin(psi);
+  }
+  const double h = g.vossel_size_m;
+  const double sphere_m = 0.5 * std::sqrt(3.0) * h;
+  const double dpsi = geometry::ElevationPitchRad(size), dphi = geometry::AzimuthPitchRad(size);
+  const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.conjugate().toRotationMatrix();
+
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t k = r.begin(); k != r.end(); ++k) {
+      const Eigen::Vector3d centre = h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z());
+      const Eigen::Vector3d c_s = R_sensor_world * (centre - pose.o_world);
+      const double range = c_s.norm();
+      if (range <= sphere_m) continue;  // the sensor sits inside this vossel
+      const Eigen::Vector3d d = c_s / range;
+      const Eigen::Vector3d x_s = R_sensor_world * (g.centroid_m[k].cast<double>() - pose.o_world);
+      const Eigen::Vector3d n_s = R_sensor_world * g.normal[k].cast<double>();
+      const bool has_plane = n_s.squaredNorm() > 0.5;
+      const double plane_d = n_s.dot(x_s);
+      // Angular radius: the bounding sphere plus the footprint dilation σ(r)/r = tan(θ/2).
+      const double a = std::asin(std::min(1.0, sphere_m / range)) + 0.5 * divergence_rad;
+      const double cos_a = std::cos(a);
+      const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
+      const double psi = std::asin(std::clamp(d.z(), -1.0, 1.0));
+      const int j0 = std::max(0, int(std::floor(uv.y() - a / dpsi)) - 1);
+      const int j1 = std::min(H - 1, int(std::floor(uv.y() + a / dpsi)) + 1);
+      // Azimuth half-width of a cap of radius a at elevation ψ.
+      const double cos_psi_c = std::cos(psi);
+      int half_cols;
+      if (std::abs(psi) + a >= M_PI / 2 || std::sin(a) >= cos_psi_c) {
+        half_cols = W;  // touches a pole: all columns
+      } else {
+        half_cols = int(std::ceil(std::asin(std::sin(a) / cos_psi_c) / dphi)) + 1;
+      }
+      const int ic = int(std::floor(uv.x()));
+      const int i0 = half_cols * 2 + 1 >= W ? 0 : ic - half_cols;
+      const int i1 = half_cols * 2 + 1 >= W ? W - 1 : ic + half_cols;
+      for (int j = j0; j <= j1; ++j) {
+        for (int ii = i0; ii <= i1; ++ii) {
+          const int i = geometry::WrapColumn(ii, W);
+          const Eigen::Vector3d q(cos_psi[j] * cos_phi[i], cos_psi[j] * sin_phi[i], sin_psi[j]);
+          if (q.dot(d) < cos_a) continue;
+          double t = range;
+          if (has_plane) {
+            const double nq = n_s.dot(q);
+            if (std::abs(nq) > 1e-6) t = std::clamp(plane_d / nq, range - sphere_m, range + sphere_m);
+          }
+          const uint32_t bits = FloatBits(float(t));
+          std::atomic<uint32_t>& cell = depth[size_t(j) * W + i];
+          uint32_t cur = cell.load(std::memory_order_relaxed);
+          while (bits < cur && !cell.compare_exchange_weak(cur, bits, std::memory_order_relaxed)) {
+          }
+        }
+      }
+    }
+  });
+  out.depth_m.resize(npix);
+  for (size_t p = 0; p < npix; ++p) out.depth_m[p] = BitsFloat(depth[p].load(std::memory_order_relaxed));
+  return out;
+}
+
+std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
+                                     double tau_m) {
+  constexpr int kGrid = 5;  // 5×5 PCF samples over the vossel's patch
+  std::vector<float> vis(g.size(), 0.0f);
+  const double h = g.vossel_size_m;
+  const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
+  const int W = depth.size.width_px, H = depth.size.height_px;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t k = r.begin(); k != r.end(); ++k) {
+      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
+      Eigen::Vector3d n = g.normal[k].cast<double>();
+      const Eigen::Vector3d to_sensor = depth.pose.o_world - x;
+      if (to_sensor.squaredNorm() == 0.0) continue;
+      if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
+      Eigen::Vector3d t1, t2;
+      TangentBasis(n, t1, t2);
+      int lit = 0;
+      for (int a = 0; a < kGrid; ++a) {
+        for (int b = 0; b < kGrid; ++b) {
+          const double sa = ((a + 0.5) / kGrid - 0.5) * h, sb = ((b + 0.5) / kGrid - 0.5) * h;
+          const Eigen::Vector3d p_s = R_sensor_world * (x + sa * t1 + sb * t2 - depth.pose.o_world);
+          const double range = p_s.norm();
+          const Eigen::Vector2d uv = geometry::EquirectProject(p_s, depth.size);
+          const int i = geometry::WrapColumn(int(std::floor(uv.x())), W);
+          const int j = std::clamp(int(std::floor(uv.y())), 0, H - 1);
+          if (depth.At(i, j) >= range - tau_m) ++lit;
+        }
+      }
+      vis[k] = float(lit) / float(kGrid * kGrid);
+    }
+  });
+  return vis;
+}
+
+}  // namespace vasl::ingest

@@ -1,0 +1,48 @@
+/// @file visibility.h
+/// @brief Depth panoramas and fractional visibility with percentage-closer filtering
+///        (VASL-MODEL §5). Computed once per source at ingest; reweighting never runs it.
+#pragma once
+
+#include <vector>
+
+#include "lattice/geometry/equirect.h"
+#include "lattice/geometry/pose.h"
+#include "lattice/records/records.h"
+
+namespace vasl::ingest {
+
+/// §5 τ: depth tolerance of the visibility test, 1.5 h (choice).
+inline double DepthToleranceM(double vossel_size_m) { return 1.5 * vossel_size_m; }
+
+/// Per pixel, the nearest range (metres) of occupied geometry from one source; +inf: none.
+struct DepthPanorama {
+  geometry::Pose pose;          ///< T_world_sensor of the source
+  geometry::EquirectSize size;  ///< raster size (independent of the source image's size)
+  std::vector<float> depth_m;   ///< row-major, row 0 up
+
+  float At(int i, int j) const { return depth_m[size_t(j) * size.width_px + i]; }
+};
+
+/// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad`,
+/// capped to `max_width_px` columns.
+geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 4096);
+
+/// §5: the depth panorama of a source rendered from the lattice by splatting each vossel's
+/// bounding sphere (radius h√3/2), dilated by the occluder's own footprint σ(r) at its range
+/// (angular radius grows by θ/2, §3). Inside the splat the depth is the range of the vossel's
+/// plane (centroid, normal) along the pixel's ray, clamped to the sphere, so that a surface does
+/// not shadow itself at grazing incidence (choice). The paper uses the measured range image for
+/// LiDAR; the splatted lattice is used for every source here (choice): it has no holes between
+/// returns and equals the range image where returns exist. Parallel (TBB, atomic min).
+DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
+                                  const geometry::Pose& T_world_sensor,
+                                  const geometry::EquirectSize& size, double divergence_rad);
+
+/// §5: V_{k,m} for every vossel: the share of a 5×5 grid of points over the vossel's surface
+/// patch (side h, in the plane (x_k, n_k)) whose pixel in `depth` satisfies
+/// D(p) ≥ r_p − τ (percentage-closer filtering over the vossel's projected footprint).
+/// V = 1 lit, 0 < V < 1 penumbra, V = 0 shadow. Parallel (TBB).
+std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
+                                     const DepthPanorama& depth, double tau_m);
+
+}  // namespace vasl::ingest

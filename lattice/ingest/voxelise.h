@@ -1,0 +1,32 @@
+/// @file voxelise.h
+/// @brief Voxelisation of LiDAR returns into vossels and their normals (VASL-MODEL §1).
+#pragma once
+
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/ingest/sources.h"
+#include "lattice/records/records.h"
+
+namespace vasl::ingest {
+
+/// Largest |index| of a vossel coordinate on any axis (keys pack 21 bits per axis).
+inline constexpr int kMaxVosselIndex = (1 << 20) - 1;
+
+/// §1: bins every return of every LiDAR into the vossel k = round(x / h) (cell-centred), and
+/// gives each vossel its point count, centroid, covariance and a PCA normal over its 3×3×3
+/// neighbourhood (the pooled scatter of the neighbours' points), oriented toward the mean
+/// direction of the sensors that saw it. Returns at sensor-frame (0,0,0) (a scanner's "no
+/// return" marker) are skipped. Vossels come in canonical order (records::
+/// CanonicalizeVosselOrder). Parallel (TBB). INVALID_ARGUMENT when a point falls outside the
+/// lattice's range (±kMaxVosselIndex·h).
+absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSource>& lidars,
+                                                      double vossel_size_m);
+
+/// Recomputes `geometry.normal` by PCA over each vossel's 3×3×3 neighbourhood; `view_sum` (one
+/// per vossel, may be empty) orients each normal toward the sensors; a vossel with too few
+/// neighbours for a plane gets its view direction as normal.
+void ComputeNormals(records::VosselGeometry& geometry,
+                    const std::vector<Eigen::Vector3f>& view_sum);
+
+}  // namespace vasl::ingest
