@@ -120,6 +120,18 @@ class ProjectStore {
   /// Lists the record attributes of a version's records.vdb (type, codec, stride).
   absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(int64_t version) const;
 
+  /// Points of CommitScan after which a test can inject a failure.
+  enum class CommitStage {
+    kNone,                ///< no injected failure
+    kAfterFiles,          ///< version files written and fsynced in the temp dir
+    kAfterVersionRename,  ///< temp dir renamed to versions/<n>
+    kAfterCatalog,        ///< catalog rows committed, HEAD not yet replaced
+  };
+  /// Test hook: the next CommitScan fails with INTERNAL right after `stage`. With
+  /// `simulate_crash` it returns without any cleanup, leaving the disk as a crash at that point
+  /// would (a later Open must recover); otherwise it cleans up as for a real IO failure.
+  void InjectCommitFailureForTesting(CommitStage stage, bool simulate_crash);
+
  private:
   struct Impl;
   explicit ProjectStore(std::unique_ptr<Impl> impl);

@@ -1,0 +1,468 @@
+// Vossel order (records.h), geometry.vdb and fused-<profile>.vdb (record_grid.h): plain OpenVDB
+// grids that share the topology of the index grid (VASL-MODEL §1, §7).
+#include <algorithm>
+#include <atomic>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include <openvdb/openvdb.h>
+#include <openvdb/tools/Prune.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/records/record_grid.h"
+#include "lattice/records/vdb_io.h"
+
+namespace vasl::records {
+namespace {
+
+using openvdb::Coord;
+using openvdb::Int32Grid;
+using openvdb::Int32Tree;
+using Int32Leaf = Int32Tree::LeafNodeType;
+
+constexpr size_t kGrain = 16384;
+
+/// Leaves of `tree` in tree order (the order that defines vossel numbering).
+template <typename TreeT>
+std::vector<typename TreeT::LeafNodeType*> LeavesInOrder(TreeT& tree) {
+  std::vector<typename TreeT::LeafNodeType*> leaves;
+  leaves.reserve(tree.leafCount());
+  for (auto it = tree.beginLeaf(); it; ++it) leaves.push_back(it.getLeaf());
+  return leaves;
+}
+template <typename TreeT>
+std::vector<const typename TreeT::LeafNodeType*> ConstLeavesInOrder(const TreeT& tree) {
+  std::vector<const typename TreeT::LeafNodeType*> leaves;
+  leaves.reserve(tree.leafCount());
+  for (auto it = tree.cbeginLeaf(); it; ++it) leaves.push_back(it.getLeaf());
+  return leaves;
+}
+
+/// Gathers `out[j] = in[inverse[j]]` for a per-vossel array with `stride` values per vossel;
+/// an empty array stays empty.
+template <typename T>
+void Gather(std::vector<T>& array, const std::vector<int32_t>& inverse) {
+  if (array.empty()) return;
+  std::vector<T> out(inverse.size());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, inverse.size(), kGrain),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t j = r.begin(); j < r.end(); ++j) out[j] = array[inverse[j]];
+                    });
+  array.swap(out);
+}
+
+/// Collects the first error raised by parallel workers.
+class FirstError {
+ public:
+  void Set(absl::Status s) {
+    if (failed_.exchange(true)) return;
+    std::lock_guard<std::mutex> lock(mu_);
+    status_ = std::move(s);
+  }
+  bool failed() const { return failed_.load(std::memory_order_relaxed); }
+  absl::Status status() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return status_;
+  }
+
+ private:
+  std::atomic<bool> failed_{false};
+  std::mutex mu_;
+  absl::Status status_;
+};
+
+/// A grid of type GridT over the topology of `index`, voxel value `value_of(vossel)`; voxels
+/// whose vossel fails `keep(vossel)` are made inactive with value zero. Leaves of a topology
+/// copy come in the same order as the source's, so leaves pair up by position.
+template <typename GridT, typename Fn, typename Keep>
+typename GridT::Ptr GridOverVossels(const Int32Grid& index, const std::string& name,
+                                    Fn&& value_of, Keep&& keep) {
+  using TreeT = typename GridT::TreeType;
+  using ValueT = typename GridT::ValueType;
+  auto tree = std::make_shared<TreeT>(index.tree(), openvdb::zeroVal<ValueT>(),
+                                      openvdb::TopologyCopy());
+  const auto src = ConstLeavesInOrder(index.tree());
+  auto dst = LeavesInOrder(*tree);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, src.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        for (auto it = src[i]->cbeginValueOn(); it; ++it) {
+                          if (keep(*it)) {
+                            dst[i]->setValueOnly(it.pos(), value_of(*it));
+                          } else {
+                            dst[i]->setValueOff(it.pos(), openvdb::zeroVal<ValueT>());
+                          }
+                        }
+                      }
+                    });
+  auto grid = GridT::create(tree);
+  grid->setTransform(index.transform().copy());
+  grid->setName(name);
+  grid->setGridClass(openvdb::GRID_UNKNOWN);
+  return grid;
+}
+template <typename GridT, typename Fn>
+typename GridT::Ptr GridOverVossels(const Int32Grid& index, const std::string& name,
+                                    Fn&& value_of) {
+  return GridOverVossels<GridT>(index, name, std::forward<Fn>(value_of),
+                                [](int32_t) { return true; });
+}
+
+/// Calls `fn(vossel, value)` for every active voxel of `grid` (leaf voxels only), in parallel.
+/// A voxel outside the lattice of `index` is DATA_LOSS.
+template <typename GridT, typename Fn>
+absl::Status ForEachActiveVossel(const Int32Grid& index, const GridT& grid,
+                                 const std::filesystem::path& path, Fn&& fn) {
+  const auto leaves = ConstLeavesInOrder(grid.tree());
+  FirstError error;
+  tbb::parallel_for(
+      tbb::blocked_range<size_t>(0, leaves.size(), 16), [&](const tbb::blocked_range<size_t>& r) {
+        Int32Grid::ConstAccessor acc(index.tree());
+        for (size_t i = r.begin(); i < r.end() && !error.failed(); ++i) {
+          const Int32Leaf* index_leaf = acc.probeConstLeaf(leaves[i]->origin());
+          for (auto it = leaves[i]->cbeginValueOn(); it; ++it) {
+            const int32_t vossel = index_leaf ? index_leaf->getValue(it.pos()) : -1;
+            if (vossel < 0 || (index_leaf && !index_leaf->isValueOn(it.pos()))) {
+              error.Set(absl::DataLossError(absl::StrCat(
+                  path.string(), ": grid \"", grid.getName(), "\" has an active voxel at ",
+                  it.getCoord().asVec3i().str(), " which is not a vossel of the geometry")));
+              return;
+            }
+            fn(vossel, *it);
+          }
+        }
+      });
+  return error.status();
+}
+
+template <typename GridT>
+typename GridT::Ptr GridAs(const internal::VdbFileContents& contents, const std::string& name) {
+  return openvdb::GridBase::grid<GridT>(internal::FindGrid(contents, name));
+}
+
+absl::Status CheckArraySize(size_t got, size_t n, size_t stride, const char* what) {
+  if (got == 0 || got == n * stride) return absl::OkStatus();
+  return absl::InvalidArgumentError(absl::StrCat("geometry array ", what, " has ", got,
+                                                 " values; expected 0 or ", n * stride, " (",
+                                                 n, " vossels x ", stride, ")"));
+}
+
+}  // namespace
+
+namespace internal {
+absl::StatusOr<size_t> CheckCanonicalOrder(const Int32Grid& index, const std::string& where) {
+  const auto leaves = ConstLeavesInOrder(index.tree());
+  std::vector<size_t> start(leaves.size() + 1, 0);
+  for (size_t i = 0; i < leaves.size(); ++i) start[i + 1] = start[i] + leaves[i]->onVoxelCount();
+  std::atomic<bool> ok{true};
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        int64_t expect = static_cast<int64_t>(start[i]);
+                        for (auto it = leaves[i]->cbeginValueOn(); it; ++it, ++expect) {
+                          if (*it != expect) ok = false;
+                        }
+                      }
+                    });
+  if (!ok) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        where, ": the index grid does not number vossels in canonical order (leaf order, then "
+               "voxel offset); call CanonicalizeVosselOrder first"));
+  }
+  return start.back();
+}
+}  // namespace internal
+
+std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
+  internal::EnsureOpenVdbInitialized();
+  const std::vector<Coord>& coord = geometry.coord;
+  const size_t n = coord.size();
+
+  // Topology: per-thread trees joined by topology union.
+  struct TopologyBody {
+    const std::vector<Coord>* coord;
+    Int32Tree tree{-1};
+    explicit TopologyBody(const std::vector<Coord>* c) : coord(c) {}
+    TopologyBody(TopologyBody& other, tbb::split) : coord(other.coord) {}
+    void operator()(const tbb::blocked_range<size_t>& r) {
+      Int32Grid::Accessor acc(tree);
+      for (size_t i = r.begin(); i < r.end(); ++i) acc.setValueOn((*coord)[i], 0);
+    }
+    void join(TopologyBody& other) { tree.topologyUnion(other.tree); }
+  } body(&coord);
+  tbb::parallel_reduce(tbb::blocked_range<size_t>(0, n, kGrain), body);
+  auto tree = std::make_shared<Int32Tree>(-1);
+  tree->topologyUnion(body.tree);
+
+  // Number the vossels in leaf order, then voxel offset.
+  auto leaves = LeavesInOrder(*tree);
+  std::vector<int32_t> start(leaves.size() + 1, 0);
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    start[i + 1] = start[i] + static_cast<int32_t>(leaves[i]->onVoxelCount());
+  }
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        int32_t next = start[i];
+                        for (auto it = leaves[i]->beginValueOn(); it; ++it) it.setValue(next++);
+                      }
+                    });
+
+  // old -> new map, then new -> old (first occurrence wins for duplicated coordinates).
+  std::vector<int32_t> old_to_new(n);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      Int32Grid::ConstAccessor acc(*tree);
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        old_to_new[i] = acc.getValue(coord[i]);
+                      }
+                    });
+  const size_t m = static_cast<size_t>(start.back());
+  std::vector<int32_t> new_to_old(m, -1);
+  for (size_t i = 0; i < n; ++i) {
+    int32_t& slot = new_to_old[old_to_new[i]];
+    if (slot < 0) slot = static_cast<int32_t>(i);
+  }
+
+  Gather(geometry.coord, new_to_old);
+  if (geometry.point_count.size() == n) Gather(geometry.point_count, new_to_old);
+  if (geometry.centroid_m.size() == n) Gather(geometry.centroid_m, new_to_old);
+  if (geometry.normal.size() == n) Gather(geometry.normal, new_to_old);
+  if (geometry.covariance_m2.size() == n) Gather(geometry.covariance_m2, new_to_old);
+
+  auto grid = Int32Grid::create(tree);
+  grid->setTransform(openvdb::math::Transform::createLinearTransform(geometry.vossel_size_m));
+  grid->setName("index");
+  grid->setGridClass(openvdb::GRID_UNKNOWN);
+  geometry.index_grid = grid;
+  return old_to_new;
+}
+
+absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path) {
+  internal::EnsureOpenVdbInitialized();
+  if (!geometry.index_grid) {
+    return absl::InvalidArgumentError(
+        "WriteGeometry: the geometry has no index grid; call CanonicalizeVosselOrder first");
+  }
+  const Int32Grid& index = *geometry.index_grid;
+  absl::StatusOr<size_t> n = internal::CheckCanonicalOrder(index, path.string());
+  if (!n.ok()) return n.status();
+  if (*n != geometry.coord.size()) {
+    return absl::InvalidArgumentError(absl::StrCat("WriteGeometry: the index grid has ", *n,
+                                                   " vossels but coord has ",
+                                                   geometry.coord.size()));
+  }
+  for (absl::Status s : {CheckArraySize(geometry.point_count.size(), *n, 1, "point_count"),
+                         CheckArraySize(geometry.centroid_m.size(), *n, 1, "centroid_m"),
+                         CheckArraySize(geometry.normal.size(), *n, 1, "normal"),
+                         CheckArraySize(geometry.covariance_m2.size(), *n, 1, "covariance_m2")}) {
+    if (!s.ok()) return s;
+  }
+
+  openvdb::GridCPtrVec grids;
+  openvdb::GridBase::Ptr index_copy = geometry.index_grid->copyGrid();  // shares the tree; own name/meta
+  index_copy->setName("index");
+  index_copy->setGridClass(openvdb::GRID_UNKNOWN);
+  grids.push_back(index_copy);
+  using openvdb::Vec3f;
+  using openvdb::Vec3SGrid;
+  if (!geometry.point_count.empty()) {
+    grids.push_back(GridOverVossels<Int32Grid>(
+        index, "count", [&](int32_t v) { return geometry.point_count[v]; }));
+  }
+  if (!geometry.centroid_m.empty()) {
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "centroid", [&](int32_t v) {
+      const Eigen::Vector3f& c = geometry.centroid_m[v];
+      return Vec3f(c.x(), c.y(), c.z());
+    }));
+  }
+  if (!geometry.normal.empty()) {
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "normal", [&](int32_t v) {
+      const Eigen::Vector3f& c = geometry.normal[v];
+      return Vec3f(c.x(), c.y(), c.z());
+    }));
+  }
+  if (!geometry.covariance_m2.empty()) {
+    // (xx, xy, xz, yy, yz, zz) -> diag (xx, yy, zz), off-diagonal (xy, xz, yz).
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "covariance_diag", [&](int32_t v) {
+      const auto& c = geometry.covariance_m2[v];
+      return Vec3f(c[0], c[3], c[5]);
+    }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "covariance_off", [&](int32_t v) {
+      const auto& c = geometry.covariance_m2[v];
+      return Vec3f(c[1], c[2], c[4]);
+    }));
+  }
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("geometry"));
+  meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
+  return internal::WriteVdbFile(path, grids, meta);
+}
+
+absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
+  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
+  if (!contents.ok()) return contents.status();
+  Int32Grid::Ptr index = GridAs<Int32Grid>(*contents, "index");
+  if (!index) {
+    return absl::DataLossError(
+        absl::StrCat(path.string(), " has no Int32 grid named \"index\"; not a geometry file"));
+  }
+  absl::StatusOr<size_t> n = internal::CheckCanonicalOrder(*index, path.string());
+  if (!n.ok()) return absl::DataLossError(n.status().message());
+
+  VosselGeometry g;
+  g.vossel_size_m = index->transform().voxelSize()[0];
+  g.index_grid = index;
+  g.coord.resize(*n);
+  {
+    const auto leaves = ConstLeavesInOrder(index->tree());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
+                      [&](const tbb::blocked_range<size_t>& r) {
+                        for (size_t i = r.begin(); i < r.end(); ++i) {
+                          for (auto it = leaves[i]->cbeginValueOn(); it; ++it) {
+                            g.coord[*it] = it.getCoord();
+                          }
+                        }
+                      });
+  }
+  // Companion grids are read by active vossel, so any topology that is a subset works.
+  if (auto count = GridAs<Int32Grid>(*contents, "count")) {
+    g.point_count.assign(*n, 0);
+    absl::Status s = ForEachActiveVossel(*index, *count, path,
+                                         [&](int32_t v, int32_t c) { g.point_count[v] = c; });
+    if (!s.ok()) return s;
+  }
+  auto read_vec3 = [&](const char* name, std::vector<Eigen::Vector3f>& out) -> absl::Status {
+    auto grid = GridAs<openvdb::Vec3SGrid>(*contents, name);
+    if (!grid) return absl::OkStatus();
+    out.assign(*n, Eigen::Vector3f::Zero());
+    return ForEachActiveVossel(*index, *grid, path, [&](int32_t v, const openvdb::Vec3f& c) {
+      out[v] = Eigen::Vector3f(c.x(), c.y(), c.z());
+    });
+  };
+  if (absl::Status s = read_vec3("centroid", g.centroid_m); !s.ok()) return s;
+  if (absl::Status s = read_vec3("normal", g.normal); !s.ok()) return s;
+  std::vector<Eigen::Vector3f> diag, off;
+  if (absl::Status s = read_vec3("covariance_diag", diag); !s.ok()) return s;
+  if (absl::Status s = read_vec3("covariance_off", off); !s.ok()) return s;
+  if (!diag.empty() || !off.empty()) {
+    diag.resize(*n, Eigen::Vector3f::Zero());
+    off.resize(*n, Eigen::Vector3f::Zero());
+    g.covariance_m2.resize(*n);
+    for (size_t v = 0; v < *n; ++v) {
+      g.covariance_m2[v] = {diag[v].x(), off[v].x(), off[v].y(), diag[v].y(), off[v].z(),
+                            diag[v].z()};
+    }
+  }
+  return g;
+}
+
+absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused,
+                        const std::filesystem::path& path) {
+  internal::EnsureOpenVdbInitialized();
+  if (!geometry.index_grid) {
+    return absl::InvalidArgumentError("WriteFused: the geometry has no index grid");
+  }
+  const Int32Grid& index = *geometry.index_grid;
+  const size_t n = geometry.size();
+  openvdb::GridCPtrVec grids;
+  for (const auto& [modality, fm] : fused.by_modality) {
+    const std::string name = ModalityName(modality);
+    if (fm.channels != 1 && fm.channels != 3) {
+      return absl::InvalidArgumentError(absl::StrCat("WriteFused: modality ", name, " has ",
+                                                     fm.channels, " channels; expected 1 or 3"));
+    }
+    if (fm.value.size() != n * fm.channels || fm.weight.size() != n ||
+        fm.uncertainty.size() != n) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "WriteFused: modality ", name, " arrays do not match the ", n,
+          " vossels (value ", fm.value.size(), ", weight ", fm.weight.size(), ", uncertainty ",
+          fm.uncertainty.size(), ")"));
+    }
+    // Only vossels with weight > 0 stay active; fully inactive leaves are pruned.
+    auto keep = [&fm](int32_t v) { return fm.weight[v] > 0.0f; };
+    auto finish = [&](auto grid) {
+      openvdb::tools::pruneInactive(grid->tree());  // only all-inactive leaves become tiles
+      grid->insertMeta("profile", openvdb::StringMetadata(fused.profile));
+      grid->insertMeta("modality", openvdb::Int32Metadata(static_cast<int>(modality)));
+      grids.push_back(grid);
+    };
+    if (fm.channels == 3) {
+      finish(GridOverVossels<openvdb::Vec3SGrid>(index, name + ".value", [&](int32_t v) {
+        return openvdb::Vec3f(fm.value[3 * v], fm.value[3 * v + 1], fm.value[3 * v + 2]);
+      }, keep));
+    } else {
+      finish(GridOverVossels<openvdb::FloatGrid>(index, name + ".value",
+                                                 [&](int32_t v) { return fm.value[v]; }, keep));
+    }
+    finish(GridOverVossels<openvdb::FloatGrid>(index, name + ".weight",
+                                               [&](int32_t v) { return fm.weight[v]; }, keep));
+    finish(GridOverVossels<openvdb::FloatGrid>(index, name + ".uncertainty",
+                                               [&](int32_t v) { return fm.uncertainty[v]; }, keep));
+  }
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("fused"));
+  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
+  return internal::WriteVdbFile(path, grids, meta);
+}
+
+absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
+                                      const std::filesystem::path& path) {
+  if (!geometry.index_grid) {
+    return absl::InvalidArgumentError("ReadFused: the geometry has no index grid");
+  }
+  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
+  if (!contents.ok()) return contents.status();
+  const Int32Grid& index = *geometry.index_grid;
+  const size_t n = geometry.size();
+  FusedValues fused;
+  if (auto p = contents->meta->getMetadata<openvdb::StringMetadata>("profile")) {
+    fused.profile = p->value();
+  }
+  for (int m = 0; m < kModalityCount; ++m) {
+    const Modality modality = static_cast<Modality>(m);
+    const std::string name = ModalityName(modality);
+    openvdb::GridBase::Ptr value_base = internal::FindGrid(*contents, name + ".value");
+    if (!value_base) continue;
+    FusedModality fm;
+    auto weight = GridAs<openvdb::FloatGrid>(*contents, name + ".weight");
+    auto uncertainty = GridAs<openvdb::FloatGrid>(*contents, name + ".uncertainty");
+    if (!weight || !uncertainty) {
+      return absl::DataLossError(absl::StrCat(path.string(), ": modality ", name,
+                                              " lacks its float weight or uncertainty grid"));
+    }
+    fm.weight.assign(n, 0.0f);
+    fm.uncertainty.assign(n, 0.0f);
+    absl::Status s;
+    if (auto v3 = openvdb::GridBase::grid<openvdb::Vec3SGrid>(value_base)) {
+      fm.channels = 3;
+      fm.value.assign(3 * n, 0.0f);
+      s = ForEachActiveVossel(index, *v3, path, [&](int32_t v, const openvdb::Vec3f& c) {
+        fm.value[3 * v] = c.x();
+        fm.value[3 * v + 1] = c.y();
+        fm.value[3 * v + 2] = c.z();
+      });
+    } else if (auto v1 = openvdb::GridBase::grid<openvdb::FloatGrid>(value_base)) {
+      fm.channels = 1;
+      fm.value.assign(n, 0.0f);
+      s = ForEachActiveVossel(index, *v1, path, [&](int32_t v, float c) { fm.value[v] = c; });
+    } else {
+      return absl::DataLossError(absl::StrCat(path.string(), ": grid ", name,
+                                              ".value is neither Vec3s nor float"));
+    }
+    if (!s.ok()) return s;
+    s = ForEachActiveVossel(index, *weight, path, [&](int32_t v, float w) { fm.weight[v] = w; });
+    if (!s.ok()) return s;
+    s = ForEachActiveVossel(index, *uncertainty, path,
+                            [&](int32_t v, float u) { fm.uncertainty[v] = u; });
+    if (!s.ok()) return s;
+    fused.by_modality.emplace(modality, std::move(fm));
+  }
+  return fused;
+}
+
+}  // namespace vasl::records

@@ -1,0 +1,44 @@
+/// @file vdb_io.h
+/// @brief Internal helpers of the records module: one-time OpenVDB initialisation, file IO of
+///        grids with OpenVDB exceptions converted to absl::Status at this boundary.
+/// @details Not part of the public API (namespace vasl::records::internal).
+#pragma once
+
+#include <filesystem>
+#include <string>
+
+#include <openvdb/openvdb.h>
+
+#include "absl/status/statusor.h"
+
+namespace vasl::records::internal {
+
+/// Calls openvdb::initialize() exactly once per process (std::call_once). Thread-safe.
+void EnsureOpenVdbInitialized();
+
+/// Writes `grids` with file-level `meta` to `path`, blosc-compressed (zip if blosc is absent).
+/// Errors: INTERNAL with the path and the OpenVDB message.
+absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::GridCPtrVec& grids,
+                          const openvdb::MetaMap& meta = openvdb::MetaMap());
+
+/// The contents of one .vdb file, fully loaded (no delayed loading).
+struct VdbFileContents {
+  openvdb::GridPtrVecPtr grids;  ///< every grid in the file
+  openvdb::MetaMap::Ptr meta;    ///< file-level metadata
+};
+
+/// Reads every grid of `path`. `delay_load` keeps point attribute data on disk (used when only
+/// descriptors are needed). Errors: NOT_FOUND if the file is missing, DATA_LOSS if OpenVDB
+/// cannot parse it (message carries the path and the OpenVDB text).
+absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path,
+                                            bool delay_load = false);
+
+/// Checks that `index` numbers its active voxels 0..n-1 in leaf order, then voxel offset (the
+/// canonical vossel order of records.h); returns n. FAILED_PRECONDITION naming `where` if not.
+absl::StatusOr<size_t> CheckCanonicalOrder(const openvdb::Int32Grid& index,
+                                           const std::string& where);
+
+/// The grid named `name` in `contents`, or nullptr.
+openvdb::GridBase::Ptr FindGrid(const VdbFileContents& contents, const std::string& name);
+
+}  // namespace vasl::records::internal

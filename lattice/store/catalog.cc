@@ -1,0 +1,174 @@
+#include "lattice/store/catalog.h"
+
+#include <sqlite3.h>
+
+#include "absl/strings/str_cat.h"
+
+namespace vasl::store::internal {
+
+Stmt::Stmt(Stmt&& other) noexcept : db_(other.db_), stmt_(other.stmt_) { other.stmt_ = nullptr; }
+Stmt::~Stmt() {
+  if (stmt_) sqlite3_finalize(stmt_);
+}
+Stmt& Stmt::Bind(int i, int64_t v) {
+  sqlite3_bind_int64(stmt_, i, v);
+  return *this;
+}
+Stmt& Stmt::Bind(int i, double v) {
+  sqlite3_bind_double(stmt_, i, v);
+  return *this;
+}
+Stmt& Stmt::Bind(int i, std::string_view v) {
+  sqlite3_bind_text(stmt_, i, v.data(), static_cast<int>(v.size()), SQLITE_TRANSIENT);
+  return *this;
+}
+absl::StatusOr<bool> Stmt::Step() {
+  const int rc = sqlite3_step(stmt_);
+  if (rc == SQLITE_ROW) return true;
+  if (rc == SQLITE_DONE) return false;
+  const std::string sql = sqlite3_sql(stmt_) ? sqlite3_sql(stmt_) : "";
+  if ((rc & 0xff) == SQLITE_CONSTRAINT) {
+    return absl::AlreadyExistsError(
+        absl::StrCat("catalog constraint violated: ", sqlite3_errmsg(db_)));
+  }
+  return absl::InternalError(absl::StrCat("catalog statement failed (", sql.substr(0, 60),
+                                          "...): ", sqlite3_errmsg(db_)));
+}
+absl::Status Stmt::Run() {
+  for (;;) {
+    absl::StatusOr<bool> row = Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::OkStatus();
+  }
+}
+int64_t Stmt::Int(int col) const { return sqlite3_column_int64(stmt_, col); }
+double Stmt::Real(int col) const { return sqlite3_column_double(stmt_, col); }
+std::string Stmt::Text(int col) const {
+  const unsigned char* t = sqlite3_column_text(stmt_, col);
+  return t ? std::string(reinterpret_cast<const char*>(t),
+                         static_cast<size_t>(sqlite3_column_bytes(stmt_, col)))
+           : std::string();
+}
+
+absl::StatusOr<Db> Db::Open(const std::filesystem::path& path, bool create) {
+  sqlite3* raw = nullptr;
+  const int flags = SQLITE_OPEN_READWRITE | SQLITE_OPEN_FULLMUTEX | (create ? SQLITE_OPEN_CREATE : 0);
+  const int rc = sqlite3_open_v2(path.c_str(), &raw, flags, nullptr);
+  Db db(raw, path);
+  if (rc != SQLITE_OK) {
+    return absl::InternalError(absl::StrCat("cannot open catalog ", path.string(), ": ",
+                                            raw ? sqlite3_errmsg(raw) : sqlite3_errstr(rc)));
+  }
+  sqlite3_busy_timeout(raw, 5000);
+  // WAL: readers run concurrently with the writer; FULL sync makes commits durable.
+  if (absl::Status s = db.Exec("PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL; "
+                               "PRAGMA foreign_keys=ON;");
+      !s.ok()) {
+    return s;
+  }
+  return db;
+}
+
+Db::Db(Db&& other) noexcept : db_(other.db_), path_(std::move(other.path_)) {
+  other.db_ = nullptr;
+}
+Db::~Db() {
+  if (db_) sqlite3_close_v2(db_);
+}
+
+absl::Status Db::Exec(std::string_view sql) {
+  char* err = nullptr;
+  const std::string text(sql);
+  if (sqlite3_exec(db_, text.c_str(), nullptr, nullptr, &err) != SQLITE_OK) {
+    absl::Status s = absl::InternalError(
+        absl::StrCat("catalog ", path_.string(), ": ", err ? err : sqlite3_errmsg(db_)));
+    sqlite3_free(err);
+    return s;
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Stmt> Db::Prepare(std::string_view sql) {
+  sqlite3_stmt* stmt = nullptr;
+  if (sqlite3_prepare_v2(db_, sql.data(), static_cast<int>(sql.size()), &stmt, nullptr) !=
+      SQLITE_OK) {
+    return Error(absl::StrCat("cannot prepare \"", std::string(sql.substr(0, 60)), "\""));
+  }
+  return Stmt(db_, stmt);
+}
+
+absl::Status Db::Error(std::string_view what) const {
+  return absl::InternalError(
+      absl::StrCat(std::string(what), ": catalog ", path_.string(), ": ", sqlite3_errmsg(db_)));
+}
+
+absl::Status CreateSchema(Db& db) {
+  return db.Exec(absl::StrCat(R"sql(
+BEGIN;
+CREATE TABLE schema_version(version INTEGER NOT NULL);
+INSERT INTO schema_version(version) VALUES ()sql",
+                              kCatalogSchemaVersion, R"sql();
+CREATE TABLE project(
+  id INTEGER PRIMARY KEY CHECK (id = 1),
+  name TEXT NOT NULL,
+  description TEXT NOT NULL,
+  vossel_size_m REAL NOT NULL,
+  keep_versions INTEGER NOT NULL,
+  created_utc TEXT NOT NULL);
+CREATE TABLE versions(
+  version INTEGER PRIMARY KEY,
+  vossel_count INTEGER NOT NULL,
+  record_count INTEGER NOT NULL,
+  created_utc TEXT NOT NULL,
+  pruned INTEGER NOT NULL DEFAULT 0);
+CREATE TABLE scans(
+  id INTEGER PRIMARY KEY,
+  name TEXT NOT NULL UNIQUE,
+  rig TEXT NOT NULL,
+  captured_utc TEXT NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  batch INTEGER NOT NULL,
+  version INTEGER NOT NULL,
+  created_utc TEXT NOT NULL);
+CREATE TABLE sources(
+  id INTEGER PRIMARY KEY,
+  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+  name TEXT NOT NULL,
+  modality INTEGER NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  blob_sha256 TEXT NOT NULL,
+  width_px INTEGER NOT NULL,
+  height_px INTEGER NOT NULL,
+  divergence_rad REAL NOT NULL,
+  point_count INTEGER NOT NULL,
+  version INTEGER NOT NULL);
+CREATE INDEX sources_by_scan ON sources(scan_id);
+CREATE TABLE batches(
+  id INTEGER PRIMARY KEY,
+  kind TEXT NOT NULL,
+  scan_id INTEGER,
+  version INTEGER NOT NULL,
+  created_utc TEXT NOT NULL);
+COMMIT;
+)sql"));
+}
+
+absl::Status DropRowsNewerThan(Db& db, int64_t head) {
+  if (absl::Status s = db.Exec("BEGIN IMMEDIATE;"); !s.ok()) return s;
+  for (const char* sql : {"DELETE FROM sources WHERE version > ?1",
+                          "DELETE FROM scans WHERE version > ?1",
+                          "DELETE FROM batches WHERE version > ?1",
+                          "DELETE FROM versions WHERE version > ?1"}) {
+    absl::StatusOr<Stmt> stmt = db.Prepare(sql);
+    absl::Status s = stmt.ok() ? stmt->Bind(1, head).Run() : stmt.status();
+    if (!s.ok()) {
+      db.Exec("ROLLBACK;").IgnoreError();
+      return s;
+    }
+  }
+  return db.Exec("COMMIT;");
+}
+
+}  // namespace vasl::store::internal
