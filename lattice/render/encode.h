@@ -16,4 +16,8 @@ absl::StatusOr<std::string> EncodeExr(const RenderImage& image);
 /// PNG bytes: RGB 8-bit, sRGB transfer, no-hit pixels black.
 absl::StatusOr<std::string> EncodePng(const RenderImage& image);
 
+/// The standard sRGB OETF (IEC 61966-2-1): linear [0, 1] → encoded [0, 1], piecewise
+/// 12.92·c below 0.0031308, else 1.055·c^(1/2.4) − 0.055. Input clamped to [0, 1]; NaN → 0.
+float LinearToSrgb(float linear);
+
 }  // namespace vasl::render

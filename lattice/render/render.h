@@ -15,8 +15,8 @@ namespace vasl::render {
 /// What to render (§8).
 struct RenderRequest {
   geometry::Pose pose;          ///< T_world_camera of the virtual panorama
-  int width_px = 2048;
-  int height_px = 1024;
+  int width_px = 2048;          ///< W, columns spanning 2π of azimuth (§2.1)
+  int height_px = 1024;         ///< H, rows spanning π of elevation (§2.1)
   int64_t version = 0;          ///< 0: HEAD
   double eta = 0.0;             ///< view term η (§8); 0 uses the fused colour C_k
   double max_range_m = 1000.0;  ///< rays stop here
@@ -24,18 +24,32 @@ struct RenderRequest {
 
 /// A rendered equirectangular RGBZ + normal + uncertainty image (§8), row-major, row 0 up.
 struct RenderImage {
-  int width_px = 0;
-  int height_px = 0;
-  int64_t version = 0;
+  int width_px = 0;                ///< W, pixels
+  int height_px = 0;               ///< H, pixels
+  int64_t version = 0;             ///< version rendered
   std::vector<float> rgb;          ///< 3 per pixel, linear; 0 where no hit
   std::vector<float> depth_m;      ///< 1 per pixel: range along the ray; +inf where no hit
   std::vector<float> normal;       ///< 3 per pixel, world frame; 0 where no hit
   std::vector<float> uncertainty;  ///< 1 per pixel: U_k; 0 where no hit
-  int64_t hit_pixels = 0;
+  int64_t hit_pixels = 0;          ///< pixels whose ray met a vossel within max_range_m
 };
 
 /// Renders `request` from a version's geometry and fused values (§8). Parallel over rows (TBB).
-/// INVALID_ARGUMENT for a non-positive size.
+/// @details Each pixel's ray (§2.1 inverse at the pixel centre, rotated by the pose) is marched
+///          by hierarchical DDA over `geometry.index_grid` (empty space skipped per node); the
+///          first active vossel whose plane (x_k, n_k) the ray crosses at range ≥ 0 inside the
+///          vossel's cell, expanded by internal::kDefaultCellMarginVox (0.25 h) to close cracks
+///          between neighbouring planes, is the hit: Z = range to that plane, N = n_k turned
+///          toward the camera, C = fused rgb C_k (0 if its rgb weight is 0; such vossels still
+///          occlude), U = rgb U_k (+inf for hits when `fused` has no rgb modality). A vossel
+///          with a zero normal is hit where the ray enters its cell, with N = 0.
+///          `image.version` is copied from the request (the engine sets the resolved version).
+/// @return INVALID_ARGUMENT for a non-positive or over-large (> 2^28 pixels) size, η < 0 or
+///         η > 0 (view-dependent per-record blending is not supported yet), max_range_m ≤ 0, a
+///         non-unit pose quaternion, a null index grid or one whose transform is not linear and
+///         uniform, geometry/fused arrays whose sizes disagree, or an index grid holding a vossel
+///         index outside [0, geometry.size()).
+/// @warning Thread-safe: reads its inputs only (each TBB task uses its own ValueAccessor).
 absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
                                            const records::FusedValues& fused,
                                            const RenderRequest& request);

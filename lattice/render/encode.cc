@@ -1,0 +1,138 @@
+/// @file encode.cc
+/// @brief EXR (OpenEXR C++ API, in memory) and PNG (OpenImageIO, in memory) encoders of a
+///        RenderImage (VASL-MODEL §8 outputs).
+#include "lattice/render/encode.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <exception>
+#include <memory>
+#include <vector>
+
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfCompression.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfIO.h>
+#include <OpenEXR/ImfLineOrder.h>
+#include <OpenEXR/ImfOutputFile.h>
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+
+namespace vasl::render {
+namespace {
+
+/// An Imf::OStream appending to (and seeking within) a std::string.
+class StringOStream : public Imf::OStream {
+ public:
+  explicit StringOStream(std::string* bytes) : Imf::OStream("memory.exr"), bytes_(bytes) {}
+
+  void write(const char c[], int n) override {
+    const size_t end = pos_ + static_cast<size_t>(n);
+    if (end > bytes_->size()) bytes_->resize(end);
+    std::memcpy(bytes_->data() + pos_, c, static_cast<size_t>(n));
+    pos_ = end;
+  }
+  uint64_t tellp() override { return pos_; }
+  void seekp(uint64_t pos) override { pos_ = static_cast<size_t>(pos); }
+
+ private:
+  std::string* bytes_;  ///< not owned
+  size_t pos_ = 0;      ///< write position, bytes
+};
+
+absl::Status ValidateImage(const RenderImage& image) {
+  if (image.width_px <= 0 || image.height_px <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("image size must be positive, got ",
+                                                   image.width_px, "x", image.height_px));
+  }
+  const size_t pixels = static_cast<size_t>(image.width_px) * image.height_px;
+  if (image.rgb.size() != 3 * pixels || image.depth_m.size() != pixels ||
+      image.normal.size() != 3 * pixels || image.uncertainty.size() != pixels) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "image arrays disagree with its size ", image.width_px, "x", image.height_px, ": ",
+        image.rgb.size(), " rgb, ", image.depth_m.size(), " depth, ", image.normal.size(),
+        " normal, ", image.uncertainty.size(), " uncertainty values"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+float LinearToSrgb(float linear) {
+  if (!(linear > 0.0f)) return 0.0f;  // also NaN
+  if (linear >= 1.0f) return 1.0f;
+  if (linear <= 0.0031308f) return 12.92f * linear;
+  return 1.055f * std::pow(linear, 1.0f / 2.4f) - 0.055f;
+}
+
+absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
+  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
+  const int w = image.width_px;
+  const int h = image.height_px;
+  std::string bytes;
+  try {
+    Imf::Header header(w, h);  // data window (0,0)-(w-1,h-1)
+    header.compression() = Imf::ZIP_COMPRESSION;
+    header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
+    struct Plane {
+      const char* name;
+      const float* base;
+      size_t stride;  ///< floats per pixel
+    };
+    const Plane planes[] = {
+        {"R", image.rgb.data() + 0, 3},    {"G", image.rgb.data() + 1, 3},
+        {"B", image.rgb.data() + 2, 3},    {"Z", image.depth_m.data(), 1},
+        {"N.x", image.normal.data() + 0, 3}, {"N.y", image.normal.data() + 1, 3},
+        {"N.z", image.normal.data() + 2, 3}, {"U", image.uncertainty.data(), 1},
+    };
+    Imf::FrameBuffer frame;
+    for (const Plane& p : planes) {
+      header.channels().insert(p.name, Imf::Channel(Imf::FLOAT));
+      // OpenEXR's Slice takes a mutable pointer; writing only reads through it.
+      frame.insert(p.name, Imf::Slice(Imf::FLOAT, const_cast<char*>(
+                                          reinterpret_cast<const char*>(p.base)),
+                                      p.stride * sizeof(float), p.stride * sizeof(float) * w));
+    }
+    StringOStream stream(&bytes);
+    Imf::OutputFile file(stream, header);
+    file.setFrameBuffer(frame);
+    file.writePixels(h);
+  } catch (const std::exception& e) {
+    return absl::InternalError(absl::StrCat("OpenEXR failed to encode the render: ", e.what()));
+  }
+  return bytes;
+}
+
+absl::StatusOr<std::string> EncodePng(const RenderImage& image) {
+  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
+  const size_t pixels = static_cast<size_t>(image.width_px) * image.height_px;
+  std::vector<uint8_t> srgb(3 * pixels);
+  for (size_t i = 0; i < 3 * pixels; ++i) {
+    srgb[i] = static_cast<uint8_t>(std::lround(LinearToSrgb(image.rgb[i]) * 255.0f));
+  }
+  std::vector<unsigned char> bytes;
+  OIIO::Filesystem::IOVecOutput proxy(bytes);
+  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create("png");
+  if (!out) {
+    return absl::InternalError(
+        absl::StrCat("OpenImageIO has no PNG writer: ", OIIO::geterror()));
+  }
+  if (!out->supports("ioproxy") || !out->set_ioproxy(&proxy)) {
+    return absl::InternalError("OpenImageIO's PNG writer cannot write to memory (no ioproxy)");
+  }
+  const OIIO::ImageSpec spec(image.width_px, image.height_px, 3, OIIO::TypeDesc::UINT8);
+  if (!out->open("render.png", spec) || !out->write_image(OIIO::TypeDesc::UINT8, srgb.data()) ||
+      !out->close()) {
+    return absl::InternalError(
+        absl::StrCat("OpenImageIO failed to encode the PNG: ", out->geterror()));
+  }
+  return std::string(bytes.begin(), bytes.end());
+}
+
+}  // namespace vasl::render

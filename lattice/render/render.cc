@@ -1,0 +1,298 @@
+/// @file render.cc
+/// @brief The VASL rendering equation (VASL-MODEL §8) with η = 0: first-surface ray march over
+///        the lattice by hierarchical DDA, sub-vossel depth from each vossel's plane.
+/// @details Conventions.
+///          - Rays are marched in the index space of the index grid. Vossel k's cell is
+///            [k − 0.5, k + 0.5] there (cell-centred, §1), but OpenVDB's DDA treats voxel k as
+///            [k, k + 1) (`Coord::floor`). The index-space ray's eye is therefore shifted by
+///            +0.5 on every axis: floor(p + 0.5) = k exactly when p lies in k's cell.
+///          - Index-space ray time t_idx relates to world range by t_idx = s · r_m, where s is
+///            the length of the inverse Jacobian applied to the unit world direction (1/h for
+///            createLinearTransform(h)).
+///          - Empty space is skipped at node level by OpenVDB's VolumeHDDA (root children →
+///            internal nodes → leaves); inside each run of leaves a voxel DDA visits the cells in
+///            ray order.
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <string>
+
+#include <openvdb/math/DDA.h>
+#include <openvdb/math/Ray.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "lattice/geometry/equirect.h"
+#include "lattice/render/render.h"
+#include "lattice/render/render_internal.h"
+
+namespace vasl::render {
+namespace {
+
+using RayT = openvdb::math::Ray<double>;
+using TreeT = openvdb::Int32Tree;
+using AccessorT = openvdb::tree::ValueAccessor<const TreeT>;
+/// Node-level march from the root's children down to leaves (as VolumeRayIntersector does).
+using HddaT = openvdb::math::VolumeHDDA<TreeT, RayT, TreeT::RootNodeType::ChildNodeType::LEVEL>;
+
+/// Largest raster RenderEquirect allocates (8 floats per pixel: 8.6 GB at this size).
+constexpr int64_t kMaxPixels = int64_t{1} << 28;
+
+/// What RenderEquirect reads, validated once per render.
+struct Scene {
+  const TreeT* tree = nullptr;
+  const openvdb::math::Transform* xform = nullptr;
+  const records::VosselGeometry* geometry = nullptr;
+  const records::FusedModality* rgb = nullptr;  ///< null: no rgb modality fused
+  /// Index-space box of the active voxels in the DDA's corner convention: [min, max + 1].
+  openvdb::math::BBox<openvdb::Vec3d> bbox_dda;
+  double cell_margin_vox = 0.0;
+  double max_range_m = 0.0;
+};
+
+/// The first surface a ray crosses (§8).
+struct SurfaceHit {
+  double range_m = 0.0;     ///< distance along the unit world ray to the vossel's plane, metres
+  int32_t vossel = -1;      ///< vossel index k
+  Eigen::Vector3d normal;   ///< n_k oriented toward the camera; zero for an undetermined normal
+};
+
+/// The per-vossel test of §8: does the ray (o + r·d, world, |d| = 1) cross vossel k's plane
+/// (x_k, n_k) inside k's cell expanded by the margin? `entry_range_m` is where the ray enters
+/// the cell; a vossel with zero normal is a hit at the cell entry. `ray_dda` is the same ray in
+/// shifted index space (eye + 0.5), `scale` index units per metre.
+bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
+                   const Eigen::Vector3d& d_world, const RayT& ray_dda, double scale,
+                   const openvdb::Coord& k, int32_t vossel, double entry_range_m,
+                   SurfaceHit* hit) {
+  const Eigen::Vector3f& n_f = scene.geometry->normal[vossel];
+  const double n_norm = n_f.cast<double>().norm();
+  if (!(n_norm > 1e-6)) {  // undetermined normal (also NaN): the cell itself is the surface
+    hit->range_m = std::max(entry_range_m, 0.0);
+    hit->vossel = vossel;
+    hit->normal.setZero();
+    return true;
+  }
+  const Eigen::Vector3d n = n_f.cast<double>() / n_norm;
+  const double n_dot_d = n.dot(d_world);
+  if (std::abs(n_dot_d) < 1e-12) return false;  // ray parallel to the plane: no crossing
+  const Eigen::Vector3d x_k = scene.geometry->centroid_m[vossel].cast<double>();
+  const double range_m = n.dot(x_k - o_world) / n_dot_d;
+  if (!(range_m >= 0.0) || range_m > scene.max_range_m) return false;
+  // Crossing point in shifted index space; k's cell there is [k, k + 1] per axis.
+  const openvdb::Vec3d p = ray_dda(range_m * scale);
+  const double half = 0.5 + scene.cell_margin_vox;
+  for (int axis = 0; axis < 3; ++axis) {
+    if (std::abs(p[axis] - (k[axis] + 0.5)) > half) return false;
+  }
+  hit->range_m = range_m;
+  hit->vossel = vossel;
+  hit->normal = n_dot_d > 0.0 ? Eigen::Vector3d(-n) : n;
+  return true;
+}
+
+/// Marches one world ray to its first surface (§8). Returns false for no hit within range.
+/// Sets `*bad_index` to an out-of-range index value met in the grid (the caller reports it).
+bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vector3d& o_world,
+              const Eigen::Vector3d& d_world, SurfaceHit* hit, int32_t* bad_index) {
+  const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
+  const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
+  openvdb::Vec3d dir_idx = scene.xform->baseMap()->applyInverseJacobian(d);
+  const double scale = dir_idx.length();  // index units per metre
+  dir_idx /= scale;
+  const openvdb::Vec3d eye_dda = scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
+  const double t_max = scene.max_range_m * scale;
+  RayT ray(eye_dda, dir_idx, openvdb::math::Delta<double>::value(), t_max);
+  if (!ray.clip(scene.bbox_dda)) return false;
+  // Ray over its clipped span; the HDDA rewrites the ray's times as it descends.
+  const RayT ray_dda(eye_dda, dir_idx);
+  const double t_end = ray.t1();
+  const int32_t n_vossels = static_cast<int32_t>(scene.geometry->size());
+  while (true) {
+    const RayT::TimeSpan span = hdda.march(ray, acc);
+    if (!span.valid(0.0)) return false;
+    openvdb::math::DDA<RayT, 0> dda(ray_dda, span.t0, span.t1);
+    do {
+      int32_t vossel = -1;
+      if (acc.probeValue(dda.voxel(), vossel)) {
+        if (vossel < 0 || vossel >= n_vossels) {
+          *bad_index = vossel;
+          return false;
+        }
+        if (CrossesVossel(scene, o_world, d_world, ray_dda, scale, dda.voxel(), vossel,
+                          dda.time() / scale, hit)) {
+          return true;
+        }
+      }
+    } while (dda.step());
+    if (span.t1 >= t_end) return false;
+    ray.setTimes(span.t1 + openvdb::math::Delta<double>::value(), t_end);
+  }
+}
+
+absl::Status ValidateInputs(const records::VosselGeometry& geometry,
+                            const records::FusedValues& fused, const RenderRequest& request,
+                            double cell_margin_vox) {
+  if (request.width_px <= 0 || request.height_px <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("render size must be positive, got ",
+                                                   request.width_px, "x", request.height_px));
+  }
+  if (int64_t{request.width_px} * request.height_px > kMaxPixels) {
+    return absl::InvalidArgumentError(absl::StrCat("render size ", request.width_px, "x",
+                                                   request.height_px, " exceeds ", kMaxPixels,
+                                                   " pixels"));
+  }
+  if (!std::isfinite(request.eta) || request.eta < 0.0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("eta must be a finite number >= 0, got ", request.eta));
+  }
+  if (request.eta > 0.0) {
+    return absl::InvalidArgumentError("eta > 0 needs per-record blending, not supported yet");
+  }
+  if (!(request.max_range_m > 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_range_m must be positive, got ", request.max_range_m));
+  }
+  if (!request.pose.o_world.allFinite() || !request.pose.q_world_sensor.coeffs().allFinite() ||
+      std::abs(request.pose.q_world_sensor.norm() - 1.0) > 1e-6) {
+    return absl::InvalidArgumentError(
+        "render pose must have a finite position and a unit quaternion");
+  }
+  if (!(cell_margin_vox >= 0.0 && cell_margin_vox < 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("cell margin must lie in [0, 1) vossels, got ", cell_margin_vox));
+  }
+  if (!geometry.index_grid) {
+    return absl::InvalidArgumentError("vossel geometry has no index grid");
+  }
+  const openvdb::math::Transform& xform = geometry.index_grid->transform();
+  if (!xform.isLinear() || !xform.hasUniformScale()) {
+    return absl::InvalidArgumentError(
+        "the index grid's transform must be linear with uniform voxels (createLinearTransform)");
+  }
+  const size_t n = geometry.size();
+  if (geometry.centroid_m.size() != n || geometry.normal.size() != n) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("vossel geometry arrays disagree: ", n, " coords, ",
+                     geometry.centroid_m.size(), " centroids, ", geometry.normal.size(),
+                     " normals"));
+  }
+  const openvdb::Index64 active = geometry.index_grid->activeVoxelCount();
+  if (active != n) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the index grid has ", active, " active voxels but the geometry has ", n, " vossels"));
+  }
+  const auto it = fused.by_modality.find(records::Modality::kRgb);
+  if (it != fused.by_modality.end()) {
+    const records::FusedModality& rgb = it->second;
+    if (rgb.channels != 3 || rgb.value.size() != 3 * n || rgb.weight.size() != n ||
+        rgb.uncertainty.size() != n) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "fused rgb values disagree with the geometry (", n, " vossels): channels ",
+          rgb.channels, ", ", rgb.value.size(), " values, ", rgb.weight.size(), " weights, ",
+          rgb.uncertainty.size(), " uncertainties"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+namespace internal {
+
+absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeometry& geometry,
+                                                     const records::FusedValues& fused,
+                                                     const RenderRequest& request,
+                                                     double cell_margin_vox) {
+  if (absl::Status s = ValidateInputs(geometry, fused, request, cell_margin_vox); !s.ok()) {
+    return s;
+  }
+  const int width = request.width_px;
+  const int height = request.height_px;
+  const size_t pixels = static_cast<size_t>(width) * height;
+
+  RenderImage image;
+  image.width_px = width;
+  image.height_px = height;
+  image.version = request.version;
+  image.rgb.assign(3 * pixels, 0.0f);
+  image.depth_m.assign(pixels, std::numeric_limits<float>::infinity());
+  image.normal.assign(3 * pixels, 0.0f);
+  image.uncertainty.assign(pixels, 0.0f);
+  if (geometry.size() == 0) return image;
+
+  Scene scene;
+  scene.tree = &geometry.index_grid->tree();
+  scene.xform = &geometry.index_grid->transform();
+  scene.geometry = &geometry;
+  const auto it = fused.by_modality.find(records::Modality::kRgb);
+  scene.rgb = it == fused.by_modality.end() ? nullptr : &it->second;
+  scene.cell_margin_vox = cell_margin_vox;
+  scene.max_range_m = request.max_range_m;
+  const openvdb::CoordBBox active_box = geometry.index_grid->evalActiveVoxelBoundingBox();
+  scene.bbox_dda = openvdb::math::BBox<openvdb::Vec3d>(
+      active_box.min().asVec3d(), active_box.max().asVec3d() + openvdb::Vec3d(1.0));
+
+  const geometry::EquirectSize size{width, height};
+  std::atomic<int64_t> hit_pixels{0};
+  std::atomic<bool> bad{false};
+  std::atomic<int32_t> bad_index{0};
+  tbb::parallel_for(tbb::blocked_range<int>(0, height), [&](const tbb::blocked_range<int>& rows) {
+    AccessorT acc(*scene.tree);
+    HddaT hdda;
+    int64_t hits = 0;
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      for (int i = 0; i < width; ++i) {
+        // §2.1 inverse at the pixel centre, rotated into the world.
+        const Eigen::Vector3d d_world = request.pose.DirectionToWorld(
+            geometry::EquirectUnproject(i + 0.5, j + 0.5, size)).normalized();
+        SurfaceHit hit;
+        int32_t bad_value = 0;
+        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, &hit, &bad_value)) {
+          if (bad_value != 0) {
+            bad_index.store(bad_value);
+            bad.store(true);
+          }
+          continue;
+        }
+        ++hits;
+        const size_t p = static_cast<size_t>(j) * width + i;
+        image.depth_m[p] = static_cast<float>(hit.range_m);
+        for (int c = 0; c < 3; ++c) image.normal[3 * p + c] = static_cast<float>(hit.normal[c]);
+        if (scene.rgb == nullptr) {
+          // No rgb record anywhere: U = 1/sqrt(Σw) with Σw = 0 (§7).
+          image.uncertainty[p] = std::numeric_limits<float>::infinity();
+          continue;
+        }
+        const size_t k = static_cast<size_t>(hit.vossel);
+        image.uncertainty[p] = scene.rgb->uncertainty[k];
+        if (scene.rgb->weight[k] > 0.0f) {  // §8 with η = 0: C = C_k
+          for (int c = 0; c < 3; ++c) image.rgb[3 * p + c] = scene.rgb->value[3 * k + c];
+        }
+      }
+    }
+    hit_pixels.fetch_add(hits);
+  });
+  if (bad.load()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the index grid holds vossel index ", bad_index.load(),
+                     " outside [0, ", geometry.size(), "): geometry and index grid disagree"));
+  }
+  image.hit_pixels = hit_pixels.load();
+  return image;
+}
+
+}  // namespace internal
+
+absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
+                                           const records::FusedValues& fused,
+                                           const RenderRequest& request) {
+  return internal::RenderEquirectWithMargin(geometry, fused, request,
+                                            internal::kDefaultCellMarginVox);
+}
+
+}  // namespace vasl::render

@@ -1,0 +1,200 @@
+// VASL-MODEL §8 outputs: the multi-channel float EXR (OpenEXR) and the 8-bit sRGB PNG (OIIO).
+#include "lattice/render/encode.h"
+
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <limits>
+#include <map>
+#include <string>
+#include <vector>
+
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfIO.h>
+#include <OpenEXR/ImfInputFile.h>
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
+#include <gtest/gtest.h>
+
+namespace vasl::render {
+namespace {
+
+/// An Imf::IStream over bytes held in memory.
+class StringIStream : public Imf::IStream {
+ public:
+  explicit StringIStream(const std::string& bytes) : Imf::IStream("memory.exr"), bytes_(bytes) {}
+  bool read(char c[], int n) override {
+    if (pos_ + n > bytes_.size()) throw std::runtime_error("read past the end of the EXR");
+    std::memcpy(c, bytes_.data() + pos_, n);
+    pos_ += n;
+    return pos_ < bytes_.size();
+  }
+  uint64_t tellg() override { return pos_; }
+  void seekg(uint64_t pos) override { pos_ = pos; }
+
+ private:
+  const std::string& bytes_;
+  size_t pos_ = 0;
+};
+
+/// A 7×5 image with distinct values in every channel, some no-hit pixels (Z = +inf).
+RenderImage MakeImage() {
+  RenderImage img;
+  img.width_px = 7;
+  img.height_px = 5;
+  const size_t n = 35;
+  img.rgb.resize(3 * n);
+  img.depth_m.resize(n);
+  img.normal.resize(3 * n);
+  img.uncertainty.resize(n);
+  for (size_t p = 0; p < n; ++p) {
+    for (int c = 0; c < 3; ++c) {
+      img.rgb[3 * p + c] = 0.01f * p + 0.1f * c + 1e-7f;
+      img.normal[3 * p + c] = std::sin(0.37f * p + c);
+    }
+    img.depth_m[p] = p % 6 == 0 ? std::numeric_limits<float>::infinity() : 1.5f + 0.123f * p;
+    img.uncertainty[p] = 1.0f / (p + 3);
+  }
+  return img;
+}
+
+// Claim (§8 outputs): the EXR holds exactly the FLOAT channels R, G, B, Z, N.x, N.y, N.z, U over
+// a W×H data window, ZIP-compressed, row 0 = top, and every value reads back bit-exact
+// (including Z = +inf for no-hit pixels).
+TEST(EncodeTest, ExrRoundTripExact) {
+  const RenderImage img = MakeImage();
+  auto bytes = EncodeExr(img);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  StringIStream stream(*bytes);
+  Imf::InputFile file(stream);
+  const Imf::Header& header = file.header();
+  EXPECT_EQ(header.compression(), Imf::ZIP_COMPRESSION);
+  EXPECT_EQ(header.lineOrder(), Imf::INCREASING_Y);
+  const Imath::Box2i dw = header.dataWindow();
+  EXPECT_EQ(dw.min.x, 0);
+  EXPECT_EQ(dw.min.y, 0);
+  EXPECT_EQ(dw.max.x, img.width_px - 1);
+  EXPECT_EQ(dw.max.y, img.height_px - 1);
+  std::vector<std::string> names;
+  for (auto it = header.channels().begin(); it != header.channels().end(); ++it) {
+    names.push_back(it.name());
+    EXPECT_EQ(it.channel().type, Imf::FLOAT) << it.name();
+  }
+  // OpenEXR lists channels sorted by name.
+  EXPECT_EQ(names, (std::vector<std::string>{"B", "G", "N.x", "N.y", "N.z", "R", "U", "Z"}));
+
+  const size_t n = static_cast<size_t>(img.width_px) * img.height_px;
+  std::map<std::string, std::vector<float>> planes;
+  Imf::FrameBuffer frame;
+  for (const std::string& name : names) {
+    planes[name].assign(n, -1.0f);
+    frame.insert(name, Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(planes[name].data()),
+                                  sizeof(float), sizeof(float) * img.width_px));
+  }
+  file.setFrameBuffer(frame);
+  file.readPixels(dw.min.y, dw.max.y);
+  int64_t mismatches = 0;
+  auto same = [&](float a, float b) { mismatches += std::memcmp(&a, &b, sizeof(float)) != 0; };
+  for (size_t p = 0; p < n; ++p) {
+    same(planes["R"][p], img.rgb[3 * p + 0]);
+    same(planes["G"][p], img.rgb[3 * p + 1]);
+    same(planes["B"][p], img.rgb[3 * p + 2]);
+    same(planes["Z"][p], img.depth_m[p]);
+    same(planes["N.x"][p], img.normal[3 * p + 0]);
+    same(planes["N.y"][p], img.normal[3 * p + 1]);
+    same(planes["N.z"][p], img.normal[3 * p + 2]);
+    same(planes["U"][p], img.uncertainty[p]);
+  }
+  std::printf("EXR %dx%d: %zu bytes, %zu channels, %lld of %zu values differ (bitwise)\n",
+              img.width_px, img.height_px, bytes->size(), names.size(), (long long)mismatches,
+              8 * n);
+  EXPECT_EQ(mismatches, 0);
+  EXPECT_TRUE(std::isinf(planes["Z"][0]));
+  EXPECT_EQ(planes["R"][img.width_px], img.rgb[3 * img.width_px]);  // row 1 is the second row
+}
+
+/// The sRGB OETF written out independently in double precision, then quantised to 8 bits.
+int ExpectedSrgb8(double linear) {
+  if (!(linear > 0.0)) return 0;
+  if (linear >= 1.0) return 255;
+  const double e = linear <= 0.0031308 ? 12.92 * linear : 1.055 * std::pow(linear, 1 / 2.4) - 0.055;
+  return static_cast<int>(std::lround(e * 255.0));
+}
+
+// Claim (§8 outputs): the PNG is 8-bit RGB with the sRGB transfer of the linear colour, clamped
+// to [0, 1]: anchors 0.18 → 118, 0.5 → 188, 1 → 255, −0.2 → 0, 1.7 → 255, NaN → 0; a 256-step
+// ramp decodes (OIIO) to the expected values within ±1.
+TEST(EncodeTest, PngIsEightBitSrgb) {
+  RenderImage img;
+  img.width_px = 256;
+  img.height_px = 2;
+  const size_t n = 512;
+  img.rgb.resize(3 * n);
+  img.depth_m.assign(n, 1.0f);
+  img.normal.assign(3 * n, 0.0f);
+  img.uncertainty.assign(n, 0.0f);
+  for (int i = 0; i < 256; ++i) {  // row 0: ramp in R, reversed in G, squared in B
+    const float x = i / 255.0f;
+    img.rgb[3 * i + 0] = x;
+    img.rgb[3 * i + 1] = 1.0f - x;
+    img.rgb[3 * i + 2] = x * x;
+  }
+  const float anchors[] = {0.18f, 0.5f, 1.0f, -0.2f, 1.7f, std::nanf(""), 0.0031308f, 0.001f};
+  const int anchor_expect[] = {118, 188, 255, 0, 255, 0, 10, 3};
+  for (int a = 0; a < 8; ++a) {
+    for (int c = 0; c < 3; ++c) img.rgb[3 * (256 + a) + c] = anchors[a];
+  }
+  auto bytes = EncodePng(img);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  ASSERT_GE(bytes->size(), 8u);
+  EXPECT_EQ(bytes->substr(1, 3), "PNG");
+
+  std::vector<unsigned char> buffer(bytes->begin(), bytes->end());
+  OIIO::Filesystem::IOMemReader reader(buffer.data(), buffer.size());
+  auto in = OIIO::ImageInput::open("render.png", nullptr, &reader);
+  ASSERT_TRUE(in) << OIIO::geterror();
+  const OIIO::ImageSpec& spec = in->spec();
+  EXPECT_EQ(spec.width, 256);
+  EXPECT_EQ(spec.height, 2);
+  EXPECT_EQ(spec.nchannels, 3);
+  EXPECT_EQ(spec.format, OIIO::TypeDesc::UINT8);
+  std::vector<uint8_t> px(3 * n);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, px.data())) << in->geterror();
+  in->close();
+
+  int worst = 0;
+  for (int i = 0; i < 256; ++i) {
+    for (int c = 0; c < 3; ++c) {
+      worst = std::max(worst, std::abs(px[3 * i + c] - ExpectedSrgb8(img.rgb[3 * i + c])));
+    }
+  }
+  int anchor_worst = 0;
+  for (int a = 0; a < 8; ++a) {
+    for (int c = 0; c < 3; ++c) {
+      anchor_worst = std::max(anchor_worst, std::abs(px[3 * (256 + a) + c] - anchor_expect[a]));
+    }
+  }
+  std::printf("PNG 256x2: %zu bytes; ramp worst |decoded − expected| = %d; anchors 0.18→%d "
+              "0.5→%d 1→%d −0.2→%d 1.7→%d NaN→%d, worst anchor error %d\n",
+              bytes->size(), worst, px[3 * 256], px[3 * 257], px[3 * 258], px[3 * 259],
+              px[3 * 260], px[3 * 261], anchor_worst);
+  EXPECT_LE(worst, 1);
+  EXPECT_LE(anchor_worst, 1);
+}
+
+// Claim (ARCHITECTURE "Errors"): an image whose arrays disagree with its size is
+// INVALID_ARGUMENT for both encoders.
+TEST(EncodeTest, RejectsInconsistentImage) {
+  RenderImage img = MakeImage();
+  img.uncertainty.pop_back();
+  EXPECT_EQ(EncodeExr(img).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(EncodePng(img).status().code(), absl::StatusCode::kInvalidArgument);
+  RenderImage empty;
+  EXPECT_EQ(EncodeExr(empty).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(EncodePng(empty).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace vasl::render
