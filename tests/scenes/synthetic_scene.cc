@@ -1,0 +1,494 @@
+/// @file synthetic_scene.cc
+/// @brief The canonical synthetic room, its ray caster, LiDAR and panorama simulators, and the
+///        writers of the files a rig sends (PLY, PNG) and of the ground truth (.npy).
+#include "tests/scenes/synthetic_scene.h"
+
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <limits>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "lattice/geometry/equirect.h"
+
+namespace vasl::scenes {
+namespace {
+
+using Eigen::Vector3d;
+using Eigen::Vector3f;
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+/// A pose from a position (metres) and a yaw about world +z (radians).
+geometry::Pose YawPose(const Vector3d& position_m, double yaw_rad) {
+  geometry::Pose pose;
+  pose.q_world_sensor = Eigen::Quaterniond(Eigen::AngleAxisd(yaw_rad, Vector3d::UnitZ()));
+  pose.o_world = position_m;
+  return pose;
+}
+
+/// Parameters of one face's analytic albedo (see Albedo()).
+struct FaceTexture {
+  Vector3f base;          ///< colour multiplied by the sinusoid field, each channel in [0, 1]
+  Vector3f band;          ///< colour of the soft broad band, each channel in [0, 1]
+  double lambda_s_m;      ///< wavelength of the sinusoid along the face's first axis, metres
+  double lambda_t_m;      ///< wavelength of the sinusoid along the face's second axis, metres
+  double phase_s_rad;     ///< phase of the first sinusoid, radians
+  double phase_t_rad;     ///< phase of the second sinusoid, radians
+  int band_axis;          ///< 0: band varies along s, 1: along t
+  double band_centre_m;   ///< band centre on its axis, metres
+  double band_sigma_m;    ///< Gaussian half-width of the band, metres
+};
+
+/// Textures per face id. The finest scales are a 1.5 m wavelength (amplitude 0.3 of base) and a
+/// band of σ = 0.4 m: smooth at the 0.3 m scale, so a 0.05 m-vossel render can reproduce them
+/// (the albedo changes by < 0.08 over any 0.05 m step; RMS change ≈ 0.02).
+/// The occluder is orange; the wall behind it (y = max) is blue-grey: a strong silhouette.
+const FaceTexture& TextureOf(int face) {
+  static const FaceTexture kTextures[kFaceCount] = {
+      // floor: warm grey-brown, cream band across x
+      {{0.60f, 0.48f, 0.36f}, {0.92f, 0.86f, 0.70f}, 2.1, 1.7, 0.3, 1.1, 0, 1.6, 0.45},
+      // ceiling: off-white, pale blue band across y
+      {{0.88f, 0.88f, 0.82f}, {0.55f, 0.68f, 0.92f}, 2.5, 2.0, 1.7, 0.4, 1, 2.5, 0.50},
+      // wall x = min: green, yellow band in height
+      {{0.36f, 0.62f, 0.44f}, {0.95f, 0.90f, 0.45f}, 1.8, 1.6, 0.9, 2.2, 1, 2.2, 0.40},
+      // wall x = max: mauve, sky band along y
+      {{0.72f, 0.40f, 0.52f}, {0.40f, 0.72f, 0.92f}, 1.8, 1.6, 2.4, 0.2, 0, 3.5, 0.45},
+      // wall y = min: lavender, orange band in height
+      {{0.50f, 0.50f, 0.78f}, {0.92f, 0.60f, 0.30f}, 1.7, 1.5, 0.1, 1.3, 1, 0.9, 0.40},
+      // wall y = max: blue-grey, pale band along x
+      {{0.30f, 0.50f, 0.82f}, {0.85f, 0.90f, 0.95f}, 1.6, 1.5, 1.2, 2.9, 0, 4.6, 0.45},
+      // occluder faces: orange, yellow band in height
+      {{0.95f, 0.46f, 0.16f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.6, 0.0, 0.5, 1, 1.2, 0.40},
+      {{0.95f, 0.46f, 0.16f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.6, 1.0, 0.5, 1, 1.2, 0.40},
+      {{0.95f, 0.46f, 0.16f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.6, 2.0, 0.5, 1, 1.2, 0.40},
+      {{0.95f, 0.46f, 0.16f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.6, 3.0, 0.5, 1, 1.2, 0.40},
+      {{0.90f, 0.52f, 0.20f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.5, 0.5, 1.5, 0, 3.0, 0.40},
+      {{0.90f, 0.52f, 0.20f}, {0.95f, 0.82f, 0.20f}, 1.5, 1.5, 0.5, 1.5, 0, 3.0, 0.40},
+  };
+  return kTextures[face];
+}
+
+/// The in-plane coordinates (s, t) of a face: the two world axes spanning it, in x, y, z order.
+Eigen::Vector2d FaceCoords(const Vector3d& x, int face) {
+  switch (face) {
+    case kFaceFloor:
+    case kFaceCeiling:
+    case kFaceBoxTop:
+    case kFaceBoxBottom:
+      return {x.x(), x.y()};
+    case kFaceWallXMin:
+    case kFaceWallXMax:
+    case kFaceBoxXMin:
+    case kFaceBoxXMax:
+      return {x.y(), x.z()};
+    default:  // walls and box faces normal to y
+      return {x.x(), x.z()};
+  }
+}
+
+/// Axis (0, 1, 2) a face is normal to, and whether it is the box's / room's max side.
+int FaceAxis(int face) {
+  static const int kAxis[kFaceCount] = {2, 2, 0, 0, 1, 1, 0, 0, 1, 1, 2, 2};
+  return kAxis[face];
+}
+
+uint64_t SplitMix64(uint64_t x) {
+  x += 0x9E3779B97F4A7C15ull;
+  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
+  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
+  return x ^ (x >> 31);
+}
+
+float LinearToSrgb(float c) {
+  c = std::clamp(c, 0.0f, 1.0f);
+  return c <= 0.0031308f ? 12.92f * c : 1.055f * std::pow(c, 1.0f / 2.4f) - 0.055f;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// The canonical scene.
+//
+// Room x ∈ [0, 6], y ∈ [0, 5], z ∈ [0, 3]. Occluder x ∈ [2.6, 3.4], y ∈ [2.3, 3.1],
+// z ∈ [0, 1.8]. Station 0 at (3.0, 1.2, 1.40) looks at the box's y-min face from 1.1 m; the
+// box's shadow from it on wall y = 5 spans roughly x ∈ [1.6, 4.4], z ∈ [0, 2.8] (LiDAR; the
+// camera 0.1 m higher shifts the upper edge). Station 1 at (1.2, 3.9, 1.50) is beside the box
+// and sees that region of the wall lit. Stations 2 and 3 complete the ring. Every station is
+// yawed so that pose handling is exercised: a sensor-frame direction is not a world direction.
+// ---------------------------------------------------------------------------------------------
+SyntheticRoom SyntheticRoom::Default() {
+  SyntheticRoom room;
+  room.room_ = {Vector3d(0.0, 0.0, 0.0), Vector3d(6.0, 5.0, 3.0)};
+  room.box_ = {Vector3d(2.6, 2.3, 0.0), Vector3d(3.4, 3.1, 1.8)};
+  const double deg = M_PI / 180.0;
+  room.stations_ = {
+      YawPose({3.0, 1.2, 1.40}, 20.0 * deg),
+      YawPose({1.2, 3.9, 1.50}, 135.0 * deg),
+      YawPose({4.8, 1.2, 1.30}, -60.0 * deg),
+      YawPose({4.6, 3.9, 1.55}, -150.0 * deg),
+  };
+  room.novel_views_ = {
+      YawPose({2.0, 1.8, 1.45}, 30.0 * deg),
+      YawPose({4.4, 2.2, 1.50}, -100.0 * deg),
+  };
+  return room;
+}
+
+Vector3d SyntheticRoom::FaceNormal(int face) {
+  // Room faces face inward (toward the room's free space), box faces face outward.
+  static const double kSign[kFaceCount] = {+1, -1, +1, -1, +1, -1, -1, +1, -1, +1, +1, -1};
+  Vector3d n = Vector3d::Zero();
+  n[FaceAxis(face)] = kSign[face];
+  return n;
+}
+
+Vector3f SyntheticRoom::Albedo(const Vector3d& x_world, int face) const {
+  if (face < 0 || face >= kFaceCount) return Vector3f::Constant(0.05f);
+  const FaceTexture& tex = TextureOf(face);
+  const Eigen::Vector2d st = FaceCoords(x_world, face);
+  // Sinusoid field in [0.1, 1.0]; soft band weight in [0, 0.8]; value in [0, 1] → [0.05, 0.95].
+  const double field =
+      0.55 + 0.30 * std::sin(2.0 * M_PI * st[0] / tex.lambda_s_m + tex.phase_s_rad) +
+      0.15 * std::cos(2.0 * M_PI * st[1] / tex.lambda_t_m + tex.phase_t_rad);
+  const double z = (st[tex.band_axis] - tex.band_centre_m) / tex.band_sigma_m;
+  const double b = 0.8 * std::exp(-z * z);
+  Vector3f rgb;
+  for (int c = 0; c < 3; ++c) {
+    const double v = (1.0 - b) * tex.base[c] * field + b * tex.band[c];
+    rgb[c] = static_cast<float>(0.05 + 0.9 * std::clamp(v, 0.0, 1.0));
+  }
+  return rgb;
+}
+
+SceneHit SyntheticRoom::Intersect(const Vector3d& o, const Vector3d& d, double t_max_m) const {
+  SceneHit hit;
+  double t_best = kInf;
+  int face_best = kFaceNone;
+  // Room interior: the ray leaves through the nearest wall it heads to.
+  static const int kRoomMinFace[3] = {kFaceWallXMin, kFaceWallYMin, kFaceFloor};
+  static const int kRoomMaxFace[3] = {kFaceWallXMax, kFaceWallYMax, kFaceCeiling};
+  for (int a = 0; a < 3; ++a) {
+    if (d[a] > 0.0) {
+      const double t = (room_.max_m[a] - o[a]) / d[a];
+      if (t < t_best) t_best = t, face_best = kRoomMaxFace[a];
+    } else if (d[a] < 0.0) {
+      const double t = (room_.min_m[a] - o[a]) / d[a];
+      if (t < t_best) t_best = t, face_best = kRoomMinFace[a];
+    }
+  }
+  // Occluder: slab entry (the origin is outside it).
+  static const int kBoxMinFace[3] = {kFaceBoxXMin, kFaceBoxYMin, kFaceBoxBottom};
+  static const int kBoxMaxFace[3] = {kFaceBoxXMax, kFaceBoxYMax, kFaceBoxTop};
+  double t_near = -kInf, t_far = kInf;
+  int face_near = kFaceNone;
+  bool miss = false;
+  for (int a = 0; a < 3 && !miss; ++a) {
+    if (d[a] == 0.0) {
+      if (o[a] < box_.min_m[a] || o[a] > box_.max_m[a]) miss = true;
+      continue;
+    }
+    double t0 = (box_.min_m[a] - o[a]) / d[a];
+    double t1 = (box_.max_m[a] - o[a]) / d[a];
+    int f0 = kBoxMinFace[a];
+    if (t0 > t1) std::swap(t0, t1), f0 = kBoxMaxFace[a];
+    if (t0 > t_near) t_near = t0, face_near = f0;
+    t_far = std::min(t_far, t1);
+  }
+  if (!miss && t_near <= t_far && t_near > 0.0 && t_near < t_best) {
+    t_best = t_near;
+    face_best = face_near;
+  }
+  if (face_best == kFaceNone || !(t_best > 0.0) || t_best > t_max_m) return hit;
+  hit.valid = true;
+  hit.t_m = t_best;
+  hit.x_world = o + t_best * d;
+  // Snap the coordinate normal to the face onto its plane exactly.
+  const int axis = FaceAxis(face_best);
+  const bool is_box = face_best >= kFaceBoxXMin;
+  const bool is_max = (face_best == kRoomMaxFace[axis]) || (face_best == kBoxMaxFace[axis]);
+  const Aabb& bounds = is_box ? box_ : room_;
+  hit.x_world[axis] = is_max ? bounds.max_m[axis] : bounds.min_m[axis];
+  hit.face = face_best;
+  hit.n_world = FaceNormal(face_best);
+  hit.albedo_linear = Albedo(hit.x_world, face_best);
+  hit.reflectance = Luminance(hit.albedo_linear);
+  return hit;
+}
+
+bool SyntheticRoom::Visible(const Vector3d& o, const Vector3d& x, double eps_m) const {
+  for (int a = 0; a < 3; ++a) {
+    if (x[a] < room_.min_m[a] - eps_m || x[a] > room_.max_m[a] + eps_m) return false;
+  }
+  const Vector3d delta = x - o;
+  const double dist = delta.norm();
+  if (dist <= eps_m) return true;
+  const SceneHit hit = Intersect(o, delta / dist, dist);
+  return !hit.valid || hit.t_m >= dist - eps_m;
+}
+
+std::vector<Vector3d> SyntheticRoom::FaceSamples(int face, double spacing_m, double margin_m,
+                                                 const std::vector<Vector3d>& lit_from,
+                                                 const std::vector<Vector3d>& shadowed_from) const {
+  std::vector<Vector3d> out;
+  if (face < 0 || face >= kFaceCount || !(spacing_m > 0.0)) return out;
+  const int axis = FaceAxis(face);
+  const bool is_box = face >= kFaceBoxXMin;
+  const Aabb& bounds = is_box ? box_ : room_;
+  const Vector3d n = FaceNormal(face);
+  // Room faces with inward normal +axis are at min; box faces with outward normal +axis at max.
+  const bool at_max = is_box ? n[axis] > 0 : n[axis] < 0;
+  const int a_s = axis == 0 ? 1 : 0;
+  const int a_t = axis == 2 ? 1 : 2;
+  const double plane = at_max ? bounds.max_m[axis] : bounds.min_m[axis];
+  auto ok = [&](const Vector3d& p) {
+    for (const Vector3d& o : lit_from) {
+      if (!Visible(o, p, 1e-6)) return false;
+    }
+    for (const Vector3d& o : shadowed_from) {
+      if (Visible(o, p, 1e-6)) return false;
+    }
+    return true;
+  };
+  for (double s = bounds.min_m[a_s] + margin_m; s <= bounds.max_m[a_s] - margin_m + 1e-9;
+       s += spacing_m) {
+    for (double t = bounds.min_m[a_t] + margin_m; t <= bounds.max_m[a_t] - margin_m + 1e-9;
+         t += spacing_m) {
+      Vector3d p;
+      p[axis] = plane;
+      p[a_s] = s;
+      p[a_t] = t;
+      bool all = ok(p);
+      for (int k = 0; k < 8 && all && margin_m > 0.0; ++k) {
+        const double ang = k * M_PI / 4.0;
+        Vector3d q = p;
+        q[a_s] += margin_m * std::cos(ang);
+        q[a_t] += margin_m * std::sin(ang);
+        all = ok(q);
+      }
+      if (all) out.push_back(p);
+    }
+  }
+  return out;
+}
+
+std::vector<Vector3d> SyntheticRoom::ShadowSamples() const {
+  const geometry::Pose& s0 = stations_[0];
+  const geometry::Pose& s1 = stations_[1];
+  return FaceSamples(kFaceWallYMax, 0.1, 0.15,
+                     {s1.o_world, CameraPoseForStation(s1).o_world},
+                     {s0.o_world, CameraPoseForStation(s0).o_world});
+}
+
+std::vector<Vector3d> SyntheticRoom::LitSamples() const {
+  const geometry::Pose& s0 = stations_[0];
+  const geometry::Pose& s1 = stations_[1];
+  return FaceSamples(kFaceWallYMax, 0.1, 0.15,
+                     {s0.o_world, CameraPoseForStation(s0).o_world, s1.o_world,
+                      CameraPoseForStation(s1).o_world},
+                     {});
+}
+
+geometry::Pose CameraPoseForStation(const geometry::Pose& T_world_scanner) {
+  geometry::Pose camera = T_world_scanner;
+  camera.o_world.z() += kCameraAboveLidarM;
+  return camera;
+}
+
+float Luminance(const Vector3f& rgb) {
+  return 0.2126f * rgb[0] + 0.7152f * rgb[1] + 0.0722f * rgb[2];
+}
+
+LidarScan GenerateLidar(const SyntheticRoom& room, const geometry::Pose& T_world_scanner,
+                        const LidarSettings& settings) {
+  const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};
+  const int rows = std::max(0, settings.elevation_steps);
+  const int cols = std::max(0, settings.azimuth_steps);
+  // Per-row outputs with a per-row RNG stream: the result does not depend on scheduling.
+  std::vector<std::vector<float>> row_xyz(rows), row_int(rows);
+  const double nadir_limit = -M_PI / 2.0 + settings.nadir_blind_rad;
+  tbb::parallel_for(tbb::blocked_range<int>(0, rows), [&](const tbb::blocked_range<int>& r) {
+    for (int j = r.begin(); j < r.end(); ++j) {
+      const double psi = M_PI * (0.5 - (j + 0.5) / rows);  // §2.1 elevation of row j's centre
+      if (psi < nadir_limit) continue;
+      std::mt19937_64 rng(SplitMix64(settings.seed * 0x9E3779B97F4A7C15ull + j));
+      std::normal_distribution<double> noise(0.0, settings.range_noise_m);
+      std::vector<float>& xyz = row_xyz[j];
+      std::vector<float>& inten = row_int[j];
+      xyz.reserve(3 * cols);
+      inten.reserve(cols);
+      for (int i = 0; i < cols; ++i) {
+        // §2.1 inverse at the ray-grid cell centre: the ray direction in the sensor frame.
+        const Vector3d d_sensor = geometry::EquirectUnproject(i + 0.5, j + 0.5, grid);
+        const Vector3d d_world = T_world_scanner.DirectionToWorld(d_sensor);
+        const SceneHit hit = room.Intersect(T_world_scanner.o_world, d_world, settings.max_range_m);
+        const double n = noise(rng);  // drawn for every ray so streams stay aligned
+        if (!hit.valid) continue;
+        const double range = std::max(0.0, hit.t_m + n);
+        const Vector3d p = range * d_sensor;
+        xyz.push_back(static_cast<float>(p.x()));
+        xyz.push_back(static_cast<float>(p.y()));
+        xyz.push_back(static_cast<float>(p.z()));
+        inten.push_back(hit.reflectance);
+      }
+    }
+  });
+  LidarScan scan;
+  size_t n = 0;
+  for (const auto& v : row_int) n += v.size();
+  scan.xyz_sensor_m.reserve(3 * n);
+  scan.intensity.reserve(n);
+  for (int j = 0; j < rows; ++j) {
+    scan.xyz_sensor_m.insert(scan.xyz_sensor_m.end(), row_xyz[j].begin(), row_xyz[j].end());
+    scan.intensity.insert(scan.intensity.end(), row_int[j].begin(), row_int[j].end());
+  }
+  return scan;
+}
+
+Panorama RenderPanorama(const SyntheticRoom& room, const geometry::Pose& T_world_camera,
+                        int width_px, int height_px, int supersample) {
+  Panorama pano;
+  pano.width_px = std::max(0, width_px);
+  pano.height_px = std::max(0, height_px);
+  const int s = std::max(1, supersample);
+  const size_t w = pano.width_px, h = pano.height_px;
+  pano.rgb.assign(w * h * 3, 0.0f);
+  pano.depth_m.assign(w * h, std::numeric_limits<float>::infinity());
+  const geometry::EquirectSize size{pano.width_px, pano.height_px};
+  const Vector3d o = T_world_camera.o_world;
+  const tbb::blocked_range<int> all_rows(0, pano.height_px);
+  tbb::parallel_for(all_rows, [&](const tbb::blocked_range<int>& r) {
+    for (int j = r.begin(); j < r.end(); ++j) {
+      for (int i = 0; i < pano.width_px; ++i) {
+        // Pixel integration: the mean over s × s strata of [i, i+1) × [j, j+1), each sampled
+        // at its centre with the §2.1 inverse at continuous coordinates.
+        Vector3d sum = Vector3d::Zero();
+        int hits = 0;
+        for (int b = 0; b < s; ++b) {
+          for (int a = 0; a < s; ++a) {
+            const double u = i + (a + 0.5) / s;
+            const double v = j + (b + 0.5) / s;
+            const Vector3d d =
+                T_world_camera.DirectionToWorld(geometry::EquirectUnproject(u, v, size));
+            const SceneHit hit = room.Intersect(o, d, kInf);
+            if (!hit.valid) continue;
+            sum += hit.albedo_linear.cast<double>();
+            ++hits;
+          }
+        }
+        const size_t p = static_cast<size_t>(j) * w + i;
+        if (hits > 0) {
+          for (int c = 0; c < 3; ++c) pano.rgb[3 * p + c] = static_cast<float>(sum[c] / hits);
+        }
+        const Vector3d d_centre =
+            T_world_camera.DirectionToWorld(geometry::EquirectUnproject(i + 0.5, j + 0.5, size));
+        const SceneHit centre = room.Intersect(o, d_centre, kInf);
+        if (centre.valid) pano.depth_m[p] = static_cast<float>(centre.t_m);
+      }
+    }
+  });
+  return pano;
+}
+
+std::vector<uint8_t> ToSrgb8(const Panorama& pano) {
+  std::vector<uint8_t> out(pano.rgb.size());
+  for (size_t k = 0; k < pano.rgb.size(); ++k) {
+    out[k] = static_cast<uint8_t>(std::lround(255.0f * LinearToSrgb(pano.rgb[k])));
+  }
+  return out;
+}
+
+absl::StatusOr<std::string> EncodePng(const Panorama& pano) {
+  if (pano.width_px <= 0 || pano.height_px <= 0 ||
+      pano.rgb.size() != static_cast<size_t>(pano.width_px) * pano.height_px * 3) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("panorama must be W×H×3 with W, H > 0; got W=", pano.width_px,
+                     " H=", pano.height_px, " and ", pano.rgb.size(), " rgb values"));
+  }
+  const std::vector<uint8_t> srgb = ToSrgb8(pano);
+  std::vector<unsigned char> buffer;
+  OIIO::Filesystem::IOVecOutput proxy(buffer);
+  const std::string name = "panorama.png";  // selects the PNG writer; nothing touches disk
+  auto out = OIIO::ImageOutput::create(name, &proxy);
+  if (!out) {
+    return absl::InternalError(absl::StrCat("OpenImageIO has no PNG writer: ", OIIO::geterror()));
+  }
+  OIIO::ImageSpec spec(pano.width_px, pano.height_px, 3, OIIO::TypeDesc::UINT8);
+  spec.attribute("oiio:ColorSpace", "sRGB");
+  if (!out->open(name, spec) || !out->write_image(OIIO::TypeDesc::UINT8, srgb.data()) ||
+      !out->close()) {
+    return absl::InternalError(absl::StrCat("PNG encoding failed: ", out->geterror()));
+  }
+  return std::string(buffer.begin(), buffer.end());
+}
+
+absl::Status WritePly(const LidarScan& scan, const std::filesystem::path& path) {
+  const size_t n = scan.intensity.size();
+  if (scan.xyz_sensor_m.size() != 3 * n) {
+    return absl::InvalidArgumentError(absl::StrCat("LiDAR scan has ", scan.xyz_sensor_m.size(),
+                                                   " coordinates for ", n,
+                                                   " intensities; need 3 per point"));
+  }
+  std::ofstream f(path, std::ios::binary | std::ios::trunc);
+  if (!f) return absl::UnavailableError(absl::StrCat("cannot write ", path.string()));
+  f << "ply\nformat binary_little_endian 1.0\nelement vertex " << n
+    << "\nproperty float x\nproperty float y\nproperty float z\nproperty float intensity\n"
+       "end_header\n";
+  static_assert(sizeof(float) == 4, "PLY float is 4 bytes");
+  std::vector<float> rows(4 * n);
+  for (size_t k = 0; k < n; ++k) {
+    rows[4 * k + 0] = scan.xyz_sensor_m[3 * k + 0];
+    rows[4 * k + 1] = scan.xyz_sensor_m[3 * k + 1];
+    rows[4 * k + 2] = scan.xyz_sensor_m[3 * k + 2];
+    rows[4 * k + 3] = scan.intensity[k];
+  }
+  // x86-64 and aarch64 hosts are little-endian, as the header declares.
+  f.write(reinterpret_cast<const char*>(rows.data()),
+          static_cast<std::streamsize>(rows.size() * sizeof(float)));
+  f.close();
+  if (!f) return absl::UnavailableError(absl::StrCat("write failed: ", path.string()));
+  return absl::OkStatus();
+}
+
+absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>& shape,
+                      const std::filesystem::path& path) {
+  size_t count = 1;
+  for (size_t d : shape) count *= d;
+  if (count != data.size()) {
+    return absl::InvalidArgumentError(absl::StrCat("npy shape (", absl::StrJoin(shape, ", "),
+                                                   ") holds ", count, " values but data has ",
+                                                   data.size()));
+  }
+  std::string shape_str = "(" + absl::StrJoin(shape, ", ") + (shape.size() == 1 ? ",)" : ")");
+  std::string header =
+      absl::StrCat("{'descr': '<f4', 'fortran_order': False, 'shape': ", shape_str, ", }");
+  // Pad with spaces and a final newline so the data starts at a multiple of 64 bytes.
+  const size_t preamble = 10;  // magic (6) + version (2) + header length (2)
+  size_t total = preamble + header.size() + 1;
+  header.append((64 - total % 64) % 64, ' ');
+  header.push_back('\n');
+  if (header.size() > 65535) return absl::InvalidArgumentError("npy header too long");
+  std::ofstream f(path, std::ios::binary | std::ios::trunc);
+  if (!f) return absl::UnavailableError(absl::StrCat("cannot write ", path.string()));
+  const char magic[8] = {'\x93', 'N', 'U', 'M', 'P', 'Y', 1, 0};
+  f.write(magic, 8);
+  const uint16_t len = static_cast<uint16_t>(header.size());
+  const char len_le[2] = {static_cast<char>(len & 0xff), static_cast<char>(len >> 8)};
+  f.write(len_le, 2);
+  f.write(header.data(), static_cast<std::streamsize>(header.size()));
+  f.write(reinterpret_cast<const char*>(data.data()),
+          static_cast<std::streamsize>(data.size() * sizeof(float)));
+  f.close();
+  if (!f) return absl::UnavailableError(absl::StrCat("write failed: ", path.string()));
+  return absl::OkStatus();
+}
+
+}  // namespace vasl::scenes
