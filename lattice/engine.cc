@@ -1,1 +1,498 @@
-// placeholder
+#include "lattice/engine.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <map>
+#include <mutex>
+#include <set>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/fusion/fuse.h"
+#include "lattice/ingest/sample.h"
+#include "lattice/ingest/sources.h"
+#include "lattice/ingest/voxelise.h"
+
+namespace vasl {
+namespace fs = std::filesystem;
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double SecondsSince(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+absl::Status ValidateProjectName(const std::string& name) {
+  const bool ok_len = !name.empty() && name.size() <= 63;
+  bool ok_chars = ok_len && (std::isalnum(static_cast<unsigned char>(name[0])) != 0);
+  for (char c : name) {
+    ok_chars = ok_chars && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' ||
+                            c == '_' || c == '-');
+  }
+  if (!ok_chars || name == "." || name == "..") {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "project name '", name,
+        "' is invalid: use 1-63 characters of a-z, 0-9, '.', '_', '-', starting with a letter or digit"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what) {
+  const Eigen::Vector4d q = pose.q_world_sensor.coeffs();
+  if (!pose.o_world.allFinite() || !q.allFinite() || std::abs(q.norm() - 1.0) > 1e-6) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, ": pose must have a finite position and a finite unit quaternion"));
+  }
+  return absl::OkStatus();
+}
+
+// Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
+// format of a LiDAR source.
+std::string PackPoints(const LidarData& lidar) {
+  const size_t n = lidar.xyz_sensor_m.size() / 3;
+  std::string bytes(n * 16, '\0');
+  for (size_t i = 0; i < n; ++i) {
+    const float rec[4] = {lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1],
+                          lidar.xyz_sensor_m[3 * i + 2],
+                          lidar.intensity.empty() ? 1.0f : lidar.intensity[i]};
+    std::memcpy(&bytes[i * 16], rec, 16);
+  }
+  return bytes;
+}
+
+absl::StatusOr<ingest::LidarSource> UnpackLidar(const std::string& bytes, const store::SourceInfo& s) {
+  if (bytes.size() % 16 != 0) {
+    return absl::DataLossError(absl::StrCat("points blob ", s.blob_sha256, " is not a whole number of points"));
+  }
+  ingest::LidarSource out;
+  out.id = s.id;
+  out.pose = s.pose;
+  out.divergence_rad = s.divergence_rad;
+  const size_t n = bytes.size() / 16;
+  out.xyz_sensor_m.resize(3 * n);
+  out.intensity.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    float rec[4];
+    std::memcpy(rec, &bytes[i * 16], 16);
+    std::copy(rec, rec + 3, &out.xyz_sensor_m[3 * i]);
+    out.intensity[i] = rec[3];
+  }
+  return out;
+}
+
+}  // namespace
+
+struct Engine::Impl {
+  struct Project {
+    std::unique_ptr<store::ProjectStore> store;
+    std::mutex write_mu;  ///< one writer per project
+    std::mutex head_mu;   ///< guards `head`
+    std::shared_ptr<const store::Snapshot> head;
+  };
+
+  fs::path data_dir;
+  EngineLimits limits;
+  std::mutex mu;  ///< guards `projects`
+  std::map<std::string, std::shared_ptr<Project>> projects;
+
+  absl::StatusOr<std::shared_ptr<Project>> Find(const std::string& name) {
+    if (absl::Status s = ValidateProjectName(name); !s.ok()) return s;
+    std::lock_guard<std::mutex> lock(mu);
+    auto it = projects.find(name);
+    if (it != projects.end()) return it->second;
+    const fs::path dir = data_dir / name;
+    if (!fs::exists(dir / "catalog.sqlite")) {
+      return absl::NotFoundError(absl::StrCat("project '", name, "' does not exist"));
+    }
+    auto store = store::ProjectStore::Open(dir);
+    if (!store.ok()) return store.status();
+    auto p = std::make_shared<Project>();
+    p->store = std::move(*store);
+    projects[name] = p;
+    return p;
+  }
+
+  absl::StatusOr<std::shared_ptr<const store::Snapshot>> Snapshot(Project& p, int64_t version) {
+    const int64_t head = p.store->head_version();
+    if (version == 0 || version == head) {
+      std::lock_guard<std::mutex> lock(p.head_mu);
+      if (!p.head || p.head->version != head) {
+        auto snap = p.store->LoadSnapshot(head);
+        if (!snap.ok()) return snap.status();
+        p.head = *snap;
+      }
+      return p.head;
+    }
+    if (version < 0 || version > head) {
+      return absl::NotFoundError(absl::StrCat("project '", p.store->name(), "' has no version ",
+                                              version, " (HEAD is ", head, ")"));
+    }
+    return p.store->LoadSnapshot(version);
+  }
+
+  absl::StatusOr<ProjectInfo> Info(Project& p) {
+    ProjectInfo info;
+    info.name = p.store->name();
+    info.description = p.store->settings().description;
+    info.vossel_size_m = p.store->settings().vossel_size_m;
+    info.created_utc = p.store->created_utc();
+    auto head = p.store->HeadInfo();
+    if (!head.ok()) return head.status();
+    info.head_version = head->version;
+    info.vossel_count = head->vossel_count;
+    info.record_count = head->record_count;
+    auto scans = p.store->ListScans();
+    if (!scans.ok()) return scans.status();
+    info.scan_count = int64_t(scans->size());
+    return info;
+  }
+
+  // Everything a scan must satisfy before anything is stored; decodes the panoramas.
+  absl::StatusOr<std::vector<ingest::LinearImage>> Validate(const ScanInput& scan) {
+    const auto bad = [&scan](const std::string& what) {
+      return absl::InvalidArgumentError(absl::StrCat("scan '", scan.scan_name, "': ", what));
+    };
+    if (scan.scan_name.empty() || scan.scan_name.size() > 128) {
+      return absl::InvalidArgumentError("scan id must be 1-128 characters");
+    }
+    if (absl::Status s = ValidatePose(scan.pose, "scan '" + scan.scan_name + "'"); !s.ok()) return s;
+    const LidarData& lidar = scan.lidar;
+    if (lidar.xyz_sensor_m.size() % 3 != 0) return bad("LiDAR xyz array length is not a multiple of 3");
+    const size_t n = lidar.xyz_sensor_m.size() / 3;
+    if (n == 0) return bad("no LiDAR points: a scan needs at least one return to place vossels");
+    if (int64_t(n) > limits.max_points_per_scan) {
+      return absl::ResourceExhaustedError(absl::StrCat("scan '", scan.scan_name, "' has ", n,
+                                                       " points, above the limit of ",
+                                                       limits.max_points_per_scan));
+    }
+    for (float v : lidar.xyz_sensor_m) {
+      if (!std::isfinite(v)) return bad("a LiDAR point has a NaN or infinite coordinate");
+    }
+    if (!lidar.intensity.empty() && lidar.intensity.size() != n) {
+      return bad(absl::StrCat("intensity has ", lidar.intensity.size(), " values for ", n, " points"));
+    }
+    for (float v : lidar.intensity) {
+      if (!std::isfinite(v)) return bad("a LiDAR intensity is NaN or infinite");
+    }
+    if (!(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
+      return bad("LiDAR divergence_rad must lie in (0, 0.1] radians");
+    }
+    if (int64_t(scan.panoramas.size()) > limits.max_panoramas_per_scan) {
+      return absl::ResourceExhaustedError(absl::StrCat("scan has ", scan.panoramas.size(),
+                                                       " panoramas, above the limit of ",
+                                                       limits.max_panoramas_per_scan));
+    }
+    std::set<std::string> names;
+    std::vector<ingest::LinearImage> images;
+    for (const PanoramaData& pano : scan.panoramas) {
+      const std::string what = absl::StrCat("panorama '", pano.name, "'");
+      if (pano.name.empty() || !names.insert(pano.name).second) {
+        return bad("panorama names must be non-empty and unique within the scan");
+      }
+      if (absl::Status s = ValidatePose(pano.pose, what); !s.ok()) return bad(std::string(s.message()));
+      if (pano.modality != records::Modality::kRgb && pano.modality != records::Modality::kIr) {
+        return bad(what + ": modality must be rgb or ir");
+      }
+      if (!(pano.angular_resolution_rad >= 0.0 && pano.angular_resolution_rad < 0.1)) {
+        return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
+      }
+      if (pano.encoded_image.empty()) return bad(what + ": no image bytes");
+      if (int64_t(pano.encoded_image.size()) > limits.max_image_bytes) {
+        return absl::ResourceExhaustedError(absl::StrCat(what, " has ", pano.encoded_image.size(),
+                                                         " bytes, above the limit of ",
+                                                         limits.max_image_bytes));
+      }
+      auto image = ingest::DecodeImage(pano.encoded_image, pano.modality == records::Modality::kIr,
+                                       limits.max_image_pixels);
+      if (!image.ok()) {
+        return absl::Status(image.status().code(),
+                            absl::StrCat("scan '", scan.scan_name, "', ", what, ": ", image.status().message()));
+      }
+      const double aspect = double(image->width_px) / image->height_px;
+      if (aspect < 1.95 || aspect > 2.05) {
+        return bad(absl::StrCat(what, " is ", image->width_px, "x", image->height_px,
+                                ": an equirectangular panorama spans 360°×180°, so its width must "
+                                "be twice its height"));
+      }
+      images.push_back(std::move(*image));
+    }
+    return images;
+  }
+};
+
+Engine::Engine(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Engine::~Engine() = default;
+
+absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const fs::path& data_dir,
+                                                     const EngineLimits& limits) {
+  std::error_code ec;
+  fs::create_directories(data_dir, ec);
+  if (ec) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cannot create data directory ", data_dir.string(), ": ", ec.message()));
+  }
+  auto impl = std::make_unique<Impl>();
+  impl->data_dir = data_dir;
+  impl->limits = limits;
+  return std::unique_ptr<Engine>(new Engine(std::move(impl)));
+}
+
+const EngineLimits& Engine::limits() const { return impl_->limits; }
+
+absl::StatusOr<ProjectInfo> Engine::CreateProject(const std::string& name,
+                                                  const store::ProjectSettings& settings) {
+  if (absl::Status s = ValidateProjectName(name); !s.ok()) return s;
+  if (!(settings.vossel_size_m >= 1e-3 && settings.vossel_size_m <= 10.0)) {
+    return absl::InvalidArgumentError("vossel_size_m must lie in [0.001, 10] metres");
+  }
+  if (settings.keep_versions < 0) return absl::InvalidArgumentError("keep_versions must be ≥ 0");
+  std::shared_ptr<Impl::Project> p;
+  {
+    std::lock_guard<std::mutex> lock(impl_->mu);
+    const fs::path dir = impl_->data_dir / name;
+    if (impl_->projects.count(name) || fs::exists(dir)) {
+      return absl::AlreadyExistsError(absl::StrCat("project '", name, "' already exists"));
+    }
+    auto store = store::ProjectStore::Create(dir, name, settings);
+    if (!store.ok()) return store.status();
+    p = std::make_shared<Impl::Project>();
+    p->store = std::move(*store);
+    impl_->projects[name] = p;
+  }
+  return impl_->Info(*p);
+}
+
+absl::StatusOr<ProjectInfo> Engine::GetProject(const std::string& name) {
+  auto p = impl_->Find(name);
+  if (!p.ok()) return p.status();
+  return impl_->Info(**p);
+}
+
+absl::StatusOr<std::vector<ProjectInfo>> Engine::ListProjects() {
+  std::vector<std::string> names;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(impl_->data_dir, ec)) {
+    if (entry.is_directory() && fs::exists(entry.path() / "catalog.sqlite")) {
+      names.push_back(entry.path().filename().string());
+    }
+  }
+  if (ec) return absl::InternalError(absl::StrCat("cannot list ", impl_->data_dir.string(), ": ", ec.message()));
+  std::sort(names.begin(), names.end());
+  std::vector<ProjectInfo> out;
+  for (const std::string& name : names) {
+    if (!ValidateProjectName(name).ok()) continue;  // not one of ours
+    auto info = GetProject(name);
+    if (!info.ok()) return info.status();
+    out.push_back(std::move(*info));
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<store::ScanInfo>> Engine::ListScans(const std::string& project) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->ListScans();
+}
+
+absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,
+                                                const ProgressFn& progress) {
+  const auto t0 = Clock::now();
+  IngestResult result;
+  auto stage_clock = Clock::now();
+  const auto stage_done = [&](const char* stage, double fraction) {
+    result.stage_seconds.emplace_back(stage, SecondsSince(stage_clock));
+    stage_clock = Clock::now();
+    if (progress) progress({stage, fraction});
+  };
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  auto images = impl_->Validate(scan);
+  if (!images.ok()) return images.status();
+
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  store::ProjectStore& st = *p.store;
+  auto exists = st.HasScan(scan.scan_name);
+  if (!exists.ok()) return exists.status();
+  if (*exists) {
+    return absl::AlreadyExistsError(absl::StrCat("project '", project, "' already has a scan '",
+                                                 scan.scan_name, "'"));
+  }
+  stage_done("validate", 0.05);
+
+  // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
+  auto next_source = st.NextSourceId();
+  auto batch = st.NextBatchId();
+  if (!next_source.ok()) return next_source.status();
+  if (!batch.ok()) return batch.status();
+  store::ScanInfo info;
+  info.name = scan.scan_name;
+  info.rig = scan.rig;
+  info.captured_utc = scan.captured_utc;
+  info.pose = scan.pose;
+  info.batch = *batch;
+  {
+    auto blob = st.PutBlob(PackPoints(scan.lidar));
+    if (!blob.ok()) return blob.status();
+    store::SourceInfo lidar;
+    lidar.id = (*next_source)++;
+    lidar.name = "lidar";
+    lidar.modality = records::Modality::kLidar;
+    lidar.pose = scan.pose;
+    lidar.blob_sha256 = *blob;
+    lidar.divergence_rad = scan.lidar.divergence_rad;
+    lidar.point_count = int64_t(scan.lidar.xyz_sensor_m.size() / 3);
+    info.sources.push_back(lidar);
+  }
+  for (size_t i = 0; i < scan.panoramas.size(); ++i) {
+    const PanoramaData& pano = scan.panoramas[i];
+    auto blob = st.PutBlob(pano.encoded_image);
+    if (!blob.ok()) return blob.status();
+    store::SourceInfo cam;
+    cam.id = (*next_source)++;
+    cam.name = pano.name;
+    cam.modality = pano.modality;
+    cam.pose = pano.pose;
+    cam.blob_sha256 = *blob;
+    cam.width_px = (*images)[i].width_px;
+    cam.height_px = (*images)[i].height_px;
+    cam.divergence_rad = pano.angular_resolution_rad;
+    info.sources.push_back(cam);
+  }
+  stage_done("store blobs", 0.15);
+
+  // Every source of the project, older scans' from their blobs, this scan's as decoded.
+  auto previous = st.ListScans();
+  if (!previous.ok()) return previous.status();
+  ingest::SourceSet sources;
+  std::vector<const store::ScanInfo*> all_scans;
+  for (const store::ScanInfo& s : *previous) all_scans.push_back(&s);
+  all_scans.push_back(&info);
+  size_t new_panorama = 0;  // this scan's panoramas, in order, are already decoded
+  for (const store::ScanInfo* s : all_scans) {
+    for (const store::SourceInfo& src : s->sources) {
+      if (src.modality == records::Modality::kLidar) {
+        if (s == &info) {
+          ingest::LidarSource l;
+          l.id = src.id;
+          l.pose = src.pose;
+          l.divergence_rad = src.divergence_rad;
+          l.xyz_sensor_m = scan.lidar.xyz_sensor_m;
+          l.intensity = scan.lidar.intensity;
+          l.batch = s->batch;
+          sources.lidars.push_back(std::move(l));
+          continue;
+        }
+        auto bytes = st.ReadBlob(src.blob_sha256);
+        if (!bytes.ok()) return bytes.status();
+        auto l = UnpackLidar(*bytes, src);
+        if (!l.ok()) return l.status();
+        l->batch = s->batch;
+        sources.lidars.push_back(std::move(*l));
+      } else {
+        ingest::CameraSource cam;
+        cam.id = src.id;
+        cam.batch = s->batch;
+        cam.pose = src.pose;
+        cam.modality = src.modality;
+        cam.angular_resolution_rad = src.divergence_rad;
+        if (s == &info) {
+          cam.image = (*images)[new_panorama++];
+        } else {
+          auto bytes = st.ReadBlob(src.blob_sha256);
+          if (!bytes.ok()) return bytes.status();
+          auto image = ingest::DecodeImage(*bytes, src.modality == records::Modality::kIr,
+                                           impl_->limits.max_image_pixels);
+          if (!image.ok()) return absl::DataLossError(absl::StrCat("stored image ", src.blob_sha256, ": ", image.status().message()));
+          cam.image = std::move(*image);
+        }
+        sources.cameras.push_back(std::move(cam));
+      }
+    }
+  }
+  stage_done("load sources", 0.2);
+
+  const double h = st.settings().vossel_size_m;
+  auto geometry = ingest::BuildGeometry(sources.lidars, h);  // §1
+  if (!geometry.ok()) return geometry.status();
+  stage_done("voxelise", 0.35);
+
+  auto snapshot = std::make_shared<store::Snapshot>();
+  snapshot->records = ingest::BuildRecords(*geometry, sources, [&](size_t done, size_t total) {
+    if (progress) progress({"visibility and records", 0.35 + 0.5 * double(done) / double(total)});
+  });  // §3-§6
+  stage_done("visibility and records", 0.85);
+
+  auto fused = fusion::Fuse(snapshot->records, geometry->size(), h, fusion::WeightingProfile{});  // §7
+  if (!fused.ok()) return fused.status();
+  snapshot->fused = std::move(*fused);
+  snapshot->geometry = std::move(*geometry);
+  stage_done("fuse", 0.9);
+
+  auto before = st.HeadInfo();
+  if (!before.ok()) return before.status();
+  const int64_t vossels_before = before->vossel_count;
+  auto version = st.CommitScan(*snapshot, info);
+  if (!version.ok()) return version.status();
+  snapshot->version = *version;
+  {
+    std::lock_guard<std::mutex> lock(p.head_mu);
+    p.head = snapshot;
+  }
+  stage_done("commit", 1.0);
+
+  auto scans = st.ListScans();
+  if (scans.ok() && !scans->empty()) result.scan_id = scans->back().id;
+  result.version = *version;
+  result.vossel_count = int64_t(snapshot->geometry.size());
+  result.record_count = int64_t(snapshot->records.size());
+  result.new_vossels = result.vossel_count - vossels_before;
+  result.seconds = SecondsSince(t0);
+  return result;
+}
+
+absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const RenderRequest& request) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  if (request.width_px <= 0 || request.height_px <= 0) {
+    return absl::InvalidArgumentError("render width_px and height_px must be positive");
+  }
+  if (request.width_px > impl_->limits.max_render_width_px ||
+      request.height_px > impl_->limits.max_render_height_px) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "render of ", request.width_px, "x", request.height_px, " exceeds the limit of ",
+        impl_->limits.max_render_width_px, "x", impl_->limits.max_render_height_px));
+  }
+  if (absl::Status s = ValidatePose(request.pose, "render"); !s.ok()) return s;
+  if ((*p)->store->head_version() == 0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("project '", project, "' has no scans yet: ingest one before rendering"));
+  }
+  auto snap = impl_->Snapshot(**p, request.version);
+  if (!snap.ok()) return snap.status();
+  auto image = render::RenderEquirect((*snap)->geometry, (*snap)->fused, request);
+  if (!image.ok()) return image.status();
+  image->version = (*snap)->version;
+  return image;
+}
+
+absl::StatusOr<std::vector<records::AttributeInfo>> Engine::InspectRecords(const std::string& project,
+                                                                           int64_t version) {
+  auto dir = VersionDir(project, version);
+  if (!dir.ok()) return dir.status();
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->InspectRecords(version == 0 ? (*p)->store->head_version() : version);
+}
+
+absl::StatusOr<fs::path> Engine::VersionDir(const std::string& project, int64_t version) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  const int64_t head = (*p)->store->head_version();
+  if (head == 0) {
+    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
+  }
+  return (*p)->store->VersionDir(version == 0 ? head : version);
+}
+
+}  // namespace vasl

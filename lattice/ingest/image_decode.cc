@@ -44,7 +44,9 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   // OpenImageIO reads these formats from memory through an IOProxy.
   Filesystem::IOMemReader reader(const_cast<char*>(bytes.data()), bytes.size());
   ImageSpec config;
-  config.attribute("oiio:ioproxy", TypeDesc::PTR, &reader);
+  // The attribute holds the proxy pointer itself: pass the address of a pointer.
+  Filesystem::IOProxy* proxy = &reader;
+  config.attribute("oiio:ioproxy", TypeDesc::PTR, &proxy);
   std::unique_ptr<ImageInput> in = ImageInput::open(std::string("memory") + ext, &config);
   if (!in) {
     return absl::InvalidArgumentError(

@@ -63,14 +63,14 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     sin_psi[j] = std::sin(psi);
   }
   const double h = g.vossel_size_m;
-  const double sphere_m = 0.5 * std::sqrt(3.0) * h;
+  const double sphere_m = 0.5 * std::sqrt(3.0) * h;  // bounding sphere of a vossel (§5)
   const double dpsi = geometry::ElevationPitchRad(size), dphi = geometry::AzimuthPitchRad(size);
   const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.conjugate().toRotationMatrix();
 
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
-      const Eigen::Vector3d centre = h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z());
-      const Eigen::Vector3d c_s = R_sensor_world * (centre - pose.o_world);
+      const Eigen::Vector3d centre_w = h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z());
+      const Eigen::Vector3d c_s = R_sensor_world * (centre_w - pose.o_world);
       const double range = c_s.norm();
       if (range <= sphere_m) continue;  // the sensor sits inside this vossel
       const Eigen::Vector3d d = c_s / range;
@@ -78,9 +78,11 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       const Eigen::Vector3d n_s = R_sensor_world * g.normal[k].cast<double>();
       const bool has_plane = n_s.squaredNorm() > 0.5;
       const double plane_d = n_s.dot(x_s);
-      // Angular radius: the bounding sphere plus the footprint dilation σ(r)/r = tan(θ/2).
-      const double a = std::asin(std::min(1.0, sphere_m / range)) + 0.5 * divergence_rad;
+      // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
+      const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
+      const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
       const double cos_a = std::cos(a);
+      const double half_cell_m = 0.5 * h + sigma_m;
       const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
       const double psi = std::asin(std::clamp(d.z(), -1.0, 1.0));
       const int j0 = std::max(0, int(std::floor(uv.y() - a / dpsi)) - 1);
@@ -103,8 +105,15 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
           if (q.dot(d) < cos_a) continue;
           double t = range;
           if (has_plane) {
+            // Surfel splat: the range where the pixel's ray crosses the vossel's plane, kept only
+            // where that crossing lies inside the vossel's cell dilated by σ; a ray that grazes
+            // the plane outside the vossel does not see it, and silhouettes are not inflated.
             const double nq = n_s.dot(q);
-            if (std::abs(nq) > 1e-6) t = std::clamp(plane_d / nq, range - sphere_m, range + sphere_m);
+            if (std::abs(nq) < 1e-9) continue;
+            t = plane_d / nq;
+            if (!(t > 0.0)) continue;
+            const Eigen::Vector3d off_w = R_sensor_world.transpose() * (t * q - c_s);
+            if (off_w.cwiseAbs().maxCoeff() > half_cell_m) continue;
           }
           const uint32_t bits = FloatBits(float(t));
           std::atomic<uint32_t>& cell = depth[size_t(j) * W + i];
@@ -127,6 +136,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   const double h = g.vossel_size_m;
   const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
   const int W = depth.size.width_px, H = depth.size.height_px;
+  const double pixel_rad = std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
       const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
@@ -136,6 +146,13 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
       Eigen::Vector3d t1, t2;
       TangentBasis(n, t1, t2);
+      // Slope-scaled tolerance (choice): across one pixel of the depth panorama the range of a
+      // surface at incidence θ changes by about r·Δ·tanθ; without it a surface seen at grazing
+      // incidence would shadow itself between pixel centres.
+      const double range_k = to_sensor.norm();
+      const double cos_inc = std::max(std::abs(n.dot(to_sensor)) / range_k, geometry::kCosIncidenceMin);
+      const double tan_inc = std::sqrt(1.0 - cos_inc * cos_inc) / cos_inc;
+      const double tolerance_m = tau_m + range_k * pixel_rad * tan_inc;
       int lit = 0;
       for (int a = 0; a < kGrid; ++a) {
         for (int b = 0; b < kGrid; ++b) {
@@ -145,7 +162,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
           const Eigen::Vector2d uv = geometry::EquirectProject(p_s, depth.size);
           const int i = geometry::WrapColumn(int(std::floor(uv.x())), W);
           const int j = std::clamp(int(std::floor(uv.y())), 0, H - 1);
-          if (depth.At(i, j) >= range - tau_m) ++lit;
+          if (depth.At(i, j) >= range - tolerance_m) ++lit;
         }
       }
       vis[k] = float(lit) / float(kGrid * kGrid);

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "lattice/geometry/equirect.h"
+#include "lattice/geometry/footprint.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
@@ -29,9 +30,10 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 
 /// §5: the depth panorama of a source rendered from the lattice by splatting each vossel's
 /// bounding sphere (radius h√3/2), dilated by the occluder's own footprint σ(r) at its range
-/// (angular radius grows by θ/2, §3). Inside the splat the depth is the range of the vossel's
-/// plane (centroid, normal) along the pixel's ray, clamped to the sphere, so that a surface does
-/// not shadow itself at grazing incidence (choice). The paper uses the measured range image for
+/// (radius h√3/2 + σ(r), §3). Inside the splat the depth is the range at which the pixel's ray
+/// crosses the vossel's plane (centroid, normal), and only rays crossing it within that radius of
+/// the centroid are splatted (a surfel splat, choice): a surface then does not shadow itself at
+/// grazing incidence. The paper uses the measured range image for
 /// LiDAR; the splatted lattice is used for every source here (choice): it has no holes between
 /// returns and equals the range image where returns exist. Parallel (TBB, atomic min).
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
@@ -40,7 +42,9 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
 
 /// §5: V_{k,m} for every vossel: the share of a 5×5 grid of points over the vossel's surface
 /// patch (side h, in the plane (x_k, n_k)) whose pixel in `depth` satisfies
-/// D(p) ≥ r_p − τ (percentage-closer filtering over the vossel's projected footprint).
+/// D(p) ≥ r_p − τ_k (percentage-closer filtering over the vossel's projected footprint), with
+/// the slope-scaled tolerance τ_k = τ + r·Δ·tanθ (choice: Δ the depth panorama's pixel pitch,
+/// cosθ floored at kCosIncidenceMin), the range change of the surface across one pixel.
 /// V = 1 lit, 0 < V < 1 penumbra, V = 0 shadow. Parallel (TBB).
 std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
                                      const DepthPanorama& depth, double tau_m);
