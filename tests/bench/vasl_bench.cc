@@ -1,0 +1,138 @@
+// vasl_bench: the speed figures of the flows users wait for (ingest, reweight, render, record
+// IO) on the synthetic room, on this machine. Run by deploy/bench.sh; speed goals live here,
+// not in timed tests. Usage: vasl_bench [--panorama-width W] [--repeat N]
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <string>
+
+#include <tbb/info.h>
+
+#include "lattice/engine.h"
+#include "lattice/fusion/fuse.h"
+#include "lattice/records/record_grid.h"
+#include "lattice/store/project_store.h"
+#include "tests/scenes/synthetic_scene.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+int Fail(const absl::Status& s) {
+  std::fprintf(stderr, "vasl_bench: %s\n", s.ToString().c_str());
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace vasl;
+  int pano_w = 2048, repeat = 5;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    if (!std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[i + 1]);
+    else if (!std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[i + 1]);
+  }
+  const double h = 0.05;
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  std::printf("vasl_bench: %d threads, vossel %.2f m, panoramas %dx%d, LiDAR 1440x720 per scan\n",
+              tbb::info::default_concurrency(), h, pano_w, pano_w / 2);
+
+  auto engine = Engine::Open(dir);
+  if (!engine.ok()) return Fail(engine.status());
+  store::ProjectSettings settings;
+  settings.vossel_size_m = h;
+  if (auto p = (*engine)->CreateProject("bench", settings); !p.ok()) return Fail(p.status());
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  scenes::LidarSettings lidar;
+  lidar.azimuth_steps = 1440;
+  lidar.elevation_steps = 720;
+  int n = 0;
+  std::printf("\n%-8s %8s %9s %8s   stages (s)\n", "ingest", "seconds", "vossels", "records");
+  for (const geometry::Pose& pose : room.Stations()) {
+    lidar.seed = uint64_t(++n);
+    scenes::LidarScan points = scenes::GenerateLidar(room, pose, lidar);
+    ScanInput scan;
+    scan.scan_name = "scan-" + std::to_string(n);
+    scan.pose = pose;
+    scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
+    scan.lidar.intensity = std::move(points.intensity);
+    PanoramaData pano;
+    pano.name = "cam0";
+    pano.pose = scenes::CameraPoseForStation(pose);
+    auto png = scenes::EncodePng(scenes::RenderPanorama(room, pano.pose, pano_w, pano_w / 2, 2));
+    if (!png.ok()) return Fail(png.status());
+    pano.encoded_image = std::move(*png);
+    scan.panoramas.push_back(std::move(pano));
+    auto r = (*engine)->IngestScan("bench", scan);
+    if (!r.ok()) return Fail(r.status());
+    std::printf("%-8s %8.2f %9lld %8lld  ", scan.scan_name.c_str(), r->seconds, (long long)r->vossel_count,
+                (long long)r->record_count);
+    for (const auto& [stage, s] : r->stage_seconds) std::printf(" %s %.2f;", stage.c_str(), s);
+    std::printf("\n");
+  }
+
+  // Reweight = fuse the stored records under another profile (§7): one pass over the records.
+  auto st = store::ProjectStore::Open(dir / "bench");
+  if (!st.ok()) return Fail(st.status());
+  auto snap = (*st)->LoadSnapshot((*st)->head_version());
+  if (!snap.ok()) return Fail(snap.status());
+  const records::RecordSet& recs = (*snap)->records;
+  std::printf("\n%-34s %10s %14s\n", "reweight (fusion over records)", "ms", "M records/s");
+  fusion::WeightingProfile unit;
+  unit.beta = 1.0;
+  unit.alpha = 1.0;
+  fusion::WeightingProfile general;
+  general.alpha = 1.3;
+  general.beta = 0.7;
+  general.rho = 0.5;
+  general.kappa = {2.5, 1.5, 0.5, 1.2};
+  general.proximity_m = 2.0;
+  for (const auto& [name, profile] : {std::pair<const char*, fusion::WeightingProfile>{"default exponents (0/1/2 fast path)", unit},
+                                      {"general exponents + proximity", general}}) {
+    double best = 1e30;
+    for (int i = 0; i < repeat; ++i) {
+      const auto t0 = Clock::now();
+      auto fused = fusion::Fuse(recs, (*snap)->geometry.size(), h, profile);
+      if (!fused.ok()) return Fail(fused.status());
+      best = std::min(best, Since(t0));
+    }
+    std::printf("%-34s %10.1f %14.1f\n", name, best * 1e3, recs.size() / best / 1e6);
+  }
+
+  // Render (§8).
+  std::printf("\n%-20s %10s %12s\n", "render", "ms", "M rays/s");
+  for (int w : {1024, 2048, 4096}) {
+    RenderRequest req;
+    req.pose = room.NovelViews()[0];
+    req.width_px = w;
+    req.height_px = w / 2;
+    double best = 1e30;
+    for (int i = 0; i < std::max(1, repeat / 2); ++i) {
+      const auto t0 = Clock::now();
+      auto image = (*engine)->Render("bench", req);
+      if (!image.ok()) return Fail(image.status());
+      best = std::min(best, Since(t0));
+    }
+    std::printf("%4dx%-15d %10.1f %12.2f\n", w, w / 2, best * 1e3, double(w) * (w / 2) / best / 1e6);
+  }
+
+  // Record file IO (records.vdb).
+  const std::filesystem::path file = dir / "records-bench.vdb";
+  auto t0 = Clock::now();
+  if (auto s = records::WriteRecords((*snap)->geometry, recs, file); !s.ok()) return Fail(s);
+  const double write_s = Since(t0);
+  t0 = Clock::now();
+  auto back = records::ReadRecords((*snap)->geometry, file);
+  if (!back.ok()) return Fail(back.status());
+  const double read_s = Since(t0);
+  const double bytes = double(std::filesystem::file_size(file));
+  std::printf("\nrecords.vdb: %zu records, %.1f bytes/record on disk, write %.0f ms (%.1f M rec/s), "
+              "read %.0f ms (%.1f M rec/s)\n", recs.size(), bytes / recs.size(), write_s * 1e3,
+              recs.size() / write_s / 1e6, read_s * 1e3, recs.size() / read_s / 1e6);
+  std::filesystem::remove_all(dir);
+  return 0;
+}
