@@ -60,14 +60,14 @@ void PushRecord(RecordSet& s, int32_t vossel, int32_t scan, records::Modality m,
   s.batch.push_back(batch);
 }
 
-// Concatenates thread-local record sets.
-RecordSet Concatenate(tbb::enumerable_thread_specific<RecordSet>& parts) {
+// Concatenates record sets (thread-local parts, or one per source).
+template <typename Parts>
+RecordSet Concatenate(const Parts& parts) {
   RecordSet out;
   size_t n = 0;
   for (const RecordSet& p : parts) n += p.size();
   out.Reserve(n);
-  for (const RecordSet& p : parts)
-    for (size_t i = 0; i < p.size(); ++i) out.AppendFrom(p, i);
+  for (const RecordSet& p : parts) out.Append(p);
   return out;
 }
 
@@ -225,12 +225,7 @@ RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& source
     parts.push_back(SampleCamera(g, cam, ComputeVisibility(g, depth, tau)));
     if (on_source) on_source(++done, total);
   }
-  RecordSet all;
-  size_t n = 0;
-  for (const RecordSet& p : parts) n += p.size();
-  all.Reserve(n);
-  for (const RecordSet& p : parts)
-    for (size_t i = 0; i < p.size(); ++i) all.AppendFrom(p, i);
+  RecordSet all = Concatenate(parts);
   all.SortByVossel();
   return all;
 }

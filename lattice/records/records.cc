@@ -47,9 +47,9 @@ void RecordSet::Resize(size_t n) {
   ForEachArray(*this, *this, [n](auto& a, auto&, int stride) { a.resize(n * stride); });
 }
 
-void RecordSet::AppendFrom(const RecordSet& other, size_t i) {
-  ForEachArray(*this, other, [i](auto& dst, const auto& src, int stride) {
-    dst.insert(dst.end(), src.begin() + i * stride, src.begin() + (i + 1) * stride);
+void RecordSet::Append(const RecordSet& other) {
+  ForEachArray(*this, other, [](auto& dst, const auto& src, int) {
+    dst.insert(dst.end(), src.begin(), src.end());
   });
 }
 

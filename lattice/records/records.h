@@ -87,8 +87,8 @@ struct RecordSet {
   size_t size() const { return vossel.size(); }
   void Reserve(size_t n);
   void Resize(size_t n);
-  /// Appends record `i` of `other`.
-  void AppendFrom(const RecordSet& other, size_t i);
+  /// Appends every record of `other`.
+  void Append(const RecordSet& other);
   /// Reorders the records by (vossel, scan, modality); stable.
   void SortByVossel();
 };

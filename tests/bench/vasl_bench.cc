@@ -50,26 +50,14 @@ int main(int argc, char** argv) {
   scenes::LidarSettings lidar;
   lidar.azimuth_steps = 1440;
   lidar.elevation_steps = 720;
-  int n = 0;
   std::printf("\n%-8s %8s %9s %8s   stages (s)\n", "ingest", "seconds", "vossels", "records");
-  for (const geometry::Pose& pose : room.Stations()) {
-    lidar.seed = uint64_t(++n);
-    scenes::LidarScan points = scenes::GenerateLidar(room, pose, lidar);
-    ScanInput scan;
-    scan.scan_name = "scan-" + std::to_string(n);
-    scan.pose = pose;
-    scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
-    scan.lidar.intensity = std::move(points.intensity);
-    PanoramaData pano;
-    pano.name = "cam0";
-    pano.pose = scenes::CameraPoseForStation(pose);
-    auto png = scenes::EncodePng(scenes::RenderPanorama(room, pano.pose, pano_w, pano_w / 2, 2));
-    if (!png.ok()) return Fail(png.status());
-    pano.encoded_image = std::move(*png);
-    scan.panoramas.push_back(std::move(pano));
-    auto r = (*engine)->IngestScan("bench", scan);
+  for (size_t n = 0; n < room.Stations().size(); ++n) {
+    lidar.seed = uint64_t(n + 1);
+    auto scan = scenes::MakeScanInput(room, n, lidar, pano_w, 2);
+    if (!scan.ok()) return Fail(scan.status());
+    auto r = (*engine)->IngestScan("bench", *scan);
     if (!r.ok()) return Fail(r.status());
-    std::printf("%-8s %8.2f %9lld %8lld  ", scan.scan_name.c_str(), r->seconds, (long long)r->vossel_count,
+    std::printf("%-8s %8.2f %9lld %8lld  ", scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count);
     for (const auto& [stage, s] : r->stage_seconds) std::printf(" %s %.2f;", stage.c_str(), s);
     std::printf("\n");

@@ -48,31 +48,18 @@ class EngineTest : public ::testing::Test {
     scenes::LidarSettings lidar;
     lidar.azimuth_steps = 1440;
     lidar.elevation_steps = 720;
-    int i = 0;
-    for (const geometry::Pose& pose : room_->Stations()) {
-      lidar.seed = uint64_t(++i);
-      scenes::LidarScan points = scenes::GenerateLidar(*room_, pose, lidar);
-      ScanInput scan;
-      scan.scan_name = "scan-" + std::to_string(i);
-      scan.rig = "synthetic-rig";
-      scan.pose = pose;
-      scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
-      scan.lidar.intensity = std::move(points.intensity);
-      PanoramaData pano;
-      pano.name = "cam0";
-      pano.pose = scenes::CameraPoseForStation(pose);
-      auto png = scenes::EncodePng(scenes::RenderPanorama(*room_, pano.pose, kPanoW, kPanoH, 4));
-      ASSERT_TRUE(png.ok()) << png.status();
-      pano.encoded_image = *png;
-      scan.panoramas.push_back(pano);
-      auto result = engine_->IngestScan("room", scan);
+    for (size_t i = 0; i < room_->Stations().size(); ++i) {
+      lidar.seed = uint64_t(i + 1);
+      auto scan = scenes::MakeScanInput(*room_, i, lidar, kPanoW);
+      ASSERT_TRUE(scan.ok()) << scan.status();
+      auto result = engine_->IngestScan("room", *scan);
       ASSERT_TRUE(result.ok()) << result.status();
       std::printf("ingest %s: version %lld, %lld vossels (+%lld), %lld records, %.2f s:",
-                  scan.scan_name.c_str(), (long long)result->version, (long long)result->vossel_count,
+                  scan->scan_name.c_str(), (long long)result->version, (long long)result->vossel_count,
                   (long long)result->new_vossels, (long long)result->record_count, result->seconds);
       for (const auto& [stage, s] : result->stage_seconds) std::printf(" %s %.2f", stage.c_str(), s);
       std::printf("\n");
-      pngs_.push_back(*png);
+      pngs_.push_back(scan->panoramas[0].encoded_image);
     }
   }
   static void TearDownTestSuite() {

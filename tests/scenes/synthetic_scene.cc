@@ -491,4 +491,26 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
   return absl::OkStatus();
 }
 
+absl::StatusOr<ingest::ScanInput> MakeScanInput(const SyntheticRoom& room, size_t station,
+                                                const LidarSettings& lidar, int pano_width_px,
+                                                int supersample) {
+  const geometry::Pose& pose = room.Stations().at(station);
+  LidarScan points = GenerateLidar(room, pose, lidar);
+  ingest::ScanInput scan;
+  scan.scan_name = "scan-" + std::to_string(station + 1);
+  scan.rig = "synthetic-rig";
+  scan.pose = pose;
+  scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
+  scan.lidar.intensity = std::move(points.intensity);
+  ingest::PanoramaData pano;
+  pano.name = "cam0";
+  pano.pose = CameraPoseForStation(pose);
+  absl::StatusOr<std::string> png =
+      EncodePng(RenderPanorama(room, pano.pose, pano_width_px, pano_width_px / 2, supersample));
+  if (!png.ok()) return png.status();
+  pano.encoded_image = std::move(*png);
+  scan.panoramas.push_back(std::move(pano));
+  return scan;
+}
+
 }  // namespace vasl::scenes

@@ -25,6 +25,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "lattice/geometry/pose.h"
+#include "lattice/ingest/scan_input.h"
 
 namespace vasl::scenes {
 
@@ -178,5 +179,12 @@ absl::Status WritePly(const LidarScan& scan, const std::filesystem::path& path);
 /// Writes a numpy .npy v1.0 file of little-endian float32 ('<f4'), C order, given shape.
 absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>& shape,
                       const std::filesystem::path& path);
+
+/// The scan of station `station` as a rig sends it, ready for Engine::IngestScan: LiDAR points
+/// (seeded with lidar.seed) and the station camera's panorama (pano_width_px × pano_width_px/2,
+/// pixel-integrated, encoded as PNG), named "scan-<station+1>" with one panorama "cam0".
+absl::StatusOr<ingest::ScanInput> MakeScanInput(const SyntheticRoom& room, size_t station,
+                                                const LidarSettings& lidar, int pano_width_px,
+                                                int supersample = 4);
 
 }  // namespace vasl::scenes
