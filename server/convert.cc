@@ -1,0 +1,184 @@
+/// @file convert.cc
+/// @brief vasl.v1 protos <-> lattice types.
+#include "server/convert.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "absl/strings/str_cat.h"
+
+namespace vasl::server {
+
+absl::StatusOr<geometry::Pose> PoseFromProto(const v1::Pose& pose, absl::string_view field) {
+  Eigen::Vector3d position_m = Eigen::Vector3d::Zero();
+  if (pose.has_position_m()) {
+    position_m = {pose.position_m().x(), pose.position_m().y(), pose.position_m().z()};
+  }
+  if (!position_m.allFinite()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ".position_m must be finite, got (", position_m.x(), ", ",
+                     position_m.y(), ", ", position_m.z(), ")"));
+  }
+  Eigen::Vector4d quat_xyzw(0.0, 0.0, 0.0, 1.0);
+  if (pose.has_quaternion_xyzw()) {
+    const v1::Quaternion& q = pose.quaternion_xyzw();
+    quat_xyzw = {q.x(), q.y(), q.z(), q.w()};
+  }
+  absl::StatusOr<geometry::Pose> result = geometry::MakePose(position_m, quat_xyzw);
+  if (!result.ok()) {
+    return absl::Status(result.status().code(),
+                        absl::StrCat(field, ".quaternion_xyzw: ", result.status().message()));
+  }
+  return result;
+}
+
+void PoseToProto(const geometry::Pose& pose, v1::Pose* out) {
+  v1::Vec3* p = out->mutable_position_m();
+  p->set_x(pose.o_world.x());
+  p->set_y(pose.o_world.y());
+  p->set_z(pose.o_world.z());
+  v1::Quaternion* q = out->mutable_quaternion_xyzw();
+  q->set_x(pose.q_world_sensor.x());
+  q->set_y(pose.q_world_sensor.y());
+  q->set_z(pose.q_world_sensor.z());
+  q->set_w(pose.q_world_sensor.w());
+}
+
+absl::StatusOr<records::Modality> PanoramaModalityFromProto(v1::Modality modality,
+                                                            absl::string_view field) {
+  switch (modality) {
+    case v1::MODALITY_RGB: return records::Modality::kRgb;
+    case v1::MODALITY_IR: return records::Modality::kIr;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, ".modality must be MODALITY_RGB or MODALITY_IR, got ",
+                       v1::Modality_IsValid(modality) ? v1::Modality_Name(modality)
+                                                      : absl::StrCat(static_cast<int>(modality))));
+  }
+}
+
+v1::Modality ModalityToProto(records::Modality modality) {
+  switch (modality) {
+    case records::Modality::kLidar: return v1::MODALITY_LIDAR;
+    case records::Modality::kRgb: return v1::MODALITY_RGB;
+    case records::Modality::kIr: return v1::MODALITY_IR;
+    case records::Modality::kRadar: return v1::MODALITY_RADAR;
+    case records::Modality::kDerived: return v1::MODALITY_DERIVED;
+    default: return v1::MODALITY_UNSPECIFIED;
+  }
+}
+
+void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
+  out->set_name(info.name);
+  out->set_description(info.description);
+  out->set_vossel_size_m(info.vossel_size_m);
+  out->set_head_version(info.head_version);
+  out->set_scan_count(info.scan_count);
+  out->set_vossel_count(info.vossel_count);
+  out->set_record_count(info.record_count);
+  out->set_created_utc(info.created_utc);
+}
+
+void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
+  out->set_id(scan.id);
+  out->set_name(scan.name);
+  out->set_rig(scan.rig);
+  out->set_captured_utc(scan.captured_utc);
+  PoseToProto(scan.pose, out->mutable_pose());
+  out->set_batch(scan.batch);
+  out->set_version(scan.version);
+  out->set_created_utc(scan.created_utc);
+  for (const store::SourceInfo& src : scan.sources) {
+    v1::Source* s = out->add_sources();
+    s->set_id(src.id);
+    s->set_name(src.name);
+    s->set_modality(ModalityToProto(src.modality));
+    PoseToProto(src.pose, s->mutable_pose());
+    s->set_blob_sha256(src.blob_sha256);
+    s->set_width_px(src.width_px);
+    s->set_height_px(src.height_px);
+    s->set_divergence_rad(src.divergence_rad);
+    s->set_point_count(src.point_count);
+  }
+}
+
+void AttributeToProto(const records::AttributeInfo& info, v1::RecordAttribute* out) {
+  out->set_name(info.name);
+  out->set_type(info.type);
+  out->set_codec(info.codec);
+  out->set_stride(info.stride);
+}
+
+absl::StatusOr<store::ProjectSettings> SettingsFromProto(const v1::CreateProjectRequest& request) {
+  store::ProjectSettings settings;
+  const double h = request.vossel_size_m();
+  if (!std::isfinite(h) || h < 0.0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("vossel_size_m must be a positive number of metres, got ", h));
+  }
+  if (h > 0.0) settings.vossel_size_m = h;
+  if (request.keep_versions() < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("keep_versions must be >= 0, got ", request.keep_versions()));
+  }
+  if (request.keep_versions() > 0) settings.keep_versions = request.keep_versions();
+  settings.description = request.description();
+  return settings;
+}
+
+absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderRequest& request,
+                                                             const EngineLimits& limits) {
+  render::RenderRequest out;
+  if (!request.has_pose()) {
+    return absl::InvalidArgumentError("pose is required: the viewpoint of the render");
+  }
+  absl::StatusOr<geometry::Pose> pose = PoseFromProto(request.pose(), "pose");
+  if (!pose.ok()) return pose.status();
+  out.pose = *pose;
+  if (request.width_px() <= 0 || request.height_px() <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("width_px and height_px must be > 0, got ",
+                                                   request.width_px(), "x", request.height_px()));
+  }
+  if (request.width_px() > limits.max_render_width_px ||
+      request.height_px() > limits.max_render_height_px) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "render size ", request.width_px(), "x", request.height_px(), " exceeds the limit ",
+        limits.max_render_width_px, "x", limits.max_render_height_px, " px"));
+  }
+  out.width_px = request.width_px();
+  out.height_px = request.height_px();
+  if (request.version() < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("version must be >= 0 (0: HEAD), got ", request.version()));
+  }
+  out.version = request.version();
+  if (!std::isfinite(request.eta()) || request.eta() < 0.0) {
+    return absl::InvalidArgumentError(absl::StrCat("eta must be >= 0, got ", request.eta()));
+  }
+  out.eta = request.eta();
+  if (!std::isfinite(request.max_range_m()) || request.max_range_m() < 0.0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_range_m must be >= 0 (0: 1000 m), got ", request.max_range_m()));
+  }
+  if (request.max_range_m() > 0.0) out.max_range_m = request.max_range_m();
+  return out;
+}
+
+absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
+    const v1::RenderRequest& request) {
+  std::vector<v1::ImageFormat> formats;
+  for (int f : request.formats()) {
+    if (f != v1::IMAGE_FORMAT_EXR && f != v1::IMAGE_FORMAT_PNG) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("formats: ", f, " is not IMAGE_FORMAT_EXR (1) or IMAGE_FORMAT_PNG (2)"));
+    }
+    auto format = static_cast<v1::ImageFormat>(f);
+    if (std::find(formats.begin(), formats.end(), format) == formats.end()) {
+      formats.push_back(format);
+    }
+  }
+  if (formats.empty()) formats.push_back(v1::IMAGE_FORMAT_EXR);
+  return formats;
+}
+
+}  // namespace vasl::server

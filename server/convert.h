@@ -1,0 +1,44 @@
+/// @file convert.h
+/// @brief Conversions between vasl.v1 protos and lattice types, with the validation a
+///        conversion needs (poses, modalities, render sizes). No model maths here.
+/// @details Errors are absl::Status naming the offending field so that a user can fix the
+///          request; server/status_util.h maps them to gRPC codes.
+#pragma once
+
+#include "absl/strings/string_view.h"
+
+#include "absl/status/statusor.h"
+#include "lattice/engine.h"
+#include "vasl/v1/vasl.pb.h"
+
+namespace vasl::server {
+
+/// Proto pose -> T_world_sensor (VASL-MODEL §2). Absent position: origin; absent quaternion:
+/// identity. INVALID_ARGUMENT (naming `field`) for a non-finite value or a zero quaternion.
+absl::StatusOr<geometry::Pose> PoseFromProto(const v1::Pose& pose, absl::string_view field);
+void PoseToProto(const geometry::Pose& pose, v1::Pose* out);
+
+/// MODALITY_RGB / MODALITY_IR for panoramas; anything else is INVALID_ARGUMENT.
+absl::StatusOr<records::Modality> PanoramaModalityFromProto(v1::Modality modality,
+                                                            absl::string_view field);
+v1::Modality ModalityToProto(records::Modality modality);
+
+void ProjectToProto(const ProjectInfo& info, v1::Project* out);
+void ScanToProto(const store::ScanInfo& scan, v1::Scan* out);
+void AttributeToProto(const records::AttributeInfo& info, v1::RecordAttribute* out);
+
+/// CreateProjectRequest -> settings (0 fields take the defaults). INVALID_ARGUMENT for a
+/// non-finite or negative vossel size or a negative retention.
+absl::StatusOr<store::ProjectSettings> SettingsFromProto(const v1::CreateProjectRequest& request);
+
+/// RenderRequest -> lattice request. INVALID_ARGUMENT for a missing pose, a non-positive size,
+/// a negative or non-finite eta / max range; RESOURCE_EXHAUSTED above the configured limits.
+absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderRequest& request,
+                                                             const EngineLimits& limits);
+
+/// The formats to encode, in request order, duplicates dropped; empty request: EXR only.
+/// INVALID_ARGUMENT for IMAGE_FORMAT_UNSPECIFIED or an unknown value.
+absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
+    const v1::RenderRequest& request);
+
+}  // namespace vasl::server

@@ -1,0 +1,269 @@
+/// @file ingest_assembler.cc
+/// @brief IngestScan stream -> ScanInput, with structural validation.
+#include "server/ingest_assembler.h"
+
+#include <cmath>
+#include <cstring>
+#include <set>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/convert.h"
+
+namespace vasl::server {
+namespace {
+
+constexpr int64_t kBytesPerPoint = 16;
+
+const char* PayloadName(const v1::IngestScanRequest& request) {
+  switch (request.payload_case()) {
+    case v1::IngestScanRequest::kHeader: return "a ScanHeader";
+    case v1::IngestScanRequest::kPoints: return "a PointsChunk";
+    case v1::IngestScanRequest::kImage: return "an ImageChunk";
+    default: return "an empty or unknown message";
+  }
+}
+
+float LoadF32Le(const unsigned char* p) {
+  const uint32_t bits = static_cast<uint32_t>(p[0]) | (static_cast<uint32_t>(p[1]) << 8) |
+                        (static_cast<uint32_t>(p[2]) << 16) | (static_cast<uint32_t>(p[3]) << 24);
+  float value;
+  std::memcpy(&value, &bits, sizeof(value));
+  return value;
+}
+
+}  // namespace
+
+void UnpackPointsXyziF32Le(std::string_view bytes, LidarData* lidar) {
+  const size_t n = bytes.size() / kBytesPerPoint;
+  lidar->xyz_sensor_m.resize(3 * n);
+  lidar->intensity.resize(n);
+  const auto* src = reinterpret_cast<const unsigned char*>(bytes.data());
+  float* xyz = lidar->xyz_sensor_m.data();
+  float* intensity = lidar->intensity.data();
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i != r.end(); ++i) {
+                        const unsigned char* p = src + i * kBytesPerPoint;
+                        xyz[3 * i + 0] = LoadF32Le(p);
+                        xyz[3 * i + 1] = LoadF32Le(p + 4);
+                        xyz[3 * i + 2] = LoadF32Le(p + 8);
+                        intensity[i] = LoadF32Le(p + 12);
+                      }
+                    });
+}
+
+IngestAssembler::IngestAssembler(const EngineLimits& limits) : limits_(limits) {}
+
+absl::Status IngestAssembler::Add(const v1::IngestScanRequest& request) {
+  if (!error_.ok()) return error_;
+  ++message_index_;
+  absl::Status status;
+  if (!has_header_ && request.payload_case() != v1::IngestScanRequest::kHeader) {
+    status = absl::InvalidArgumentError(absl::StrCat(
+        "the ingest stream must start with a ScanHeader, but message ", message_index_, " is ",
+        PayloadName(request), "; send the header (project, scan, pose, lidar, panoramas) first"));
+  } else {
+    switch (request.payload_case()) {
+      case v1::IngestScanRequest::kHeader: status = AddHeader(request.header()); break;
+      case v1::IngestScanRequest::kPoints: status = AddPoints(request.points()); break;
+      case v1::IngestScanRequest::kImage: status = AddImage(request.image()); break;
+      default:
+        status = absl::InvalidArgumentError(absl::StrCat(
+            "message ", message_index_,
+            " of the ingest stream has no known payload; expected header, points or image "
+            "(is the client newer than the server?)"));
+    }
+  }
+  error_ = status;
+  return status;
+}
+
+absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
+  if (has_header_) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "message ", message_index_, " is a second ScanHeader; send exactly one header, first"));
+  }
+  if (header.project().empty()) {
+    return absl::InvalidArgumentError("header.project is empty: name the project to ingest into");
+  }
+  if (header.scan().empty()) {
+    return absl::InvalidArgumentError(
+        "header.scan is empty: give the scan an id unique in the project");
+  }
+  if (!header.has_pose()) {
+    return absl::InvalidArgumentError("header.pose is required: the scanner's pose in the world");
+  }
+  absl::StatusOr<geometry::Pose> pose = PoseFromProto(header.pose(), "header.pose");
+  if (!pose.ok()) return pose.status();
+  if (!header.has_lidar()) {
+    return absl::InvalidArgumentError(
+        "header.lidar is required: divergence_rad, point_format and point_count");
+  }
+  const v1::LidarModel& lidar = header.lidar();
+  if (!std::isfinite(lidar.divergence_rad()) || lidar.divergence_rad() <= 0.0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "header.lidar.divergence_rad must be > 0 radians (e.g. 0.0003), got ",
+        lidar.divergence_rad()));
+  }
+  if (lidar.point_format() != v1::POINT_FORMAT_UNSPECIFIED &&
+      lidar.point_format() != v1::POINT_FORMAT_XYZI_F32LE) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "header.lidar.point_format ", static_cast<int>(lidar.point_format()),
+        " is not supported; use POINT_FORMAT_XYZI_F32LE (16 bytes per point)"));
+  }
+  if (lidar.point_count() <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "header.lidar.point_count must be > 0 (the number of points that follow), got ",
+        lidar.point_count()));
+  }
+  if (lidar.point_count() > limits_.max_points_per_scan) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("header.lidar.point_count ", lidar.point_count(),
+                     " exceeds the server's limit of ", limits_.max_points_per_scan,
+                     " points per scan; split the scan"));
+  }
+  if (header.panoramas_size() > limits_.max_panoramas_per_scan) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat("header has ", header.panoramas_size(), " panoramas; the limit is ",
+                     limits_.max_panoramas_per_scan, " per scan"));
+  }
+  std::set<std::string> names;
+  for (int i = 0; i < header.panoramas_size(); ++i) {
+    const v1::PanoramaDescriptor& pano = header.panoramas(i);
+    const std::string field = absl::StrCat("header.panoramas[", i, "]");
+    if (pano.name().empty()) {
+      return absl::InvalidArgumentError(absl::StrCat(field, ".name is empty"));
+    }
+    if (!names.insert(pano.name()).second) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, ".name \"", pano.name(), "\" is used twice in the scan"));
+    }
+    absl::StatusOr<records::Modality> modality =
+        PanoramaModalityFromProto(pano.modality(), field);
+    if (!modality.ok()) return modality.status();
+    if (!pano.has_pose()) {
+      return absl::InvalidArgumentError(absl::StrCat(field, ".pose is required"));
+    }
+    absl::StatusOr<geometry::Pose> pano_pose = PoseFromProto(pano.pose(), field + ".pose");
+    if (!pano_pose.ok()) return pano_pose.status();
+    if (!std::isfinite(pano.angular_resolution_rad()) || pano.angular_resolution_rad() < 0.0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, ".angular_resolution_rad must be >= 0 (0: from the image), got ",
+                       pano.angular_resolution_rad()));
+    }
+    if (pano.encoded_size_bytes() <= 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, ".encoded_size_bytes must be > 0 (the size of the image file)"));
+    }
+    if (pano.encoded_size_bytes() > limits_.max_image_bytes) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat(field, ".encoded_size_bytes ", pano.encoded_size_bytes(),
+                       " exceeds the server's limit of ", limits_.max_image_bytes, " bytes"));
+    }
+    PanoramaData data;
+    data.name = pano.name();
+    data.pose = *pano_pose;
+    data.modality = *modality;
+    data.angular_resolution_rad = pano.angular_resolution_rad();
+    data.encoded_image.reserve(static_cast<size_t>(pano.encoded_size_bytes()));
+    scan_.panoramas.push_back(std::move(data));
+    expected_image_bytes_.push_back(pano.encoded_size_bytes());
+  }
+  has_header_ = true;
+  project_ = header.project();
+  scan_.scan_name = header.scan();
+  scan_.rig = header.rig();
+  scan_.captured_utc = header.captured_utc();
+  scan_.pose = *pose;
+  scan_.lidar.divergence_rad = lidar.divergence_rad();
+  point_count_ = lidar.point_count();
+  point_bytes_.reserve(static_cast<size_t>(point_count_ * kBytesPerPoint));
+  return absl::OkStatus();
+}
+
+absl::Status IngestAssembler::AddPoints(const v1::PointsChunk& chunk) {
+  if (images_started_) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "message ", message_index_,
+        " is a PointsChunk after an ImageChunk; send all points before the images"));
+  }
+  const int64_t size = static_cast<int64_t>(chunk.data().size());
+  if (size % kBytesPerPoint != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "message ", message_index_, ": a PointsChunk of ", size,
+        " bytes is not a multiple of 16 (float32 x, y, z, intensity per point)"));
+  }
+  const int64_t total = static_cast<int64_t>(point_bytes_.size()) + size;
+  if (total > point_count_ * kBytesPerPoint) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the points chunks carry more than header.lidar.point_count = ", point_count_,
+        " points (", total / kBytesPerPoint, " so far)"));
+  }
+  point_bytes_.append(chunk.data());
+  received_bytes_ += size;
+  return absl::OkStatus();
+}
+
+absl::Status IngestAssembler::AddImage(const v1::ImageChunk& chunk) {
+  images_started_ = true;
+  int index = -1;
+  if (!chunk.panorama_name().empty()) {
+    for (size_t i = 0; i < scan_.panoramas.size(); ++i) {
+      if (scan_.panoramas[i].name == chunk.panorama_name()) index = static_cast<int>(i);
+    }
+    if (index < 0) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "message ", message_index_, ": an ImageChunk for panorama \"", chunk.panorama_name(),
+          "\", which the header does not declare; declare it in header.panoramas"));
+    }
+  } else {
+    index = chunk.panorama_index();
+    if (index < 0 || index >= static_cast<int>(scan_.panoramas.size())) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "message ", message_index_, ": an ImageChunk for panorama_index ", index,
+          ", but the header declares ", scan_.panoramas.size(), " panoramas"));
+    }
+  }
+  PanoramaData& pano = scan_.panoramas[static_cast<size_t>(index)];
+  const int64_t total = static_cast<int64_t>(pano.encoded_image.size() + chunk.data().size());
+  if (total > expected_image_bytes_[static_cast<size_t>(index)]) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "panorama \"", pano.name, "\": the image chunks carry more than its encoded_size_bytes = ",
+        expected_image_bytes_[static_cast<size_t>(index)], " (", total, " so far)"));
+  }
+  pano.encoded_image.append(chunk.data());
+  received_bytes_ += static_cast<int64_t>(chunk.data().size());
+  return absl::OkStatus();
+}
+
+absl::StatusOr<ScanInput> IngestAssembler::Finish() {
+  if (!error_.ok()) return error_;
+  if (!has_header_) {
+    return absl::InvalidArgumentError(
+        "the ingest stream ended without a ScanHeader; send the header first, then points, "
+        "then images");
+  }
+  const int64_t received_points = static_cast<int64_t>(point_bytes_.size()) / kBytesPerPoint;
+  if (received_points != point_count_) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the stream carried ", received_points,
+                     " points but header.lidar.point_count is ", point_count_));
+  }
+  for (size_t i = 0; i < scan_.panoramas.size(); ++i) {
+    const int64_t got = static_cast<int64_t>(scan_.panoramas[i].encoded_image.size());
+    if (got != expected_image_bytes_[i]) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "panorama \"", scan_.panoramas[i].name, "\": received ", got,
+          " image bytes but its encoded_size_bytes is ", expected_image_bytes_[i]));
+    }
+  }
+  UnpackPointsXyziF32Le(point_bytes_, &scan_.lidar);
+  std::string().swap(point_bytes_);
+  error_ = absl::FailedPreconditionError("IngestAssembler::Finish was already called");
+  return std::move(scan_);
+}
+
+}  // namespace vasl::server

@@ -1,0 +1,134 @@
+/// @file main.cc
+/// @brief vasld: the VASL gRPC server. Parses flags, opens the Engine on the data directory,
+///        serves vasl.v1.VaslService with health checking and reflection, and shuts down
+///        gracefully on SIGINT/SIGTERM.
+#include <pthread.h>
+#include <signal.h>
+
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/server.h>
+#include <grpcpp/server_builder.h>
+
+#include "lattice/engine.h"
+#include "server/server_options.h"
+#include "server/vasl_service.h"
+#include "server/worker_pool.h"
+
+namespace {
+
+/// ":PORT" means loopback; otherwise the address is used as given.
+std::string NormalizeAddress(const std::string& address) {
+  if (!address.empty() && address[0] == ':') return "127.0.0.1" + address;
+  return address;
+}
+
+std::string HostOf(const std::string& address) {
+  const size_t colon = address.rfind(':');
+  return colon == std::string::npos ? address : address.substr(0, colon);
+}
+
+bool WritePortFile(const std::filesystem::path& path, int port) {
+  const std::filesystem::path tmp = path.string() + ".tmp";
+  {
+    std::ofstream out(tmp, std::ios::trunc);
+    if (!out) return false;
+    out << port << "\n";
+    if (!out.flush()) return false;
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  return !ec;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using vasl::server::StderrLogSink;
+  absl::StatusOr<vasl::server::ServerOptions> parsed =
+      vasl::server::ParseServerOptions(std::vector<std::string>(argv + 1, argv + argc));
+  if (!parsed.ok()) {
+    if (parsed.status().code() == absl::StatusCode::kCancelled) {  // --help
+      std::fputs(std::string(parsed.status().message()).c_str(), stdout);
+      return 0;
+    }
+    std::fprintf(stderr, "vasld: %s\n", std::string(parsed.status().message()).c_str());
+    return 2;
+  }
+  vasl::server::ServerOptions options = *parsed;
+
+  // Block the shutdown signals in every thread (threads inherit the mask); main waits for them.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  absl::StatusOr<std::unique_ptr<vasl::Engine>> engine =
+      vasl::Engine::Open(options.data_dir, options.engine);
+  if (!engine.ok()) {
+    std::fprintf(stderr, "vasld: cannot open the data directory %s: %s\n",
+                 options.data_dir.c_str(), std::string(engine.status().message()).c_str());
+    return 1;
+  }
+
+  int workers = options.workers;
+  if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
+  vasl::server::WorkerPool pool(workers);
+  vasl::server::ServiceOptions service_options;
+  service_options.render_chunk_bytes = options.render_chunk_bytes;
+  vasl::server::VaslServiceImpl service(engine->get(), &pool, service_options);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  const std::string address = NormalizeAddress(options.address);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort(address, grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&service);
+  builder.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
+  builder.SetMaxSendMessageSize(static_cast<int>(options.max_message_bytes));
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) {
+    std::fprintf(stderr, "vasld: cannot listen on %s (address in use or not local?)\n",
+                 address.c_str());
+    return 1;
+  }
+  const std::string bound = HostOf(address) + ":" + std::to_string(port);
+  std::printf("vasld listening on %s\n", bound.c_str());
+  std::fflush(stdout);
+  StderrLogSink("listening on " + bound + " data_dir=" + options.data_dir.string() +
+                " workers=" + std::to_string(workers) +
+                " max_message_bytes=" + std::to_string(options.max_message_bytes));
+  if (!options.port_file.empty() && !WritePortFile(options.port_file, port)) {
+    StderrLogSink("warning: cannot write --port-file " + options.port_file.string());
+  }
+
+  int signal_number = 0;
+  sigwait(&signals, &signal_number);
+  StderrLogSink(std::string("received ") + (signal_number == SIGINT ? "SIGINT" : "SIGTERM") +
+                ", shutting down");
+  if (grpc::HealthCheckServiceInterface* health = server->GetHealthCheckService()) {
+    health->SetServingStatus(false);
+  }
+  // Running RPCs get the grace period; the pool keeps running so that their reactors finish.
+  server->Shutdown(std::chrono::system_clock::now() +
+                   std::chrono::milliseconds(static_cast<int64_t>(1e3 * options.shutdown_grace_s)));
+  server->Wait();
+  pool.Stop();
+  if (!options.port_file.empty()) {
+    std::error_code ec;
+    std::filesystem::remove(options.port_file, ec);
+  }
+  StderrLogSink("stopped");
+  return 0;
+}

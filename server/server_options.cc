@@ -1,0 +1,203 @@
+/// @file server_options.cc
+/// @brief Flag and config-file parsing for vasld.
+#include "server/server_options.h"
+
+#include <fstream>
+#include <functional>
+#include <map>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/strip.h"
+#include "absl/strings/ascii.h"
+
+namespace vasl::server {
+namespace {
+
+using Setter = std::function<absl::Status(ServerOptions&, const std::string&)>;
+
+absl::Status BadValue(const std::string& name, const std::string& value, const char* want) {
+  return absl::InvalidArgumentError(
+      absl::StrCat("--", name, "=", value, ": expected ", want));
+}
+
+Setter Int64(int64_t ServerOptions::*field, const std::string& name, int64_t min) {
+  return [field, name, min](ServerOptions& o, const std::string& v) -> absl::Status {
+    int64_t x = 0;
+    if (!absl::SimpleAtoi(v, &x) || x < min) return BadValue(name, v, "an integer >= 1");
+    o.*field = x;
+    return absl::OkStatus();
+  };
+}
+
+Setter EngineInt64(int64_t EngineLimits::*field, const std::string& name) {
+  return [field, name](ServerOptions& o, const std::string& v) -> absl::Status {
+    int64_t x = 0;
+    if (!absl::SimpleAtoi(v, &x) || x < 1) return BadValue(name, v, "an integer >= 1");
+    o.engine.*field = x;
+    return absl::OkStatus();
+  };
+}
+
+Setter EngineInt(int EngineLimits::*field, const std::string& name) {
+  return [field, name](ServerOptions& o, const std::string& v) -> absl::Status {
+    int x = 0;
+    if (!absl::SimpleAtoi(v, &x) || x < 1) return BadValue(name, v, "an integer >= 1");
+    o.engine.*field = x;
+    return absl::OkStatus();
+  };
+}
+
+const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
+  static const auto* flags = new std::map<std::string, std::pair<Setter, std::string>>{
+      {"address",
+       {[](ServerOptions& o, const std::string& v) {
+          if (v.empty()) return BadValue("address", v, "host:port");
+          o.address = v;
+          return absl::OkStatus();
+        },
+        "host:port to listen on; port 0 picks a free port (default 127.0.0.1:50051)"}},
+      {"data-dir",
+       {[](ServerOptions& o, const std::string& v) {
+          if (v.empty()) return BadValue("data-dir", v, "a directory");
+          o.data_dir = v;
+          return absl::OkStatus();
+        },
+        "directory holding one folder per project (default ./vasl-data)"}},
+      {"port-file",
+       {[](ServerOptions& o, const std::string& v) {
+          o.port_file = v;
+          return absl::OkStatus();
+        },
+        "write the bound port to this file once listening (default: none)"}},
+      {"workers",
+       {[](ServerOptions& o, const std::string& v) {
+          int x = 0;
+          if (!absl::SimpleAtoi(v, &x) || x < 0) return BadValue("workers", v, "an integer >= 0");
+          o.workers = x;
+          return absl::OkStatus();
+        },
+        "threads running engine calls; 0 = hardware threads, at least 2 (default 0)"}},
+      {"shutdown-grace-s",
+       {[](ServerOptions& o, const std::string& v) {
+          double x = 0;
+          if (!absl::SimpleAtod(v, &x) || !(x >= 0)) {
+            return BadValue("shutdown-grace-s", v, "seconds >= 0");
+          }
+          o.shutdown_grace_s = x;
+          return absl::OkStatus();
+        },
+        "on SIGINT/SIGTERM, seconds running RPCs get before cancellation (default 30)"}},
+      {"max-message-bytes",
+       {Int64(&ServerOptions::max_message_bytes, "max-message-bytes", 1),
+        "largest gRPC message received or sent (default 8388608)"}},
+      {"render-chunk-bytes",
+       {Int64(&ServerOptions::render_chunk_bytes, "render-chunk-bytes", 1),
+        "payload size of streamed render chunks (default 1048576)"}},
+      {"max-points",
+       {EngineInt64(&EngineLimits::max_points_per_scan, "max-points"),
+        "LiDAR points per scan (default 50000000)"}},
+      {"max-panoramas",
+       {EngineInt64(&EngineLimits::max_panoramas_per_scan, "max-panoramas"),
+        "panoramas per scan (default 16)"}},
+      {"max-image-bytes",
+       {EngineInt64(&EngineLimits::max_image_bytes, "max-image-bytes"),
+        "encoded bytes of one panorama (default 536870912)"}},
+      {"max-image-pixels",
+       {EngineInt64(&EngineLimits::max_image_pixels, "max-image-pixels"),
+        "decoded pixels of one panorama (default 134217728)"}},
+      {"max-render-width",
+       {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
+        "render width, pixels (default 16384)"}},
+      {"max-render-height",
+       {EngineInt(&EngineLimits::max_render_height_px, "max-render-height"),
+        "render height, pixels (default 8192)"}},
+  };
+  return *flags;
+}
+
+absl::Status Apply(ServerOptions& options, const std::string& name, const std::string& value);
+
+absl::Status ReadConfig(ServerOptions& options, const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat("--config ", path, ": cannot open the file"));
+  std::string line;
+  int line_no = 0;
+  while (std::getline(in, line)) {
+    ++line_no;
+    const size_t hash = line.find('#');
+    if (hash != std::string::npos) line.resize(hash);
+    absl::string_view text = absl::StripAsciiWhitespace(line);
+    if (text.empty()) continue;
+    const size_t eq = text.find('=');
+    if (eq == absl::string_view::npos) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(path, ":", line_no, ": expected `name = value`, got `", text, "`"));
+    }
+    std::string name(absl::StripAsciiWhitespace(text.substr(0, eq)));
+    std::string value(absl::StripAsciiWhitespace(text.substr(eq + 1)));
+    if (name == "config") {
+      return absl::InvalidArgumentError(absl::StrCat(path, ":", line_no, ": nested config"));
+    }
+    absl::Status s = Apply(options, name, value);
+    if (!s.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ":", line_no, ": ", s.message()));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Apply(ServerOptions& options, const std::string& name, const std::string& value) {
+  if (name == "config") return ReadConfig(options, value);
+  auto it = Flags().find(name);
+  if (it == Flags().end()) {
+    return absl::InvalidArgumentError(absl::StrCat("unknown flag --", name, "; see --help"));
+  }
+  return it->second.first(options, value);
+}
+
+}  // namespace
+
+std::string Usage() {
+  std::string text =
+      "usage: vasld [--name=value ...]\n"
+      "  --config PATH  read `name = value` lines (flag names without --)\n";
+  for (const auto& [name, entry] : Flags()) {
+    absl::StrAppend(&text, "  --", name, "  ", entry.second, "\n");
+  }
+  return text;
+}
+
+absl::StatusOr<ServerOptions> ParseServerOptions(const std::vector<std::string>& args) {
+  ServerOptions options;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& arg = args[i];
+    if (arg == "--help" || arg == "-h") return absl::CancelledError(Usage());
+    if (arg.rfind("--", 0) != 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unexpected argument `", arg, "`; see --help"));
+    }
+    std::string name = arg.substr(2);
+    std::string value;
+    const size_t eq = name.find('=');
+    if (eq != std::string::npos) {
+      value = name.substr(eq + 1);
+      name.resize(eq);
+    } else {
+      if (i + 1 >= args.size()) {
+        return absl::InvalidArgumentError(absl::StrCat("--", name, " needs a value"));
+      }
+      value = args[++i];
+    }
+    absl::Status s = Apply(options, name, value);
+    if (!s.ok()) return s;
+  }
+  if (options.render_chunk_bytes + 4096 > options.max_message_bytes) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "--render-chunk-bytes=", options.render_chunk_bytes,
+        " must be at least 4096 below --max-message-bytes=", options.max_message_bytes));
+  }
+  return options;
+}
+
+}  // namespace vasl::server

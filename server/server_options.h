@@ -1,0 +1,43 @@
+/// @file server_options.h
+/// @brief vasld configuration: listening address, data directory and every limit a client
+///        controls (ARCHITECTURE.md, "Errors and limits"), from flags and/or a config file.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/engine.h"
+
+namespace vasl::server {
+
+struct ServerOptions {
+  /// host:port to listen on; port 0 picks a free port. A leading ':' means 127.0.0.1.
+  std::string address = "127.0.0.1:50051";
+  /// Directory with one folder per project.
+  std::filesystem::path data_dir = "vasl-data";
+  /// If set, the bound port is written here (decimal, newline) once the server listens.
+  std::filesystem::path port_file;
+  /// Largest gRPC message accepted or sent, bytes (clients send 1 MiB chunks).
+  int64_t max_message_bytes = 8ll << 20;
+  /// Size of the RenderChunk payloads the server streams, bytes.
+  int64_t render_chunk_bytes = 1ll << 20;
+  /// Worker threads for engine calls; 0: the number of hardware threads (at least 2).
+  int workers = 0;
+  /// On SIGINT/SIGTERM, running RPCs get this long to finish before they are cancelled, s.
+  double shutdown_grace_s = 30.0;
+  /// Limits enforced by the engine and, for stream sizes, by the ingest assembler.
+  EngineLimits engine;
+};
+
+/// Usage text listing every flag with its default.
+std::string Usage();
+
+/// Parses `--name=value` / `--name value` flags. `--config PATH` reads `name = value` lines
+/// (same names, '#' comments) at that point, so later flags override the file.
+/// INVALID_ARGUMENT for an unknown flag or a bad value; `--help` returns CANCELLED with Usage().
+absl::StatusOr<ServerOptions> ParseServerOptions(const std::vector<std::string>& args);
+
+}  // namespace vasl::server

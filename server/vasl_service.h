@@ -1,0 +1,88 @@
+/// @file vasl_service.h
+/// @brief The vasl.v1.VaslService adapter: a thin callback service holding a pointer to the
+///        lattice Engine. Each RPC validates, converts from proto, hands the blocking engine call
+///        to a WorkerPool thread, converts back and maps the status (status_util.h).
+/// @details One reactor per streaming RPC (IngestScan reads, Render writes), as in gRPC's
+///          route_guide callback example; unary RPCs use the context's default reactor. No
+///          engine call runs on a gRPC callback thread. One log line per request (method,
+///          project, status code, duration in ms) goes to the log sink; ingest progress is both
+///          logged per stage and served by GetIngestProgress.
+/// @warning Thread-safe. The Engine and WorkerPool must outlive the service.
+#pragma once
+
+#include <chrono>
+#include <functional>
+#include <map>
+#include <mutex>
+#include <string>
+
+#include "lattice/engine.h"
+#include "server/worker_pool.h"
+#include "vasl/v1/vasl.grpc.pb.h"
+
+namespace vasl::server {
+
+/// Receives one formatted log line (no trailing newline). Default: stderr with a UTC time.
+using LogSink = std::function<void(const std::string& line)>;
+void StderrLogSink(const std::string& line);
+
+struct ServiceOptions {
+  /// Payload size of streamed render chunks, bytes.
+  int64_t render_chunk_bytes = 1ll << 20;
+  LogSink log = StderrLogSink;
+};
+
+class VaslServiceImpl final : public v1::VaslService::CallbackService {
+ public:
+  VaslServiceImpl(Engine* engine, WorkerPool* pool, ServiceOptions options = {});
+
+  grpc::ServerUnaryReactor* CreateProject(grpc::CallbackServerContext* context,
+                                          const v1::CreateProjectRequest* request,
+                                          v1::Project* response) override;
+  grpc::ServerUnaryReactor* GetProject(grpc::CallbackServerContext* context,
+                                       const v1::GetProjectRequest* request,
+                                       v1::Project* response) override;
+  grpc::ServerUnaryReactor* ListProjects(grpc::CallbackServerContext* context,
+                                         const v1::ListProjectsRequest* request,
+                                         v1::ListProjectsResponse* response) override;
+  grpc::ServerUnaryReactor* ListScans(grpc::CallbackServerContext* context,
+                                      const v1::ListScansRequest* request,
+                                      v1::ListScansResponse* response) override;
+  grpc::ServerReadReactor<v1::IngestScanRequest>* IngestScan(
+      grpc::CallbackServerContext* context, v1::IngestScanResponse* response) override;
+  grpc::ServerUnaryReactor* GetIngestProgress(grpc::CallbackServerContext* context,
+                                              const v1::GetIngestProgressRequest* request,
+                                              v1::IngestProgress* response) override;
+  grpc::ServerWriteReactor<v1::RenderResponse>* Render(
+      grpc::CallbackServerContext* context, const v1::RenderRequest* request) override;
+  grpc::ServerUnaryReactor* InspectRecords(grpc::CallbackServerContext* context,
+                                           const v1::InspectRecordsRequest* request,
+                                           v1::InspectRecordsResponse* response) override;
+
+  // Used by the reactors (vasl_service.cc).
+  Engine* engine() const { return engine_; }
+  WorkerPool* pool() const { return pool_; }
+  const ServiceOptions& options() const { return options_; }
+  /// One request log line: method, project, code, duration (and the message on error).
+  void LogRequest(const char* method, const std::string& project, const grpc::Status& status,
+                  std::chrono::steady_clock::time_point start) const;
+  /// Updates the progress board of `project` (thread-safe).
+  void UpdateProgress(const std::string& project,
+                      const std::function<void(v1::IngestProgress&)>& update);
+  v1::IngestProgress GetProgress(const std::string& project);
+
+ private:
+  /// Runs `body` (which fills the response and returns a status) on the pool, then logs and
+  /// finishes the unary reactor.
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
+                                     const std::string& project,
+                                     std::function<grpc::Status()> body);
+
+  Engine* engine_;
+  WorkerPool* pool_;
+  ServiceOptions options_;
+  std::mutex progress_mutex_;
+  std::map<std::string, v1::IngestProgress> progress_;
+};
+
+}  // namespace vasl::server
