@@ -1,0 +1,1 @@
+"""Generated gRPC stubs (private). Produced by clients/python/gen_proto.sh; not committed."""

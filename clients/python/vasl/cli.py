@@ -1,0 +1,228 @@
+"""The `vasl` command line: a thin layer over vasl.Client.
+
+Exit status: 0 on success, 1 when the server reports an error (printed as CODE: message),
+2 for bad arguments or unreadable input files.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import List, Optional
+
+from .client import DEFAULT_SERVER, Client, VaslError
+from .readers import read_manifest
+from .types import Pose
+
+
+def _print_project(p) -> None:
+    print(f"project {p.name}")
+    print(f"  vossel_size_m  {p.vossel_size_m:g}")
+    print(f"  head_version   {p.head_version}")
+    print(f"  scans          {p.scan_count}")
+    print(f"  vossels        {p.vossel_count}")
+    print(f"  records        {p.record_count}")
+    print(f"  created_utc    {p.created_utc}")
+    if p.description:
+        print(f"  description    {p.description}")
+
+
+def _cmd_project(client: Client, args) -> int:
+    if args.project_cmd == "create":
+        p = client.create_project(args.name, vossel_size_m=args.vossel_size,
+                                  description=args.description)
+        print(f"created project {p.name} (vossel {p.vossel_size_m:g} m)")
+        return 0
+    if args.project_cmd == "get":
+        _print_project(client.get_project(args.name))
+        return 0
+    projects = client.list_projects()
+    if not projects:
+        print("no projects")
+        return 0
+    print(f"{'NAME':<24} {'VOSSEL_M':>8} {'VERSION':>7} {'SCANS':>5} {'VOSSELS':>10} {'RECORDS':>11}")
+    for p in projects:
+        print(f"{p.name:<24} {p.vossel_size_m:>8g} {p.head_version:>7} {p.scan_count:>5} "
+              f"{p.vossel_count:>10} {p.record_count:>11}")
+    return 0
+
+
+class _ProgressLine:
+    """Progress on one terminal line (plain lines when stderr is not a terminal)."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.tty = sys.stderr.isatty()
+        self.last = None
+
+    def __call__(self, p: dict) -> None:
+        if p["stage"] == "upload":
+            total = max(1, p["total_bytes"])
+            pct = int(100 * p["sent_bytes"] / total)
+            text = f"{self.label}: upload {p['sent_bytes'] / 1e6:.1f}/{total / 1e6:.1f} MB ({pct}%)"
+            key = ("upload", pct // (1 if self.tty else 25))
+        else:
+            text = f"{self.label}: {p['stage']} {100 * p['fraction']:.0f}%"
+            key = (p["stage"], int(100 * p["fraction"]) // (1 if self.tty else 10))
+        if key == self.last:
+            return
+        self.last = key
+        if self.tty:
+            sys.stderr.write("\r\033[K" + text)
+        else:
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.tty and self.last is not None:
+            sys.stderr.write("\r\033[K")
+            sys.stderr.flush()
+
+
+def _cmd_ingest(client: Client, args) -> int:
+    manifests = [read_manifest(m) for m in args.manifest]  # validate all before sending any
+    existing = set()
+    if args.skip_existing:
+        existing = {s.name for s in client.list_scans(args.project)}
+    for m in manifests:
+        if m.scan in existing:
+            print(f"{m.scan}: already in project {args.project}, skipped")
+            continue
+        bar = _ProgressLine(m.scan) if not args.quiet else None
+        try:
+            r = client.ingest(args.project, m, progress=bar)
+        finally:
+            if bar:
+                bar.done()
+        stages = ", ".join(f"{k} {v:.2f}s" for k, v in r.stages.items())
+        print(f"{r.scan}: version {r.version}, {r.point_count} points, {r.new_vossels} new vossels,"
+              f" {r.vossel_count} vossels, {r.record_count} records, {r.total_seconds:.1f} s"
+              + (f" ({stages})" if stages else ""))
+    return 0
+
+
+def _cmd_render(client: Client, args) -> int:
+    pose = Pose.parse(args.pose)
+    out = args.output
+    if not out.lower().endswith(".exr"):
+        raise ValueError(f"-o must name an .exr file, got {out}")
+    r = client.render(args.project, pose, args.width, args.height, version=args.version,
+                      formats=("exr", "png"), eta=args.eta, decode=False)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    png = out[:-4] + ".png"
+    with open(out, "wb") as f:
+        f.write(r.exr)
+    with open(png, "wb") as f:
+        f.write(r.png)
+    total = r.width_px * r.height_px
+    print(f"rendered {r.width_px}x{r.height_px} from version {r.version}: "
+          f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
+          f"{r.render_seconds:.2f} s")
+    print(f"wrote {out} (R,G,B,Z,N.x,N.y,N.z,U float) and {png}")
+    return 0
+
+
+def _cmd_scans(client: Client, args) -> int:
+    scans = client.list_scans(args.project)
+    if args.json:
+        print(json.dumps([{"id": s.id, "name": s.name, "rig": s.rig, "version": s.version,
+                           "captured_utc": s.captured_utc,
+                           "position_m": list(s.pose.position_m),
+                           "sources": [src.name for src in s.sources]} for s in scans], indent=2))
+        return 0
+    if not scans:
+        print(f"no scans in project {args.project}")
+        return 0
+    print(f"{'ID':>4} {'NAME':<20} {'VERSION':>7} {'POINTS':>10}  {'POSITION_M':<26} SOURCES")
+    for s in scans:
+        points = sum(src.point_count for src in s.sources)
+        pos = ",".join(f"{v:.3f}" for v in s.pose.position_m)
+        sources = " ".join(f"{src.name}({src.modality})" for src in s.sources)
+        print(f"{s.id:>4} {s.name:<20} {s.version:>7} {points:>10}  {pos:<26} {sources}")
+    return 0
+
+
+def _cmd_inspect(client: Client, args) -> int:
+    r = client.inspect_records(args.project, args.version)
+    if args.json:
+        print(json.dumps({"project": r.project, "version": r.version, "version_dir": r.version_dir,
+                          "attributes": [a.__dict__ for a in r.attributes]}, indent=2))
+        return 0
+    print(f"project {r.project} version {r.version}: records.vdb in {r.version_dir}")
+    print(f"{'ATTRIBUTE':<16} {'TYPE':<10} {'CODEC':<14} {'STRIDE':>6}")
+    for a in r.attributes:
+        print(f"{a.name:<16} {a.type:<10} {a.codec:<14} {a.stride:>6}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vasl", description="Client of the vasld server.")
+    parser.add_argument("--server", default=os.environ.get("VASL_SERVER", DEFAULT_SERVER),
+                        help="HOST:PORT of vasld (default: $VASL_SERVER or %(default)s)")
+    parser.add_argument("--timeout", type=float, default=None, help="RPC deadline, seconds")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+
+    project = sub.add_parser("project", help="create, list or show projects")
+    psub = project.add_subparsers(dest="project_cmd", required=True)
+    create = psub.add_parser("create", help="create an empty project")
+    create.add_argument("name")
+    create.add_argument("--vossel-size", type=float, default=0.02, metavar="M",
+                        help="vossel edge in metres (default 0.02)")
+    create.add_argument("--description", default="")
+    psub.add_parser("list", help="list projects")
+    get = psub.add_parser("get", help="show a project")
+    get.add_argument("name")
+
+    ingest = sub.add_parser("ingest", help="ingest scans described by manifest files")
+    ingest.add_argument("manifest", nargs="+", help="scan manifest JSON file(s)")
+    ingest.add_argument("--project", required=True)
+    ingest.add_argument("--skip-existing", action="store_true",
+                        help="skip scans whose id is already in the project")
+    ingest.add_argument("--quiet", action="store_true", help="no progress display")
+
+    render = sub.add_parser("render", help="render an equirectangular panorama to EXR + PNG")
+    render.add_argument("--project", required=True)
+    render.add_argument("--pose", required=True, metavar="x,y,z[,qx,qy,qz,qw]",
+                        help="viewpoint position (m) and optional quaternion (x,y,z,w)")
+    render.add_argument("--width", type=int, default=2048)
+    render.add_argument("--height", type=int, default=1024)
+    render.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
+    render.add_argument("--eta", type=float, default=0.0, help="view term (VASL-MODEL §8)")
+    render.add_argument("-o", "--output", required=True, metavar="OUT.exr",
+                        help="EXR output; the PNG preview is written beside it")
+
+    scans = sub.add_parser("scans", help="list the scans of a project")
+    scans.add_argument("--project", required=True)
+    scans.add_argument("--json", action="store_true")
+
+    inspect = sub.add_parser("inspect", help="list record attributes (type, codec, stride)")
+    inspect.add_argument("--project", required=True)
+    inspect.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
+    inspect.add_argument("--json", action="store_true")
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    handlers = {"project": _cmd_project, "ingest": _cmd_ingest, "render": _cmd_render,
+                "scans": _cmd_scans, "inspect": _cmd_inspect}
+    try:
+        with Client(args.server, timeout_s=args.timeout) as client:
+            return handlers[args.cmd](client, args)
+    except VaslError as e:
+        hint = ""
+        if e.code.name == "UNAVAILABLE":
+            hint = f" (is vasld running at {args.server}?)"
+        print(f"vasl: error: {e.code.name}: {e.details}{hint}", file=sys.stderr)
+        return 1
+    except (ValueError, OSError) as e:
+        print(f"vasl: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("vasl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

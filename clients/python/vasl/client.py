@@ -1,0 +1,372 @@
+"""vasl.Client: a typed facade over the vasl.v1 gRPC service (numpy in and out).
+
+Bad arguments raise ValueError before anything is sent; errors from the server raise VaslError
+carrying the gRPC status code and the server's message.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import threading
+import time
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Union
+
+import grpc
+import numpy as np
+
+from ._proto import vasl_pb2 as pb
+from ._proto import vasl_pb2_grpc as pb_grpc
+from .readers import Manifest, read_manifest, read_ply
+from .types import (Inspection, IngestResult, Pose, Project, RecordAttribute, RenderResult,
+                    Scan, Source)
+
+DEFAULT_SERVER = "127.0.0.1:50051"
+#: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
+CHUNK_BYTES = 1 << 20
+#: Largest message the client accepts (render chunks are 1 MiB by default).
+MAX_MESSAGE_BYTES = 64 << 20
+
+_MODALITY_TO_PB = {"rgb": pb.MODALITY_RGB, "ir": pb.MODALITY_IR}
+_MODALITY_NAMES = {pb.MODALITY_LIDAR: "lidar", pb.MODALITY_RGB: "rgb", pb.MODALITY_IR: "ir",
+                   pb.MODALITY_RADAR: "radar", pb.MODALITY_DERIVED: "derived"}
+_FORMATS = {"exr": pb.IMAGE_FORMAT_EXR, "png": pb.IMAGE_FORMAT_PNG}
+
+
+class VaslError(Exception):
+    """A failed RPC: `code` is the grpc.StatusCode, `details` the server's message."""
+
+    def __init__(self, code: grpc.StatusCode, details: str, method: str = ""):
+        self.code = code
+        self.details = details or ""
+        self.method = method
+        super().__init__(f"{code.name}: {self.details}")
+
+
+def _wrap(method: str, err: grpc.RpcError) -> VaslError:
+    code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+    details = err.details() if hasattr(err, "details") else str(err)
+    return VaslError(code, details, method)
+
+
+def pose_to_pb(pose: Pose) -> pb.Pose:
+    p = pb.Pose()
+    p.position_m.x, p.position_m.y, p.position_m.z = pose.position_m
+    q = pose.quaternion_xyzw
+    p.quaternion_xyzw.x, p.quaternion_xyzw.y, p.quaternion_xyzw.z, p.quaternion_xyzw.w = q
+    return p
+
+
+def _pose_from_pb(p: pb.Pose) -> Pose:
+    return Pose((p.position_m.x, p.position_m.y, p.position_m.z),
+                (p.quaternion_xyzw.x, p.quaternion_xyzw.y, p.quaternion_xyzw.z,
+                 p.quaternion_xyzw.w))
+
+
+def _project(p: pb.Project) -> Project:
+    return Project(p.name, p.description, p.vossel_size_m, p.head_version, p.scan_count,
+                   p.vossel_count, p.record_count, p.created_utc)
+
+
+def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None) -> bytes:
+    """(N, 3) or (N, 4) points [+ (N,) intensity] -> packed little-endian float32 (x, y, z, i)."""
+    arr = np.asarray(xyz_m)
+    if arr.ndim != 2 or arr.shape[1] not in (3, 4):
+        raise ValueError(f"points must be an (N, 3) or (N, 4) array, got shape {arr.shape}")
+    if arr.shape[0] == 0:
+        raise ValueError("points: the scan has no point")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"points must be numeric, got dtype {arr.dtype}")
+    packed = np.zeros((arr.shape[0], 4), dtype="<f4")
+    packed[:, :arr.shape[1]] = arr
+    if intensity is not None:
+        inten = np.asarray(intensity).ravel()
+        if inten.shape[0] != arr.shape[0]:
+            raise ValueError(f"intensity has {inten.shape[0]} values for {arr.shape[0]} points")
+        packed[:, 3] = inten
+    return packed.tobytes()
+
+
+def ingest_requests(header: pb.ScanHeader, point_bytes: bytes,
+                    images: Sequence[bytes] = (), chunk_bytes: int = CHUNK_BYTES,
+                    on_sent: Optional[Callable[[int], None]] = None) -> Iterator[pb.IngestScanRequest]:
+    """The IngestScan stream: header, points chunks (multiples of 16 bytes), image chunks.
+    No validation: a test may send anything this way."""
+    yield pb.IngestScanRequest(header=header)
+    sent = 0
+    step = max(16, chunk_bytes - chunk_bytes % 16)
+    for i in range(0, len(point_bytes), step):
+        data = point_bytes[i:i + step]
+        yield pb.IngestScanRequest(points=pb.PointsChunk(data=data))
+        sent += len(data)
+        if on_sent:
+            on_sent(sent)
+    for index, image in enumerate(images):
+        for i in range(0, len(image), chunk_bytes):
+            data = image[i:i + chunk_bytes]
+            yield pb.IngestScanRequest(image=pb.ImageChunk(panorama_index=index, data=data))
+            sent += len(data)
+            if on_sent:
+                on_sent(sent)
+
+
+def decode_exr(data: bytes) -> Dict[str, np.ndarray]:
+    """EXR bytes -> {channel name: (H, W) float32} with the OpenEXR module."""
+    import OpenEXR  # imported lazily: only renders need it
+
+    fd, path = tempfile.mkstemp(suffix=".exr")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        exr = OpenEXR.File(path, separate_channels=True)
+        return {name: np.asarray(ch.pixels, dtype=np.float32)
+                for name, ch in exr.channels().items()}
+    finally:
+        os.unlink(path)
+
+
+class Client:
+    """Connection to one vasld. Usable as a context manager.
+
+    >>> with Client("127.0.0.1:50051") as c:
+    ...     c.create_project("site", vossel_size_m=0.05)
+    """
+
+    def __init__(self, server: str = DEFAULT_SERVER, *, timeout_s: Optional[float] = None,
+                 chunk_bytes: int = CHUNK_BYTES):
+        if not server or ":" not in server:
+            raise ValueError(f"server must be HOST:PORT, got {server!r}")
+        if chunk_bytes < 16:
+            raise ValueError("chunk_bytes must be >= 16")
+        self.server = server
+        self.timeout_s = timeout_s
+        self.chunk_bytes = chunk_bytes
+        self.channel = grpc.insecure_channel(server, options=[
+            ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+            ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+        ])
+        #: The raw generated stub (vasl.v1.VaslService), for callers that need every field.
+        self.stub = pb_grpc.VaslServiceStub(self.channel)
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _call(self, method: str, request):
+        try:
+            return getattr(self.stub, method)(request, timeout=self.timeout_s)
+        except grpc.RpcError as e:
+            raise _wrap(method, e) from None
+
+    @staticmethod
+    def _check_name(name: str, what: str = "project") -> None:
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{what} must be a non-empty string")
+
+    # -- health --------------------------------------------------------------------------
+    def health(self, timeout_s: float = 5.0) -> str:
+        """The server's overall health status name, e.g. "SERVING"."""
+        from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+        stub = health_pb2_grpc.HealthStub(self.channel)
+        try:
+            resp = stub.Check(health_pb2.HealthCheckRequest(service=""), timeout=timeout_s)
+        except grpc.RpcError as e:
+            raise _wrap("Health.Check", e) from None
+        return health_pb2.HealthCheckResponse.ServingStatus.Name(resp.status)
+
+    # -- projects ------------------------------------------------------------------------
+    def create_project(self, name: str, vossel_size_m: float = 0.02, description: str = "",
+                       keep_versions: int = 0) -> Project:
+        self._check_name(name)
+        if not (vossel_size_m > 0 and np.isfinite(vossel_size_m)):
+            raise ValueError(f"vossel_size_m must be > 0 metres, got {vossel_size_m}")
+        return _project(self._call("CreateProject", pb.CreateProjectRequest(
+            name=name, vossel_size_m=vossel_size_m, description=description,
+            keep_versions=keep_versions)))
+
+    def get_project(self, name: str) -> Project:
+        self._check_name(name)
+        return _project(self._call("GetProject", pb.GetProjectRequest(project=name)))
+
+    def list_projects(self) -> List[Project]:
+        return [_project(p) for p in self._call("ListProjects", pb.ListProjectsRequest()).projects]
+
+    def list_scans(self, project: str) -> List[Scan]:
+        self._check_name(project)
+        resp = self._call("ListScans", pb.ListScansRequest(project=project))
+        scans = []
+        for s in resp.scans:
+            sources = [Source(x.id, x.name, _MODALITY_NAMES.get(x.modality, "unspecified"),
+                              _pose_from_pb(x.pose), x.blob_sha256, x.width_px, x.height_px,
+                              x.divergence_rad, x.point_count) for x in s.sources]
+            scans.append(Scan(s.id, s.name, s.rig, s.captured_utc, _pose_from_pb(s.pose), s.batch,
+                              s.version, s.created_utc, sources))
+        return scans
+
+    # -- ingest --------------------------------------------------------------------------
+    def ingest_progress(self, project: str) -> pb.IngestProgress:
+        self._check_name(project)
+        return self._call("GetIngestProgress", pb.GetIngestProgressRequest(project=project))
+
+    def ingest(self, project: str, manifest: Union[str, Manifest, None] = None, *,
+               scan: Optional[str] = None, points=None, intensity=None, pose=None,
+               divergence_rad: float = 0.0003, panoramas: Sequence[dict] = (),
+               rig: str = "", captured_utc: str = "",
+               progress: Optional[Callable[[dict], None]] = None,
+               poll_s: float = 0.5) -> IngestResult:
+        """Ingests one scan, from a manifest (path or Manifest) or from arrays.
+
+        Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)], `pose`
+        (see Pose.parse), `panoramas` as dicts {name, image (bytes or path), pose, modality
+        "rgb"|"ir", angular_resolution_rad}. `progress(dict)` is called with keys stage,
+        fraction, sent_bytes, total_bytes while uploading and while the server works.
+        """
+        self._check_name(project)
+        if manifest is not None:
+            m = read_manifest(manifest) if isinstance(manifest, (str, os.PathLike)) else manifest
+            cloud = read_ply(m.points_path)
+            scan, points, intensity = m.scan, cloud.xyz_m, cloud.intensity
+            pose, divergence_rad, rig, captured_utc = m.pose, m.divergence_rad, m.rig, m.captured_utc
+            panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
+                          "modality": p.modality,
+                          "angular_resolution_rad": p.angular_resolution_rad}
+                         for p in m.panoramas]
+        if not scan:
+            raise ValueError("scan: give the scan an id (or pass a manifest)")
+        if points is None or pose is None:
+            raise ValueError("points and pose are required (or pass a manifest)")
+        if not (divergence_rad > 0 and np.isfinite(divergence_rad)):
+            raise ValueError(f"divergence_rad must be > 0, got {divergence_rad}")
+        point_bytes = pack_points(points, intensity)
+        header = pb.ScanHeader(project=project, scan=scan, rig=rig, captured_utc=captured_utc,
+                               pose=pose_to_pb(Pose.parse(pose)))
+        header.lidar.divergence_rad = divergence_rad
+        header.lidar.point_format = pb.POINT_FORMAT_XYZI_F32LE
+        header.lidar.point_count = len(point_bytes) // 16
+        images = []
+        for i, p in enumerate(panoramas):
+            if "name" not in p or "image" not in p or "pose" not in p:
+                raise ValueError(f"panoramas[{i}] needs name, image and pose")
+            image = p["image"]
+            if isinstance(image, (str, os.PathLike)):
+                with open(image, "rb") as f:
+                    image = f.read()
+            if not isinstance(image, (bytes, bytearray)) or not image:
+                raise ValueError(f"panoramas[{i}].image must be non-empty bytes or a file path")
+            modality = str(p.get("modality", "rgb")).lower()
+            if modality not in _MODALITY_TO_PB:
+                raise ValueError(f"panoramas[{i}].modality must be 'rgb' or 'ir', got {modality!r}")
+            header.panoramas.add(name=p["name"], modality=_MODALITY_TO_PB[modality],
+                                 pose=pose_to_pb(Pose.parse(p["pose"])),
+                                 angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
+                                 encoded_size_bytes=len(image))
+            images.append(bytes(image))
+        total = len(point_bytes) + sum(len(b) for b in images)
+        return self.ingest_stream(header, point_bytes, images, total_bytes=total,
+                                  progress=progress, poll_s=poll_s)
+
+    def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],
+                      *, total_bytes: int = 0, progress=None, poll_s: float = 0.5) -> IngestResult:
+        """Sends a prepared header and payloads (no client-side validation)."""
+        state = {"sent": 0}
+
+        def on_sent(n):
+            state["sent"] = n
+            if progress:
+                progress({"stage": "upload", "fraction": 0.0, "sent_bytes": n,
+                          "total_bytes": total_bytes})
+
+        requests = ingest_requests(header, point_bytes, images, self.chunk_bytes, on_sent)
+        future = self.stub.IngestScan.future(requests, timeout=self.timeout_s)
+        if progress:
+            last = None
+            while not future.done():
+                time.sleep(poll_s)
+                if future.done() or state["sent"] < total_bytes:
+                    continue
+                try:
+                    p = self.stub.GetIngestProgress(
+                        pb.GetIngestProgressRequest(project=header.project), timeout=5)
+                except grpc.RpcError:
+                    continue
+                if p.state == pb.IngestProgress.STATE_PROCESSING and p.scan == header.scan:
+                    key = (p.stage, round(p.fraction, 2))
+                    if key != last:
+                        last = key
+                        progress({"stage": p.stage, "fraction": p.fraction,
+                                  "sent_bytes": total_bytes, "total_bytes": total_bytes})
+        try:
+            r = future.result()
+        except grpc.RpcError as e:
+            raise _wrap("IngestScan", e) from None
+        return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
+                            r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
+                            {s.stage: s.seconds for s in r.stages})
+
+    # -- render --------------------------------------------------------------------------
+    def render(self, project: str, pose, width_px: int = 2048, height_px: int = 1024, *,
+               version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
+               max_range_m: float = 0.0, decode: bool = True) -> RenderResult:
+        """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
+        `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty."""
+        self._check_name(project)
+        if int(width_px) <= 0 or int(height_px) <= 0:
+            raise ValueError(f"width_px and height_px must be > 0, got {width_px}x{height_px}")
+        unknown = [f for f in formats if f not in _FORMATS]
+        if unknown or not formats:
+            raise ValueError(f"formats must be a non-empty subset of {sorted(_FORMATS)}, got {formats}")
+        if version < 0 or eta < 0 or max_range_m < 0:
+            raise ValueError("version, eta and max_range_m must be >= 0")
+        request = pb.RenderRequest(project=project, pose=pose_to_pb(Pose.parse(pose)),
+                                   width_px=int(width_px), height_px=int(height_px),
+                                   version=version, formats=[_FORMATS[f] for f in formats],
+                                   eta=eta, max_range_m=max_range_m)
+        meta = None
+        parts: Dict[int, bytearray] = {}
+        try:
+            for msg in self.stub.Render(request, timeout=self.timeout_s):
+                if msg.HasField("metadata"):
+                    meta = msg.metadata
+                elif msg.HasField("chunk"):
+                    buf = parts.setdefault(msg.chunk.format, bytearray())
+                    if msg.chunk.offset_bytes != len(buf):
+                        raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                        "render chunks arrived out of order", "Render")
+                    buf.extend(msg.chunk.data)
+        except grpc.RpcError as e:
+            raise _wrap("Render", e) from None
+        if meta is None:
+            raise VaslError(grpc.StatusCode.DATA_LOSS, "the render stream had no metadata", "Render")
+        for fmt, size in zip(meta.formats, meta.size_bytes):
+            if len(parts.get(fmt, b"")) != size:
+                raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                f"render format {fmt}: got {len(parts.get(fmt, b''))} of {size} bytes",
+                                "Render")
+        result = RenderResult(meta.width_px, meta.height_px, meta.version, meta.hit_pixels,
+                              meta.render_seconds)
+        if pb.IMAGE_FORMAT_EXR in parts:
+            result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
+        if pb.IMAGE_FORMAT_PNG in parts:
+            result.png = bytes(parts[pb.IMAGE_FORMAT_PNG])
+        if decode and result.exr is not None:
+            ch = decode_exr(result.exr)
+            result.rgb = np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
+            result.depth_m = ch["Z"]
+            if "N.x" in ch:
+                result.normal = np.stack([ch["N.x"], ch["N.y"], ch["N.z"]], axis=-1)
+            result.uncertainty = ch.get("U")
+        return result
+
+    # -- inspection ----------------------------------------------------------------------
+    def inspect_records(self, project: str, version: int = 0) -> Inspection:
+        self._check_name(project)
+        if version < 0:
+            raise ValueError(f"version must be >= 0 (0: HEAD), got {version}")
+        r = self._call("InspectRecords", pb.InspectRecordsRequest(project=project, version=version))
+        return Inspection(r.project, r.version, r.version_dir,
+                          [RecordAttribute(a.name, a.type, a.codec, a.stride) for a in r.attributes])

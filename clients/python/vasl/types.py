@@ -1,0 +1,152 @@
+"""Plain result and input types of the vasl client (numpy in and out)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Rigid pose T_world_sensor: x_world = R(quaternion) * p_sensor + position (VASL-MODEL §2)."""
+
+    position_m: tuple = (0.0, 0.0, 0.0)  #: sensor origin in the world, metres
+    quaternion_xyzw: tuple = (0.0, 0.0, 0.0, 1.0)  #: rotation sensor -> world, (x, y, z, w)
+
+    @staticmethod
+    def make(position, quaternion=(0.0, 0.0, 0.0, 1.0), *, where: str = "pose",
+             check_finite: bool = True) -> "Pose":
+        """Builds a pose; ValueError for wrong lengths, non-numbers or (if checked) non-finite values."""
+        try:
+            p = tuple(float(v) for v in position)
+            q = tuple(float(v) for v in quaternion)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: position and quaternion must be numbers ({e})") from e
+        if len(p) != 3:
+            raise ValueError(f"{where}: position must have 3 numbers (x, y, z), got {len(p)}")
+        if len(q) != 4:
+            raise ValueError(f"{where}: quaternion must have 4 numbers (x, y, z, w), got {len(q)}")
+        if check_finite:
+            if not all(math.isfinite(v) for v in p + q):
+                raise ValueError(f"{where}: position and quaternion must be finite, got {p} {q}")
+            if math.sqrt(sum(v * v for v in q)) < 1e-9:
+                raise ValueError(f"{where}: the quaternion must not be zero")
+        return Pose(p, q)
+
+    @staticmethod
+    def parse(value, *, check_finite: bool = True) -> "Pose":
+        """Accepts a Pose, a dict {"position": [..], "quaternion": [..]}, a (position,
+        quaternion) pair, 3 numbers (position, identity rotation) or 7 numbers (position then
+        quaternion x, y, z, w), or a string "x,y,z[,qx,qy,qz,qw]"."""
+        if isinstance(value, Pose):
+            return value
+        if isinstance(value, dict):
+            return Pose.make(value.get("position", (0, 0, 0)),
+                             value.get("quaternion", (0, 0, 0, 1)), check_finite=check_finite)
+        if isinstance(value, str):
+            try:
+                value = [float(v) for v in value.split(",")]
+            except ValueError as e:
+                raise ValueError(f"pose '{value}': expected x,y,z[,qx,qy,qz,qw]") from e
+        try:
+            seq = list(value.ravel()) if isinstance(value, np.ndarray) else list(value)
+        except TypeError as e:
+            raise ValueError(f"pose: expected numbers, got {value!r}") from e
+        if len(seq) == 2 and not np.isscalar(seq[0]):
+            return Pose.make(seq[0], seq[1], check_finite=check_finite)
+        if len(seq) == 3:
+            return Pose.make(seq, (0.0, 0.0, 0.0, 1.0), check_finite=check_finite)
+        if len(seq) == 7:
+            return Pose.make(seq[:3], seq[3:], check_finite=check_finite)
+        raise ValueError(f"pose: expected 3 or 7 numbers or (position, quaternion), got {value!r}")
+
+
+@dataclass
+class Project:
+    name: str
+    description: str
+    vossel_size_m: float
+    head_version: int
+    scan_count: int
+    vossel_count: int
+    record_count: int
+    created_utc: str
+
+
+@dataclass
+class Source:
+    id: int
+    name: str
+    modality: str
+    pose: Pose
+    blob_sha256: str
+    width_px: int
+    height_px: int
+    divergence_rad: float
+    point_count: int
+
+
+@dataclass
+class Scan:
+    id: int
+    name: str
+    rig: str
+    captured_utc: str
+    pose: Pose
+    batch: int
+    version: int
+    created_utc: str
+    sources: List[Source] = field(default_factory=list)
+
+
+@dataclass
+class IngestResult:
+    scan_id: int
+    scan: str
+    version: int
+    vossel_count: int
+    record_count: int
+    new_vossels: int
+    point_count: int
+    ingest_seconds: float
+    total_seconds: float
+    stages: Dict[str, float] = field(default_factory=dict)  #: stage -> seconds, in order
+
+
+@dataclass
+class RenderResult:
+    """A rendered equirectangular panorama (VASL-MODEL §8); arrays are row-major, row 0 up."""
+
+    width_px: int
+    height_px: int
+    version: int
+    hit_pixels: int
+    render_seconds: float
+    rgb: Optional[np.ndarray] = None  #: (H, W, 3) float32 linear; 0 where no hit
+    depth_m: Optional[np.ndarray] = None  #: (H, W) float32 metres along the ray; +inf no hit
+    normal: Optional[np.ndarray] = None  #: (H, W, 3) float32 world frame
+    uncertainty: Optional[np.ndarray] = None  #: (H, W) float32
+    exr: Optional[bytes] = None  #: the encoded EXR, if requested
+    png: Optional[bytes] = None  #: the encoded PNG preview, if requested
+
+    @property
+    def hit_mask(self) -> np.ndarray:
+        return np.isfinite(self.depth_m)
+
+
+@dataclass
+class RecordAttribute:
+    name: str
+    type: str
+    codec: str
+    stride: int
+
+
+@dataclass
+class Inspection:
+    project: str
+    version: int
+    version_dir: str
+    attributes: List[RecordAttribute] = field(default_factory=list)

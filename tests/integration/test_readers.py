@@ -1,0 +1,98 @@
+"""The client's readers: PLY in its three encodings gives the same points; manifests resolve
+paths relative to themselves and reject malformed fields with ValueError."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from vasl import Pose, read_manifest, read_ply
+
+
+def _write_ply(path, xyz, intensity, fmt, coord_type="float"):
+    n = len(xyz)
+    header = (f"ply\nformat {fmt} 1.0\ncomment test\nelement vertex {n}\n"
+              f"property {coord_type} x\nproperty {coord_type} y\nproperty {coord_type} z\n"
+              "property uchar red\nproperty float intensity\n"
+              "element face 0\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode())
+        if fmt == "ascii":
+            for p, i in zip(xyz, intensity):
+                f.write(f"{float(p[0])!r} {float(p[1])!r} {float(p[2])!r} 7 {float(i)!r}\n".encode())
+        else:
+            e = "<" if fmt == "binary_little_endian" else ">"
+            c = "f4" if coord_type == "float" else "f8"
+            dt = np.dtype([("x", e + c), ("y", e + c), ("z", e + c), ("red", "u1"),
+                           ("intensity", e + "f4")])
+            rec = np.zeros(n, dtype=dt)
+            rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            rec["red"], rec["intensity"] = 7, intensity
+            f.write(rec.tobytes())
+
+
+@pytest.mark.parametrize("fmt,coord", [("ascii", "float"), ("binary_little_endian", "float"),
+                                       ("binary_big_endian", "double"),
+                                       ("binary_little_endian", "double")])
+def test_ply_encodings_agree(tmp_path, fmt, coord):
+    rng = np.random.default_rng(11)
+    xyz = rng.uniform(-5, 5, size=(257, 3)).astype(np.float32)
+    inten = rng.uniform(0, 1, size=257).astype(np.float32)
+    path = tmp_path / "p.ply"
+    _write_ply(path, xyz, inten, fmt, coord)
+    cloud = read_ply(str(path))
+    err = float(np.max(np.abs(cloud.xyz_m - xyz)))
+    print(f"\n{fmt}/{coord}: {len(cloud)} points, max |dx| {err:.3g} m")
+    assert cloud.xyz_m.shape == (257, 3) and cloud.xyz_m.dtype == np.float32
+    assert err <= 1e-6
+    assert np.allclose(cloud.intensity, inten, atol=1e-6)
+
+
+def test_ply_without_intensity_and_bad_files(tmp_path):
+    p = tmp_path / "a.ply"
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                 "property float z\nend_header\n0 0 0\n1 2 3\n")
+    cloud = read_ply(str(p))
+    assert cloud.intensity is None and cloud.xyz_m.tolist() == [[0, 0, 0], [1, 2, 3]]
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n")
+    with pytest.raises(ValueError, match="'y'"):
+        read_ply(str(p))
+    p.write_bytes(b"not a ply")
+    with pytest.raises(ValueError):
+        read_ply(str(p))
+    p.write_text("ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n"
+                 "property float y\nproperty float z\nend_header\n")
+    with pytest.raises(ValueError, match="truncated"):
+        read_ply(str(p))
+
+
+def test_manifest_paths_and_validation(tmp_path):
+    doc = {"scan": "s1", "rig": "r", "captured_utc": "2026-01-01T00:00:00Z",
+           "pose": {"position": [1, 2, 3], "quaternion": [0, 0, 0, 2]},
+           "lidar": {"points": "s1.ply", "divergence_rad": 0.0005},
+           "panoramas": [{"name": "cam0", "image": "img/s1.png", "modality": "rgb",
+                          "pose": {"position": [1, 2, 3.1], "quaternion": [0, 0, 0, 1]}}]}
+    path = tmp_path / "s1.json"
+    path.write_text(json.dumps(doc))
+    m = read_manifest(str(path))
+    assert m.points_path == str(tmp_path / "s1.ply")
+    assert m.panoramas[0].image_path == str(tmp_path / "img" / "s1.png")
+    assert m.pose.position_m == (1.0, 2.0, 3.0) and m.divergence_rad == 0.0005
+    for bad, match in [({"pose": {"position": [1, 2]}}, "3 numbers"),
+                       ({"pose": {"position": [0, 0, float("nan")]}}, "finite"),
+                       ({"lidar": {"divergence_rad": 0.1}}, "lidar.points"),
+                       ({"scan": ""}, "scan")]:
+        path.write_text(json.dumps({**doc, **bad}))
+        with pytest.raises(ValueError, match=match):
+            read_manifest(str(path))
+
+
+def test_pose_parse_forms():
+    assert Pose.parse("1,2,3").quaternion_xyzw == (0.0, 0.0, 0.0, 1.0)
+    assert Pose.parse([1, 2, 3, 0, 0, 1, 0]).quaternion_xyzw == (0.0, 0.0, 1.0, 0.0)
+    assert Pose.parse(([1, 2, 3], [0, 0, 0, 1])).position_m == (1.0, 2.0, 3.0)
+    assert Pose.parse(np.array([1.0, 2, 3])).position_m == (1.0, 2.0, 3.0)
+    for bad in ["1,2", [1, 2, 3, 4], "a,b,c", [0, 0, 0, 0, 0, 0, 0]]:
+        with pytest.raises(ValueError):
+            Pose.parse(bad)
