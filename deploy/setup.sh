@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Installs everything vasl needs on a Debian 12 machine: build tools, the C++ libraries from
 # Debian's packages, and the Python client's virtual environment (.venv) from PyPI.
-# Idempotent: a second run installs nothing new. Must run as root (or with sudo available).
+# Then generates the client's gRPC stubs and installs the client (editable) with its `vasl` CLI.
+# Idempotent: a second run installs nothing new. Must run as root (or with sudo available);
+# works on a fresh Debian 12 minbase (no python3, git, sudo or compilers needed beforehand).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -32,13 +34,26 @@ else
   echo "setup: Debian packages already installed"
 fi
 
-# Python client in a virtual environment; the interpreter is whichever python3 is on PATH.
+# Python client in a virtual environment (Debian's python3; pyenv or other shims are ignored
+# when /usr/bin/python3 exists, since python3-venv belongs to it).
+PY=/usr/bin/python3
+[ -x "$PY" ] || PY="$(command -v python3)"
 if [ ! -x .venv/bin/python ]; then
-  python3 -m venv .venv
+  echo "setup: creating .venv with $PY"
+  "$PY" -m venv .venv
 fi
-if ! .venv/bin/python -c "import grpc, grpc_tools, numpy, pytest, pye57, vasl" 2>/dev/null; then
+if ! .venv/bin/python -c "import grpc, grpc_tools, grpc_health.v1, grpc_reflection, numpy, pytest, pye57, OpenEXR" 2>/dev/null; then
+  echo "setup: installing Python packages into .venv (clients/python/requirements.txt)"
   .venv/bin/pip install -q --upgrade pip
   .venv/bin/pip install -q -r clients/python/requirements.txt
+fi
+# gRPC stubs (private, git-ignored): regenerate when missing or older than the .proto.
+stub=clients/python/vasl/_proto/vasl_pb2_grpc.py
+if [ ! -f "$stub" ] || [ proto/vasl/v1/vasl.proto -nt "$stub" ]; then
+  clients/python/gen_proto.sh .venv/bin/python
+fi
+if ! .venv/bin/python -c "import vasl, vasl.cli" 2>/dev/null || [ ! -x .venv/bin/vasl ]; then
+  echo "setup: installing the vasl client (editable) into .venv"
   .venv/bin/pip install -q -e clients/python
 fi
 echo "setup: done"
