@@ -470,9 +470,31 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   }
   auto snap = impl_->Snapshot(**p, request.version);
   if (!snap.ok()) return snap.status();
-  auto image = render::RenderEquirect((*snap)->geometry, (*snap)->fused, request);
+  const store::Snapshot& snapshot = **snap;
+  render::ViewBlendInputs blend;
+  absl::StatusOr<fusion::RecordWeightsResult> weights;
+  if (request.eta > 0.0) {  // §8 view term: the records, their §7 weights, the source origins
+    weights = fusion::RecordWeights(snapshot.records, snapshot.geometry.size(),
+                                    snapshot.geometry.vossel_size_m, fusion::WeightingProfile{});
+    if (!weights.ok()) return weights.status();
+    auto scans = (*p)->store->ListScans();
+    if (!scans.ok()) return scans.status();
+    for (const store::ScanInfo& scan : *scans) {
+      for (const store::SourceInfo& src : scan.sources) {
+        if (src.id < 0) continue;
+        if (size_t(src.id) >= blend.source_origin_m.size()) {
+          blend.source_origin_m.resize(size_t(src.id) + 1, Eigen::Vector3d::Constant(NAN));
+        }
+        blend.source_origin_m[size_t(src.id)] = src.pose.o_world;
+      }
+    }
+    blend.records = &snapshot.records;
+    blend.weight = &weights->weight;
+    blend.begin = &weights->begin;
+  }
+  auto image = render::RenderEquirect(snapshot.geometry, snapshot.fused, request, &blend);
   if (!image.ok()) return image.status();
-  image->version = (*snap)->version;
+  image->version = snapshot.version;
   return image;
 }
 

@@ -32,20 +32,69 @@ absl::Status ValidateProfile(const WeightingProfile& p) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t vossel_count,
-                                          double vossel_size_m, const WeightingProfile& profile) {
-  if (absl::Status s = ValidateProfile(profile); !s.ok()) return s;
-  const size_t n = recs.size();
-  // Offsets of each vossel's records (records are sorted by vossel).
+absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& recs,
+                                                  size_t vossel_count) {
   std::vector<size_t> begin(vossel_count + 1, 0);
-  for (size_t i = 0; i < n; ++i) {
+  for (size_t i = 0; i < recs.size(); ++i) {
     const int32_t k = recs.vossel[i];
     if (k < 0 || size_t(k) >= vossel_count || (i > 0 && recs.vossel[i - 1] > k)) {
-      return absl::InternalError("Fuse: records are not sorted by a valid vossel index");
+      return absl::InternalError("records are not sorted by a valid vossel index");
     }
     ++begin[size_t(k) + 1];
   }
   for (size_t k = 0; k < vossel_count; ++k) begin[k + 1] += begin[k];
+  return begin;
+}
+
+absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs, size_t vossel_count,
+                                                  double vossel_size_m, const WeightingProfile& profile) {
+  if (absl::Status s = ValidateProfile(profile); !s.ok()) return s;
+  auto begin = VosselOffsets(recs, vossel_count);
+  if (!begin.ok()) return begin.status();
+  RecordWeightsResult out;
+  out.begin = std::move(*begin);
+  out.weight.assign(recs.size(), 0.0f);
+  const double target_m = geometry::TargetResolutionM(vossel_size_m);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
+                    [&](const tbb::blocked_range<size_t>& range) {
+    for (size_t k = range.begin(); k != range.end(); ++k) {
+      const size_t b = out.begin[k], e = out.begin[k + 1];
+      double range_min[records::kModalityCount];
+      std::fill(std::begin(range_min), std::end(range_min), HUGE_VAL);
+      if (profile.proximity_m > 0.0) {
+        for (size_t i = b; i < e; ++i) {
+          const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+          range_min[c] = std::min(range_min[c], double(recs.range_m[i]));
+        }
+      }
+      for (size_t i = b; i < e; ++i) {
+        if (recs.flags[i] & records::kFlagInvalidated) continue;
+        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+        const auto g = profile.scan_gain.find(recs.scan[i]);
+        WeightInputs in;
+        in.vis = recs.vis[i];
+        in.cos_inc = recs.cos_inc[i];
+        in.foot_major_m = recs.foot_major_m[i];
+        in.foot_minor_m = recs.foot_minor_m[i];
+        in.conf = &recs.conf[i * records::kConfidenceCount];
+        in.scan = recs.scan[i];
+        in.derived = (recs.flags[i] & records::kFlagDerived) != 0;
+        in.range_m = recs.range_m[i];
+        in.range_min_m = float(range_min[c]);
+        out.weight[i] = float(RecordWeight(profile, in, target_m,
+                                           g == profile.scan_gain.end() ? 1.0 : g->second));
+      }
+    }
+  });
+  return out;
+}
+
+absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t vossel_count,
+                                          double vossel_size_m, const WeightingProfile& profile) {
+  auto weights = RecordWeights(recs, vossel_count, vossel_size_m, profile);
+  if (!weights.ok()) return weights.status();
+  const std::vector<size_t>& begin = weights->begin;
+  const std::vector<float>& weight = weights->weight;
 
   bool present[records::kModalityCount] = {};
   for (int8_t m : recs.modality) present[int(FusedChannelOf(Modality(m)))] = true;
@@ -61,43 +110,21 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
     f.uncertainty.assign(vossel_count, 0.0f);
     channel[m] = &f;
   }
-  const double target_m = geometry::TargetResolutionM(vossel_size_m);
 
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
                     [&](const tbb::blocked_range<size_t>& range) {
     for (size_t k = range.begin(); k != range.end(); ++k) {
       const size_t b = begin[k], e = begin[k + 1];
       if (b == e) continue;
-      double range_min[records::kModalityCount];
-      std::fill(std::begin(range_min), std::end(range_min), HUGE_VAL);
-      if (profile.proximity_m > 0.0) {
-        for (size_t i = b; i < e; ++i) {
-          const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-          range_min[c] = std::min(range_min[c], double(recs.range_m[i]));
-        }
-      }
       double sum_w[records::kModalityCount] = {};
       double sum_wc[records::kModalityCount][records::kValueChannels] = {};
       double sum_wcc[records::kModalityCount][records::kValueChannels] = {};
       double best_w[records::kModalityCount] = {};
       size_t best_i[records::kModalityCount] = {};
       for (size_t i = b; i < e; ++i) {
-        if (recs.flags[i] & records::kFlagInvalidated) continue;
-        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-        const auto g = profile.scan_gain.find(recs.scan[i]);
-        WeightInputs in;
-        in.vis = recs.vis[i];
-        in.cos_inc = recs.cos_inc[i];
-        in.foot_major_m = recs.foot_major_m[i];
-        in.foot_minor_m = recs.foot_minor_m[i];
-        in.conf = &recs.conf[i * records::kConfidenceCount];
-        in.scan = recs.scan[i];
-        in.derived = (recs.flags[i] & records::kFlagDerived) != 0;
-        in.range_m = recs.range_m[i];
-        in.range_min_m = float(range_min[c]);
-        const double w = RecordWeight(profile, in, target_m,
-                                      g == profile.scan_gain.end() ? 1.0 : g->second);
+        const double w = weight[i];
         if (!(w > 0.0)) continue;
+        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
         const float* v = &recs.value[i * records::kValueChannels];
         sum_w[c] += w;
         for (int ch = 0; ch < records::kValueChannels; ++ch) {

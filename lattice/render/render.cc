@@ -134,9 +134,38 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
   }
 }
 
+/// §8 with η > 0 for the hit vossel k: C = Σ w·max(0, v_{k,m}·v_{k,o})^η·C_{k,m} / Σ w·(same)
+/// over k's rgb and derived records. Writes `rgb` and returns true, or returns false when no
+/// weighted record faces the view (the caller falls back to C_k).
+bool ViewBlend(const ViewBlendInputs& blend, const records::VosselGeometry& geometry, size_t k,
+               const RenderRequest& request, float* rgb) {
+  const records::RecordSet& recs = *blend.records;
+  const Eigen::Vector3d x = geometry.centroid_m[k].cast<double>();
+  const Eigen::Vector3d v_o = (request.pose.o_world - x).normalized();
+  double sum_w = 0.0, sum_c[3] = {0.0, 0.0, 0.0};
+  for (size_t i = (*blend.begin)[k]; i < (*blend.begin)[k + 1]; ++i) {
+    const auto m = records::Modality(recs.modality[i]);
+    const double w = (*blend.weight)[i];
+    const int32_t src = recs.scan[i];
+    if ((m != records::Modality::kRgb && m != records::Modality::kDerived) || !(w > 0.0) ||
+        src < 0 || size_t(src) >= blend.source_origin_m.size()) {
+      continue;
+    }
+    const Eigen::Vector3d& o_m = blend.source_origin_m[size_t(src)];
+    if (!o_m.allFinite()) continue;
+    const double facing = std::max(0.0, (o_m - x).normalized().dot(v_o));
+    const double wv = w * std::pow(facing, request.eta);
+    sum_w += wv;
+    for (int c = 0; c < 3; ++c) sum_c[c] += wv * recs.value[i * records::kValueChannels + c];
+  }
+  if (!(sum_w > 0.0)) return false;
+  for (int c = 0; c < 3; ++c) rgb[c] = float(sum_c[c] / sum_w);
+  return true;
+}
+
 absl::Status ValidateInputs(const records::VosselGeometry& geometry,
                             const records::FusedValues& fused, const RenderRequest& request,
-                            double cell_margin_vox) {
+                            double cell_margin_vox, const ViewBlendInputs* blend) {
   if (request.width_px <= 0 || request.height_px <= 0) {
     return absl::InvalidArgumentError(absl::StrCat("render size must be positive, got ",
                                                    request.width_px, "x", request.height_px));
@@ -151,7 +180,16 @@ absl::Status ValidateInputs(const records::VosselGeometry& geometry,
         absl::StrCat("eta must be a finite number >= 0, got ", request.eta));
   }
   if (request.eta > 0.0) {
-    return absl::InvalidArgumentError("eta > 0 needs per-record blending, not supported yet");
+    if (blend == nullptr || blend->records == nullptr || blend->weight == nullptr ||
+        blend->begin == nullptr) {
+      return absl::InvalidArgumentError("eta > 0 needs the records and their weights (§8)");
+    }
+    if (blend->weight->size() != blend->records->size() ||
+        blend->begin->size() != geometry.size() + 1 ||
+        (blend->begin->empty() ? 0 : blend->begin->back()) != blend->records->size()) {
+      return absl::InvalidArgumentError(
+          "view blend inputs disagree with the records or the geometry");
+    }
   }
   if (!(request.max_range_m > 0.0)) {
     return absl::InvalidArgumentError(
@@ -207,8 +245,9 @@ namespace internal {
 absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeometry& geometry,
                                                      const records::FusedValues& fused,
                                                      const RenderRequest& request,
-                                                     double cell_margin_vox) {
-  if (absl::Status s = ValidateInputs(geometry, fused, request, cell_margin_vox); !s.ok()) {
+                                                     double cell_margin_vox,
+                                                     const ViewBlendInputs* blend) {
+  if (absl::Status s = ValidateInputs(geometry, fused, request, cell_margin_vox, blend); !s.ok()) {
     return s;
   }
   const int width = request.width_px;
@@ -270,6 +309,9 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         }
         const size_t k = static_cast<size_t>(hit.vossel);
         image.uncertainty[p] = scene.rgb->uncertainty[k];
+        if (request.eta > 0.0 && ViewBlend(*blend, geometry, k, request, &image.rgb[3 * p])) {
+          continue;  // §8 with the view term
+        }
         if (scene.rgb->weight[k] > 0.0f) {  // §8 with η = 0: C = C_k
           for (int c = 0; c < 3; ++c) image.rgb[3 * p + c] = scene.rgb->value[3 * k + c];
         }
@@ -290,9 +332,10 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
 
 absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
                                            const records::FusedValues& fused,
-                                           const RenderRequest& request) {
+                                           const RenderRequest& request,
+                                           const ViewBlendInputs* blend) {
   return internal::RenderEquirectWithMargin(geometry, fused, request,
-                                            internal::kDefaultCellMarginVox);
+                                            internal::kDefaultCellMarginVox, blend);
 }
 
 }  // namespace vasl::render

@@ -34,6 +34,16 @@ struct RenderImage {
   int64_t hit_pixels = 0;          ///< pixels whose ray met a vossel within max_range_m
 };
 
+/// What the §8 view term (η > 0) reads besides the fused values: every vossel's records with
+/// their §7 weights (fusion::RecordWeights), and where each source stood.
+struct ViewBlendInputs {
+  const records::RecordSet* records = nullptr;  ///< sorted by vossel
+  const std::vector<float>* weight = nullptr;   ///< w_{k,m} per record
+  const std::vector<size_t>* begin = nullptr;   ///< vossel k's records: [begin[k], begin[k+1])
+  /// o_m, world metres, indexed by source id (record `scan`); non-finite for unknown ids.
+  std::vector<Eigen::Vector3d> source_origin_m;
+};
+
 /// Renders `request` from a version's geometry and fused values (§8). Parallel over rows (TBB).
 /// @details Each pixel's ray (§2.1 inverse at the pixel centre, rotated by the pose) is marched
 ///          by hierarchical DDA over `geometry.index_grid` (empty space skipped per node); the
@@ -41,17 +51,21 @@ struct RenderImage {
 ///          vossel's cell, expanded by internal::kDefaultCellMarginVox (0.25 h) to close cracks
 ///          between neighbouring planes, is the hit: Z = range to that plane, N = n_k turned
 ///          toward the camera, C = fused rgb C_k (0 if its rgb weight is 0; such vossels still
-///          occlude), U = rgb U_k (+inf for hits when `fused` has no rgb modality). A vossel
+///          occlude) when η = 0; when η > 0, C = Σ w·max(0, v_{k,m}·v_{k,o})^η·C_{k,m} / Σ (same
+///          weights) over the vossel's rgb and derived records (v the unit vectors from x_k to
+///          the source and to the render origin), falling back to C_k when no record faces the
+///          view (choice); U = rgb U_k (+inf for hits when `fused` has no rgb modality). A vossel
 ///          with a zero normal is hit where the ray enters its cell, with N = 0.
 ///          `image.version` is copied from the request (the engine sets the resolved version).
-/// @return INVALID_ARGUMENT for a non-positive or over-large (> 2^28 pixels) size, η < 0 or
-///         η > 0 (view-dependent per-record blending is not supported yet), max_range_m ≤ 0, a
+/// @return INVALID_ARGUMENT for a non-positive or over-large (> 2^28 pixels) size, η < 0,
+///         η > 0 without `blend` or with inconsistent blend inputs, max_range_m ≤ 0, a
 ///         non-unit pose quaternion, a null index grid or one whose transform is not linear and
 ///         uniform, geometry/fused arrays whose sizes disagree, or an index grid holding a vossel
 ///         index outside [0, geometry.size()).
 /// @warning Thread-safe: reads its inputs only (each TBB task uses its own ValueAccessor).
 absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
                                            const records::FusedValues& fused,
-                                           const RenderRequest& request);
+                                           const RenderRequest& request,
+                                           const ViewBlendInputs* blend = nullptr);
 
 }  // namespace vasl::render

@@ -27,6 +27,7 @@ inline constexpr double kDefaultCellMarginVox = 0.25;
 absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeometry& geometry,
                                                      const records::FusedValues& fused,
                                                      const RenderRequest& request,
-                                                     double cell_margin_vox);
+                                                     double cell_margin_vox,
+                                                     const ViewBlendInputs* blend = nullptr);
 
 }  // namespace vasl::render::internal
