@@ -1,5 +1,7 @@
 #include "lattice/engine.h"
 
+#include <algorithm>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstring>
