@@ -201,6 +201,14 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
   return Concatenate(parts);
 }
 
+// Pixels around a camera sample within which an occluder may colour it (choice; see
+// DilateDepthPanorama): one for the bilinear read and each pixel's own integration footprint,
+// one more because the lattice rounds an occluder's silhouette to its vossels (the PCA plane
+// of a box corner's vossel cuts the corner off by up to h/2). EngineTest.
+// FusedColourMatchesAlbedoAlongShadowEdges measures it: the worst wall vossel's colour error is
+// 0.21 with no dilation and 0.004 with this one.
+constexpr int kCameraSampleRadiusPx = 2;
+
 RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
                        const std::function<void(size_t, size_t)>& on_source) {
   const double tau = DepthToleranceM(g.vossel_size_m);
@@ -221,7 +229,8 @@ RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& source
     const double dilation = cam.angular_resolution_rad > 0.0
                                 ? cam.angular_resolution_rad
                                 : geometry::EquirectPixelAngleRad(0.0, image_size);
-    const DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
+    DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
+    DilateDepthPanorama(depth, kCameraSampleRadiusPx);
     parts.push_back(SampleCamera(g, cam, ComputeVisibility(g, depth, tau)));
     if (on_source) on_source(++done, total);
   }

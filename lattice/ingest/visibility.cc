@@ -129,6 +129,28 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   return out;
 }
 
+void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
+  if (radius_px <= 0) return;
+  const int W = depth.size.width_px, H = depth.size.height_px;
+  // Separable min filter: rows (wrapping), then columns (clamped).
+  std::vector<float> tmp(depth.depth_m.size());
+  tbb::parallel_for(0, H, [&](int j) {
+    const float* row = &depth.depth_m[size_t(j) * W];
+    for (int i = 0; i < W; ++i) {
+      float m = row[i];
+      for (int d = -radius_px; d <= radius_px; ++d) m = std::min(m, row[geometry::WrapColumn(i + d, W)]);
+      tmp[size_t(j) * W + i] = m;
+    }
+  });
+  tbb::parallel_for(0, H, [&](int j) {
+    for (int i = 0; i < W; ++i) {
+      float m = tmp[size_t(j) * W + i];
+      for (int d = -radius_px; d <= radius_px; ++d) m = std::min(m, tmp[size_t(std::clamp(j + d, 0, H - 1)) * W + i]);
+      depth.depth_m[size_t(j) * W + i] = m;
+    }
+  });
+}
+
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
                                      double tau_m) {
   constexpr int kGrid = 5;  // 5×5 PCF samples over the vossel's patch

@@ -40,6 +40,13 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
                                   const geometry::Pose& T_world_sensor,
                                   const geometry::EquirectSize& size, double divergence_rad);
 
+/// Min-filters a depth panorama over a (2·radius_px+1)² window, columns wrapping at the seam:
+/// every occluder grows by `radius_px` pixels. Used for cameras, whose samples read a
+/// neighbourhood of pixels (bilinear read, pixel integration): a vossel is lit only where that
+/// whole neighbourhood sees it (choice, the "dilation-aware" mask of §5 applied to the
+/// sampling kernel).
+void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
+
 /// §5: V_{k,m} for every vossel: the share of a 5×5 grid of points over the vossel's surface
 /// patch (side h, in the plane (x_k, n_k)) whose pixel in `depth` satisfies
 /// D(p) ≥ r_p − τ_k (percentage-closer filtering over the vossel's projected footprint), with
