@@ -399,14 +399,19 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
         cam.modality = src.modality;
         cam.angular_resolution_rad = src.divergence_rad;
         if (s == &info) {
-          cam.image = (*images)[new_panorama++];
-        } else {
-          auto bytes = st.ReadBlob(src.blob_sha256);
-          if (!bytes.ok()) return bytes.status();
-          auto image = ingest::DecodeImage(*bytes, src.modality == records::Modality::kIr,
-                                           impl_->limits.max_image_pixels);
-          if (!image.ok()) return absl::DataLossError(absl::StrCat("stored image ", src.blob_sha256, ": ", image.status().message()));
-          cam.image = std::move(*image);
+          cam.image = std::move((*images)[new_panorama++]);
+        } else {  // decoded when BuildRecords reaches it, one panorama in memory at a time
+          const int64_t max_pixels = impl_->limits.max_image_pixels;
+          cam.load = [&st, src, max_pixels]() -> absl::StatusOr<ingest::LinearImage> {
+            auto bytes = st.ReadBlob(src.blob_sha256);
+            if (!bytes.ok()) return bytes.status();
+            auto image = ingest::DecodeImage(*bytes, src.modality == records::Modality::kIr, max_pixels);
+            if (!image.ok()) {
+              return absl::DataLossError(absl::StrCat("stored image ", src.blob_sha256, ": ",
+                                                      image.status().message()));
+            }
+            return image;
+          };
         }
         sources.cameras.push_back(std::move(cam));
       }
@@ -420,9 +425,11 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
   stage_done("voxelise", 0.35);
 
   auto snapshot = std::make_shared<store::Snapshot>();
-  snapshot->records = ingest::BuildRecords(*geometry, sources, [&](size_t done, size_t total) {
+  auto recs = ingest::BuildRecords(*geometry, sources, [&](size_t done, size_t total) {
     if (progress) progress({"visibility and records", 0.35 + 0.5 * double(done) / double(total)});
   });  // §3-§6
+  if (!recs.ok()) return recs.status();
+  snapshot->records = std::move(*recs);
   stage_done("visibility and records", 0.85);
 
   auto fused = fusion::Fuse(snapshot->records, geometry->size(), h, fusion::WeightingProfile{});  // §7

@@ -209,8 +209,8 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
 // 0.21 with no dilation and 0.004 with this one.
 constexpr int kCameraSampleRadiusPx = 2;
 
-RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
-                       const std::function<void(size_t, size_t)>& on_source) {
+absl::StatusOr<RecordSet> BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
+                                       const std::function<void(size_t, size_t)>& on_source) {
   const double tau = DepthToleranceM(g.vossel_size_m);
   const size_t total = sources.lidars.size() + sources.cameras.size();
   size_t done = 0;
@@ -222,7 +222,18 @@ RecordSet BuildRecords(const records::VosselGeometry& g, const SourceSet& source
     parts.push_back(SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau)));
     if (on_source) on_source(++done, total);
   }
-  for (const CameraSource& cam : sources.cameras) {
+  for (const CameraSource& stored : sources.cameras) {
+    CameraSource loaded;  // holds a decoded image only while this camera is sampled
+    if (stored.image.pixels.empty() && stored.load) {
+      absl::StatusOr<LinearImage> image = stored.load();
+      if (!image.ok()) return image.status();
+      loaded = stored;
+      loaded.image = std::move(*image);
+    }
+    const CameraSource& cam = loaded.image.pixels.empty() ? stored : loaded;
+    if (cam.image.pixels.empty()) {
+      return absl::InternalError("BuildRecords: a camera source has neither an image nor a loader");
+    }
     const geometry::EquirectSize image_size{cam.image.width_px, cam.image.height_px};
     const double pitch = cam.angular_resolution_rad > 0.0 ? cam.angular_resolution_rad
                                                           : geometry::ElevationPitchRad(image_size);

@@ -27,8 +27,11 @@ records::RecordSet SampleLidar(const records::VosselGeometry& geometry, const Li
                                const DepthPanorama& depth, const std::vector<float>& vis);
 
 /// Every stage for every source: depth panorama → visibility → records, merged and sorted by
-/// vossel. `on_source(done, total)` reports progress after each source (may be empty).
-records::RecordSet BuildRecords(const records::VosselGeometry& geometry, const SourceSet& sources,
-                                const std::function<void(size_t, size_t)>& on_source);
+/// vossel. Cameras with an empty image are decoded through their `load` one at a time.
+/// `on_source(done, total)` reports progress after each source (may be empty). Fails only when
+/// a camera's image cannot be loaded.
+absl::StatusOr<records::RecordSet> BuildRecords(const records::VosselGeometry& geometry,
+                                                const SourceSet& sources,
+                                                const std::function<void(size_t, size_t)>& on_source);
 
 }  // namespace vasl::ingest

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string_view>
 #include <vector>
 
@@ -47,7 +48,10 @@ struct CameraSource {
   int32_t batch = 0;
   geometry::Pose pose;                ///< T_world_camera
   records::Modality modality = records::Modality::kRgb;
-  LinearImage image;
+  LinearImage image;                  ///< the decoded image, or empty with `load` set
+  /// Decodes the image on demand when `image` is empty, so that a project's panoramas are
+  /// held in memory one at a time (a decoded 8192×4096 panorama takes 400 MB).
+  std::function<absl::StatusOr<LinearImage>()> load;
   double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
 };
 
