@@ -12,7 +12,7 @@ import sys
 from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
-from .readers import read_manifest
+from .readers import read_e57, read_manifest
 from .types import Pose
 
 
@@ -81,17 +81,28 @@ class _ProgressLine:
 
 
 def _cmd_ingest(client: Client, args) -> int:
-    manifests = [read_manifest(m) for m in args.manifest]  # validate all before sending any
+    # Read and validate every input before sending any: manifests, and E57 files (each of
+    # whose scans is ingested as a LiDAR scan).
+    jobs = []
+    for path in args.manifest:
+        if path.lower().endswith(".e57"):
+            for scan in read_e57(path):
+                jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest_e57_scan(
+                    args.project, s, divergence_rad=args.divergence_rad,
+                    rig=f"e57:{os.path.basename(p)}", progress=bar)))
+        else:
+            m = read_manifest(path)
+            jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar)))
     existing = set()
     if args.skip_existing:
         existing = {s.name for s in client.list_scans(args.project)}
-    for m in manifests:
-        if m.scan in existing:
-            print(f"{m.scan}: already in project {args.project}, skipped")
+    for scan, run in jobs:
+        if scan in existing:
+            print(f"{scan}: already in project {args.project}, skipped")
             continue
-        bar = _ProgressLine(m.scan) if not args.quiet else None
+        bar = _ProgressLine(scan) if not args.quiet else None
         try:
-            r = client.ingest(args.project, m, progress=bar)
+            r = run(bar)
         finally:
             if bar:
                 bar.done()
@@ -174,8 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     get = psub.add_parser("get", help="show a project")
     get.add_argument("name")
 
-    ingest = sub.add_parser("ingest", help="ingest scans described by manifest files")
-    ingest.add_argument("manifest", nargs="+", help="scan manifest JSON file(s)")
+    ingest = sub.add_parser("ingest", help="ingest scans: manifest files or E57 files")
+    ingest.add_argument("manifest", nargs="+", metavar="MANIFEST.json|SCAN.e57",
+                        help="scan manifest JSON file(s) and/or E57 files (every scan of an E57 "
+                             "file is ingested as a LiDAR scan named after the file)")
+    ingest.add_argument("--divergence-rad", type=float, default=0.0003,
+                        help="LiDAR beam divergence for E57 scans (E57 does not record it)")
     ingest.add_argument("--project", required=True)
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")

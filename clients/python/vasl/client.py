@@ -16,7 +16,7 @@ import numpy as np
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
-from .readers import Manifest, read_manifest, read_ply
+from .readers import E57Scan, Manifest, read_e57, read_manifest, read_ply
 from .types import (Inspection, IngestResult, Pose, Project, RecordAttribute, RenderResult,
                     Scan, Source)
 
@@ -269,6 +269,14 @@ class Client:
         total = len(point_bytes) + sum(len(b) for b in images)
         return self.ingest_stream(header, point_bytes, images, total_bytes=total,
                                   progress=progress, poll_s=poll_s)
+
+    def ingest_e57_scan(self, project: str, scan: E57Scan, *, divergence_rad: float = 0.0003,
+                        rig: str = "", progress: Optional[Callable[[dict], None]] = None
+                        ) -> IngestResult:
+        """Ingests one scan read by `read_e57` (LiDAR only: its points, intensity and pose)."""
+        return self.ingest(project, scan=scan.scan, points=scan.cloud.xyz_m,
+                           intensity=scan.cloud.intensity, pose=scan.pose,
+                           divergence_rad=divergence_rad, rig=rig, progress=progress)
 
     def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],
                       *, total_bytes: int = 0, progress=None, poll_s: float = 0.5) -> IngestResult:

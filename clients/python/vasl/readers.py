@@ -200,3 +200,75 @@ def read_manifest(path: str) -> Manifest:
         divergence_rad=divergence,
         panoramas=panoramas,
     )
+
+
+@dataclass
+class E57Scan:
+    """One scan (data3D) of an E57 file: points in its own frame and its pose."""
+
+    scan: str  #: scan id: the file stem, with "-<n>" when the file holds several scans
+    pose: Pose  #: the data3D pose (sensor frame to the file's world frame)
+    cloud: PointCloud  #: valid points only; intensity scaled to [0, 1] by the file's limits
+
+
+def read_e57(path: str) -> List[E57Scan]:
+    """Reads every scan of an E57 file with pye57: Cartesian or spherical coordinates (spherical
+    ones converted with VASL-MODEL §2.1's axes: azimuth from +x toward +y, elevation up),
+    points flagged invalid dropped, intensity scaled to [0, 1] by ``intensityLimits``.
+    ValueError with the file's name for a file that is not readable E57, holds no scan, or a
+    scan without valid points."""
+    try:
+        import pye57  # imported here: only E57 users need it
+    except ImportError as e:  # pragma: no cover - setup.sh installs it
+        raise ValueError("reading E57 needs the pye57 package (deploy/setup.sh installs it)") from e
+    stem = os.path.splitext(os.path.basename(path))[0]
+    try:
+        e57 = pye57.E57(path)
+        count = e57.scan_count
+    except Exception as e:  # pye57 raises its own exception types
+        raise ValueError(f"{path}: not a readable E57 file: {str(e).splitlines()[0]}") from e
+    if count == 0:
+        raise ValueError(f"{path}: the E57 file holds no scan (no data3D)")
+    scans = []
+    for i in range(count):
+        where = f"{path}: scan {i}"
+        try:
+            header = e57.get_header(i)
+            raw = e57.read_scan_raw(i)
+        except Exception as e:
+            raise ValueError(f"{where}: cannot be read: {str(e).splitlines()[0]}") from e
+        if "cartesianX" in raw:
+            xyz = np.stack([raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]], axis=1)
+            invalid = raw.get("cartesianInvalidState")
+        elif "sphericalRange" in raw:
+            r, az, el = raw["sphericalRange"], raw["sphericalAzimuth"], raw["sphericalElevation"]
+            xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
+                            r * np.sin(el)], axis=1)
+            invalid = raw.get("sphericalInvalidState")
+        else:
+            raise ValueError(f"{where}: has neither Cartesian nor spherical coordinates")
+        keep = np.all(np.isfinite(xyz), axis=1)
+        if invalid is not None:
+            keep &= np.asarray(invalid) == 0
+        if not np.any(keep):
+            raise ValueError(f"{where}: holds no valid point")
+        intensity = None
+        if "intensity" in raw:
+            intensity = np.asarray(raw["intensity"], dtype=np.float64)[keep]
+            lo, hi = _e57_intensity_limits(header, intensity)
+            intensity = ((intensity - lo) / (hi - lo) if hi > lo else np.ones_like(intensity))
+            intensity = intensity.astype(np.float32)
+        w, x, y, z = (float(v) for v in header.rotation)
+        pose = Pose.make([float(v) for v in header.translation], [x, y, z, w], where=where)
+        name = stem if count == 1 else f"{stem}-{i + 1}"
+        scans.append(E57Scan(scan=name, pose=pose, cloud=PointCloud(
+            xyz_m=np.ascontiguousarray(xyz[keep], dtype=np.float32), intensity=intensity)))
+    return scans
+
+
+def _e57_intensity_limits(header, values: np.ndarray) -> Tuple[float, float]:
+    """The file's intensityLimits, or the data's own range when the file gives none."""
+    try:
+        return float(header.intensityMinimum), float(header.intensityMaximum)
+    except Exception:
+        return float(values.min()), float(values.max())
