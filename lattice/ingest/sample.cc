@@ -8,6 +8,7 @@
 #include <tbb/parallel_for.h>
 
 #include "lattice/geometry/footprint.h"
+#include "lattice/ingest/voxelise.h"
 
 namespace vasl::ingest {
 namespace {
@@ -162,9 +163,8 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
       const Eigen::Vector3d p(lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1], lidar.xyz_sensor_m[3 * i + 2]);
       if (p.x() == 0.0 && p.y() == 0.0 && p.z() == 0.0) continue;  // "no return" marker
       const Eigen::Vector3d x = R * p + lidar.pose.o_world;
-      // Same binning as BuildGeometry, in float like it, so that every return finds its vossel.
-      const Eigen::Vector3f xf = x.cast<float>();
-      const openvdb::Coord c(int(std::round(xf.x() / h)), int(std::round(xf.y() / h)), int(std::round(xf.z() / h)));
+      const Eigen::Vector3d kf = VosselIndexOf(x.cast<float>(), h);  // BuildGeometry's binning
+      const openvdb::Coord c(int(kf.x()), int(kf.y()), int(kf.z()));
       int32_t k;
       if (!acc.probeValue(c, k)) continue;
       s.sum[k] += lidar.intensity.empty() ? 1.0 : double(lidar.intensity[i]);

@@ -15,6 +15,7 @@ namespace vasl::ingest {
 namespace {
 
 constexpr int kKeyBits = 21;
+constexpr uint64_t kNoKey = ~uint64_t(0);  // skipped returns: sorts after every vossel
 constexpr int64_t kKeyOffset = int64_t(1) << (kKeyBits - 1);
 
 uint64_t PackKey(const openvdb::Coord& c) {
@@ -59,20 +60,18 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
         const Eigen::Vector3f p(&src.xyz_sensor_m[3 * i]);
         const size_t g = first[s] + i;
         if (p.x() == 0.0f && p.y() == 0.0f && p.z() == 0.0f) {  // "no return" marker
-          keyed[g] = {~uint64_t(0), uint32_t(s), uint32_t(i)};
+          keyed[g] = {kNoKey, uint32_t(s), uint32_t(i)};
           continue;
         }
         const Eigen::Vector3f x = R * p + o;
         x_world[g] = x;
-        const double fx = std::round(x.x() / h), fy = std::round(x.y() / h),
-                     fz = std::round(x.z() / h);
-        if (std::abs(fx) > kMaxVosselIndex || std::abs(fy) > kMaxVosselIndex ||
-            std::abs(fz) > kMaxVosselIndex) {
+        const Eigen::Vector3d k = VosselIndexOf(x, h);
+        if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) {
           out_of_range = true;
-          keyed[g] = {~uint64_t(0), uint32_t(s), uint32_t(i)};
+          keyed[g] = {kNoKey, uint32_t(s), uint32_t(i)};
           continue;
         }
-        keyed[g] = {PackKey(openvdb::Coord(int(fx), int(fy), int(fz))), uint32_t(s), uint32_t(i)};
+        keyed[g] = {PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))), uint32_t(s), uint32_t(i)};
       }
     });
   }
@@ -83,18 +82,15 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
   }
   tbb::parallel_sort(keyed.begin(), keyed.end());
 
-  // 2. Group runs of equal keys into vossels.
+  // 2. Group runs of equal keys into vossels; skipped returns sort last.
+  size_t end = 0;
+  while (end < total && keyed[end].key != kNoKey) ++end;
   std::vector<size_t> run_begin;
-  for (size_t i = 0; i < total && keyed[i].key != ~uint64_t(0); ++i) {
+  for (size_t i = 0; i < end; ++i) {
     if (i == 0 || keyed[i].key != keyed[i - 1].key) run_begin.push_back(i);
   }
-  size_t valid_end = run_begin.empty() ? 0 : run_begin.size();
-  {
-    size_t end = 0;
-    while (end < total && keyed[end].key != ~uint64_t(0)) ++end;
-    run_begin.push_back(end);
-  }
-  const size_t nv = valid_end;
+  const size_t nv = run_begin.size();
+  run_begin.push_back(end);
   records::VosselGeometry g;
   g.vossel_size_m = h;
   g.coord.resize(nv);
