@@ -34,6 +34,14 @@ inline double CosIncidence(const Eigen::Vector3d& n_unit, const Eigen::Vector3d&
   return std::abs(n_unit.dot(v)) / r;
 }
 
+/// A unit vector in the tangent plane of unit normal n (any one; deterministic). With
+/// n.cross(AnyTangent(n)) it spans the plane in which footprints and vossel patches lie.
+inline Eigen::Vector3d AnyTangent(const Eigen::Vector3d& n_unit) {
+  const Eigen::Vector3d a = std::abs(n_unit.x()) < 0.9 ? Eigen::Vector3d::UnitX()
+                                                       : Eigen::Vector3d::UnitY();
+  return n_unit.cross(a).normalized();
+}
+
 /// The 1-σ footprint of one sample on the surface (§3), metres.
 struct SurfaceFootprint {
   double major_m = 0.0;  ///< along the projection of the view direction on the tangent plane

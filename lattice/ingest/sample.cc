@@ -118,10 +118,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
         Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;
-        if (t_major.squaredNorm() < 1e-12) {
-          t_major = n.cross(std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY());
-        }
-        t_major.normalize();
+        t_major = t_major.squaredNorm() < 1e-12 ? geometry::AnyTangent(n) : t_major.normalized();
         const Eigen::Vector3d t_minor = n.cross(t_major);
         double acc[3] = {0, 0, 0};
         for (int a = 0; a < 3; ++a) {

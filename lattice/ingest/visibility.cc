@@ -24,13 +24,6 @@ float BitsFloat(uint32_t u) {
   return f;
 }
 
-// Two unit vectors orthogonal to n (unit) and to each other.
-void TangentBasis(const Eigen::Vector3d& n, Eigen::Vector3d& t1, Eigen::Vector3d& t2) {
-  const Eigen::Vector3d a = std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
-  t1 = n.cross(a).normalized();
-  t2 = n.cross(t1);
-}
-
 }  // namespace
 
 geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
@@ -166,8 +159,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       const Eigen::Vector3d to_sensor = depth.pose.o_world - x;
       if (to_sensor.squaredNorm() == 0.0) continue;
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
-      Eigen::Vector3d t1, t2;
-      TangentBasis(n, t1, t2);
+      const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
       // Slope-scaled tolerance (choice): across one pixel of the depth panorama the range of a
       // surface at incidence θ changes by about r·Δ·tanθ; without it a surface seen at grazing
       // incidence would shadow itself between pixel centres.
