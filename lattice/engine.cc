@@ -10,10 +10,9 @@
 #include <set>
 
 #include "absl/strings/str_cat.h"
+#include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
-#include "lattice/ingest/sample.h"
 #include "lattice/ingest/sources.h"
-#include "lattice/ingest/voxelise.h"
 
 namespace vasl {
 namespace fs = std::filesystem;
@@ -60,26 +59,6 @@ std::string PackPoints(const LidarData& lidar) {
     std::memcpy(&bytes[i * 16], rec, 16);
   }
   return bytes;
-}
-
-absl::StatusOr<ingest::LidarSource> UnpackLidar(const std::string& bytes, const store::SourceInfo& s) {
-  if (bytes.size() % 16 != 0) {
-    return absl::DataLossError(absl::StrCat("points blob ", s.blob_sha256, " is not a whole number of points"));
-  }
-  ingest::LidarSource out;
-  out.id = s.id;
-  out.pose = s.pose;
-  out.divergence_rad = s.divergence_rad;
-  const size_t n = bytes.size() / 16;
-  out.xyz_sensor_m.resize(3 * n);
-  out.intensity.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    float rec[4];
-    std::memcpy(rec, &bytes[i * 16], 16);
-    std::copy(rec, rec + 3, &out.xyz_sensor_m[3 * i]);
-    out.intensity[i] = rec[3];
-  }
-  return out;
 }
 
 }  // namespace
@@ -148,6 +127,28 @@ struct Engine::Impl {
     info.scan_count = int64_t(scans->size());
     return info;
   }
+
+  // Publishes a flow's committed snapshot as HEAD and fills the caller's result.
+  IngestResult Finish(Project& p, flows::FlowResult flow, Clock::time_point t0, IngestResult result) {
+    const int64_t vossels_before = p.head ? int64_t(p.head->geometry.size()) : 0;
+    {
+      std::lock_guard<std::mutex> lock(head_mu_of(p));
+      p.head = flow.snapshot;
+    }
+    for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
+    result.version = flow.version;
+    result.vossel_count = int64_t(flow.snapshot->geometry.size());
+    result.record_count = int64_t(flow.snapshot->records.size());
+    result.new_vossels = result.vossel_count - vossels_before;
+    result.sources_computed = flow.sources_computed;
+    result.sources_revisited = flow.sources_revisited;
+    result.pairs_revisited = flow.pairs_revisited;
+    result.tiles_changed = flow.tiles_changed;
+    result.bytes_written = flow.bytes_written;
+    result.seconds = SecondsSince(t0);
+    return result;
+  }
+  static std::mutex& head_mu_of(Project& p) { return p.head_mu; }
 
   // Everything a scan must satisfy before anything is stored; decodes the panoramas.
   absl::StatusOr<std::vector<ingest::LinearImage>> Validate(const ScanInput& scan) {
@@ -363,101 +364,55 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
   }
   stage_done("store blobs", 0.15);
 
-  // Every source of the project, older scans' from their blobs, this scan's as decoded.
-  auto previous = st.ListScans();
-  if (!previous.ok()) return previous.status();
-  ingest::SourceSet sources;
-  std::vector<const store::ScanInfo*> all_scans;
-  for (const store::ScanInfo& s : *previous) all_scans.push_back(&s);
-  all_scans.push_back(&info);
-  size_t new_panorama = 0;  // this scan's panoramas, in order, are already decoded
-  for (const store::ScanInfo* s : all_scans) {
-    for (const store::SourceInfo& src : s->sources) {
-      if (src.modality == records::Modality::kLidar) {
-        if (s == &info) {
-          ingest::LidarSource l;
-          l.id = src.id;
-          l.pose = src.pose;
-          l.divergence_rad = src.divergence_rad;
-          l.xyz_sensor_m = scan.lidar.xyz_sensor_m;
-          l.intensity = scan.lidar.intensity;
-          l.batch = s->batch;
-          sources.lidars.push_back(std::move(l));
-          continue;
-        }
-        auto bytes = st.ReadBlob(src.blob_sha256);
-        if (!bytes.ok()) return bytes.status();
-        auto l = UnpackLidar(*bytes, src);
-        if (!l.ok()) return l.status();
-        l->batch = s->batch;
-        sources.lidars.push_back(std::move(*l));
-      } else {
-        ingest::CameraSource cam;
-        cam.id = src.id;
-        cam.batch = s->batch;
-        cam.pose = src.pose;
-        cam.modality = src.modality;
-        cam.angular_resolution_rad = src.divergence_rad;
-        if (s == &info) {
-          cam.image = std::move((*images)[new_panorama++]);
-        } else {  // decoded when BuildRecords reaches it, one panorama in memory at a time
-          const int64_t max_pixels = impl_->limits.max_image_pixels;
-          cam.load = [&st, src, max_pixels]() -> absl::StatusOr<ingest::LinearImage> {
-            auto bytes = st.ReadBlob(src.blob_sha256);
-            if (!bytes.ok()) return bytes.status();
-            auto image = ingest::DecodeImage(*bytes, src.modality == records::Modality::kIr, max_pixels);
-            if (!image.ok()) {
-              return absl::DataLossError(absl::StrCat("stored image ", src.blob_sha256, ": ",
-                                                      image.status().message()));
-            }
-            return image;
-          };
-        }
-        sources.cameras.push_back(std::move(cam));
-      }
-    }
-  }
-  stage_done("load sources", 0.2);
-
-  const double h = st.settings().vossel_size_m;
-  auto geometry = ingest::BuildGeometry(sources.lidars, h);  // §1
-  if (!geometry.ok()) return geometry.status();
-  stage_done("voxelise", 0.35);
-
-  auto snapshot = std::make_shared<store::Snapshot>();
-  auto recs = ingest::BuildRecords(*geometry, sources, [&](size_t done, size_t total) {
-    if (progress) progress({"visibility and records", 0.35 + 0.5 * double(done) / double(total)});
-  });  // §3-§6
-  if (!recs.ok()) return recs.status();
-  snapshot->records = std::move(*recs);
-  stage_done("visibility and records", 0.85);
-
-  auto fused = fusion::Fuse(snapshot->records, geometry->size(), h, fusion::WeightingProfile{});  // §7
-  if (!fused.ok()) return fused.status();
-  snapshot->fused = std::move(*fused);
-  snapshot->geometry = std::move(*geometry);
-  stage_done("fuse", 0.9);
-
-  auto before = st.HeadInfo();
-  if (!before.ok()) return before.status();
-  const int64_t vossels_before = before->vossel_count;
-  auto version = st.CommitScan(*snapshot, info);
-  if (!version.ok()) return version.status();
-  snapshot->version = *version;
-  {
-    std::lock_guard<std::mutex> lock(p.head_mu);
-    p.head = snapshot;
-  }
-  stage_done("commit", 1.0);
-
+  auto head = impl_->Snapshot(p, 0);
+  if (!head.ok()) return head.status();
+  auto flow = flows::IngestScan(st, **head, info, scan.lidar, std::move(*images),
+                                impl_->limits.max_image_pixels,
+                                [&](const std::string& stage, double fraction) {
+                                  if (progress) progress({stage, fraction});
+                                });
+  if (!flow.ok()) return flow.status();
+  IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
   auto scans = st.ListScans();
-  if (scans.ok() && !scans->empty()) result.scan_id = scans->back().id;
-  result.version = *version;
-  result.vossel_count = int64_t(snapshot->geometry.size());
-  result.record_count = int64_t(snapshot->records.size());
-  result.new_vossels = result.vossel_count - vossels_before;
-  result.seconds = SecondsSince(t0);
-  return result;
+  if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
+  return done;
+}
+
+absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const ProgressFn& progress) {
+  const auto t0 = Clock::now();
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  auto flow = flows::Rebuild(*p.store, impl_->limits.max_image_pixels,
+                             [&](const std::string& stage, double fraction) {
+                               if (progress) progress({stage, fraction});
+                             });
+  if (!flow.ok()) return flow.status();
+  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+}
+
+absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, const std::string& scan,
+                                                const ProgressFn& progress) {
+  const auto t0 = Clock::now();
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  auto head = impl_->Snapshot(p, 0);
+  if (!head.ok()) return head.status();
+  auto flow = flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
+                                [&](const std::string& stage, double fraction) {
+                                  if (progress) progress({stage, fraction});
+                                });
+  if (!flow.ok()) return flow.status();
+  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+}
+
+absl::StatusOr<std::vector<store::VersionInfo>> Engine::ListVersions(const std::string& project) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->ListVersions();
 }
 
 absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const RenderRequest& request) {
@@ -507,23 +462,27 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   return image;
 }
 
-absl::StatusOr<std::vector<records::AttributeInfo>> Engine::InspectRecords(const std::string& project,
-                                                                           int64_t version) {
-  auto dir = VersionDir(project, version);
-  if (!dir.ok()) return dir.status();
-  auto p = impl_->Find(project);
-  if (!p.ok()) return p.status();
-  return (*p)->store->InspectRecords(version == 0 ? (*p)->store->head_version() : version);
-}
-
-absl::StatusOr<fs::path> Engine::VersionDir(const std::string& project, int64_t version) {
+absl::StatusOr<RecordsInspection> Engine::InspectRecords(const std::string& project,
+                                                        int64_t version) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();
   const int64_t head = (*p)->store->head_version();
   if (head == 0) {
     return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
   }
-  return (*p)->store->VersionDir(version == 0 ? head : version);
+  RecordsInspection out;
+  out.version = version == 0 ? head : version;
+  auto manifest = (*p)->store->LoadManifest(out.version);
+  if (!manifest.ok()) return manifest.status();
+  out.tile_count = int64_t(manifest->tiles.size());
+  for (const auto& [key, layers] : manifest->tiles) {
+    auto it = layers.find(store::kLayerRecords);
+    if (it != layers.end()) out.record_count += it->second.records;
+  }
+  auto attributes = (*p)->store->InspectRecords(out.version);
+  if (!attributes.ok()) return attributes.status();
+  out.attributes = std::move(*attributes);
+  return out;
 }
 
 }  // namespace vasl

@@ -62,9 +62,22 @@ struct IngestResult {
   int64_t version = 0;          ///< the committed version
   int64_t vossel_count = 0;     ///< vossels in the new version
   int64_t record_count = 0;     ///< records in the new version
-  int64_t new_vossels = 0;      ///< vossels this scan added
-  double seconds = 0.0;         ///< wall time of the whole ingest
+  int64_t new_vossels = 0;      ///< vossels this change added (negative: removed)
+  int64_t sources_computed = 0;   ///< sources computed on every tile (the new scan's; all in a rebuild)
+  int64_t sources_revisited = 0;  ///< older sources recomputed on the tiles the change reaches
+  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs recomputed
+  int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
+  int64_t bytes_written = 0;      ///< bytes the commit wrote
+  double seconds = 0.0;         ///< wall time of the whole flow
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
+};
+
+/// What InspectRecords reports of a version's records.
+struct RecordsInspection {
+  int64_t version = 0;      ///< the version inspected (HEAD resolved)
+  int64_t tile_count = 0;   ///< tiles in its manifest
+  int64_t record_count = 0;
+  std::vector<records::AttributeInfo> attributes;  ///< as stored in its tile files
 };
 
 class Engine {
@@ -88,14 +101,24 @@ class Engine {
   absl::StatusOr<IngestResult> IngestScan(const std::string& project, const ScanInput& scan,
                                           const ProgressFn& progress = {});
 
+  /// Recomputes the whole project from its raw blobs as a new version (the oracle the
+  /// incremental flows agree with). FAILED_PRECONDITION for a project without scans.
+  absl::StatusOr<IngestResult> Rebuild(const std::string& project, const ProgressFn& progress = {});
+
+  /// A new version without scan `scan`: its records and geometry leave, the tiles it touched
+  /// are recomputed from the other scans' blobs; its blobs go when retention drops the last
+  /// version that has it. NOT_FOUND for an unknown scan.
+  absl::StatusOr<IngestResult> DeleteScan(const std::string& project, const std::string& scan,
+                                          const ProgressFn& progress = {});
+
+  /// Versions still kept, oldest first, with what made each and the bytes it wrote.
+  absl::StatusOr<std::vector<store::VersionInfo>> ListVersions(const std::string& project);
+
   /// The render flow (§8) on an immutable snapshot.
   absl::StatusOr<RenderImage> Render(const std::string& project, const RenderRequest& request);
 
-  /// Record attributes of a version (0: HEAD) with type, codec and stride.
-  absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(const std::string& project,
-                                                                     int64_t version);
-  /// Directory of a committed version (0: HEAD) holding its .vdb files.
-  absl::StatusOr<std::filesystem::path> VersionDir(const std::string& project, int64_t version);
+  /// Record attributes of a version (0: HEAD) with type, codec and stride, and its size.
+  absl::StatusOr<RecordsInspection> InspectRecords(const std::string& project, int64_t version);
 
  private:
   struct Impl;

@@ -433,26 +433,14 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
                           absl::StrCat("version must be >= 0 (0: HEAD), got ",
                                        request->version()));
     }
-    absl::StatusOr<std::filesystem::path> dir =
-        engine_->VersionDir(request->project(), request->version());
-    if (!dir.ok()) return ToGrpcStatus(dir.status());
-    absl::StatusOr<std::vector<records::AttributeInfo>> attributes =
+    absl::StatusOr<RecordsInspection> inspection =
         engine_->InspectRecords(request->project(), request->version());
-    if (!attributes.ok()) return ToGrpcStatus(attributes.status());
+    if (!inspection.ok()) return ToGrpcStatus(inspection.status());
     response->set_project(request->project());
-    int64_t version = request->version();
-    if (version == 0) {
-      // versions/<n>/: the directory name is the resolved HEAD version.
-      const std::string leaf = dir->filename().empty() ? dir->parent_path().filename().string()
-                                                       : dir->filename().string();
-      try {
-        version = std::stoll(leaf);
-      } catch (...) {
-        version = 0;
-      }
-    }
-    response->set_version(version);
-    response->set_version_dir(dir->string());
+    response->set_version(inspection->version);
+    response->set_tile_count(inspection->tile_count);
+    response->set_record_count(inspection->record_count);
+    const std::vector<records::AttributeInfo>* attributes = &inspection->attributes;
     for (const records::AttributeInfo& a : *attributes) {
       AttributeToProto(a, response->add_attributes());
     }

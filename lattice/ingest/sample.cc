@@ -206,40 +206,68 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
 // 0.21 with no dilation and 0.004 with this one.
 constexpr int kCameraSampleRadiusPx = 2;
 
+double LidarDepthPitchRad(size_t point_count) {
+  return M_PI / std::sqrt(std::max<double>(double(point_count), 2048) / 2.0);
+}
+
+double CameraDepthPitchRad(double angular_resolution_rad, const geometry::EquirectSize& image) {
+  return angular_resolution_rad > 0.0 ? angular_resolution_rad : geometry::ElevationPitchRad(image);
+}
+
+int CameraSampleRadiusPx() { return kCameraSampleRadiusPx; }
+
+SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                           const std::vector<uint8_t>* only) {
+  const double tau = DepthToleranceM(g.vossel_size_m);
+  const DepthPanorama depth = RenderDepthPanorama(
+      g, lidar.pose, DepthPanoramaSize(LidarDepthPitchRad(lidar.point_count())), lidar.divergence_rad);
+  SourceRecords out;
+  out.records = SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
+  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  return out;
+}
+
+absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
+                                            const CameraSource& stored,
+                                            const std::vector<uint8_t>* only) {
+  CameraSource loaded;  // holds a decoded image only while this camera is sampled
+  if (stored.image.pixels.empty() && stored.load) {
+    absl::StatusOr<LinearImage> image = stored.load();
+    if (!image.ok()) return image.status();
+    loaded = stored;
+    loaded.image = std::move(*image);
+  }
+  const CameraSource& cam = loaded.image.pixels.empty() ? stored : loaded;
+  if (cam.image.pixels.empty()) {
+    return absl::InternalError("CameraRecords: a camera source has neither an image nor a loader");
+  }
+  const double tau = DepthToleranceM(g.vossel_size_m);
+  const geometry::EquirectSize image_size{cam.image.width_px, cam.image.height_px};
+  const double pitch = CameraDepthPitchRad(cam.angular_resolution_rad, image_size);
+  const double dilation = cam.angular_resolution_rad > 0.0
+                              ? cam.angular_resolution_rad
+                              : geometry::EquirectPixelAngleRad(0.0, image_size);
+  DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
+  DilateDepthPanorama(depth, kCameraSampleRadiusPx);
+  SourceRecords out;
+  out.records = SampleCamera(g, cam, ComputeVisibility(g, depth, tau, only));
+  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  return out;
+}
+
 absl::StatusOr<RecordSet> BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
                                        const std::function<void(size_t, size_t)>& on_source) {
-  const double tau = DepthToleranceM(g.vossel_size_m);
   const size_t total = sources.lidars.size() + sources.cameras.size();
   size_t done = 0;
   std::vector<RecordSet> parts;
   for (const LidarSource& lidar : sources.lidars) {
-    // Pixel pitch of the scan: its returns spread over the sphere, W·H ≈ 2·H² ≈ points.
-    const double pitch = M_PI / std::sqrt(std::max<double>(lidar.point_count(), 2048) / 2.0);
-    const DepthPanorama depth = RenderDepthPanorama(g, lidar.pose, DepthPanoramaSize(pitch), lidar.divergence_rad);
-    parts.push_back(SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau)));
+    parts.push_back(LidarRecords(g, lidar).records);
     if (on_source) on_source(++done, total);
   }
-  for (const CameraSource& stored : sources.cameras) {
-    CameraSource loaded;  // holds a decoded image only while this camera is sampled
-    if (stored.image.pixels.empty() && stored.load) {
-      absl::StatusOr<LinearImage> image = stored.load();
-      if (!image.ok()) return image.status();
-      loaded = stored;
-      loaded.image = std::move(*image);
-    }
-    const CameraSource& cam = loaded.image.pixels.empty() ? stored : loaded;
-    if (cam.image.pixels.empty()) {
-      return absl::InternalError("BuildRecords: a camera source has neither an image nor a loader");
-    }
-    const geometry::EquirectSize image_size{cam.image.width_px, cam.image.height_px};
-    const double pitch = cam.angular_resolution_rad > 0.0 ? cam.angular_resolution_rad
-                                                          : geometry::ElevationPitchRad(image_size);
-    const double dilation = cam.angular_resolution_rad > 0.0
-                                ? cam.angular_resolution_rad
-                                : geometry::EquirectPixelAngleRad(0.0, image_size);
-    DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
-    DilateDepthPanorama(depth, kCameraSampleRadiusPx);
-    parts.push_back(SampleCamera(g, cam, ComputeVisibility(g, depth, tau)));
+  for (const CameraSource& cam : sources.cameras) {
+    absl::StatusOr<SourceRecords> r = CameraRecords(g, cam);
+    if (!r.ok()) return r.status();
+    parts.push_back(std::move(r->records));
     if (on_source) on_source(++done, total);
   }
   RecordSet all = Concatenate(parts);

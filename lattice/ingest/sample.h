@@ -8,6 +8,7 @@
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/visibility.h"
 #include "lattice/records/records.h"
+#include "lattice/tiles/tiling.h"
 
 namespace vasl::ingest {
 
@@ -25,6 +26,33 @@ records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const C
 /// Footprint from the beam divergence (§3).
 records::RecordSet SampleLidar(const records::VosselGeometry& geometry, const LidarSource& lidar,
                                const DepthPanorama& depth, const std::vector<float>& vis);
+
+/// What one source contributes to a version: its records and its reach raster (the depth
+/// panorama its visibility read, coarsened: tiles::ReachFromDepth).
+struct SourceRecords {
+  records::RecordSet records;
+  tiles::ReachRaster reach;
+};
+
+/// §5 then §3-§6 for one LiDAR: depth panorama of `geometry` from the LiDAR, visibility,
+/// records. With `only` (a flag per vossel) records are made for the flagged vossels alone;
+/// the depth panorama always comes from every vossel of `geometry`.
+SourceRecords LidarRecords(const records::VosselGeometry& geometry, const LidarSource& lidar,
+                           const std::vector<uint8_t>* only = nullptr);
+
+/// The same for one camera; its image is decoded through `load` when `image` is empty (and
+/// freed afterwards). Fails only when the image cannot be loaded.
+absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geometry,
+                                            const CameraSource& camera,
+                                            const std::vector<uint8_t>* only = nullptr);
+
+/// Angular sampling of a source's depth panorama (radians per pixel): a LiDAR's from its point
+/// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's from its
+/// angular resolution or its image height. Fixed per source, so a revisit sees the same raster.
+double LidarDepthPitchRad(size_t point_count);
+double CameraDepthPitchRad(double angular_resolution_rad, const geometry::EquirectSize& image);
+/// Pixels by which a camera's depth panorama is dilated (see DilateDepthPanorama).
+int CameraSampleRadiusPx();
 
 /// Every stage for every source: depth panorama → visibility → records, merged and sorted by
 /// vossel. Cameras with an empty image are decoded through their `load` one at a time.

@@ -145,7 +145,7 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
 }
 
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
-                                     double tau_m) {
+                                     double tau_m, const std::vector<uint8_t>* only) {
   constexpr int kGrid = 5;  // 5×5 PCF samples over the vossel's patch
   std::vector<float> vis(g.size(), 0.0f);
   const double h = g.vossel_size_m;
@@ -154,6 +154,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   const double pixel_rad = std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
+      if (only != nullptr && !(*only)[k]) continue;
       const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
       Eigen::Vector3d n = g.normal[k].cast<double>();
       const Eigen::Vector3d to_sensor = depth.pose.o_world - x;

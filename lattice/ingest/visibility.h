@@ -52,8 +52,10 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
 /// D(p) ≥ r_p − τ_k (percentage-closer filtering over the vossel's projected footprint), with
 /// the slope-scaled tolerance τ_k = τ + r·Δ·tanθ (choice: Δ the depth panorama's pixel pitch,
 /// cosθ floored at kCosIncidenceMin), the range change of the surface across one pixel.
-/// V = 1 lit, 0 < V < 1 penumbra, V = 0 shadow. Parallel (TBB).
+/// V = 1 lit, 0 < V < 1 penumbra, V = 0 shadow. With `only` (a flag per vossel) the other
+/// vossels get V = 0 without being tested. Parallel (TBB).
 std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
-                                     const DepthPanorama& depth, double tau_m);
+                                     const DepthPanorama& depth, double tau_m,
+                                     const std::vector<uint8_t>* only = nullptr);
 
 }  // namespace vasl::ingest

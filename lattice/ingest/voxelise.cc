@@ -31,50 +31,39 @@ openvdb::Coord UnpackKey(uint64_t key) {
 
 struct KeyedPoint {
   uint64_t key;
-  uint32_t lidar;  // index into the lidars vector
-  uint32_t point;  // point index in that lidar
-  bool operator<(const KeyedPoint& o) const {
-    return key != o.key ? key < o.key : (lidar != o.lidar ? lidar < o.lidar : point < o.point);
-  }
+  uint32_t point;  // point index in the LiDAR
+  bool operator<(const KeyedPoint& o) const { return key != o.key ? key < o.key : point < o.point; }
 };
 
 }  // namespace
 
-absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSource>& lidars,
-                                                      double h) {
+absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   // 1. Every return to world, keyed by its vossel (cell-centred: k = round(x / h), §1).
-  size_t total = 0;
-  std::vector<size_t> first(lidars.size() + 1, 0);
-  for (size_t s = 0; s < lidars.size(); ++s) first[s + 1] = first[s] + lidars[s].point_count();
-  total = first.back();
+  const size_t total = src.point_count();
   std::vector<KeyedPoint> keyed(total);
   std::vector<Eigen::Vector3f> x_world(total);
   std::atomic<bool> out_of_range{false};
-  for (size_t s = 0; s < lidars.size(); ++s) {
-    const LidarSource& src = lidars[s];
-    const Eigen::Matrix3f R = src.pose.q_world_sensor.toRotationMatrix().cast<float>();
-    const Eigen::Vector3f o = src.pose.o_world.cast<float>();
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, src.point_count(), 1 << 14),
-                      [&](const tbb::blocked_range<size_t>& r) {
-      for (size_t i = r.begin(); i != r.end(); ++i) {
-        const Eigen::Vector3f p(&src.xyz_sensor_m[3 * i]);
-        const size_t g = first[s] + i;
-        if (p.x() == 0.0f && p.y() == 0.0f && p.z() == 0.0f) {  // "no return" marker
-          keyed[g] = {kNoKey, uint32_t(s), uint32_t(i)};
-          continue;
-        }
-        const Eigen::Vector3f x = R * p + o;
-        x_world[g] = x;
-        const Eigen::Vector3d k = VosselIndexOf(x, h);
-        if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) {
-          out_of_range = true;
-          keyed[g] = {kNoKey, uint32_t(s), uint32_t(i)};
-          continue;
-        }
-        keyed[g] = {PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))), uint32_t(s), uint32_t(i)};
+  const Eigen::Matrix3f R = src.pose.q_world_sensor.toRotationMatrix().cast<float>();
+  const Eigen::Vector3f o = src.pose.o_world.cast<float>();
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, total, 1 << 14),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t i = r.begin(); i != r.end(); ++i) {
+      const Eigen::Vector3f p(&src.xyz_sensor_m[3 * i]);
+      if (p.x() == 0.0f && p.y() == 0.0f && p.z() == 0.0f) {  // "no return" marker
+        keyed[i] = {kNoKey, uint32_t(i)};
+        continue;
       }
-    });
-  }
+      const Eigen::Vector3f x = R * p + o;
+      x_world[i] = x;
+      const Eigen::Vector3d k = VosselIndexOf(x, h);
+      if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) {
+        out_of_range = true;
+        keyed[i] = {kNoKey, uint32_t(i)};
+        continue;
+      }
+      keyed[i] = {PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))), uint32_t(i)};
+    }
+  });
   if (out_of_range) {
     return absl::InvalidArgumentError(absl::StrCat(
         "a point lies farther than ", kMaxVosselIndex * h,
@@ -82,7 +71,7 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
   }
   tbb::parallel_sort(keyed.begin(), keyed.end());
 
-  // 2. Group runs of equal keys into vossels; skipped returns sort last.
+  // 2. Runs of equal keys are vossels; skipped returns sort last. Sums in point order.
   size_t end = 0;
   while (end < total && keyed[end].key != kNoKey) ++end;
   std::vector<size_t> run_begin;
@@ -91,57 +80,126 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
   }
   const size_t nv = run_begin.size();
   run_begin.push_back(end);
-  records::VosselGeometry g;
-  g.vossel_size_m = h;
-  g.coord.resize(nv);
-  g.point_count.resize(nv);
-  g.centroid_m.resize(nv);
-  g.covariance_m2.resize(nv);
-  std::vector<Eigen::Vector3f> view_sum(nv);
-  std::vector<Eigen::Vector3f> origins;
-  for (const LidarSource& src : lidars) origins.push_back(src.pose.o_world.cast<float>());
+  BinnedLidar out;
+  out.coord.resize(nv);
+  out.count.resize(nv);
+  out.sums.resize(nv);
+  const Eigen::Vector3d origin = src.pose.o_world;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t v = r.begin(); v != r.end(); ++v) {
       const size_t b = run_begin[v], e = run_begin[v + 1];
-      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-      Eigen::Vector3f view = Eigen::Vector3f::Zero();
+      const openvdb::Coord k = UnpackKey(keyed[b].key);
+      const Eigen::Vector3d centre = h * Eigen::Vector3d(k.x(), k.y(), k.z());
+      records::VosselSums s;
       for (size_t i = b; i < e; ++i) {
-        const Eigen::Vector3f& x = x_world[first[keyed[i].lidar] + keyed[i].point];
-        mean += x.cast<double>();
-        view += (origins[keyed[i].lidar] - x).normalized();
+        const Eigen::Vector3d x = x_world[keyed[i].point].cast<double>();
+        const Eigen::Vector3d d = x - centre;
+        s.sum_m += d;
+        s.sum_xx_m2[0] += d.x() * d.x();
+        s.sum_xx_m2[1] += d.x() * d.y();
+        s.sum_xx_m2[2] += d.x() * d.z();
+        s.sum_xx_m2[3] += d.y() * d.y();
+        s.sum_xx_m2[4] += d.y() * d.z();
+        s.sum_xx_m2[5] += d.z() * d.z();
+        s.view_sum += (origin - x).normalized();
       }
-      mean /= double(e - b);
-      Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-      for (size_t i = b; i < e; ++i) {
-        const Eigen::Vector3d d = x_world[first[keyed[i].lidar] + keyed[i].point].cast<double>() - mean;
-        cov += d * d.transpose();
-      }
-      cov /= double(e - b);
-      g.coord[v] = UnpackKey(keyed[b].key);
-      g.point_count[v] = int32_t(e - b);
-      g.centroid_m[v] = mean.cast<float>();
-      g.covariance_m2[v] = {float(cov(0, 0)), float(cov(0, 1)), float(cov(0, 2)),
-                            float(cov(1, 1)), float(cov(1, 2)), float(cov(2, 2))};
-      view_sum[v] = view;
+      out.coord[v] = k;
+      out.count[v] = int32_t(e - b);
+      out.sums[v] = s;
     }
   });
+  return out;
+}
 
-  // 3. Canonical order (the PointDataGrid's), then normals.
-  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(g);
-  std::vector<Eigen::Vector3f> view_sorted(nv);
-  for (size_t v = 0; v < nv; ++v) view_sorted[size_t(old_to_new[v])] = view_sum[v];
-  ComputeNormals(g, view_sorted);
+records::VosselGeometry EmptyGeometry(double h) {
+  records::VosselGeometry g;
+  g.vossel_size_m = h;
+  records::CanonicalizeVosselOrder(g);  // an empty index grid with the lattice's transform
   return g;
 }
 
-void ComputeNormals(records::VosselGeometry& g, const std::vector<Eigen::Vector3f>& view_sum) {
+MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
+  const size_t before = g.size();
+  MergeResult result;
+  std::vector<int32_t> slot(add.size(), -1);  // index in g (existing or appended)
+  {
+    auto acc = g.index_grid->getConstAccessor();
+    for (size_t i = 0; i < add.size(); ++i) {
+      int32_t k;
+      if (acc.probeValue(add.coord[i], k)) slot[i] = k;
+    }
+  }
+  g.sums.resize(before);
+  g.point_count.resize(before);
+  for (size_t i = 0; i < add.size(); ++i) {
+    if (slot[i] >= 0) continue;
+    slot[i] = int32_t(g.coord.size());
+    g.coord.push_back(add.coord[i]);
+    g.point_count.push_back(0);
+    g.sums.emplace_back();
+  }
+  result.new_vossels = g.coord.size() - before;
+  std::vector<uint8_t> touched(g.coord.size(), 0);
+  for (size_t i = 0; i < add.size(); ++i) {
+    g.point_count[slot[i]] += add.count[i];
+    g.sums[slot[i]].Add(add.sums[i]);
+    touched[slot[i]] = 1;
+  }
+  // Per-vossel arrays that are derived later keep their size in step with the vossels.
+  g.centroid_m.resize(g.coord.size(), Eigen::Vector3f::Zero());
+  g.covariance_m2.resize(g.coord.size(), {0, 0, 0, 0, 0, 0});
+  g.normal.resize(g.coord.size(), Eigen::Vector3f::Zero());
+  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(g);
+  result.old_to_new.assign(old_to_new.begin(), old_to_new.begin() + before);
+  result.touched.assign(g.size(), 0);
+  for (size_t i = 0; i < touched.size(); ++i) {
+    if (touched[i]) result.touched[old_to_new[i]] = 1;
+  }
+  return result;
+}
+
+void DeriveCentroidAndCovariance(records::VosselGeometry& g) {
   const size_t nv = g.size();
-  g.normal.assign(nv, Eigen::Vector3f::Zero());
+  const double h = g.vossel_size_m;
+  g.centroid_m.resize(nv);
+  g.covariance_m2.resize(nv);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t v = r.begin(); v != r.end(); ++v) {
+      const records::VosselSums& s = g.sums[v];
+      const double n = std::max(1, g.point_count[v]);
+      const Eigen::Vector3d mu = s.sum_m / n;
+      const openvdb::Coord& k = g.coord[v];
+      g.centroid_m[v] = (h * Eigen::Vector3d(k.x(), k.y(), k.z()) + mu).cast<float>();
+      const auto& q = s.sum_xx_m2;
+      g.covariance_m2[v] = {float(q[0] / n - mu.x() * mu.x()), float(q[1] / n - mu.x() * mu.y()),
+                            float(q[2] / n - mu.x() * mu.z()), float(q[3] / n - mu.y() * mu.y()),
+                            float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
+    }
+  });
+}
+
+absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSource>& lidars,
+                                                      double h) {
+  records::VosselGeometry g = EmptyGeometry(h);
+  for (const LidarSource& lidar : lidars) {
+    absl::StatusOr<BinnedLidar> binned = BinLidar(lidar, h);
+    if (!binned.ok()) return binned.status();
+    MergeBinned(g, *binned);
+  }
+  DeriveCentroidAndCovariance(g);
+  ComputeNormals(g);
+  return g;
+}
+
+void ComputeNormals(records::VosselGeometry& g, const std::vector<uint8_t>* only) {
+  const size_t nv = g.size();
+  g.normal.resize(nv, Eigen::Vector3f::Zero());
   if (nv == 0) return;
   const openvdb::Int32Grid& index = *g.index_grid;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 2048), [&](const tbb::blocked_range<size_t>& r) {
     auto acc = index.getConstAccessor();
     for (size_t v = r.begin(); v != r.end(); ++v) {
+      if (only != nullptr && !(*only)[v]) continue;
       // Pooled scatter of the points of the 3×3×3 neighbourhood: Σ_j c_j (Σ_j + (μ_j − μ)(μ_j − μ)ᵀ).
       double total = 0.0;
       Eigen::Vector3d mean = Eigen::Vector3d::Zero();
@@ -167,7 +225,8 @@ void ComputeNormals(records::VosselGeometry& g, const std::vector<Eigen::Vector3
         const Eigen::Vector3d d = g.centroid_m[ids[j]].cast<double>() - mean;
         scatter += double(g.point_count[ids[j]]) * (cov + d * d.transpose());
       }
-      Eigen::Vector3f view = view_sum.empty() ? Eigen::Vector3f::Zero() : view_sum[v];
+      Eigen::Vector3f view =
+          g.sums.empty() ? Eigen::Vector3f::Zero() : Eigen::Vector3f(g.sums[v].view_sum.cast<float>());
       Eigen::Vector3f n = Eigen::Vector3f::Zero();
       if (total >= 3.0) {
         Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter);

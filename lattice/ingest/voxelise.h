@@ -22,20 +22,55 @@ inline Eigen::Vector3d VosselIndexOf(const Eigen::Vector3f& x_world, double voss
           std::round(x_world.z() / vossel_size_m)};
 }
 
-/// §1: bins every return of every LiDAR into the vossel k = round(x / h) (cell-centred), and
-/// gives each vossel its point count, centroid, covariance and a PCA normal over its 3×3×3
-/// neighbourhood (the pooled scatter of the neighbours' points), oriented toward the mean
-/// direction of the sensors that saw it. Returns at sensor-frame (0,0,0) (a scanner's "no
-/// return" marker) are skipped. Vossels come in canonical order (records::
-/// CanonicalizeVosselOrder). Parallel (TBB). INVALID_ARGUMENT when a point falls outside the
-/// lattice's range (±kMaxVosselIndex·h).
+/// One LiDAR's returns binned into vossels (§1): per vossel its point count and exact sums
+/// (records::VosselSums), vossels in coordinate order.
+struct BinnedLidar {
+  std::vector<openvdb::Coord> coord;      ///< index-space k of each vossel hit
+  std::vector<int32_t> count;             ///< returns in it
+  std::vector<records::VosselSums> sums;  ///< their sums relative to h·k
+  size_t size() const { return coord.size(); }
+};
+
+/// §1: bins every return of `lidar` into the vossel k = round(x / h) (cell-centred). Returns at
+/// sensor-frame (0,0,0) (a scanner's "no return" marker) are skipped. Within a vossel the
+/// points are summed in point order, so the result does not depend on the thread count.
+/// Parallel (TBB). INVALID_ARGUMENT when a point falls outside the lattice's range
+/// (±kMaxVosselIndex·h).
+absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& lidar, double vossel_size_m);
+
+/// An empty geometry of vossel size h with an (empty) index grid and sums.
+records::VosselGeometry EmptyGeometry(double vossel_size_m);
+
+/// What MergeBinned changed.
+struct MergeResult {
+  std::vector<int32_t> old_to_new;  ///< new index of each vossel `geometry` had before
+  std::vector<uint8_t> touched;     ///< per vossel of the result: 1 where the sums changed
+  size_t new_vossels = 0;           ///< vossels the merge created
+};
+
+/// Adds one LiDAR's binned returns into `geometry`: counts and sums of the vossels it hit grow
+/// (existing sums + the LiDAR's, in that order: merging scans in source-id order gives the same
+/// bits whatever the grouping), new vossels are created, and the vossels are renumbered in
+/// canonical order. Centroids, covariances and normals are not updated (see
+/// DeriveCentroidAndCovariance, ComputeNormals). `geometry` must carry sums.
+MergeResult MergeBinned(records::VosselGeometry& geometry, const BinnedLidar& add);
+
+/// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel from its sums.
+void DeriveCentroidAndCovariance(records::VosselGeometry& geometry);
+
+/// §1, the whole path: every LiDAR binned and merged in the given order (callers pass source-id
+/// order), centroids and covariances derived, and a PCA normal for every vossel over its
+/// 3×3×3 neighbourhood (ComputeNormals). Vossels come in canonical order (records::
+/// CanonicalizeVosselOrder). Parallel (TBB). INVALID_ARGUMENT as BinLidar.
 absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSource>& lidars,
                                                       double vossel_size_m);
 
-/// Recomputes `geometry.normal` by PCA over each vossel's 3×3×3 neighbourhood; `view_sum` (one
-/// per vossel, may be empty) orients each normal toward the sensors; a vossel with too few
-/// neighbours for a plane gets its view direction as normal.
-void ComputeNormals(records::VosselGeometry& geometry,
-                    const std::vector<Eigen::Vector3f>& view_sum);
+/// Computes `geometry.normal` by PCA over each vossel's 3×3×3 neighbourhood (the pooled scatter
+/// of the neighbours' points), oriented toward the sensors that saw it (the sums' view_sum); a
+/// vossel with too few neighbours for a plane gets its view direction as normal. With `only`
+/// (one flag per vossel) just the flagged vossels are recomputed and the others keep their
+/// normal; a vossel's normal depends only on its neighbourhood's counts and sums, so a partial
+/// recompute gives the same bits as a full one. `normal` is sized to the vossels first.
+void ComputeNormals(records::VosselGeometry& geometry, const std::vector<uint8_t>* only = nullptr);
 
 }  // namespace vasl::ingest

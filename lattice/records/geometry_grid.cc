@@ -233,6 +233,7 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   if (geometry.centroid_m.size() == n) Gather(geometry.centroid_m, new_to_old);
   if (geometry.normal.size() == n) Gather(geometry.normal, new_to_old);
   if (geometry.covariance_m2.size() == n) Gather(geometry.covariance_m2, new_to_old);
+  if (geometry.sums.size() == n) Gather(geometry.sums, new_to_old);
 
   auto grid = Int32Grid::create(tree);
   grid->setTransform(openvdb::math::Transform::createLinearTransform(geometry.vossel_size_m));
@@ -259,7 +260,8 @@ absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem
   for (absl::Status s : {CheckArraySize(geometry.point_count.size(), *n, 1, "point_count"),
                          CheckArraySize(geometry.centroid_m.size(), *n, 1, "centroid_m"),
                          CheckArraySize(geometry.normal.size(), *n, 1, "normal"),
-                         CheckArraySize(geometry.covariance_m2.size(), *n, 1, "covariance_m2")}) {
+                         CheckArraySize(geometry.covariance_m2.size(), *n, 1, "covariance_m2"),
+                         CheckArraySize(geometry.sums.size(), *n, 1, "sums")}) {
     if (!s.ok()) return s;
   }
 
@@ -295,6 +297,27 @@ absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem
     grids.push_back(GridOverVossels<Vec3SGrid>(index, "covariance_off", [&](int32_t v) {
       const auto& c = geometry.covariance_m2[v];
       return Vec3f(c[1], c[2], c[4]);
+    }));
+  }
+  if (!geometry.sums.empty()) {
+    // The exact running sums (double) that make merging scans exact (§1, records.h).
+    using openvdb::Vec3d;
+    using openvdb::Vec3DGrid;
+    grids.push_back(GridOverVossels<Vec3DGrid>(index, "sum", [&](int32_t v) {
+      const Eigen::Vector3d& c = geometry.sums[v].sum_m;
+      return Vec3d(c.x(), c.y(), c.z());
+    }));
+    grids.push_back(GridOverVossels<Vec3DGrid>(index, "sum_xx_diag", [&](int32_t v) {
+      const auto& c = geometry.sums[v].sum_xx_m2;
+      return Vec3d(c[0], c[3], c[5]);
+    }));
+    grids.push_back(GridOverVossels<Vec3DGrid>(index, "sum_xx_off", [&](int32_t v) {
+      const auto& c = geometry.sums[v].sum_xx_m2;
+      return Vec3d(c[1], c[2], c[4]);
+    }));
+    grids.push_back(GridOverVossels<Vec3DGrid>(index, "view_sum", [&](int32_t v) {
+      const Eigen::Vector3d& c = geometry.sums[v].view_sum;
+      return Vec3d(c.x(), c.y(), c.z());
     }));
   }
   openvdb::MetaMap meta;
@@ -356,6 +379,34 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     for (size_t v = 0; v < *n; ++v) {
       g.covariance_m2[v] = {diag[v].x(), off[v].x(), off[v].y(), diag[v].y(), off[v].z(),
                             diag[v].z()};
+    }
+  }
+  if (GridAs<openvdb::Vec3DGrid>(*contents, "sum")) {
+    g.sums.assign(*n, VosselSums{});
+    auto read_vec3d = [&](const char* name, auto&& set) -> absl::Status {
+      auto grid = GridAs<openvdb::Vec3DGrid>(*contents, name);
+      if (!grid) {
+        return absl::DataLossError(absl::StrCat(path.string(), " has \"sum\" but no Vec3d grid \"",
+                                                name, "\""));
+      }
+      return ForEachActiveVossel(*index, *grid, path, set);
+    };
+    for (absl::Status s : {
+             read_vec3d("sum", [&](int32_t v, const openvdb::Vec3d& c) {
+               g.sums[v].sum_m = Eigen::Vector3d(c.x(), c.y(), c.z());
+             }),
+             read_vec3d("sum_xx_diag", [&](int32_t v, const openvdb::Vec3d& c) {
+               auto& s = g.sums[v].sum_xx_m2;
+               s[0] = c.x(), s[3] = c.y(), s[5] = c.z();
+             }),
+             read_vec3d("sum_xx_off", [&](int32_t v, const openvdb::Vec3d& c) {
+               auto& s = g.sums[v].sum_xx_m2;
+               s[1] = c.x(), s[2] = c.y(), s[4] = c.z();
+             }),
+             read_vec3d("view_sum", [&](int32_t v, const openvdb::Vec3d& c) {
+               g.sums[v].view_sum = Eigen::Vector3d(c.x(), c.y(), c.z());
+             })}) {
+      if (!s.ok()) return s;
     }
   }
   return g;

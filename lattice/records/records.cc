@@ -68,4 +68,15 @@ void RecordSet::SortByVossel() {
   });
 }
 
+RecordSet RecordSet::Select(const std::vector<size_t>& indices) const {
+  RecordSet out;
+  ForEachArray(out, *this, [&indices](auto& dst, const auto& src, int stride) {
+    dst.resize(indices.size() * stride);
+    for (size_t i = 0; i < indices.size(); ++i) {
+      std::copy_n(src.begin() + indices[i] * stride, stride, dst.begin() + i * stride);
+    }
+  });
+  return out;
+}
+
 }  // namespace vasl::records

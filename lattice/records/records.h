@@ -48,6 +48,27 @@ enum ConfidenceFactor : int { kConfSaturation = 0, kConfFlare = 1, kConfDirt = 2
 inline constexpr int kConfidenceCount = 4;
 inline constexpr int kValueChannels = 3;
 
+/// Exact running sums of the points that fell in one vossel (§1), the state that makes merging
+/// a new scan's points exact: count lives in VosselGeometry::point_count. Positions are taken
+/// relative to the vossel centre h·k, so doubles keep sub-micrometre precision on any site.
+/// Scans add their sums in source-id order; a rebuild adds them in the same order, so both
+/// give the same bits.
+struct VosselSums {
+  Eigen::Vector3d sum_m = Eigen::Vector3d::Zero();       ///< Σ (x − h·k), metres
+  std::array<double, 6> sum_xx_m2 = {0, 0, 0, 0, 0, 0};  ///< Σ (x − h·k)(x − h·k)ᵀ: xx, xy, xz, yy, yz, zz
+  Eigen::Vector3d view_sum = Eigen::Vector3d::Zero();    ///< Σ unit vectors from each point to its sensor
+
+  /// Adds `other` (another scan's sums of the same vossel).
+  void Add(const VosselSums& other) {
+    sum_m += other.sum_m;
+    for (int i = 0; i < 6; ++i) sum_xx_m2[i] += other.sum_xx_m2[i];
+    view_sum += other.view_sum;
+  }
+  bool operator==(const VosselSums& o) const {
+    return sum_m == o.sum_m && sum_xx_m2 == o.sum_xx_m2 && view_sum == o.view_sum;
+  }
+};
+
 /// Geometry of the vossels of one version (§1), indexed by vossel index.
 struct VosselGeometry {
   /// Vossel edge h, metres; the grid transform is createLinearTransform(h) (cell-centred).
@@ -64,6 +85,9 @@ struct VosselGeometry {
   std::vector<Eigen::Vector3f> normal;
   /// Position covariance of the points in the vossel, world m², (xx, xy, xz, yy, yz, zz).
   std::vector<std::array<float, 6>> covariance_m2;
+  /// Running sums of the vossel's points (count in point_count); centroid and covariance are
+  /// derived from them (DeriveCentroidAndCovariance). Empty for geometry without sums.
+  std::vector<VosselSums> sums;
 
   size_t size() const { return coord.size(); }
 };
@@ -91,6 +115,8 @@ struct RecordSet {
   void Append(const RecordSet& other);
   /// Reorders the records by (vossel, scan, modality); stable.
   void SortByVossel();
+  /// The records at `indices`, in that order.
+  RecordSet Select(const std::vector<size_t>& indices) const;
 };
 
 /// Fused values of one modality under one profile (§7), per vossel.

@@ -114,22 +114,46 @@ CREATE TABLE project(
   description TEXT NOT NULL,
   vossel_size_m REAL NOT NULL,
   keep_versions INTEGER NOT NULL,
+  tile_vossels INTEGER NOT NULL,
   created_utc TEXT NOT NULL);
 CREATE TABLE versions(
   version INTEGER PRIMARY KEY,
   vossel_count INTEGER NOT NULL,
   record_count INTEGER NOT NULL,
   created_utc TEXT NOT NULL,
+  made_by TEXT NOT NULL DEFAULT '',
+  bytes_written INTEGER NOT NULL DEFAULT 0,
+  pinned INTEGER NOT NULL DEFAULT 0,
   pruned INTEGER NOT NULL DEFAULT 0);
+CREATE TABLE manifest(
+  version INTEGER NOT NULL,
+  tx INTEGER NOT NULL, ty INTEGER NOT NULL, tz INTEGER NOT NULL,
+  layer TEXT NOT NULL,
+  object TEXT NOT NULL,
+  vossels INTEGER NOT NULL,
+  records INTEGER NOT NULL,
+  bytes INTEGER NOT NULL,
+  PRIMARY KEY (version, tx, ty, tz, layer));
+CREATE TABLE reach(
+  version INTEGER NOT NULL,
+  source_id INTEGER NOT NULL,
+  object TEXT NOT NULL,
+  PRIMARY KEY (version, source_id));
+CREATE TABLE source_tiles(
+  source_id INTEGER NOT NULL,
+  tx INTEGER NOT NULL, ty INTEGER NOT NULL, tz INTEGER NOT NULL,
+  version INTEGER NOT NULL,
+  PRIMARY KEY (source_id, tx, ty, tz));
 CREATE TABLE scans(
   id INTEGER PRIMARY KEY,
-  name TEXT NOT NULL UNIQUE,
+  name TEXT NOT NULL,
   rig TEXT NOT NULL,
   captured_utc TEXT NOT NULL,
   qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
   ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
   batch INTEGER NOT NULL,
   version INTEGER NOT NULL,
+  deleted_in INTEGER,
   created_utc TEXT NOT NULL);
 CREATE TABLE sources(
   id INTEGER PRIMARY KEY,
@@ -145,6 +169,7 @@ CREATE TABLE sources(
   point_count INTEGER NOT NULL,
   version INTEGER NOT NULL);
 CREATE INDEX sources_by_scan ON sources(scan_id);
+CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL;
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
   kind TEXT NOT NULL,
@@ -157,7 +182,11 @@ COMMIT;
 
 absl::Status DropRowsNewerThan(Db& db, int64_t head) {
   if (absl::Status s = db.Exec("BEGIN IMMEDIATE;"); !s.ok()) return s;
-  for (const char* sql : {"DELETE FROM sources WHERE version > ?1",
+  for (const char* sql : {"DELETE FROM manifest WHERE version > ?1",
+                          "DELETE FROM reach WHERE version > ?1",
+                          "DELETE FROM source_tiles WHERE version > ?1",
+                          "UPDATE scans SET deleted_in = NULL WHERE deleted_in > ?1",
+                          "DELETE FROM sources WHERE version > ?1",
                           "DELETE FROM scans WHERE version > ?1",
                           "DELETE FROM batches WHERE version > ?1",
                           "DELETE FROM versions WHERE version > ?1"}) {

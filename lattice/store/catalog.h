@@ -1,8 +1,11 @@
 /// @file catalog.h
 /// @brief catalog.sqlite of one project: a thin RAII wrapper over SQLite (connection and
 ///        prepared statements) and the schema (ARCHITECTURE.md "Storage of one project").
-/// @details Tables: schema_version, project (one row: settings), versions, scans, sources,
-///          batches. Every row that belongs to a version carries its `version`, so that rows
+/// @details Tables: schema_version, project (one row: settings), versions (with what made each),
+///          manifest (per version, tile and layer: the content hash of its object), reach (per
+///          version and source: the object of its reach raster), source_tiles (the tiles a
+///          LiDAR source has returns in), scans (with the version that deleted them, if any),
+///          sources, batches. Every row that belongs to a version carries its `version`, so that rows
 ///          newer than HEAD can be dropped on Open (crash recovery). Errors carry
 ///          sqlite3_errmsg and the database path.
 /// @warning A Db is not synchronised by itself; ProjectStore guards it with a mutex.
@@ -20,7 +23,8 @@ struct sqlite3_stmt;
 
 namespace vasl::store::internal {
 
-inline constexpr int kCatalogSchemaVersion = 1;
+/// 2: tiled versions (manifest, reach, source_tiles), scan deletion, made_by and pins.
+inline constexpr int kCatalogSchemaVersion = 2;
 
 /// One prepared statement; Bind* take 1-based parameter indices, Column* 0-based columns.
 class Stmt {
@@ -74,8 +78,8 @@ class Db {
 /// Creates every table of schema version kCatalogSchemaVersion.
 absl::Status CreateSchema(Db& db);
 
-/// Deletes catalog rows of versions newer than `head` (versions, scans, sources, batches),
-/// in one transaction.
+/// Deletes catalog rows of versions newer than `head` (versions, manifests, reach, source tiles,
+/// scans, sources, batches) and undoes deletions made by them, in one transaction.
 absl::Status DropRowsNewerThan(Db& db, int64_t head);
 
 }  // namespace vasl::store::internal

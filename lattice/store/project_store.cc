@@ -19,7 +19,11 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include "lattice/records/record_grid.h"
+#include "lattice/tiles/tile_split.h"
 #include "lattice/store/catalog.h"
 #include "lattice/store/fs_util.h"
 
@@ -33,11 +37,8 @@ namespace {
 constexpr char kCatalogFile[] = "catalog.sqlite";
 constexpr char kHeadFile[] = "HEAD";
 constexpr char kBlobsDir[] = "blobs";
-constexpr char kVersionsDir[] = "versions";
+constexpr char kObjectsDir[] = "objects";
 constexpr char kTmpPrefix[] = ".tmp-";
-constexpr char kGeometryFile[] = "geometry.vdb";
-constexpr char kRecordsFile[] = "records.vdb";
-constexpr char kFusedFile[] = "fused-default.vdb";
 
 absl::Status ValidateProjectName(const std::string& name) {
   bool ok = !name.empty() && name.size() <= 63 && absl::ascii_isalnum(name[0]);
@@ -51,14 +52,6 @@ absl::Status ValidateProjectName(const std::string& name) {
         "\": use 1-63 characters of [a-z0-9._-], starting with a letter or digit"));
   }
   return absl::OkStatus();
-}
-
-bool IsSha256Hex(const std::string& s) {
-  if (s.size() != 64) return false;
-  for (char c : s) {
-    if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
-  }
-  return true;
 }
 
 /// Parses a non-negative version number written as decimal digits (HEAD, versions/<n>).
@@ -94,6 +87,21 @@ geometry::Pose ColumnPose(const Stmt& st, int first) {
   return p;
 }
 
+/// Runs `sql` with `bind` applied; for statements without result rows.
+template <typename Bind>
+absl::Status RunSql(Db& db, std::string_view sql, Bind&& bind) {
+  absl::StatusOr<Stmt> st = db.Prepare(sql);
+  if (!st.ok()) return st.status();
+  bind(*st);
+  return st->Run();
+}
+
+/// The objects of one tile as written by a commit.
+struct WrittenTile {
+  tiles::TileKey key;
+  std::map<std::string, ManifestEntry> layers;  ///< empty: the tile has no vossels any more
+};
+
 }  // namespace
 
 struct ProjectStore::Impl {
@@ -106,31 +114,22 @@ struct ProjectStore::Impl {
   mutable std::mutex db_mu;  ///< guards `db` (statements are short)
   Db db;
   std::mutex commit_mu;  ///< one commit at a time
+  std::unique_ptr<ObjectStore> objects;
 
   CommitStage fault_stage = CommitStage::kNone;
   bool fault_crash = false;
 
   explicit Impl(Db d) : db(std::move(d)) {}
 
-  fs::path versions_dir() const { return dir / kVersionsDir; }
-  fs::path version_dir(int64_t v) const { return versions_dir() / std::to_string(v); }
-
-  /// Brings disk and catalog back to HEAD: drops catalog rows newer than HEAD, deletes temp
-  /// dirs/files and version dirs newer than HEAD.
+  /// Brings the catalog back to HEAD (drops rows newer than HEAD), removes staging files, then
+  /// collects objects and blobs no kept version references.
   absl::Status RecoverToHead(int64_t head_version) {
     {
       std::lock_guard<std::mutex> lock(db_mu);
       if (absl::Status s = internal::DropRowsNewerThan(db, head_version); !s.ok()) return s;
     }
+    if (absl::Status s = objects->CleanStaging(); !s.ok()) return s;
     std::error_code ec;
-    for (const fs::directory_entry& e : fs::directory_iterator(versions_dir(), ec)) {
-      const std::string n = e.path().filename().string();
-      const std::optional<int64_t> v = ParseVersion(n);
-      if (absl::StartsWith(n, kTmpPrefix) || (v && *v > head_version)) {
-        if (absl::Status s = RemoveAll(e.path()); !s.ok()) return s;
-      }
-    }
-    if (ec) return internal::ErrnoError("cannot list", versions_dir(), ec.value());
     for (const fs::path& d : {dir / kBlobsDir, dir}) {
       for (const fs::directory_entry& e : fs::directory_iterator(d, ec)) {
         const std::string n = e.path().filename().string();
@@ -139,23 +138,127 @@ struct ProjectStore::Impl {
         }
       }
     }
-    return internal::FsyncPath(versions_dir());
+    return Collect().status();
   }
 
-  /// Retention: keeps HEAD and the `keep_versions` versions before it; older version dirs are
-  /// deleted and their catalog rows marked pruned. Best effort: a failure here leaves extra
-  /// versions on disk, which the next commit prunes again.
-  void Prune(int64_t head_version) {
-    const int64_t oldest_kept = head_version - std::max(0, settings.keep_versions);
-    std::error_code ec;
-    for (const fs::directory_entry& e : fs::directory_iterator(versions_dir(), ec)) {
-      const std::optional<int64_t> v = ParseVersion(e.path().filename().string());
-      if (v && *v < oldest_kept) RemoveAll(e.path()).IgnoreError();
+  /// Retention and garbage collection (see ProjectStore::CollectGarbage).
+  absl::StatusOr<int64_t> Collect() {
+    const int64_t h = head.load();
+    const int64_t oldest_kept = h - std::max(0, settings.keep_versions);
+    std::set<std::string> live_objects, live_blobs;
+    {
+      std::lock_guard<std::mutex> lock(db_mu);
+      absl::Status s = db.Exec("BEGIN IMMEDIATE;");
+      auto run = [&](std::string_view sql) {
+        if (s.ok()) {
+          s = RunSql(db, sql, [&](Stmt& st) { st.Bind(1, oldest_kept).Bind(2, h); });
+        }
+      };
+      run("UPDATE versions SET pruned = 1 WHERE version < ?1 AND pinned = 0 AND version <> ?2");
+      run("DELETE FROM manifest WHERE version IN (SELECT version FROM versions WHERE pruned = 1)");
+      run("DELETE FROM reach WHERE version IN (SELECT version FROM versions WHERE pruned = 1)");
+      if (s.ok()) s = db.Exec("COMMIT;");
+      if (!s.ok()) {
+        db.Exec("ROLLBACK;").IgnoreError();
+        return s;
+      }
+      for (const char* sql :
+           {"SELECT object FROM manifest UNION SELECT object FROM reach",
+            "SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scans sc ON src.scan_id = sc.id "
+            "WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 AND sc.version <= v.version "
+            "AND (sc.deleted_in IS NULL OR sc.deleted_in > v.version))"}) {
+        absl::StatusOr<Stmt> st = db.Prepare(sql);
+        if (!st.ok()) return st.status();
+        std::set<std::string>& live = sql[7] == 'o' ? live_objects : live_blobs;
+        for (;;) {
+          absl::StatusOr<bool> row = st->Step();
+          if (!row.ok()) return row.status();
+          if (!*row) break;
+          live.insert(st->Text(0));
+        }
+      }
     }
-    internal::FsyncPath(versions_dir()).IgnoreError();
+    int64_t removed = 0;
+    absl::StatusOr<std::vector<std::string>> names = objects->List();
+    if (!names.ok()) return names.status();
+    for (const std::string& n : *names) {
+      if (live_objects.count(n)) continue;
+      if (absl::Status s = objects->Remove(n); !s.ok()) return s;
+      ++removed;
+    }
+    std::error_code ec;
+    for (const fs::directory_entry& e : fs::directory_iterator(dir / kBlobsDir, ec)) {
+      const std::string n = e.path().filename().string();
+      if (!IsSha256Hex(n) || live_blobs.count(n)) continue;
+      // A blob newer than every scan row belongs to an ingest that has not committed yet (the
+      // single writer calls this only from its own commit or from Open, so there is none).
+      if (absl::Status s = RemoveAll(e.path()); !s.ok()) return s;
+      ++removed;
+    }
+    if (absl::Status s = objects->Sync(); !s.ok()) return s;
+    if (absl::Status s = internal::FsyncPath(dir / kBlobsDir); !s.ok()) return s;
+    return removed;
+  }
+
+  absl::StatusOr<bool> IsKept(int64_t version) {
     std::lock_guard<std::mutex> lock(db_mu);
-    absl::StatusOr<Stmt> st = db.Prepare("UPDATE versions SET pruned = 1 WHERE version < ?1");
-    if (st.ok()) st->Bind(1, oldest_kept).Run().IgnoreError();
+    absl::StatusOr<Stmt> st = db.Prepare("SELECT pruned FROM versions WHERE version = ?1");
+    if (!st.ok()) return st.status();
+    st->Bind(1, version);
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    return *row && st->Int(0) == 0;
+  }
+
+  /// Writes the objects of the tiles `keys` cut from `snapshot` (parallel over tiles).
+  absl::StatusOr<std::vector<WrittenTile>> WriteTiles(const Snapshot& snapshot,
+                                                      const std::set<tiles::TileKey>& keys,
+                                                      bool with_geometry) {
+    std::vector<tiles::TileContents> cut = tiles::ExtractTiles(
+        snapshot.geometry, snapshot.records, snapshot.fused, keys, settings.tile_vossels);
+    std::vector<WrittenTile> out(cut.size());
+    std::vector<absl::Status> status(cut.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, cut.size(), 1),
+                      [&](const tbb::blocked_range<size_t>& r) {
+      for (size_t t = r.begin(); t != r.end(); ++t) {
+        const tiles::TileContents& tile = cut[t];
+        out[t].key = tile.key;
+        if (tile.geometry.size() == 0) continue;
+        auto put = [&](const char* layer, auto&& write) -> absl::Status {
+          const fs::path staged = objects->StagingPath();
+          if (absl::Status s = write(staged); !s.ok()) {
+            fs::remove(staged);
+            return s;
+          }
+          absl::StatusOr<StoredObject> obj = objects->PutFile(staged);
+          if (!obj.ok()) return obj.status();
+          out[t].layers[layer] = {obj->sha256, int64_t(tile.geometry.size()),
+                                  int64_t(tile.records.size()), obj->bytes};
+          return absl::OkStatus();
+        };
+        absl::Status s;
+        if (with_geometry) {
+          s = put(kLayerGeometry, [&](const fs::path& f) {
+            return records::WriteGeometry(tile.geometry, f);
+          });
+        }
+        if (s.ok()) {
+          s = put(kLayerRecords, [&](const fs::path& f) {
+            return records::WriteRecords(tile.geometry, tile.records, f);
+          });
+        }
+        if (s.ok()) {
+          s = put(kLayerFusedDefault, [&](const fs::path& f) {
+            return records::WriteFused(tile.geometry, tile.fused, f);
+          });
+        }
+        status[t] = s;
+      }
+    });
+    for (const absl::Status& s : status) {
+      if (!s.ok()) return s;
+    }
+    return out;
   }
 };
 
@@ -174,6 +277,11 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Create(
     return absl::InvalidArgumentError(absl::StrCat("keep_versions must be >= 0; got ",
                                                    settings.keep_versions));
   }
+  const int T = settings.tile_vossels;
+  if (T < 8 || T > 512 || (T & (T - 1)) != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "tile_vossels must be a power of two from 8 to 512; got ", T));
+  }
   std::error_code ec;
   if (fs::exists(dir, ec)) {
     return absl::AlreadyExistsError(absl::StrCat("project directory ", dir.string(),
@@ -190,23 +298,25 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Create(
     return s;
   };
   fs::create_directories(tmp / kBlobsDir, ec);
-  if (!ec) fs::create_directories(tmp / kVersionsDir, ec);
+  if (!ec) fs::create_directories(tmp / kObjectsDir, ec);
   if (ec) return fail(internal::ErrnoError("cannot create", tmp, ec.value()));
   {
     absl::StatusOr<Db> db = Db::Open(tmp / kCatalogFile, /*create=*/true);
     if (!db.ok()) return fail(db.status());
     if (absl::Status s = internal::CreateSchema(*db); !s.ok()) return fail(s);
-    absl::StatusOr<Stmt> st = db->Prepare(
-        "INSERT INTO project(id, name, description, vossel_size_m, keep_versions, created_utc) "
-        "VALUES (1, ?1, ?2, ?3, ?4, ?5)");
-    if (!st.ok()) return fail(st.status());
-    st->Bind(1, name).Bind(2, settings.description).Bind(3, settings.vossel_size_m);
-    st->Bind(4, int64_t{settings.keep_versions}).Bind(5, internal::UtcNowIso8601());
-    if (absl::Status s = st->Run(); !s.ok()) return fail(s);
+    absl::Status s = RunSql(*db,
+        "INSERT INTO project(id, name, description, vossel_size_m, keep_versions, tile_vossels, "
+        "created_utc) VALUES (1, ?1, ?2, ?3, ?4, ?5, ?6)",
+        [&](Stmt& st) {
+          st.Bind(1, name).Bind(2, settings.description).Bind(3, settings.vossel_size_m);
+          st.Bind(4, int64_t{settings.keep_versions}).Bind(5, int64_t{T});
+          st.Bind(6, internal::UtcNowIso8601());
+        });
+    if (!s.ok()) return fail(s);
   }  // connection closed: the WAL is checkpointed before the rename
   for (absl::Status s : {internal::WriteFileDurable(tmp / kHeadFile, "0\n"),
                          internal::FsyncPath(tmp / kCatalogFile), internal::FsyncPath(tmp / kBlobsDir),
-                         internal::FsyncPath(tmp / kVersionsDir), internal::FsyncPath(tmp)}) {
+                         internal::FsyncPath(tmp / kObjectsDir), internal::FsyncPath(tmp)}) {
     if (!s.ok()) return fail(s);
   }
   fs::rename(tmp, dir, ec);
@@ -246,16 +356,20 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
     if (!st.ok()) return st.status();
     absl::StatusOr<bool> row = st->Step();
     if (!row.ok()) return row.status();
-    if (!*row || st->Int(0) > internal::kCatalogSchemaVersion) {
+    const int64_t schema = *row ? st->Int(0) : 0;
+    if (schema != internal::kCatalogSchemaVersion) {
       return absl::FailedPreconditionError(absl::StrCat(
-          "catalog ", (dir / kCatalogFile).string(), " has schema version ", *row ? st->Int(0) : 0,
-          "; this build reads up to ", internal::kCatalogSchemaVersion, ": upgrade vasl"));
+          "catalog ", (dir / kCatalogFile).string(), " has schema version ", schema,
+          "; this build reads version ", internal::kCatalogSchemaVersion,
+          (schema < internal::kCatalogSchemaVersion
+               ? " (an untiled project of an earlier vasl: ingest its scans into a new project)"
+               : ": upgrade vasl")));
     }
   }
   {
     absl::StatusOr<Stmt> st = impl->db.Prepare(
-        "SELECT name, description, vossel_size_m, keep_versions, created_utc FROM project "
-        "WHERE id = 1");
+        "SELECT name, description, vossel_size_m, keep_versions, tile_vossels, created_utc "
+        "FROM project WHERE id = 1");
     if (!st.ok()) return st.status();
     absl::StatusOr<bool> row = st->Step();
     if (!row.ok()) return row.status();
@@ -267,8 +381,12 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
     impl->settings.description = st->Text(1);
     impl->settings.vossel_size_m = st->Real(2);
     impl->settings.keep_versions = static_cast<int>(st->Int(3));
-    impl->created_utc = st->Text(4);
+    impl->settings.tile_vossels = static_cast<int>(st->Int(4));
+    impl->created_utc = st->Text(5);
   }
+  absl::StatusOr<std::unique_ptr<ObjectStore>> objects = OpenLocalObjectStore(dir / kObjectsDir);
+  if (!objects.ok()) return objects.status();
+  impl->objects = std::move(*objects);
   // HEAD is the truth: anything newer is the debris of an interrupted commit.
   if (absl::Status s = impl->RecoverToHead(*head); !s.ok()) return s;
   return std::unique_ptr<ProjectStore>(new ProjectStore(std::move(impl)));
@@ -279,26 +397,67 @@ const ProjectSettings& ProjectStore::settings() const { return impl_->settings; 
 const std::string& ProjectStore::created_utc() const { return impl_->created_utc; }
 const fs::path& ProjectStore::dir() const { return impl_->dir; }
 int64_t ProjectStore::head_version() const { return impl_->head.load(); }
+const ObjectStore& ProjectStore::objects() const { return *impl_->objects; }
 
 absl::StatusOr<VersionInfo> ProjectStore::HeadInfo() const {
-  VersionInfo info;
-  info.version = impl_->head.load();
-  if (info.version == 0) return info;
+  const int64_t head = impl_->head.load();
+  if (head == 0) return VersionInfo{};
+  absl::StatusOr<std::vector<VersionInfo>> all = ListVersions();
+  if (!all.ok()) return all.status();
+  for (const VersionInfo& v : *all) {
+    if (v.version == head) return v;
+  }
+  return absl::DataLossError(absl::StrCat("catalog has no row for HEAD version ", head,
+                                          " of project ", impl_->name));
+}
+
+absl::StatusOr<std::vector<VersionInfo>> ProjectStore::ListVersions() const {
+  const int64_t head = impl_->head.load();
   std::lock_guard<std::mutex> lock(impl_->db_mu);
   absl::StatusOr<Stmt> st = impl_->db.Prepare(
-      "SELECT vossel_count, record_count, created_utc FROM versions WHERE version = ?1");
+      "SELECT v.version, v.vossel_count, v.record_count, v.created_utc, v.made_by, "
+      "v.bytes_written, v.pinned, "
+      "(SELECT COUNT(*) FROM manifest m WHERE m.version = v.version AND m.layer = 'geometry'), "
+      "(SELECT COALESCE(SUM(bytes), 0) FROM manifest m WHERE m.version = v.version) "
+      "FROM versions v WHERE v.pruned = 0 AND v.version <= ?1 ORDER BY v.version");
   if (!st.ok()) return st.status();
-  st->Bind(1, info.version);
-  absl::StatusOr<bool> row = st->Step();
-  if (!row.ok()) return row.status();
-  if (!*row) {
-    return absl::DataLossError(absl::StrCat("catalog has no row for HEAD version ",
-                                            info.version, " of project ", impl_->name));
+  st->Bind(1, head);
+  std::vector<VersionInfo> out;
+  for (;;) {
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    VersionInfo v;
+    v.version = st->Int(0);
+    v.vossel_count = st->Int(1);
+    v.record_count = st->Int(2);
+    v.created_utc = st->Text(3);
+    v.made_by = st->Text(4);
+    v.bytes_written = st->Int(5);
+    v.pinned = st->Int(6) != 0;
+    v.tile_count = st->Int(7);
+    v.bytes_total = st->Int(8);
+    out.push_back(std::move(v));
   }
-  info.vossel_count = st->Int(0);
-  info.record_count = st->Int(1);
-  info.created_utc = st->Text(2);
-  return info;
+  return out;
+}
+
+absl::Status ProjectStore::SetPinned(int64_t version, bool pinned) {
+  absl::StatusOr<bool> kept = impl_->IsKept(version);
+  if (!kept.ok()) return kept.status();
+  if (!*kept || version > impl_->head.load()) {
+    return absl::NotFoundError(absl::StrCat("project ", impl_->name, " has no kept version ",
+                                            version));
+  }
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  return RunSql(impl_->db, "UPDATE versions SET pinned = ?2 WHERE version = ?1", [&](Stmt& st) {
+    st.Bind(1, version).Bind(2, int64_t{pinned ? 1 : 0});
+  });
+}
+
+absl::StatusOr<int64_t> ProjectStore::CollectGarbage() {
+  std::lock_guard<std::mutex> commit_lock(impl_->commit_mu);
+  return impl_->Collect();
 }
 
 absl::StatusOr<std::string> ProjectStore::PutBlob(std::string_view bytes) {
@@ -338,17 +497,18 @@ absl::StatusOr<std::string> ProjectStore::ReadBlob(const std::string& sha256) co
   return bytes;
 }
 
-absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans() const {
-  const int64_t head = impl_->head.load();
+absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) const {
+  const int64_t v = version == 0 ? impl_->head.load() : version;
   std::lock_guard<std::mutex> lock(impl_->db_mu);
   std::vector<ScanInfo> scans;
   std::map<int64_t, size_t> by_id;
   {
     absl::StatusOr<Stmt> st = impl_->db.Prepare(
         "SELECT id, name, rig, captured_utc, qx, qy, qz, qw, ox_m, oy_m, oz_m, batch, version, "
-        "created_utc FROM scans WHERE version <= ?1 ORDER BY id");
+        "created_utc, COALESCE(deleted_in, 0) FROM scans WHERE version <= ?1 "
+        "AND (deleted_in IS NULL OR deleted_in > ?1) ORDER BY id");
     if (!st.ok()) return st.status();
-    st->Bind(1, head);
+    st->Bind(1, v);
     for (;;) {
       absl::StatusOr<bool> row = st->Step();
       if (!row.ok()) return row.status();
@@ -362,6 +522,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans() const {
       s.batch = static_cast<int32_t>(st->Int(11));
       s.version = st->Int(12);
       s.created_utc = st->Text(13);
+      s.deleted_in = st->Int(14);
       by_id[s.id] = scans.size();
       scans.push_back(std::move(s));
     }
@@ -371,7 +532,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans() const {
       "width_px, height_px, divergence_rad, point_count FROM sources WHERE version <= ?1 "
       "ORDER BY id");
   if (!st.ok()) return st.status();
-  st->Bind(1, head);
+  st->Bind(1, v);
   for (;;) {
     absl::StatusOr<bool> row = st->Step();
     if (!row.ok()) return row.status();
@@ -395,7 +556,8 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans() const {
 
 absl::StatusOr<bool> ProjectStore::HasScan(const std::string& name) const {
   std::lock_guard<std::mutex> lock(impl_->db_mu);
-  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT 1 FROM scans WHERE name = ?1");
+  absl::StatusOr<Stmt> st =
+      impl_->db.Prepare("SELECT 1 FROM scans WHERE name = ?1 AND deleted_in IS NULL");
   if (!st.ok()) return st.status();
   st->Bind(1, name);
   return st->Step();
@@ -421,66 +583,167 @@ absl::StatusOr<int32_t> ProjectStore::NextBatchId() const {
   return static_cast<int32_t>(st->Int(0));
 }
 
+absl::StatusOr<std::set<tiles::TileKey>> ProjectStore::SourceTiles(int32_t source_id) const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT tx, ty, tz FROM source_tiles WHERE source_id = ?1 AND version <= ?2");
+  if (!st.ok()) return st.status();
+  st->Bind(1, int64_t{source_id}).Bind(2, impl_->head.load());
+  std::set<tiles::TileKey> out;
+  for (;;) {
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out.insert({int32_t(st->Int(0)), int32_t(st->Int(1)), int32_t(st->Int(2))});
+  }
+  return out;
+}
+
+absl::StatusOr<Manifest> ProjectStore::LoadManifest(int64_t version) const {
+  const int64_t head = impl_->head.load();
+  absl::StatusOr<bool> kept = impl_->IsKept(version);
+  if (!kept.ok()) return kept.status();
+  if (version <= 0 || version > head || !*kept) {
+    return absl::NotFoundError(absl::StrCat(
+        "project ", impl_->name, " has no version ", version, " (HEAD is ", head,
+        "; retention keeps the last ", impl_->settings.keep_versions, " before HEAD and pinned ones)"));
+  }
+  Manifest m;
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT tx, ty, tz, layer, object, vossels, records, bytes FROM manifest WHERE version = ?1");
+  if (!st.ok()) return st.status();
+  st->Bind(1, version);
+  for (;;) {
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    const tiles::TileKey key{int32_t(st->Int(0)), int32_t(st->Int(1)), int32_t(st->Int(2))};
+    m.tiles[key][st->Text(3)] = {st->Text(4), st->Int(5), st->Int(6), st->Int(7)};
+  }
+  absl::StatusOr<Stmt> rs =
+      impl_->db.Prepare("SELECT source_id, object FROM reach WHERE version = ?1");
+  if (!rs.ok()) return rs.status();
+  rs->Bind(1, version);
+  for (;;) {
+    absl::StatusOr<bool> row = rs->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    m.reach[int32_t(rs->Int(0))] = rs->Text(1);
+  }
+  return m;
+}
+
 absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(int64_t version) const {
   if (version < 0) {
     return absl::InvalidArgumentError(absl::StrCat("version must be >= 0; got ", version));
   }
   auto snap = std::make_shared<Snapshot>();
   snap->version = version;
+  snap->tile_vossels = impl_->settings.tile_vossels;
   snap->fused.profile = "default";
+  snap->geometry.vossel_size_m = impl_->settings.vossel_size_m;
   if (version == 0) {
-    snap->geometry.vossel_size_m = impl_->settings.vossel_size_m;
-    snap->geometry.index_grid = openvdb::Int32Grid::create(-1);
-    snap->geometry.index_grid->setTransform(
-        openvdb::math::Transform::createLinearTransform(impl_->settings.vossel_size_m));
-    snap->geometry.index_grid->setName("index");
-    snap->geometry.index_grid->setGridClass(openvdb::GRID_UNKNOWN);
+    records::CanonicalizeVosselOrder(snap->geometry);  // an empty index grid
     return std::shared_ptr<const Snapshot>(std::move(snap));
   }
-  absl::StatusOr<fs::path> dir = VersionDir(version);
-  if (!dir.ok()) return dir.status();
-  absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*dir / kGeometryFile);
-  if (!geometry.ok()) return geometry.status();
-  snap->geometry = std::move(*geometry);
-  absl::StatusOr<records::RecordSet> recs = records::ReadRecords(snap->geometry,
-                                                                 *dir / kRecordsFile);
-  if (!recs.ok()) return recs.status();
-  snap->records = std::move(*recs);
-  std::error_code ec;
-  if (fs::exists(*dir / kFusedFile, ec)) {
-    absl::StatusOr<records::FusedValues> fused =
-        records::ReadFused(snap->geometry, *dir / kFusedFile);
-    if (!fused.ok()) return fused.status();
-    snap->fused = std::move(*fused);
+  absl::StatusOr<Manifest> manifest = LoadManifest(version);
+  if (!manifest.ok()) return manifest.status();
+  snap->manifest = std::move(*manifest);
+  std::vector<std::pair<tiles::TileKey, const std::map<std::string, ManifestEntry>*>> todo;
+  for (const auto& [key, layers] : snap->manifest.tiles) todo.emplace_back(key, &layers);
+  std::vector<tiles::TileContents> loaded(todo.size());
+  std::vector<absl::Status> status(todo.size());
+  const ObjectStore& objects = *impl_->objects;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, todo.size(), 1),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t t = r.begin(); t != r.end(); ++t) {
+      tiles::TileContents& tile = loaded[t];
+      tile.key = todo[t].first;
+      const auto& layers = *todo[t].second;
+      auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
+        auto it = layers.find(layer);
+        if (it == layers.end()) {
+          return absl::DataLossError(absl::StrCat("version ", version, " tile ",
+                                                  tiles::ToString(tile.key), " has no ", layer));
+        }
+        return objects.LocalPath(it->second.object);
+      };
+      absl::StatusOr<fs::path> g = path_of(kLayerGeometry);
+      absl::StatusOr<fs::path> rec = path_of(kLayerRecords);
+      absl::StatusOr<fs::path> fu = path_of(kLayerFusedDefault);
+      for (const auto* p : {&g, &rec, &fu}) {
+        if (!p->ok()) {
+          status[t] = p->status();
+          break;
+        }
+      }
+      if (!status[t].ok()) continue;
+      absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*g);
+      if (!geometry.ok()) {
+        status[t] = geometry.status();
+        continue;
+      }
+      tile.geometry = std::move(*geometry);
+      absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
+      if (!recs.ok()) {
+        status[t] = recs.status();
+        continue;
+      }
+      tile.records = std::move(*recs);
+      absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
+      if (!fused.ok()) {
+        status[t] = fused.status();
+        continue;
+      }
+      tile.fused = std::move(*fused);
+    }
+  });
+  for (const absl::Status& s : status) {
+    if (!s.ok()) return s;
+  }
+  tiles::Assembled all = tiles::AssembleTiles(std::move(loaded), impl_->settings.vossel_size_m);
+  snap->geometry = std::move(all.geometry);
+  snap->records = std::move(all.records);
+  snap->fused = std::move(all.fused);
+  if (snap->fused.profile.empty()) snap->fused.profile = "default";
+  for (const auto& [source, object] : snap->manifest.reach) {
+    absl::StatusOr<std::string> bytes = objects.ReadBytes(object);
+    if (!bytes.ok()) return bytes.status();
+    absl::StatusOr<tiles::ReachRaster> reach = tiles::ParseReach(*bytes);
+    if (!reach.ok()) {
+      return absl::DataLossError(absl::StrCat("reach object ", object, ": ", reach.status().message()));
+    }
+    snap->reach[source] = std::move(*reach);
   }
   return std::shared_ptr<const Snapshot>(std::move(snap));
 }
 
-absl::StatusOr<int64_t> ProjectStore::CommitScan(const Snapshot& snapshot, const ScanInfo& scan) {
+absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const CommitPlan& plan) {
   Impl& im = *impl_;
   std::lock_guard<std::mutex> commit_lock(im.commit_mu);
   const CommitStage fault = std::exchange(im.fault_stage, CommitStage::kNone);
   const bool crash = im.fault_crash;
-  auto injected = [&](CommitStage stage) { return fault == stage; };
   auto injected_error = [](const char* where) {
     return absl::InternalError(absl::StrCat("injected commit failure after ", where));
   };
 
   // Bad input never changes the project: validate everything before writing.
-  if (scan.name.empty()) return absl::InvalidArgumentError("scan name must not be empty");
-  absl::StatusOr<bool> exists = HasScan(scan.name);
-  if (!exists.ok()) return exists.status();
-  if (*exists) {
-    return absl::AlreadyExistsError(absl::StrCat("scan \"", scan.name,
-                                                 "\" already exists in project ", im.name));
-  }
   if (std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
       1e-9 * im.settings.vossel_size_m) {
     return absl::InvalidArgumentError(
         absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
                      " m differs from the project's ", im.settings.vossel_size_m, " m"));
   }
-  {
+  if (plan.add_scan) {
+    const ScanInfo& scan = *plan.add_scan;
+    if (scan.name.empty()) return absl::InvalidArgumentError("scan name must not be empty");
+    absl::StatusOr<bool> exists = HasScan(scan.name);
+    if (!exists.ok()) return exists.status();
+    if (*exists) {
+      return absl::AlreadyExistsError(absl::StrCat("scan \"", scan.name,
+                                                   "\" already exists in project ", im.name));
+    }
     std::lock_guard<std::mutex> lock(im.db_mu);
     for (const SourceInfo& src : scan.sources) {
       absl::StatusOr<Stmt> st = im.db.Prepare("SELECT 1 FROM sources WHERE id = ?1");
@@ -495,159 +758,212 @@ absl::StatusOr<int64_t> ProjectStore::CommitScan(const Snapshot& snapshot, const
       }
     }
   }
-
+  if (!plan.delete_scan.empty()) {
+    absl::StatusOr<bool> exists = HasScan(plan.delete_scan);
+    if (!exists.ok()) return exists.status();
+    if (!*exists) {
+      return absl::NotFoundError(absl::StrCat("project ", im.name, " has no scan \"",
+                                              plan.delete_scan, "\""));
+    }
+  }
   const int64_t head = im.head.load();
   const int64_t version = head + 1;
-  const fs::path final_dir = im.version_dir(version);
-  const fs::path tmp = im.versions_dir() /
-                       absl::StrCat(kTmpPrefix, version, "-", internal::RandomHex(12));
-  bool catalog_committed = false;
-  // Undo of a failed commit (not after a simulated crash): HEAD still names `head`.
-  auto fail = [&](absl::Status s) {
-    RemoveAll(tmp).IgnoreError();
-    RemoveAll(final_dir).IgnoreError();
-    if (catalog_committed) {
-      std::lock_guard<std::mutex> lock(im.db_mu);
-      internal::DropRowsNewerThan(im.db, head).IgnoreError();
+  Manifest manifest;
+  if (head > 0 && !plan.replace_all) {
+    absl::StatusOr<Manifest> previous = LoadManifest(head);
+    if (!previous.ok()) return previous.status();
+    manifest = std::move(*previous);
+  }
+
+  // 1. Objects of the changed tiles and reach rasters, fsynced. Nothing refers to them until
+  //    the catalog does, so a failure here leaves only garbage for the next collection.
+  std::set<tiles::TileKey> geometry_tiles = plan.geometry_tiles, record_tiles = plan.record_tiles;
+  if (plan.replace_all) {
+    geometry_tiles.clear();
+    for (const auto& [key, members] :
+         tiles::VosselsByTile(snapshot.geometry, im.settings.tile_vossels)) {
+      geometry_tiles.insert(key);
     }
-    internal::FsyncPath(im.versions_dir()).IgnoreError();
-    return s;
-  };
+  }
+  for (const tiles::TileKey& key : geometry_tiles) record_tiles.erase(key);
+  int64_t bytes_written = 0;
+  for (const auto* set : {&geometry_tiles, &record_tiles}) {
+    const bool with_geometry = set == &geometry_tiles;
+    absl::StatusOr<std::vector<WrittenTile>> written = im.WriteTiles(snapshot, *set, with_geometry);
+    if (!written.ok()) return written.status();
+    for (WrittenTile& w : *written) {
+      if (w.layers.empty()) {
+        manifest.tiles.erase(w.key);
+        continue;
+      }
+      for (auto& [layer, entry] : w.layers) {
+        bytes_written += entry.bytes;
+        manifest.tiles[w.key][layer] = entry;
+      }
+      if (!with_geometry && !manifest.tiles[w.key].count(kLayerGeometry)) {
+        return absl::InternalError(absl::StrCat("commit: tile ", tiles::ToString(w.key),
+                                                " has new records but no geometry object"));
+      }
+      for (auto& [layer, entry] : manifest.tiles[w.key]) {  // counts follow the new contents
+        entry.vossels = w.layers.begin()->second.vossels;
+        if (layer == kLayerRecords) entry.records = w.layers.at(kLayerRecords).records;
+      }
+    }
+  }
+  std::set<int32_t> reach_sources = plan.reach_sources;
+  if (plan.replace_all) {
+    manifest.reach.clear();
+    for (const auto& [source, raster] : snapshot.reach) reach_sources.insert(source);
+  }
+  for (int32_t source : reach_sources) {
+    auto it = snapshot.reach.find(source);
+    if (it == snapshot.reach.end()) {
+      return absl::InternalError(absl::StrCat("commit: no reach raster for source ", source));
+    }
+    absl::StatusOr<StoredObject> obj = im.objects->PutBytes(tiles::SerializeReach(it->second));
+    if (!obj.ok()) return obj.status();
+    bytes_written += obj->bytes;
+    manifest.reach[source] = obj->sha256;
+  }
+  for (int32_t source : plan.drop_reach) manifest.reach.erase(source);
+  if (absl::Status s = im.objects->Sync(); !s.ok()) return s;
+  if (fault == CommitStage::kAfterObjects) {
+    if (!crash) im.Collect().IgnoreError();
+    return injected_error("objects");
+  }
 
-  // 1. The version's files, in a temp dir, fsynced.
-  std::error_code ec;
-  RemoveAll(final_dir).IgnoreError();  // debris of an earlier failed attempt, never committed
-  fs::create_directory(tmp, ec);
-  if (ec) return fail(internal::ErrnoError("cannot create", tmp, ec.value()));
-  for (absl::Status s :
-       {records::WriteGeometry(snapshot.geometry, tmp / kGeometryFile),
-        records::WriteRecords(snapshot.geometry, snapshot.records, tmp / kRecordsFile),
-        records::WriteFused(snapshot.geometry, snapshot.fused, tmp / kFusedFile),
-        internal::FsyncDirectoryTree(tmp)}) {
-    if (!s.ok()) return fail(s);
-  }
-  if (injected(CommitStage::kAfterFiles)) {
-    return crash ? injected_error("files") : fail(injected_error("files"));
-  }
-
-  // 2. Rename into place; versions/<n> is invisible to readers until HEAD names it.
-  if (::rename(tmp.c_str(), final_dir.c_str()) != 0) {
-    return fail(internal::ErrnoError("cannot rename version into place at", final_dir, errno));
-  }
-  if (absl::Status s = internal::FsyncPath(im.versions_dir()); !s.ok()) return fail(s);
-  if (injected(CommitStage::kAfterVersionRename)) {
-    return crash ? injected_error("version rename") : fail(injected_error("version rename"));
-  }
-
-  // 3. Catalog rows, one transaction.
+  // 2. Catalog rows, one transaction.
   {
     std::lock_guard<std::mutex> lock(im.db_mu);
     const std::string now = internal::UtcNowIso8601();
     absl::Status s = im.db.Exec("BEGIN IMMEDIATE;");
-    auto run = [&](std::string_view sql, auto&& bind) -> absl::Status {
-      if (!s.ok()) return s;
-      absl::StatusOr<Stmt> st = im.db.Prepare(sql);
-      if (!st.ok()) return st.status();
-      bind(*st);
-      return st->Run();
+    auto run = [&](std::string_view sql, auto&& bind) {
+      if (s.ok()) s = RunSql(im.db, sql, bind);
     };
-    s = run("INSERT INTO versions(version, vossel_count, record_count, created_utc) "
-            "VALUES (?1, ?2, ?3, ?4)",
+    run("INSERT INTO versions(version, vossel_count, record_count, created_utc, made_by, "
+        "bytes_written) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        [&](Stmt& st) {
+          st.Bind(1, version).Bind(2, int64_t(snapshot.geometry.size()));
+          st.Bind(3, int64_t(snapshot.records.size())).Bind(4, now).Bind(5, plan.made_by);
+          st.Bind(6, bytes_written);
+        });
+    for (const auto& [key, layers] : manifest.tiles) {
+      for (const auto& [layer, e] : layers) {
+        run("INSERT INTO manifest(version, tx, ty, tz, layer, object, vossels, records, bytes) "
+            "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
             [&](Stmt& st) {
-              st.Bind(1, version).Bind(2, int64_t(snapshot.geometry.size()));
-              st.Bind(3, int64_t(snapshot.records.size())).Bind(4, now);
+              st.Bind(1, version).Bind(2, int64_t{key.x}).Bind(3, int64_t{key.y});
+              st.Bind(4, int64_t{key.z}).Bind(5, layer).Bind(6, e.object).Bind(7, e.vossels);
+              st.Bind(8, e.records).Bind(9, e.bytes);
             });
-    s = run("INSERT INTO scans(name, rig, captured_utc, qx, qy, qz, qw, ox_m, oy_m, oz_m, "
-            "batch, version, created_utc) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, "
-            "?11, ?12, ?13)",
-            [&](Stmt& st) {
-              st.Bind(1, scan.name).Bind(2, scan.rig).Bind(3, scan.captured_utc);
-              BindPose(st, 4, scan.pose);
-              st.Bind(11, int64_t{scan.batch}).Bind(12, version).Bind(13, now);
-            });
-    int64_t scan_id = 0;
-    if (s.ok()) {
-      absl::StatusOr<Stmt> st = im.db.Prepare("SELECT id FROM scans WHERE name = ?1");
-      absl::StatusOr<bool> row = st.ok() ? st->Bind(1, scan.name).Step() : st.status();
-      if (!row.ok()) s = row.status();
-      else if (*row) scan_id = st->Int(0);
+      }
     }
-    for (const SourceInfo& src : scan.sources) {
-      s = run("INSERT INTO sources(id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, "
-              "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version) "
-              "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
-              "?17)",
+    for (const auto& [source, object] : manifest.reach) {
+      run("INSERT INTO reach(version, source_id, object) VALUES (?1, ?2, ?3)", [&](Stmt& st) {
+        st.Bind(1, version).Bind(2, int64_t{source}).Bind(3, object);
+      });
+    }
+    if (!plan.delete_scan.empty()) {
+      run("UPDATE scans SET deleted_in = ?2 WHERE name = ?1 AND deleted_in IS NULL",
+          [&](Stmt& st) { st.Bind(1, plan.delete_scan).Bind(2, version); });
+    }
+    if (plan.add_scan) {
+      const ScanInfo& scan = *plan.add_scan;
+      run("INSERT INTO scans(name, rig, captured_utc, qx, qy, qz, qw, ox_m, oy_m, oz_m, "
+          "batch, version, created_utc) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, "
+          "?11, ?12, ?13)",
+          [&](Stmt& st) {
+            st.Bind(1, scan.name).Bind(2, scan.rig).Bind(3, scan.captured_utc);
+            BindPose(st, 4, scan.pose);
+            st.Bind(11, int64_t{scan.batch}).Bind(12, version).Bind(13, now);
+          });
+      int64_t scan_id = 0;
+      if (s.ok()) {
+        absl::StatusOr<Stmt> st =
+            im.db.Prepare("SELECT id FROM scans WHERE name = ?1 AND deleted_in IS NULL");
+        absl::StatusOr<bool> row = st.ok() ? st->Bind(1, scan.name).Step() : st.status();
+        if (!row.ok()) s = row.status();
+        else if (*row) scan_id = st->Int(0);
+      }
+      for (const SourceInfo& src : scan.sources) {
+        run("INSERT INTO sources(id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, "
+            "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version) "
+            "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
+            "?17)",
+            [&](Stmt& st) {
+              st.Bind(1, int64_t{src.id}).Bind(2, scan_id).Bind(3, src.name);
+              st.Bind(4, int64_t{static_cast<int>(src.modality)});
+              BindPose(st, 5, src.pose);
+              st.Bind(12, src.blob_sha256).Bind(13, int64_t{src.width_px});
+              st.Bind(14, int64_t{src.height_px}).Bind(15, src.divergence_rad);
+              st.Bind(16, src.point_count).Bind(17, version);
+            });
+      }
+      for (const auto& [source, keys] : plan.source_tiles) {
+        for (const tiles::TileKey& key : keys) {
+          run("INSERT OR IGNORE INTO source_tiles(source_id, tx, ty, tz, version) "
+              "VALUES (?1, ?2, ?3, ?4, ?5)",
               [&](Stmt& st) {
-                st.Bind(1, int64_t{src.id}).Bind(2, scan_id).Bind(3, src.name);
-                st.Bind(4, int64_t{static_cast<int>(src.modality)});
-                BindPose(st, 5, src.pose);
-                st.Bind(12, src.blob_sha256).Bind(13, int64_t{src.width_px});
-                st.Bind(14, int64_t{src.height_px}).Bind(15, src.divergence_rad);
-                st.Bind(16, src.point_count).Bind(17, version);
+                st.Bind(1, int64_t{source}).Bind(2, int64_t{key.x}).Bind(3, int64_t{key.y});
+                st.Bind(4, int64_t{key.z}).Bind(5, version);
               });
+        }
+      }
+      run("INSERT OR IGNORE INTO batches(id, kind, scan_id, version, created_utc) "
+          "VALUES (?1, 'ingest', ?2, ?3, ?4)",
+          [&](Stmt& st) {
+            st.Bind(1, int64_t{scan.batch}).Bind(2, scan_id).Bind(3, version).Bind(4, now);
+          });
     }
-    s = run("INSERT OR IGNORE INTO batches(id, kind, scan_id, version, created_utc) "
-            "VALUES (?1, 'ingest', ?2, ?3, ?4)",
-            [&](Stmt& st) {
-              st.Bind(1, int64_t{scan.batch}).Bind(2, scan_id).Bind(3, version).Bind(4, now);
-            });
     if (s.ok()) s = im.db.Exec("COMMIT;");
     if (!s.ok()) {
       im.db.Exec("ROLLBACK;").IgnoreError();
-      if (absl::IsAlreadyExists(s)) {
-        s = absl::AlreadyExistsError(absl::StrCat("scan \"", scan.name, "\" or one of its "
-                                                  "source ids already exists in project ",
-                                                  im.name, " (", s.message(), ")"));
+      if (absl::IsAlreadyExists(s) && plan.add_scan) {
+        s = absl::AlreadyExistsError(absl::StrCat("scan \"", plan.add_scan->name,
+                                                  "\" or one of its source ids already exists "
+                                                  "in project ", im.name, " (", s.message(), ")"));
       }
+      return s;  // objects written above are garbage for the next collection
     }
-    if (!s.ok()) {
-      // Not yet committed: nothing to drop in the catalog.
-      RemoveAll(final_dir).IgnoreError();
-      internal::FsyncPath(im.versions_dir()).IgnoreError();
-      return s;
-    }
-    catalog_committed = true;
   }
-  if (injected(CommitStage::kAfterCatalog)) {
-    return crash ? injected_error("catalog") : fail(injected_error("catalog"));
+  auto undo_catalog = [&](absl::Status s) {
+    {
+      std::lock_guard<std::mutex> lock(im.db_mu);
+      internal::DropRowsNewerThan(im.db, head).IgnoreError();
+    }
+    im.Collect().IgnoreError();
+    return s;
+  };
+  if (fault == CommitStage::kAfterCatalog) {
+    return crash ? injected_error("catalog") : undo_catalog(injected_error("catalog"));
   }
 
-  // 4. HEAD, atomically: the commit point.
+  // 3. HEAD, atomically: the commit point.
   if (absl::Status s = internal::ReplaceFileAtomically(im.dir / kHeadFile,
                                                        absl::StrCat(version, "\n"));
       !s.ok()) {
     // If the rename itself happened, HEAD names the new version: it is committed.
     absl::StatusOr<std::string> text = internal::ReadWholeFile(im.dir / kHeadFile);
-    if (!text.ok() || ParseVersion(*text) != version) return fail(s);
+    if (!text.ok() || ParseVersion(*text) != version) return undo_catalog(s);
   }
   im.head = version;
-  im.Prune(version);
+  im.Collect().IgnoreError();  // best effort: a failure leaves garbage for the next one
   return version;
-}
-
-absl::StatusOr<fs::path> ProjectStore::VersionDir(int64_t version) const {
-  const int64_t head = impl_->head.load();
-  if (version <= 0 || version > head) {
-    return absl::NotFoundError(absl::StrCat("project ", impl_->name, " has no version ", version,
-                                            " on disk (HEAD is ", head,
-                                            "; version 0 is the empty project)"));
-  }
-  const fs::path dir = impl_->version_dir(version);
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) {
-    return absl::NotFoundError(absl::StrCat("version ", version, " of project ", impl_->name,
-                                            " was pruned by retention (keep_versions = ",
-                                            impl_->settings.keep_versions, ", HEAD is ", head,
-                                            ")"));
-  }
-  return dir;
 }
 
 absl::StatusOr<std::vector<records::AttributeInfo>> ProjectStore::InspectRecords(
     int64_t version) const {
-  absl::StatusOr<fs::path> dir = VersionDir(version);
-  if (!dir.ok()) return dir.status();
-  return records::ListRecordAttributes(*dir / kRecordsFile);
+  absl::StatusOr<Manifest> m = LoadManifest(version);
+  if (!m.ok()) return m.status();
+  for (const auto& [key, layers] : m->tiles) {
+    auto it = layers.find(kLayerRecords);
+    if (it == layers.end() || it->second.records == 0) continue;
+    absl::StatusOr<fs::path> path = impl_->objects->LocalPath(it->second.object);
+    if (!path.ok()) return path.status();
+    return records::ListRecordAttributes(*path);
+  }
+  return absl::FailedPreconditionError(
+      absl::StrCat("version ", version, " of project ", impl_->name, " holds no records"));
 }
 
 void ProjectStore::InjectCommitFailureForTesting(CommitStage stage, bool simulate_crash) {

@@ -1,21 +1,29 @@
 /// @file project_store.h
-/// @brief One project on disk: catalog.sqlite (WAL), content-addressed blobs, immutable
-///        versions and an atomically replaced HEAD (ARCHITECTURE.md, "Storage of one project").
+/// @brief One project on disk: catalog.sqlite (WAL), content-addressed blobs, tiled versions
+///        whose tile files are content-addressed objects, and an atomically replaced HEAD
+///        (ARCHITECTURE.md, "Storage of one project").
 /// @details Layout of `<data-dir>/<project>/`:
-///            catalog.sqlite   settings, scans, sources, batches, versions (WAL mode)
+///            catalog.sqlite   settings, scans, sources, batches, versions and their manifests
 ///            blobs/<sha256>   raw inputs: packed LiDAR points, encoded images
-///            versions/<n>/    records.vdb, geometry.vdb, fused-<profile>.vdb
+///            objects/<sha256> tile files (plain OpenVDB: geometry, records, fused-default per
+///                             tile) and reach rasters, through the ObjectStore interface
 ///            HEAD             the committed version number, replaced by atomic rename
-///          A commit writes versions/<n+1>/ beside the old one, fsyncs, commits the catalog
-///          rows, then renames HEAD. A crash at any point leaves the previous version intact;
-///          catalog rows of a version newer than HEAD are dropped on Open.
+///          A version is a manifest: for each tile and layer the hash of its object, and for
+///          each source the hash of its reach raster. A commit writes only the objects of the
+///          tiles it changed (fsynced), then the catalog rows of the new manifest in one
+///          transaction, then renames HEAD. A crash at any point leaves the previous version
+///          intact: catalog rows newer than HEAD are dropped on Open, and objects no kept
+///          version references are collected.
 /// @warning One writer per project at a time (the caller serialises commits); readers may load
 ///          snapshots concurrently with a writer.
 #pragma once
 
 #include <cstdint>
 #include <filesystem>
+#include <map>
 #include <memory>
+#include <optional>
+#include <set>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -23,6 +31,8 @@
 #include "absl/status/statusor.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
+#include "lattice/store/object_store.h"
+#include "lattice/tiles/tiling.h"
 
 namespace vasl::store {
 
@@ -30,7 +40,8 @@ namespace vasl::store {
 struct ProjectSettings {
   double vossel_size_m = 0.02;  ///< vossel edge h, metres (§1)
   std::string description;      ///< free text
-  int keep_versions = 5;        ///< retention: versions kept besides HEAD's
+  int keep_versions = 5;        ///< retention: versions kept besides HEAD's (and pinned ones)
+  int tile_vossels = tiles::kDefaultTileVossels;  ///< tile edge T in vossels (power of 2, 8-512)
 };
 
 /// One observation source: the LiDAR of a scan, or one of its cameras. Its id is the `scan`
@@ -57,16 +68,39 @@ struct ScanInfo {
   geometry::Pose pose;              ///< the scan's (LiDAR's) pose
   int32_t batch = 0;                ///< batch id of its records
   int64_t version = 0;              ///< version that committed it
+  int64_t deleted_in = 0;           ///< version that deleted it; 0: not deleted
   std::string created_utc;          ///< server time of ingest, ISO 8601
   std::vector<SourceInfo> sources;
 };
 
-/// An immutable version of a project.
+/// One object of a version's manifest.
+struct ManifestEntry {
+  std::string object;    ///< sha256 of the object (objects/<sha256>)
+  int64_t vossels = 0;   ///< vossels of the tile
+  int64_t records = 0;   ///< records of the tile (records layer)
+  int64_t bytes = 0;     ///< size of the object
+};
+
+/// Layers of a tile: its geometry, its records and its fused values under a profile.
+inline constexpr char kLayerGeometry[] = "geometry";
+inline constexpr char kLayerRecords[] = "records";
+inline constexpr char kLayerFusedDefault[] = "fused-default";
+
+/// A version's manifest: per tile and layer its object; per source its reach raster.
+struct Manifest {
+  std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> tiles;
+  std::map<int32_t, std::string> reach;  ///< source id → reach raster object
+};
+
+/// An immutable version of a project, loaded whole into memory.
 struct Snapshot {
   int64_t version = 0;  ///< 0: the empty project
-  records::VosselGeometry geometry;
-  records::RecordSet records;
-  records::FusedValues fused;  ///< under the default profile
+  int tile_vossels = tiles::kDefaultTileVossels;
+  records::VosselGeometry geometry;  ///< every vossel, canonical order, with sums
+  records::RecordSet records;        ///< sorted by vossel
+  records::FusedValues fused;        ///< under the default profile
+  Manifest manifest;
+  std::map<int32_t, tiles::ReachRaster> reach;  ///< source id → its reach raster
 };
 
 /// Summary of a committed version, kept in the catalog.
@@ -74,7 +108,34 @@ struct VersionInfo {
   int64_t version = 0;
   int64_t vossel_count = 0;
   int64_t record_count = 0;
+  int64_t tile_count = 0;
+  int64_t bytes_written = 0;  ///< bytes of the objects this version's commit wrote
+  int64_t bytes_total = 0;    ///< bytes of every object its manifest references
+  std::string made_by;        ///< "ingest scan S", "rebuild", "delete scan S", ...
+  bool pinned = false;
   std::string created_utc;
+};
+
+/// What a commit changes (the single writer builds it next to the new snapshot).
+struct CommitPlan {
+  std::string made_by;
+  /// Tiles whose geometry changed: all their layers are rewritten (a tile left without vossels
+  /// leaves the manifest).
+  std::set<tiles::TileKey> geometry_tiles;
+  /// Tiles whose records (and so fused values) changed; their geometry object is kept.
+  std::set<tiles::TileKey> record_tiles;
+  /// Sources whose reach raster changed (taken from the snapshot).
+  std::set<int32_t> reach_sources;
+  /// Sources whose reach raster leaves the manifest (a deleted scan's).
+  std::set<int32_t> drop_reach;
+  /// Every tile and reach raster of the snapshot is written; the previous manifest is dropped.
+  bool replace_all = false;
+  /// A scan to add (its sources must carry ids from NextSourceId).
+  std::optional<ScanInfo> add_scan;
+  /// Tiles each added LiDAR source has returns in.
+  std::map<int32_t, std::set<tiles::TileKey>> source_tiles;
+  /// Name of a scan this version deletes.
+  std::string delete_scan;
 };
 
 class ProjectStore {
@@ -101,35 +162,52 @@ class ProjectStore {
   absl::StatusOr<std::string> ReadBlob(const std::string& sha256) const;
 
   /// Scans in ingest order, with their sources.
-  absl::StatusOr<std::vector<ScanInfo>> ListScans() const;
+  /// (`version`: the scans of that version; 0: HEAD's. Deleted scans are not listed.)
+  absl::StatusOr<std::vector<ScanInfo>> ListScans(int64_t version = 0) const;
   /// True if a scan with this client name exists.
   absl::StatusOr<bool> HasScan(const std::string& name) const;
   /// Next unused source id / batch id (valid until the next commit; single writer).
   absl::StatusOr<int32_t> NextSourceId() const;
   absl::StatusOr<int32_t> NextBatchId() const;
 
+  /// Tiles in which a LiDAR source has returns (recorded when its scan was committed).
+  absl::StatusOr<std::set<tiles::TileKey>> SourceTiles(int32_t source_id) const;
+
   /// Loads version `version` (0: an empty snapshot with this project's vossel size).
+  /// NOT_FOUND when it does not exist or retention removed it.
   absl::StatusOr<std::shared_ptr<const Snapshot>> LoadSnapshot(int64_t version) const;
+  /// The manifest of a kept version.
+  absl::StatusOr<Manifest> LoadManifest(int64_t version) const;
 
-  /// Atomic commit of a new version holding `snapshot` and the catalog rows of `scan`
-  /// (its sources must carry the ids the records use). Returns the new version number.
-  absl::StatusOr<int64_t> CommitScan(const Snapshot& snapshot, const ScanInfo& scan);
+  /// Atomic commit of a new version: `snapshot` holds the whole new state, `plan` says what
+  /// changed. Writes the changed tiles' objects, the manifest rows, the scan rows, then HEAD;
+  /// runs retention. Returns the new version number.
+  absl::StatusOr<int64_t> Commit(const Snapshot& snapshot, const CommitPlan& plan);
 
-  /// Directory of a committed version; NOT_FOUND if it does not exist.
-  absl::StatusOr<std::filesystem::path> VersionDir(int64_t version) const;
-  /// Lists the record attributes of a version's records.vdb (type, codec, stride).
+  /// Versions still kept (not removed by retention), oldest first.
+  absl::StatusOr<std::vector<VersionInfo>> ListVersions() const;
+  /// Pins (or unpins) a version: a pinned version survives retention. NOT_FOUND if not kept.
+  absl::Status SetPinned(int64_t version, bool pinned);
+  /// Retention: versions older than the newest keep_versions + 1 and not pinned are dropped,
+  /// then every object and blob that no kept version references is removed. Returns the number
+  /// of files removed.
+  absl::StatusOr<int64_t> CollectGarbage();
+
+  /// The object store holding tile files and reach rasters.
+  const ObjectStore& objects() const;
+  /// Lists the record attributes of a version's records (type, codec, stride) from one of its
+  /// tile files.
   absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(int64_t version) const;
 
-  /// Points of CommitScan after which a test can inject a failure.
+  /// Points of Commit after which a test can inject a failure.
   enum class CommitStage {
-    kNone,                ///< no injected failure
-    kAfterFiles,          ///< version files written and fsynced in the temp dir
-    kAfterVersionRename,  ///< temp dir renamed to versions/<n>
-    kAfterCatalog,        ///< catalog rows committed, HEAD not yet replaced
+    kNone,          ///< no injected failure
+    kAfterObjects,  ///< tile objects written and fsynced
+    kAfterCatalog,  ///< catalog rows committed, HEAD not yet replaced
   };
-  /// Test hook: the next CommitScan fails with INTERNAL right after `stage`. With
-  /// `simulate_crash` it returns without any cleanup, leaving the disk as a crash at that point
-  /// would (a later Open must recover); otherwise it cleans up as for a real IO failure.
+  /// Test hook: the next Commit fails with INTERNAL right after `stage`. With `simulate_crash`
+  /// it returns without any cleanup, leaving the disk as a crash at that point would (a later
+  /// Open must recover); otherwise it cleans up as for a real IO failure.
   void InjectCommitFailureForTesting(CommitStage stage, bool simulate_crash);
 
  private:

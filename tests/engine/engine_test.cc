@@ -245,7 +245,9 @@ TEST_F(EngineTest, ReopenedStoreServesTheSameProject) {
   EXPECT_GT(image->hit_pixels, 256 * 128 * 9 / 10);
   auto attrs = (*other)->InspectRecords("room", 0);
   ASSERT_TRUE(attrs.ok()) << attrs.status();
-  EXPECT_GE(attrs->size(), 11u);
+  EXPECT_GE(attrs->attributes.size(), 11u);
+  EXPECT_GE(attrs->tile_count, 1);
+  EXPECT_EQ(attrs->record_count, (*other)->GetProject("room")->record_count);
 }
 
 }  // namespace

@@ -1,6 +1,7 @@
 /// @file synthetic_scene.cc
-/// @brief The canonical synthetic room, its ray caster, LiDAR and panorama simulators, and the
-///        writers of the files a rig sends (PLY, PNG) and of the ground truth (.npy).
+/// @brief The canonical synthetic room, the ray-box helpers every Scene shares, the LiDAR and
+///        panorama simulators, and the writers of the files a rig sends (PLY, PNG) and of the
+///        ground truth (.npy).
 #include "tests/scenes/synthetic_scene.h"
 
 #include <OpenImageIO/filesystem.h>
@@ -52,7 +53,14 @@ struct FaceTexture {
 /// band of σ = 0.4 m: smooth at the 0.3 m scale, so a 0.05 m-vossel render can reproduce them
 /// (the albedo changes by < 0.08 over any 0.05 m step; RMS change ≈ 0.02).
 /// The occluder is orange; the wall behind it (y = max) is blue-grey: a strong silhouette.
-const FaceTexture& TextureOf(int face) {
+/// Extra boxes are magenta with a yellow band, at the occluder's scales (phase per box and side).
+FaceTexture TextureOf(int face) {
+  if (face >= kFaceCount) {
+    const int k = (face - kFaceCount) / kBoxSideCount;
+    const int side = (face - kFaceCount) % kBoxSideCount;
+    return {{0.88f, 0.22f, 0.42f}, {0.95f, 0.78f, 0.30f}, 1.5, 1.6, side + 0.7 * k, 0.5, 1,
+            1.2, 0.40};
+  }
   static const FaceTexture kTextures[kFaceCount] = {
       // floor: warm grey-brown, cream band across x
       {{0.60f, 0.48f, 0.36f}, {0.92f, 0.86f, 0.70f}, 2.1, 1.7, 0.3, 1.1, 0, 1.6, 0.45},
@@ -77,28 +85,23 @@ const FaceTexture& TextureOf(int face) {
   return kTextures[face];
 }
 
+/// Axis (0, 1, 2) a face (≥ 0; extra boxes' faces included) is normal to.
+int FaceAxis(int face) {
+  static const int kAxis[kFaceCount] = {2, 2, 0, 0, 1, 1, 0, 0, 1, 1, 2, 2};
+  if (face >= kFaceCount) return BoxSideAxis((face - kFaceCount) % kBoxSideCount);
+  return kAxis[face];
+}
+
 /// The in-plane coordinates (s, t) of a face: the two world axes spanning it, in x, y, z order.
 Eigen::Vector2d FaceCoords(const Vector3d& x, int face) {
-  switch (face) {
-    case kFaceFloor:
-    case kFaceCeiling:
-    case kFaceBoxTop:
-    case kFaceBoxBottom:
+  switch (FaceAxis(face)) {
+    case 2:
       return {x.x(), x.y()};
-    case kFaceWallXMin:
-    case kFaceWallXMax:
-    case kFaceBoxXMin:
-    case kFaceBoxXMax:
+    case 0:
       return {x.y(), x.z()};
     default:  // walls and box faces normal to y
       return {x.x(), x.z()};
   }
-}
-
-/// Axis (0, 1, 2) a face is normal to, and whether it is the box's / room's max side.
-int FaceAxis(int face) {
-  static const int kAxis[kFaceCount] = {2, 2, 0, 0, 1, 1, 0, 0, 1, 1, 2, 2};
-  return kAxis[face];
 }
 
 uint64_t SplitMix64(uint64_t x) {
@@ -114,6 +117,69 @@ float LinearToSrgb(float c) {
 }
 
 }  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Boxes and visibility, shared by every Scene.
+// ---------------------------------------------------------------------------------------------
+Vector3d BoxSideNormal(int side) {
+  Vector3d n = Vector3d::Zero();
+  n[BoxSideAxis(side)] = BoxSideAtMax(side) ? 1.0 : -1.0;
+  return n;
+}
+
+double DistanceToAabb(const Vector3d& x, const Aabb& box) {
+  Vector3d d;
+  for (int a = 0; a < 3; ++a) d[a] = std::max({box.min_m[a] - x[a], 0.0, x[a] - box.max_m[a]});
+  return d.norm();
+}
+
+SlabInterval RaySlabInterval(const Aabb& box, const Vector3d& o, const Vector3d& d) {
+  static const int kMinSide[3] = {kBoxSideXMin, kBoxSideYMin, kBoxSideBottom};
+  static const int kMaxSide[3] = {kBoxSideXMax, kBoxSideYMax, kBoxSideTop};
+  SlabInterval iv;
+  double t_near = -kInf, t_far = kInf;
+  int side_near = -1;
+  for (int a = 0; a < 3; ++a) {
+    if (d[a] == 0.0) {
+      if (o[a] < box.min_m[a] || o[a] > box.max_m[a]) return iv;
+      continue;
+    }
+    double t0 = (box.min_m[a] - o[a]) / d[a];
+    double t1 = (box.max_m[a] - o[a]) / d[a];
+    int s0 = kMinSide[a];
+    if (t0 > t1) std::swap(t0, t1), s0 = kMaxSide[a];
+    if (t0 > t_near) t_near = t0, side_near = s0;
+    t_far = std::min(t_far, t1);
+  }
+  iv.hit = t_near <= t_far;
+  iv.t_near_m = t_near;
+  iv.t_far_m = t_far;
+  iv.side_near = side_near;
+  return iv;
+}
+
+BoxEntry RayEntersBox(const Aabb& box, const Vector3d& o, const Vector3d& d) {
+  const SlabInterval iv = RaySlabInterval(box, o, d);
+  BoxEntry entry;
+  if (iv.hit && iv.t_near_m > 0.0) {
+    entry.valid = true;
+    entry.t_m = iv.t_near_m;
+    entry.side = iv.side_near;
+  }
+  return entry;
+}
+
+bool Scene::Visible(const Vector3d& o, const Vector3d& x, double eps_m) const {
+  const Aabb bounds = Bounds();
+  for (int a = 0; a < 3; ++a) {
+    if (x[a] < bounds.min_m[a] - eps_m || x[a] > bounds.max_m[a] + eps_m) return false;
+  }
+  const Vector3d delta = x - o;
+  const double dist = delta.norm();
+  if (dist <= eps_m) return true;
+  const SceneHit hit = Intersect(o, delta / dist, dist);
+  return !hit.valid || hit.t_m >= dist - eps_m;
+}
 
 // ---------------------------------------------------------------------------------------------
 // The canonical scene.
@@ -143,17 +209,33 @@ SyntheticRoom SyntheticRoom::Default() {
   return room;
 }
 
+SyntheticRoom SyntheticRoom::WithExtraBox(const Aabb& box) const {
+  SyntheticRoom room = *this;
+  room.extra_boxes_.push_back(box);
+  return room;
+}
+
+const Aabb* SyntheticRoom::FaceBox(int face) const {
+  if (face < 0) return nullptr;
+  if (face < kFaceBoxXMin) return &room_;
+  if (face < kFaceCount) return &box_;
+  const size_t k = static_cast<size_t>(face - kFaceCount) / kBoxSideCount;
+  return k < extra_boxes_.size() ? &extra_boxes_[k] : nullptr;
+}
+
 Vector3d SyntheticRoom::FaceNormal(int face) {
   // Room faces face inward (toward the room's free space), box faces face outward.
   static const double kSign[kFaceCount] = {+1, -1, +1, -1, +1, -1, -1, +1, -1, +1, +1, -1};
+  if (face < 0) return Vector3d::Zero();
+  if (face >= kFaceCount) return BoxSideNormal((face - kFaceCount) % kBoxSideCount);
   Vector3d n = Vector3d::Zero();
   n[FaceAxis(face)] = kSign[face];
   return n;
 }
 
 Vector3f SyntheticRoom::Albedo(const Vector3d& x_world, int face) const {
-  if (face < 0 || face >= kFaceCount) return Vector3f::Constant(0.05f);
-  const FaceTexture& tex = TextureOf(face);
+  if (FaceBox(face) == nullptr) return Vector3f::Constant(0.05f);
+  const FaceTexture tex = TextureOf(face);
   const Eigen::Vector2d st = FaceCoords(x_world, face);
   // Sinusoid field in [0.1, 1.0]; soft band weight in [0, 0.8]; value in [0, 1] → [0.05, 0.95].
   const double field =
@@ -185,27 +267,17 @@ SceneHit SyntheticRoom::Intersect(const Vector3d& o, const Vector3d& d, double t
       if (t < t_best) t_best = t, face_best = kRoomMinFace[a];
     }
   }
-  // Occluder: slab entry (the origin is outside it).
-  static const int kBoxMinFace[3] = {kFaceBoxXMin, kFaceBoxYMin, kFaceBoxBottom};
-  static const int kBoxMaxFace[3] = {kFaceBoxXMax, kFaceBoxYMax, kFaceBoxTop};
-  double t_near = -kInf, t_far = kInf;
-  int face_near = kFaceNone;
-  bool miss = false;
-  for (int a = 0; a < 3 && !miss; ++a) {
-    if (d[a] == 0.0) {
-      if (o[a] < box_.min_m[a] || o[a] > box_.max_m[a]) miss = true;
-      continue;
-    }
-    double t0 = (box_.min_m[a] - o[a]) / d[a];
-    double t1 = (box_.max_m[a] - o[a]) / d[a];
-    int f0 = kBoxMinFace[a];
-    if (t0 > t1) std::swap(t0, t1), f0 = kBoxMaxFace[a];
-    if (t0 > t_near) t_near = t0, face_near = f0;
-    t_far = std::min(t_far, t1);
+  // Occluder, then extra boxes: slab entry (the origin is outside them). On an exact tie the
+  // earlier surface keeps the hit.
+  if (const BoxEntry e = RayEntersBox(box_, o, d); e.valid && e.t_m < t_best) {
+    t_best = e.t_m;
+    face_best = kFaceBoxXMin + e.side;
   }
-  if (!miss && t_near <= t_far && t_near > 0.0 && t_near < t_best) {
-    t_best = t_near;
-    face_best = face_near;
+  for (size_t k = 0; k < extra_boxes_.size(); ++k) {
+    if (const BoxEntry e = RayEntersBox(extra_boxes_[k], o, d); e.valid && e.t_m < t_best) {
+      t_best = e.t_m;
+      face_best = ExtraBoxFace(k, e.side);
+    }
   }
   if (face_best == kFaceNone || !(t_best > 0.0) || t_best > t_max_m) return hit;
   hit.valid = true;
@@ -214,8 +286,9 @@ SceneHit SyntheticRoom::Intersect(const Vector3d& o, const Vector3d& d, double t
   // Snap the coordinate normal to the face onto its plane exactly.
   const int axis = FaceAxis(face_best);
   const bool is_box = face_best >= kFaceBoxXMin;
-  const bool is_max = (face_best == kRoomMaxFace[axis]) || (face_best == kBoxMaxFace[axis]);
-  const Aabb& bounds = is_box ? box_ : room_;
+  const bool is_max = is_box ? BoxSideAtMax((face_best - kFaceBoxXMin) % kBoxSideCount)
+                             : face_best == kRoomMaxFace[axis];
+  const Aabb& bounds = *FaceBox(face_best);
   hit.x_world[axis] = is_max ? bounds.max_m[axis] : bounds.min_m[axis];
   hit.face = face_best;
   hit.n_world = FaceNormal(face_best);
@@ -224,25 +297,14 @@ SceneHit SyntheticRoom::Intersect(const Vector3d& o, const Vector3d& d, double t
   return hit;
 }
 
-bool SyntheticRoom::Visible(const Vector3d& o, const Vector3d& x, double eps_m) const {
-  for (int a = 0; a < 3; ++a) {
-    if (x[a] < room_.min_m[a] - eps_m || x[a] > room_.max_m[a] + eps_m) return false;
-  }
-  const Vector3d delta = x - o;
-  const double dist = delta.norm();
-  if (dist <= eps_m) return true;
-  const SceneHit hit = Intersect(o, delta / dist, dist);
-  return !hit.valid || hit.t_m >= dist - eps_m;
-}
-
 std::vector<Vector3d> SyntheticRoom::FaceSamples(int face, double spacing_m, double margin_m,
                                                  const std::vector<Vector3d>& lit_from,
                                                  const std::vector<Vector3d>& shadowed_from) const {
   std::vector<Vector3d> out;
-  if (face < 0 || face >= kFaceCount || !(spacing_m > 0.0)) return out;
+  if (FaceBox(face) == nullptr || !(spacing_m > 0.0)) return out;
   const int axis = FaceAxis(face);
   const bool is_box = face >= kFaceBoxXMin;
-  const Aabb& bounds = is_box ? box_ : room_;
+  const Aabb& bounds = *FaceBox(face);
   const Vector3d n = FaceNormal(face);
   // Room faces with inward normal +axis are at min; box faces with outward normal +axis at max.
   const bool at_max = is_box ? n[axis] > 0 : n[axis] < 0;
@@ -307,7 +369,7 @@ float Luminance(const Vector3f& rgb) {
   return 0.2126f * rgb[0] + 0.7152f * rgb[1] + 0.0722f * rgb[2];
 }
 
-LidarScan GenerateLidar(const SyntheticRoom& room, const geometry::Pose& T_world_scanner,
+LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanner,
                         const LidarSettings& settings) {
   const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};
   const int rows = std::max(0, settings.elevation_steps);
@@ -329,7 +391,8 @@ LidarScan GenerateLidar(const SyntheticRoom& room, const geometry::Pose& T_world
         // §2.1 inverse at the ray-grid cell centre: the ray direction in the sensor frame.
         const Vector3d d_sensor = geometry::EquirectUnproject(i + 0.5, j + 0.5, grid);
         const Vector3d d_world = T_world_scanner.DirectionToWorld(d_sensor);
-        const SceneHit hit = room.Intersect(T_world_scanner.o_world, d_world, settings.max_range_m);
+        const SceneHit hit =
+            scene.Intersect(T_world_scanner.o_world, d_world, settings.max_range_m);
         const double n = noise(rng);  // drawn for every ray so streams stay aligned
         if (!hit.valid) continue;
         const double range = std::max(0.0, hit.t_m + n);
@@ -353,7 +416,7 @@ LidarScan GenerateLidar(const SyntheticRoom& room, const geometry::Pose& T_world
   return scan;
 }
 
-Panorama RenderPanorama(const SyntheticRoom& room, const geometry::Pose& T_world_camera,
+Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera,
                         int width_px, int height_px, int supersample) {
   Panorama pano;
   pano.width_px = std::max(0, width_px);
@@ -378,7 +441,7 @@ Panorama RenderPanorama(const SyntheticRoom& room, const geometry::Pose& T_world
             const double v = j + (b + 0.5) / s;
             const Vector3d d =
                 T_world_camera.DirectionToWorld(geometry::EquirectUnproject(u, v, size));
-            const SceneHit hit = room.Intersect(o, d, kInf);
+            const SceneHit hit = scene.Intersect(o, d, kInf);
             if (!hit.valid) continue;
             sum += hit.albedo_linear.cast<double>();
             ++hits;
@@ -390,7 +453,7 @@ Panorama RenderPanorama(const SyntheticRoom& room, const geometry::Pose& T_world
         }
         const Vector3d d_centre =
             T_world_camera.DirectionToWorld(geometry::EquirectUnproject(i + 0.5, j + 0.5, size));
-        const SceneHit centre = room.Intersect(o, d_centre, kInf);
+        const SceneHit centre = scene.Intersect(o, d_centre, kInf);
         if (centre.valid) pano.depth_m[p] = static_cast<float>(centre.t_m);
       }
     }
@@ -491,11 +554,11 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
   return absl::OkStatus();
 }
 
-absl::StatusOr<ingest::ScanInput> MakeScanInput(const SyntheticRoom& room, size_t station,
+absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t station,
                                                 const LidarSettings& lidar, int pano_width_px,
                                                 int supersample) {
-  const geometry::Pose& pose = room.Stations().at(station);
-  LidarScan points = GenerateLidar(room, pose, lidar);
+  const geometry::Pose& pose = scene.Stations().at(station);
+  LidarScan points = GenerateLidar(scene, pose, lidar);
   ingest::ScanInput scan;
   scan.scan_name = "scan-" + std::to_string(station + 1);
   scan.rig = "synthetic-rig";
@@ -506,7 +569,7 @@ absl::StatusOr<ingest::ScanInput> MakeScanInput(const SyntheticRoom& room, size_
   pano.name = "cam0";
   pano.pose = CameraPoseForStation(pose);
   absl::StatusOr<std::string> png =
-      EncodePng(RenderPanorama(room, pano.pose, pano_width_px, pano_width_px / 2, supersample));
+      EncodePng(RenderPanorama(scene, pano.pose, pano_width_px, pano_width_px / 2, supersample));
   if (!png.ok()) return png.status();
   pano.encoded_image = std::move(*png);
   scan.panoramas.push_back(std::move(pano));

@@ -1,11 +1,14 @@
 /// @file vasl_scene_main.cc
-/// @brief `vasl_scene`: writes the synthetic site as a capture rig would (per station a LiDAR
+/// @brief `vasl_scene`: writes a synthetic site as a capture rig would (per station a LiDAR
 ///        PLY in the sensor frame, an 8-bit sRGB panorama PNG and a scan manifest), plus the
 ///        analytic ground truth (linear RGB and range .npy per view) and a scene description.
 /// @details Usage:
-///   vasl_scene --out DIR [--stations N] [--pano-width W] [--lidar-azimuth-steps A]
-///              [--lidar-elevation-steps E] [--supersample S] [--seed K] [--project NAME]
-///              [--vossel-size H]
+///   vasl_scene --out DIR [--site room|corridor] [--stations N] [--pano-width W]
+///              [--lidar-azimuth-steps A] [--lidar-elevation-steps E] [--supersample S]
+///              [--seed K] [--project NAME] [--vossel-size H]
+///   --site room (default) is SyntheticRoom::Default() (4 stations, 3 written by default,
+///   project "synthetic-room"); --site corridor is CorridorSite::Default() (12 stations, all
+///   written by default, project "corridor-site").
 ///   Files (i = 1-based station index, k = 1-based novel view index):
 ///     DIR/scan-<i>.ply, DIR/scan-<i>-rgb.png, DIR/scan-<i>.json (manifest, paths relative),
 ///     DIR/truth/scan-<i>-cam0-{rgb,depth}.npy, DIR/truth/novel-<k>-{rgb,depth}.npy,
@@ -24,6 +27,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "tests/scenes/corridor_site.h"
 #include "tests/scenes/synthetic_scene.h"
 
 namespace vasl::scenes {
@@ -31,22 +35,29 @@ namespace {
 
 namespace fs = std::filesystem;
 
+/// Which synthetic site to write.
+enum class Site { kRoom, kCorridor };
+
 struct Options {
   fs::path out_dir;                  ///< output directory (created)
-  int stations = 3;                  ///< number of stations written (1..4)
+  Site site = Site::kRoom;           ///< --site room|corridor
+  int stations = 3;                  ///< number of stations written (room: 1..4, default 3;
+                                     ///< corridor: 1..12, default 12)
   int pano_width_px = 1024;          ///< panorama width; height is width / 2
   int lidar_azimuth_steps = 1440;    ///< 0.25° azimuth pitch
   int lidar_elevation_steps = 720;   ///< 0.25° elevation pitch
   int supersample = 4;               ///< sub-pixel rays per pixel side
   uint64_t seed = 1;                 ///< LiDAR noise seed
-  std::string project = "synthetic-room";
+  std::string project = "synthetic-room";  ///< project name recorded (corridor: "corridor-site")
   double vossel_size_m = 0.05;       ///< recommended lattice edge, metres (recorded only)
 };
 
 constexpr char kUsage[] =
-    "usage: vasl_scene --out DIR [--stations N] [--pano-width W] [--lidar-azimuth-steps A]\n"
-    "                  [--lidar-elevation-steps E] [--supersample S] [--seed K]\n"
-    "                  [--project NAME] [--vossel-size H]\n";
+    "usage: vasl_scene --out DIR [--site room|corridor] [--stations N] [--pano-width W]\n"
+    "                  [--lidar-azimuth-steps A] [--lidar-elevation-steps E] [--supersample S]\n"
+    "                  [--seed K] [--project NAME] [--vossel-size H]\n"
+    "  --site room (default): one room with one box, 4 stations (default 3 written)\n"
+    "  --site corridor: 4 rooms joined by doors, 12 stations (default all written)\n";
 
 absl::Status ParseArgs(int argc, char** argv, Options* opt) {
   std::map<std::string, std::string> kv;
@@ -83,7 +94,24 @@ absl::Status ParseArgs(int argc, char** argv, Options* opt) {
   }
   opt->out_dir = it->second;
   kv.erase(it);
-  const int max_stations = static_cast<int>(SyntheticRoom::Default().Stations().size());
+  if (it = kv.find("--site"); it != kv.end()) {
+    if (it->second == "room") {
+      opt->site = Site::kRoom;
+    } else if (it->second == "corridor") {
+      opt->site = Site::kCorridor;
+    } else {
+      return absl::InvalidArgumentError("--site must be 'room' or 'corridor', got '" +
+                                        it->second + "'");
+    }
+    kv.erase(it);
+  }
+  const int max_stations =
+      static_cast<int>(opt->site == Site::kRoom ? SyntheticRoom::Default().Stations().size()
+                                                : CorridorSite::Default().Stations().size());
+  if (opt->site == Site::kCorridor) {
+    opt->stations = max_stations;
+    opt->project = "corridor-site";
+  }
   if (auto s = get_int("--stations", 1, max_stations, &opt->stations); !s.ok()) return s;
   if (auto s = get_int("--pano-width", 8, 16384, &opt->pano_width_px); !s.ok()) return s;
   if (opt->pano_width_px % 2 != 0) return absl::InvalidArgumentError("--pano-width must be even");
@@ -164,6 +192,49 @@ absl::Status WriteTruth(const Panorama& pano, const fs::path& dir, const std::st
   return WriteNpy(pano.depth_m, {h, w}, dir / (view + "-depth.npy"));
 }
 
+std::string BoxJson(const Aabb& box) {
+  return absl::StrCat("{\"min\": ", Vec(box.min_m), ", \"max\": ", Vec(box.max_m), "}");
+}
+
+/// scene.json of the room site: `common` (project, vossel size, units), its geometry, then
+/// `sensors` (camera offset, LiDAR, panorama, stations, novel views), then the shadow samples.
+std::string RoomJson(const SyntheticRoom& room, const std::string& common,
+                     const std::string& sensors) {
+  return absl::StrCat(
+      "{\n  \"scene\": \"synthetic-room\",\n", common,
+      "\n  \"room\": ", BoxJson(room.RoomBounds()), ",\n  \"occluder\": ",
+      BoxJson(room.OccluderBounds()), ",", sensors,
+      "\n  \"shadow_samples_note\": \"points of wall y = max hidden by the occluder from scan-1 "
+      "(LiDAR and camera) and visible from scan-2; lit_samples: visible from both\",",
+      "\n  \"shadow_samples\": ", PointList(room.ShadowSamples()),
+      ",\n  \"lit_samples\": ", PointList(room.LitSamples()), "\n}\n");
+}
+
+/// scene.json of the corridor site: `common`, the envelope, rooms, doors and solids, then
+/// `sensors` and the station → room map.
+std::string CorridorJson(const CorridorSite& site, const std::string& common,
+                         const std::string& sensors) {
+  std::vector<std::string> rooms, doors, solids, station_rooms;
+  for (int i = 0; i < site.RoomCount(); ++i) rooms.push_back(BoxJson(site.RoomInterior(i)));
+  for (const CorridorDoor& d : site.Doors()) {
+    doors.push_back(absl::StrCat("    {\"opening\": ", BoxJson(d.opening), ", \"rooms\": [",
+                                 d.room_xmin, ", ", d.room_xmax, "]}"));
+  }
+  for (const CorridorSolid& s : site.Solids()) {
+    solids.push_back(absl::StrCat("    {\"kind\": ", Quote(CorridorSite::KindName(s.kind)),
+                                  ", \"room\": ", s.room, ", \"box\": ", BoxJson(s.box), "}"));
+  }
+  for (size_t k = 0; k < site.Stations().size(); ++k) {
+    station_rooms.push_back(absl::StrCat(site.StationRoom(k)));
+  }
+  return absl::StrCat(
+      "{\n  \"scene\": \"corridor-site\",\n", common, "\n  \"bounds\": ",
+      BoxJson(site.Bounds()), ",\n  \"rooms\": [", absl::StrJoin(rooms, ", "),
+      "],\n  \"doors\": [\n", absl::StrJoin(doors, ",\n"), "\n  ],\n  \"solids\": [\n",
+      absl::StrJoin(solids, ",\n"), "\n  ],", sensors,
+      "\n  \"station_rooms\": [", absl::StrJoin(station_rooms, ", "), "]\n}\n");
+}
+
 absl::Status Run(const Options& opt) {
   const auto t0 = std::chrono::steady_clock::now();
   std::error_code ec;
@@ -173,7 +244,9 @@ absl::Status Run(const Options& opt) {
   }
 
   const SyntheticRoom room = SyntheticRoom::Default();
-  const std::vector<geometry::Pose> stations = room.Stations();
+  const CorridorSite corridor = CorridorSite::Default();
+  const Scene& scene = opt.site == Site::kRoom ? static_cast<const Scene&>(room) : corridor;
+  const std::vector<geometry::Pose> stations = scene.Stations();
   const int W = opt.pano_width_px, H = opt.pano_width_px / 2;
   LidarSettings lidar;
   lidar.azimuth_steps = opt.lidar_azimuth_steps;
@@ -193,11 +266,11 @@ absl::Status Run(const Options& opt) {
     const geometry::Pose T_world_camera = CameraPoseForStation(T_world_scanner);
 
     lidar.seed = opt.seed * 1000003ull + static_cast<uint64_t>(s);
-    const LidarScan points = GenerateLidar(room, T_world_scanner, lidar);
+    const LidarScan points = GenerateLidar(scene, T_world_scanner, lidar);
     total_points += points.intensity.size();
     if (auto st = WritePly(points, opt.out_dir / (scan + ".ply")); !st.ok()) return st;
 
-    const Panorama pano = RenderPanorama(room, T_world_camera, W, H, opt.supersample);
+    const Panorama pano = RenderPanorama(scene, T_world_camera, W, H, opt.supersample);
     absl::StatusOr<std::string> png = EncodePng(pano);
     if (!png.ok()) return png.status();
     if (auto st = WriteText(opt.out_dir / (scan + "-rgb.png"), *png); !st.ok()) return st;
@@ -207,7 +280,8 @@ absl::Status Run(const Options& opt) {
 
     const std::string manifest = absl::StrCat(
         "{\n  \"scan\": ", Quote(scan), ",\n  \"rig\": \"synthetic-rig\",\n",
-        "  \"captured_utc\": ", Quote(absl::StrFormat("2026-11-22T12:%02d:00Z", (10 * s) % 60)),
+        "  \"captured_utc\": ",
+        Quote(absl::StrFormat("2026-11-22T%02d:%02d:00Z", 12 + (10 * s) / 60, (10 * s) % 60)),
         ",\n  \"pose\": ", PoseJson(T_world_scanner), ",\n",
         "  \"lidar\": {\"points\": ", Quote(scan + ".ply"), ", \"divergence_rad\": 0.0003},\n",
         "  \"panoramas\": [\n    {\"name\": \"cam0\", \"image\": ", Quote(scan + "-rgb.png"),
@@ -223,10 +297,10 @@ absl::Status Run(const Options& opt) {
                 scan.c_str(), W, H, scan.c_str(), scan.c_str());
   }
 
-  const std::vector<geometry::Pose> novel = room.NovelViews();
+  const std::vector<geometry::Pose> novel = scene.NovelViews();
   for (size_t k = 0; k < novel.size(); ++k) {
     const std::string view = absl::StrCat("novel-", k + 1);
-    const Panorama pano = RenderPanorama(room, novel[k], W, H, opt.supersample);
+    const Panorama pano = RenderPanorama(scene, novel[k], W, H, opt.supersample);
     if (auto st = WriteTruth(pano, opt.out_dir / "truth", view); !st.ok()) return st;
     views.push_back({view, novel[k]});
   }
@@ -252,14 +326,12 @@ absl::Status Run(const Options& opt) {
     novel_json.push_back(absl::StrCat("    {\"name\": ", Quote(absl::StrCat("novel-", k + 1)),
                                       ", \"pose\": ", PoseJson(novel[k]), "}"));
   }
-  const std::string scene = absl::StrCat(
-      "{\n  \"scene\": \"synthetic-room\",\n  \"project\": ", Quote(opt.project),
+  const std::string common = absl::StrCat(
+      "  \"project\": ", Quote(opt.project),
       ",\n  \"recommended_vossel_size_m\": ", absl::StrFormat("%.9g", opt.vossel_size_m),
-      ",\n  \"units\": \"metres, world frame right-handed z up; quaternions (x, y, z, w)\",",
-      "\n  \"room\": {\"min\": ", Vec(room.RoomBounds().min_m), ", \"max\": ",
-      Vec(room.RoomBounds().max_m), "},\n  \"occluder\": {\"min\": ",
-      Vec(room.OccluderBounds().min_m), ", \"max\": ", Vec(room.OccluderBounds().max_m),
-      "},\n  \"camera_above_lidar_m\": ", absl::StrFormat("%.9g", kCameraAboveLidarM),
+      ",\n  \"units\": \"metres, world frame right-handed z up; quaternions (x, y, z, w)\",");
+  const std::string sensors = absl::StrCat(
+      "\n  \"camera_above_lidar_m\": ", absl::StrFormat("%.9g", kCameraAboveLidarM),
       ",\n  \"lidar\": {\"azimuth_steps\": ", lidar.azimuth_steps, ", \"elevation_steps\": ",
       lidar.elevation_steps, ", \"range_noise_m\": ", absl::StrFormat("%.9g", lidar.range_noise_m),
       ", \"nadir_blind_rad\": ", absl::StrFormat("%.9g", lidar.nadir_blind_rad),
@@ -267,12 +339,11 @@ absl::Status Run(const Options& opt) {
       "\n  \"panorama\": {\"width\": ", W, ", \"height\": ", H, ", \"supersample\": ",
       opt.supersample, ", \"encoding\": \"8-bit sRGB PNG of linear albedo (no lighting)\"},",
       "\n  \"stations\": [\n", absl::StrJoin(station_json, ",\n"), "\n  ],",
-      "\n  \"novel_views\": [\n", absl::StrJoin(novel_json, ",\n"), "\n  ],",
-      "\n  \"shadow_samples_note\": \"points of wall y = max hidden by the occluder from scan-1 "
-      "(LiDAR and camera) and visible from scan-2; lit_samples: visible from both\",",
-      "\n  \"shadow_samples\": ", PointList(room.ShadowSamples()),
-      ",\n  \"lit_samples\": ", PointList(room.LitSamples()), "\n}\n");
-  if (auto st = WriteText(opt.out_dir / "scene.json", scene); !st.ok()) return st;
+      "\n  \"novel_views\": [\n", absl::StrJoin(novel_json, ",\n"), "\n  ],");
+  const std::string description = opt.site == Site::kRoom
+                                      ? RoomJson(room, common, sensors)
+                                      : CorridorJson(corridor, common, sensors);
+  if (auto st = WriteText(opt.out_dir / "scene.json", description); !st.ok()) return st;
 
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

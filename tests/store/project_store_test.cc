@@ -136,12 +136,41 @@ std::vector<int32_t> SourceIds(const ScanInfo& scan) {
   return ids;
 }
 
-std::set<std::string> VersionEntries(const fs::path& project) {
+/// Kept versions of the store.
+std::set<int64_t> KeptVersions(const ProjectStore& store) {
+  std::set<int64_t> out;
+  const std::vector<VersionInfo> versions = *store.ListVersions();
+  for (const VersionInfo& v : versions) out.insert(v.version);
+  return out;
+}
+
+/// Names of the files in `dir` (objects or blobs).
+std::set<std::string> FilesIn(const fs::path& dir) {
   std::set<std::string> names;
-  for (const auto& e : fs::directory_iterator(project / "versions")) {
-    names.insert(e.path().filename().string());
-  }
+  for (const auto& e : fs::directory_iterator(dir)) names.insert(e.path().filename().string());
   return names;
+}
+
+/// Every object the kept versions' manifests reference.
+std::set<std::string> ReferencedObjects(const ProjectStore& store) {
+  std::set<std::string> out;
+  for (int64_t v : KeptVersions(store)) {
+    const Manifest m = *store.LoadManifest(v);
+    for (const auto& [key, layers] : m.tiles) {
+      for (const auto& [layer, e] : layers) out.insert(e.object);
+    }
+    for (const auto& [source, object] : m.reach) out.insert(object);
+  }
+  return out;
+}
+
+/// Commits `snap` whole (every tile written) with `scan` added.
+absl::StatusOr<int64_t> CommitScan(ProjectStore& store, const Snapshot& snap, const ScanInfo& scan) {
+  CommitPlan plan;
+  plan.made_by = "ingest scan " + scan.name;
+  plan.replace_all = true;
+  plan.add_scan = scan;
+  return store.Commit(snap, plan);
 }
 
 void ExpectSnapshotsEqual(const Snapshot& a, const Snapshot& b) {
@@ -185,14 +214,14 @@ TEST(ProjectStoreTest, CommitTwoVersionsThenReopen) {
 
   const ScanInfo scan_a = MakeScan(**store, "scan-a", 1.0);
   const Snapshot snap1 = MakeSnapshot(1, 3000, 0.05, SourceIds(scan_a), scan_a.batch);
-  absl::StatusOr<int64_t> v1 = (*store)->CommitScan(snap1, scan_a);
+  absl::StatusOr<int64_t> v1 = CommitScan(**store, snap1, scan_a);
   ASSERT_TRUE(v1.ok()) << v1.status();
   EXPECT_EQ(*v1, 1);
   const ScanInfo scan_b = MakeScan(**store, "scan-b", 4.0);
   EXPECT_EQ(scan_b.sources[0].id, 3);
   EXPECT_EQ(scan_b.batch, scan_a.batch + 1);
   const Snapshot snap2 = MakeSnapshot(2, 5000, 0.05, {1, 2, 3, 4}, scan_b.batch);
-  absl::StatusOr<int64_t> v2 = (*store)->CommitScan(snap2, scan_b);
+  absl::StatusOr<int64_t> v2 = CommitScan(**store, snap2, scan_b);
   ASSERT_TRUE(v2.ok()) << v2.status();
   EXPECT_EQ(*v2, 2);
   store->reset();
@@ -251,8 +280,16 @@ TEST(ProjectStoreTest, CommitTwoVersionsThenReopen) {
   absl::StatusOr<std::vector<records::AttributeInfo>> attrs = s.InspectRecords(2);
   ASSERT_TRUE(attrs.ok()) << attrs.status();
   EXPECT_EQ(attrs->size(), 13u);
-  EXPECT_TRUE(fs::exists(*s.VersionDir(2) / "fused-default.vdb"));
-  EXPECT_EQ(VersionEntries(dir), (std::set<std::string>{"1", "2"}));
+  EXPECT_EQ(KeptVersions(s), (std::set<int64_t>{1, 2}));
+  // Every layer of every tile is an object of the manifest; the objects are exactly those.
+  const Manifest m2 = *s.LoadManifest(2);
+  EXPECT_GE(m2.tiles.size(), 2u);  // coordinates span [-30, 29]: more than one 64³ tile
+  for (const auto& [key, layers] : m2.tiles) {
+    EXPECT_EQ(layers.size(), 3u) << tiles::ToString(key);
+  }
+  EXPECT_EQ(FilesIn(dir / "objects"), ReferencedObjects(s));
+  EXPECT_EQ(info->made_by, "ingest scan scan-b");
+  EXPECT_EQ(info->tile_count, int64_t(m2.tiles.size()));
   std::printf("two commits: v1 %zu vossels / %zu records, v2 %zu vossels / %zu records; "
               "reopened HEAD %lld with %zu scans\n",
               snap1.geometry.size(), snap1.records.size(), snap2.geometry.size(),
@@ -274,27 +311,26 @@ TEST(ProjectStoreTest, RejectsBadInputWithoutChanges) {
   EXPECT_EQ(ProjectStore::Create(root / "p", "p", {}).status().code(),
             absl::StatusCode::kAlreadyExists);
   const ScanInfo scan = MakeScan(**store, "s1", 0.0);
-  ASSERT_TRUE((*store)->CommitScan(MakeSnapshot(3, 500, 0.02, SourceIds(scan), scan.batch), scan)
+  ASSERT_TRUE(CommitScan(**store, MakeSnapshot(3, 500, 0.02, SourceIds(scan), scan.batch), scan)
                   .ok());
   ScanInfo again = MakeScan(**store, "s1", 0.0);
   absl::StatusOr<int64_t> dup =
-      (*store)->CommitScan(MakeSnapshot(4, 600, 0.02, SourceIds(again), again.batch), again);
+      CommitScan(**store, MakeSnapshot(4, 600, 0.02, SourceIds(again), again.batch), again);
   EXPECT_EQ(dup.status().code(), absl::StatusCode::kAlreadyExists);
   std::printf("duplicate scan: %s\n", dup.status().ToString().c_str());
   ScanInfo reused_ids = MakeScan(**store, "s2", 0.0);
   reused_ids.sources[0].id = scan.sources[0].id;
-  EXPECT_EQ((*store)
-                ->CommitScan(MakeSnapshot(4, 600, 0.02, {1}, again.batch), reused_ids)
+  EXPECT_EQ(CommitScan(**store, MakeSnapshot(4, 600, 0.02, {1}, again.batch), reused_ids)
                 .status()
                 .code(),
             absl::StatusCode::kAlreadyExists);
   Snapshot wrong_h = MakeSnapshot(5, 100, 0.05, SourceIds(again), again.batch);
   again.name = "s3";
-  EXPECT_EQ((*store)->CommitScan(wrong_h, again).status().code(),
+  EXPECT_EQ(CommitScan(**store, wrong_h, again).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ((*store)->head_version(), 1);
   EXPECT_EQ((*store)->ListScans()->size(), 1u);
-  EXPECT_EQ(VersionEntries(root / "p"), (std::set<std::string>{"1"}));
+  EXPECT_EQ(KeptVersions(**store), (std::set<int64_t>{1}));
   fs::remove_all(root);
 }
 
@@ -306,22 +342,23 @@ TEST(ProjectStoreTest, FailedCommitLeavesHeadAndCatalogUnchanged) {
   ASSERT_TRUE(store.ok());
   ProjectStore& s = **store;
   const ScanInfo first = MakeScan(s, "first", 0.0);
-  ASSERT_TRUE(s.CommitScan(MakeSnapshot(6, 800, 0.02, SourceIds(first), first.batch), first).ok());
+  ASSERT_TRUE(CommitScan(s, MakeSnapshot(6, 800, 0.02, SourceIds(first), first.batch), first).ok());
   int failures = 0;
-  for (auto stage : {ProjectStore::CommitStage::kAfterFiles,
-                     ProjectStore::CommitStage::kAfterVersionRename,
+  const std::set<std::string> objects_before = FilesIn(root / "p" / "objects");
+  for (auto stage : {ProjectStore::CommitStage::kAfterObjects,
                      ProjectStore::CommitStage::kAfterCatalog}) {
     const ScanInfo scan = MakeScan(s, "doomed", 1.0);
     s.InjectCommitFailureForTesting(stage, /*simulate_crash=*/false);
     absl::StatusOr<int64_t> v =
-        s.CommitScan(MakeSnapshot(7, 900, 0.02, SourceIds(scan), scan.batch), scan);
+        CommitScan(s, MakeSnapshot(7, 900, 0.02, SourceIds(scan), scan.batch), scan);
     EXPECT_FALSE(v.ok());
     failures += !v.ok();
     EXPECT_EQ(s.head_version(), 1);
     EXPECT_FALSE(*s.HasScan("doomed"));
     EXPECT_EQ(s.ListScans()->size(), 1u);
     EXPECT_EQ(*s.NextSourceId(), 3);
-    EXPECT_EQ(VersionEntries(root / "p"), (std::set<std::string>{"1"}));
+    EXPECT_EQ(KeptVersions(s), (std::set<int64_t>{1}));
+    EXPECT_EQ(FilesIn(root / "p" / "objects"), objects_before) << "no orphan object survives";
     std::ifstream head(root / "p" / "HEAD");
     int64_t on_disk = -1;
     head >> on_disk;
@@ -329,7 +366,7 @@ TEST(ProjectStoreTest, FailedCommitLeavesHeadAndCatalogUnchanged) {
   }
   const ScanInfo ok_scan = MakeScan(s, "doomed", 1.0);
   absl::StatusOr<int64_t> v =
-      s.CommitScan(MakeSnapshot(8, 900, 0.02, SourceIds(ok_scan), ok_scan.batch), ok_scan);
+      CommitScan(s, MakeSnapshot(8, 900, 0.02, SourceIds(ok_scan), ok_scan.batch), ok_scan);
   ASSERT_TRUE(v.ok()) << v.status();
   EXPECT_EQ(*v, 2);
   std::printf("failed commits: %d injected failures left HEAD at 1; next commit made v%lld\n",
@@ -347,38 +384,38 @@ TEST(ProjectStoreTest, OpenRecoversFromCrashedCommit) {
     ASSERT_TRUE(store.ok());
     const ScanInfo first = MakeScan(**store, "first", 0.0);
     ASSERT_TRUE(
-        (*store)->CommitScan(MakeSnapshot(9, 700, 0.02, SourceIds(first), first.batch), first).ok());
+        CommitScan(**store, MakeSnapshot(9, 700, 0.02, SourceIds(first), first.batch), first).ok());
     const ScanInfo crashed = MakeScan(**store, "crashed", 1.0);
     (*store)->InjectCommitFailureForTesting(ProjectStore::CommitStage::kAfterCatalog,
                                             /*simulate_crash=*/true);
-    EXPECT_FALSE((*store)
-                     ->CommitScan(MakeSnapshot(10, 700, 0.02, SourceIds(crashed), crashed.batch),
-                                  crashed)
+    EXPECT_FALSE(CommitScan(**store,
+                            MakeSnapshot(10, 700, 0.02, SourceIds(crashed), crashed.batch),
+                            crashed)
                      .ok());
     EXPECT_TRUE(*(*store)->HasScan("crashed")) << "the simulated crash must leave its rows";
   }
-  // More debris: a half-written temp dir and a version far beyond HEAD.
-  fs::create_directories(dir / "versions" / ".tmp-3-deadbeef");
-  std::ofstream(dir / "versions" / ".tmp-3-deadbeef" / "records.vdb") << "partial";
-  fs::create_directories(dir / "versions" / "7");
+  // More debris: a half-written staging file, an object nothing references, a partial blob.
+  std::ofstream(dir / "objects" / ".tmp-deadbeef") << "partial";
+  std::ofstream(dir / "objects" / std::string(64, 'e')) << "orphan";
   std::ofstream(dir / "blobs" / ".tmp-abc-123") << "partial blob";
-  EXPECT_EQ(VersionEntries(dir), (std::set<std::string>{"1", "2", "7", ".tmp-3-deadbeef"}));
 
   auto store = ProjectStore::Open(dir);
   ASSERT_TRUE(store.ok()) << store.status();
   EXPECT_EQ((*store)->head_version(), 1);
   EXPECT_FALSE(*(*store)->HasScan("crashed"));
   EXPECT_EQ((*store)->ListScans()->size(), 1u);
-  EXPECT_EQ(VersionEntries(dir), (std::set<std::string>{"1"}));
+  EXPECT_EQ(KeptVersions(**store), (std::set<int64_t>{1}));
+  EXPECT_EQ(FilesIn(dir / "objects"), ReferencedObjects(**store));
   EXPECT_FALSE(fs::exists(dir / "blobs" / ".tmp-abc-123"));
   EXPECT_EQ((*store)->HeadInfo()->version, 1);
   const ScanInfo retry = MakeScan(**store, "crashed", 1.0);
   EXPECT_EQ(retry.sources[0].id, 3);
-  absl::StatusOr<int64_t> v = (*store)->CommitScan(
+  absl::StatusOr<int64_t> v = CommitScan(**store, 
       MakeSnapshot(11, 700, 0.02, SourceIds(retry), retry.batch), retry);
   ASSERT_TRUE(v.ok()) << v.status();
   EXPECT_EQ(*v, 2);
-  std::printf("crash recovery: HEAD 1 kept, versions {2, 7, .tmp-3-*} removed, retry -> v%lld\n",
+  std::printf("crash recovery: HEAD 1 kept, version 2's rows, its objects and debris removed, "
+              "retry -> v%lld\n",
               static_cast<long long>(*v));
   fs::remove_all(root);
 }
@@ -408,8 +445,9 @@ TEST(ProjectStoreTest, BlobsAreContentAddressedAndIdempotent) {
   fs::remove_all(root);
 }
 
-// Claim: retention keeps HEAD and the `keep_versions` versions before it; older version dirs
-// are deleted and their catalog rows stay, marked pruned.
+// Claim: retention keeps HEAD, the `keep_versions` versions before it and pinned ones; the
+// catalog rows of older versions stay, marked pruned, and every object no kept version
+// references is removed (and none that one does).
 TEST(ProjectStoreTest, RetentionPrunesOldVersions) {
   const fs::path root = TestRoot("retention");
   ProjectSettings settings;
@@ -418,15 +456,17 @@ TEST(ProjectStoreTest, RetentionPrunesOldVersions) {
   ASSERT_TRUE(store.ok());
   for (int i = 0; i < 5; ++i) {
     const ScanInfo scan = MakeScan(**store, "scan-" + std::to_string(i), i);
-    ASSERT_TRUE((*store)
-                    ->CommitScan(MakeSnapshot(20 + i, 300, 0.02, SourceIds(scan), scan.batch),
-                                 scan)
+    ASSERT_TRUE(CommitScan(**store, MakeSnapshot(20 + i, 300, 0.02, SourceIds(scan), scan.batch),
+                           scan)
                     .ok());
+    if (i == 0) ASSERT_TRUE((*store)->SetPinned(1, true).ok());
   }
   EXPECT_EQ((*store)->head_version(), 5);
-  EXPECT_EQ(VersionEntries(root / "p"), (std::set<std::string>{"3", "4", "5"}));
+  EXPECT_EQ(KeptVersions(**store), (std::set<int64_t>{1, 3, 4, 5}));
   EXPECT_EQ((*store)->LoadSnapshot(2).status().code(), absl::StatusCode::kNotFound);
   EXPECT_TRUE((*store)->LoadSnapshot(3).ok());
+  EXPECT_TRUE((*store)->LoadSnapshot(1).ok()) << "a pinned version survives retention";
+  EXPECT_EQ(FilesIn(root / "p" / "objects"), ReferencedObjects(**store));
   EXPECT_EQ((*store)->ListScans()->size(), 5u);
 
   sqlite3* db = nullptr;
@@ -442,8 +482,10 @@ TEST(ProjectStoreTest, RetentionPrunesOldVersions) {
   }
   sqlite3_finalize(st);
   sqlite3_close(db);
-  EXPECT_EQ(rows, (std::vector<std::pair<int, int>>{{1, 1}, {2, 1}, {3, 0}, {4, 0}, {5, 0}}));
-  std::printf("retention keep_versions=2: after 5 commits, version dirs {3,4,5}; rows 1-2 pruned\n");
+  EXPECT_EQ(rows, (std::vector<std::pair<int, int>>{{1, 0}, {2, 1}, {3, 0}, {4, 0}, {5, 0}}));
+  std::printf("retention keep_versions=2, v1 pinned: after 5 commits, kept {1,3,4,5}; row 2 "
+              "pruned; %zu objects on disk, all referenced\n",
+              FilesIn(root / "p" / "objects").size());
   fs::remove_all(root);
 }
 
@@ -470,7 +512,7 @@ TEST(ProjectStoreTest, ReadersRunDuringCommits) {
   });
   for (int i = 0; i < 4; ++i) {
     const ScanInfo scan = MakeScan(s, "c" + std::to_string(i), i);
-    ASSERT_TRUE(s.CommitScan(MakeSnapshot(40 + i, 2000, 0.02, SourceIds(scan), scan.batch), scan)
+    ASSERT_TRUE(CommitScan(s, MakeSnapshot(40 + i, 2000, 0.02, SourceIds(scan), scan.batch), scan)
                     .ok());
   }
   done = true;
@@ -479,6 +521,59 @@ TEST(ProjectStoreTest, ReadersRunDuringCommits) {
   EXPECT_GT(reads.load(), 0);
   std::printf("concurrent: %d reads during 4 commits, %d inconsistent\n", reads.load(),
               bad.load());
+  fs::remove_all(root);
+}
+
+// Claim: a commit writes only the tiles it changed; every other tile of the new manifest is
+// the previous version's object, shared, and reads back as it was.
+TEST(ProjectStoreTest, CommitWritesOnlyChangedTiles) {
+  const fs::path root = TestRoot("tiles");
+  auto store = ProjectStore::Create(root / "p", "p", {});
+  ASSERT_TRUE(store.ok());
+  ProjectStore& s = **store;
+  const ScanInfo scan = MakeScan(s, "a", 0.0);
+  Snapshot snap = MakeSnapshot(50, 4000, 0.02, SourceIds(scan), scan.batch);
+  ASSERT_TRUE(CommitScan(s, snap, scan).ok());
+  const Manifest m1 = *s.LoadManifest(1);
+  ASSERT_GE(m1.tiles.size(), 4u);
+  // Change the records of one tile only.
+  const tiles::TileKey target = m1.tiles.begin()->first;
+  for (size_t i = 0; i < snap.records.size(); ++i) {
+    if (tiles::TileOf(snap.geometry.coord[size_t(snap.records.vossel[i])], 64) == target) {
+      snap.records.vis[i] = 0.25f;
+    }
+  }
+  CommitPlan plan;
+  plan.made_by = "test: one tile";
+  plan.record_tiles = {target};
+  absl::StatusOr<int64_t> v2 = s.Commit(snap, plan);
+  ASSERT_TRUE(v2.ok()) << v2.status();
+  const Manifest m2 = *s.LoadManifest(*v2);
+  ASSERT_EQ(m2.tiles.size(), m1.tiles.size());
+  int shared = 0, rewritten = 0;
+  for (const auto& [key, layers] : m2.tiles) {
+    for (const auto& [layer, e] : layers) {
+      const bool same = m1.tiles.at(key).at(layer).object == e.object;
+      if (key == target && layer != kLayerGeometry) {
+        EXPECT_FALSE(same) << layer;
+        ++rewritten;
+      } else {
+        EXPECT_TRUE(same) << tiles::ToString(key) << " " << layer;
+        ++shared;
+      }
+    }
+  }
+  const VersionInfo info = *s.HeadInfo();
+  EXPECT_LT(info.bytes_written, info.bytes_total / 2);
+  absl::StatusOr<std::shared_ptr<const Snapshot>> back = s.LoadSnapshot(*v2);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ((*back)->records.vis.size(), snap.records.vis.size());
+  size_t quarter = 0;
+  for (float v : (*back)->records.vis) quarter += std::abs(v - 0.25f) <= 0.5f / 255.0f;  // ufxpt8
+  EXPECT_GE(quarter, m1.tiles.at(target).at(kLayerRecords).records);
+  std::printf("one-tile commit: %d objects rewritten, %d shared; %lld of %lld bytes written\n",
+              rewritten, shared, static_cast<long long>(info.bytes_written),
+              static_cast<long long>(info.bytes_total));
   fs::remove_all(root);
 }
 

@@ -157,10 +157,11 @@ def _cmd_scans(client: Client, args) -> int:
 def _cmd_inspect(client: Client, args) -> int:
     r = client.inspect_records(args.project, args.version)
     if args.json:
-        print(json.dumps({"project": r.project, "version": r.version, "version_dir": r.version_dir,
+        print(json.dumps({"project": r.project, "version": r.version, "tile_count": r.tile_count,
+                          "record_count": r.record_count,
                           "attributes": [a.__dict__ for a in r.attributes]}, indent=2))
         return 0
-    print(f"project {r.project} version {r.version}: records.vdb in {r.version_dir}")
+    print(f"project {r.project} version {r.version}: {r.record_count} records in {r.tile_count} tiles")
     print(f"{'ATTRIBUTE':<16} {'TYPE':<10} {'CODEC':<14} {'STRIDE':>6}")
     for a in r.attributes:
         print(f"{a.name:<16} {a.type:<10} {a.codec:<14} {a.stride:>6}")

@@ -376,5 +376,5 @@ class Client:
         if version < 0:
             raise ValueError(f"version must be >= 0 (0: HEAD), got {version}")
         r = self._call("InspectRecords", pb.InspectRecordsRequest(project=project, version=version))
-        return Inspection(r.project, r.version, r.version_dir,
+        return Inspection(r.project, r.version, r.tile_count, r.record_count,
                           [RecordAttribute(a.name, a.type, a.codec, a.stride) for a in r.attributes])

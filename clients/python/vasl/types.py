@@ -148,5 +148,6 @@ class RecordAttribute:
 class Inspection:
     project: str
     version: int
-    version_dir: str
+    tile_count: int
+    record_count: int
     attributes: List[RecordAttribute] = field(default_factory=list)

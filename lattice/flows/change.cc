@@ -1,0 +1,266 @@
+#include "lattice/flows/change.h"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/fusion/fuse.h"
+#include "lattice/geometry/footprint.h"
+#include "lattice/ingest/sample.h"
+#include "lattice/ingest/visibility.h"
+#include "lattice/tiles/tile_split.h"
+
+namespace vasl::flows::internal {
+namespace {
+
+/// Angular pitch (radians, the larger axis) of a source's depth panorama.
+double DepthPixelRad(const SourceRef& s) {
+  const double pitch = s.lidar()
+                           ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
+                           : ingest::CameraDepthPitchRad(s.info.divergence_rad,
+                                                         {s.info.width_px, s.info.height_px});
+  const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
+  return std::max(geometry::AzimuthPitchRad(size), geometry::ElevationPitchRad(size));
+}
+
+/// Directions to widen a source's caps by: pixel rounding of the splats and of the visibility
+/// test (2 pixels), a camera's dilation, and the splat's own angular growth (the beam
+/// divergence for a LiDAR, one pixel for a camera).
+double AngularMarginRad(const SourceRef& s) {
+  const double pixel = DepthPixelRad(s);
+  if (s.lidar()) return 2.0 * pixel + s.info.divergence_rad;
+  return (2.0 + ingest::CameraSampleRadiusPx() + 1.0) * pixel + s.info.divergence_rad;
+}
+
+}  // namespace
+
+void StageClock::Start(const std::string& name, double fraction) {
+  Finish();
+  running_ = name;
+  t0_ = Clock::now();
+  if (stage_) stage_(name, fraction);
+}
+
+void StageClock::Finish() {
+  if (running_.empty()) return;
+  result_.stage_seconds.emplace_back(running_,
+                                     std::chrono::duration<double>(Clock::now() - t0_).count());
+  running_.clear();
+}
+
+std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans) {
+  std::vector<SourceRef> out;
+  for (const store::ScanInfo& scan : scans) {
+    for (const store::SourceInfo& src : scan.sources) out.push_back({src, scan.batch});
+  }
+  std::sort(out.begin(), out.end(),
+            [](const SourceRef& a, const SourceRef& b) { return a.info.id < b.info.id; });
+  return out;
+}
+
+std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
+                                       const std::set<tiles::TileKey>& changed,
+                                       const std::set<tiles::TileKey>& all, int T, double h) {
+  const Eigen::Vector3d o = source.info.pose.o_world;
+  const double grow_m = 2.0 * h;
+  const double margin_rad = AngularMarginRad(source);
+  const double pixel_rad = DepthPixelRad(source);
+  const double tan_max = std::sqrt(1.0 - geometry::kCosIncidenceMin * geometry::kCosIncidenceMin) /
+                         geometry::kCosIncidenceMin;
+  auto widened = [&](const tiles::TileKey& key) {
+    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(key, T, h), o, grow_m);
+    cap.half_angle_rad += margin_rad;
+    return cap;
+  };
+  // 1. Changed tiles the source may reach (see change.h).
+  std::vector<tiles::ViewCap> reached;
+  std::set<tiles::TileKey> out;
+  for (const tiles::TileKey& c : changed) {
+    const tiles::ViewCap cap = widened(c);
+    // Visible needs D ≥ r − τ_k somewhere, τ_k at most τ + r·Δ·tanθ_max (visibility.h).
+    const double tolerance_m = ingest::DepthToleranceM(h) + cap.far_m * pixel_rad * tan_max;
+    const double min_depth = cap.near_m - grow_m - tolerance_m;
+    if (reach != nullptr && !tiles::Reaches(*reach, source.info.pose, cap, min_depth)) continue;
+    reached.push_back(cap);
+    out.insert(c);
+  }
+  if (reached.empty()) return out;
+  // 2. Tiles whose view from the source passes through a reachable changed tile.
+  for (const tiles::TileKey& t : all) {
+    if (out.count(t)) continue;
+    const tiles::ViewCap cap = widened(t);
+    for (const tiles::ViewCap& c : reached) {
+      if (cap.far_m + 2.0 * grow_m >= c.near_m && tiles::CapsOverlap(cap, c, 0.0)) {
+        out.insert(t);
+        break;
+      }
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
+                                          const store::Snapshot& old, Change change,
+                                          const std::vector<SourceRef>& old_sources,
+                                          int64_t max_image_pixels, store::CommitPlan& plan,
+                                          FlowResult& result, StageClock& clock) {
+  const int T = old.tile_vossels;
+  const double h = change.geometry.vossel_size_m;
+  store::Snapshot next;
+  next.tile_vossels = T;
+  next.geometry = std::move(change.geometry);
+  const records::VosselGeometry& g = next.geometry;
+  const std::vector<tiles::TileKey> tile_of = tiles::TilesOfVossels(g, T);
+  std::set<tiles::TileKey> all_tiles(tile_of.begin(), tile_of.end());
+
+  // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
+  clock.Start("find changes", 0.45);
+  std::set<tiles::TileKey> changed;
+  {
+    std::vector<uint8_t> has_old(g.size(), 0);
+    for (size_t v = 0; v < change.old_to_new.size(); ++v) {
+      const int32_t n = change.old_to_new[v];
+      if (n < 0) {
+        changed.insert(tiles::TileOf(old.geometry.coord[v], T));
+        continue;
+      }
+      has_old[size_t(n)] = 1;
+      if (old.geometry.point_count[v] != g.point_count[size_t(n)] ||
+          old.geometry.centroid_m[v] != g.centroid_m[size_t(n)] ||
+          old.geometry.normal[v] != g.normal[size_t(n)]) {
+        changed.insert(tile_of[size_t(n)]);
+      }
+    }
+    for (size_t n = 0; n < g.size(); ++n) {
+      if (!has_old[n]) changed.insert(tile_of[n]);
+    }
+  }
+  plan.geometry_tiles = changed;
+
+  // 2. Which older sources must be recomputed on which tiles.
+  std::map<int32_t, std::set<tiles::TileKey>> revisit;
+  for (const SourceRef& src : old_sources) {
+    auto it = old.reach.find(src.info.id);
+    std::set<tiles::TileKey> tiles_of_src =
+        AffectedTiles(src, it == old.reach.end() ? nullptr : &it->second, changed, all_tiles, T, h);
+    if (src.lidar() && !tiles_of_src.empty()) {
+      absl::StatusOr<std::set<tiles::TileKey>> returns = store.SourceTiles(src.info.id);
+      if (!returns.ok()) return returns.status();
+      std::set<tiles::TileKey> kept;
+      std::set_intersection(tiles_of_src.begin(), tiles_of_src.end(), returns->begin(),
+                            returns->end(), std::inserter(kept, kept.begin()));
+      tiles_of_src.swap(kept);
+    }
+    if (!tiles_of_src.empty()) revisit[src.info.id] = std::move(tiles_of_src);
+  }
+
+  // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out.
+  std::set<tiles::TileKey> record_tiles;
+  {
+    std::vector<size_t> keep;
+    keep.reserve(old.records.size());
+    for (size_t i = 0; i < old.records.size(); ++i) {
+      const int32_t scan = old.records.scan[i];
+      const int32_t n = change.old_to_new[size_t(old.records.vossel[i])];
+      if (change.dropped_sources.count(scan)) {
+        record_tiles.insert(tiles::TileOf(old.geometry.coord[size_t(old.records.vossel[i])], T));
+        continue;
+      }
+      if (n < 0) continue;  // its vossel vanished (its tile is a changed one)
+      auto it = revisit.find(scan);
+      if (it != revisit.end() && it->second.count(tile_of[size_t(n)])) continue;
+      keep.push_back(i);
+    }
+    next.records = old.records.Select(keep);
+    for (int32_t& v : next.records.vossel) v = change.old_to_new[size_t(v)];
+  }
+  for (const auto& [source, raster] : old.reach) {
+    if (!change.dropped_sources.count(source)) next.reach[source] = raster;
+  }
+  plan.drop_reach = change.dropped_sources;
+
+  // 4. Recompute the revisited pairs, from the sources' blobs.
+  const double span = 0.3 / double(std::max<size_t>(1, revisit.size() + 1));
+  double fraction = 0.5;
+  for (const SourceRef& src : old_sources) {
+    auto it = revisit.find(src.info.id);
+    if (it == revisit.end()) continue;
+    clock.Start(absl::StrCat("revisit source ", src.info.id, " on ", it->second.size(), " tiles"),
+                fraction);
+    fraction += span;
+    std::vector<uint8_t> only(g.size(), 0);
+    for (size_t v = 0; v < g.size(); ++v) only[v] = it->second.count(tile_of[v]) ? 1 : 0;
+    ingest::SourceRecords recs;
+    if (src.lidar()) {
+      absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
+      if (!lidar.ok()) return lidar.status();
+      recs = ingest::LidarRecords(g, *lidar, &only);
+    } else {
+      absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(
+          g, StoredCamera(store, src.info, src.batch, max_image_pixels), &only);
+      if (!r.ok()) return r.status();
+      recs = std::move(*r);
+    }
+    next.records.Append(recs.records);
+    next.reach[src.info.id] = std::move(recs.reach);
+    plan.reach_sources.insert(src.info.id);
+    record_tiles.insert(it->second.begin(), it->second.end());
+    ++result.sources_revisited;
+    result.pairs_revisited += int64_t(it->second.size());
+  }
+
+  // 5. The new sources, on every tile.
+  auto add_new = [&](ingest::SourceRecords recs, int32_t id) {
+    for (int32_t v : recs.records.vossel) record_tiles.insert(tile_of[size_t(v)]);
+    next.records.Append(recs.records);
+    next.reach[id] = std::move(recs.reach);
+    plan.reach_sources.insert(id);
+    ++result.sources_computed;
+  };
+  for (const ingest::LidarSource& lidar : change.new_sources.lidars) {
+    clock.Start(absl::StrCat("records of source ", lidar.id), fraction);
+    add_new(ingest::LidarRecords(g, lidar), lidar.id);
+  }
+  for (ingest::CameraSource& cam : change.new_sources.cameras) {
+    clock.Start(absl::StrCat("records of source ", cam.id), fraction);
+    absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(g, cam);
+    if (!r.ok()) return r.status();
+    cam.image = {};  // free the decoded image as soon as it is sampled
+    add_new(std::move(*r), cam.id);
+  }
+  next.records.SortByVossel();
+
+  // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records
+  //    keep their fused values.
+  clock.Start("fuse", 0.85);
+  absl::StatusOr<records::FusedValues> fused =
+      fusion::Fuse(next.records, g.size(), h, fusion::WeightingProfile{});
+  if (!fused.ok()) return fused.status();
+  next.fused = std::move(*fused);
+  plan.record_tiles = std::move(record_tiles);
+  return next;
+}
+
+absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
+                        const store::CommitPlan& plan, FlowResult& result, StageClock& clock) {
+  clock.Start("commit", 0.9);
+  absl::StatusOr<int64_t> version = store.Commit(next, plan);
+  if (!version.ok()) return version.status();
+  next.version = *version;
+  absl::StatusOr<store::Manifest> manifest = store.LoadManifest(*version);
+  if (!manifest.ok()) return manifest.status();
+  next.manifest = std::move(*manifest);
+  std::set<tiles::TileKey> written = plan.geometry_tiles;
+  written.insert(plan.record_tiles.begin(), plan.record_tiles.end());
+  result.tiles_changed = plan.replace_all ? int64_t(next.manifest.tiles.size())
+                                          : int64_t(written.size());
+  absl::StatusOr<store::VersionInfo> info = store.HeadInfo();
+  if (info.ok()) result.bytes_written = info->bytes_written;
+  result.version = *version;
+  result.snapshot = std::make_shared<const store::Snapshot>(std::move(next));
+  clock.Finish();
+  return absl::OkStatus();
+}
+
+}  // namespace vasl::flows::internal

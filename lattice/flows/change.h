@@ -1,0 +1,91 @@
+/// @file change.h
+/// @brief Internal to the flows: propagating a change of geometry to the records it reaches
+///        (VASL-MODEL §5). Shared by ingest (geometry grows) and delete (geometry shrinks).
+/// @details Which (older source m, tile t) pairs must be recomputed, and why that is exact:
+///          a record of m on vossel k depends on k's geometry and on m's depth panorama D_m at
+///          the pixels k's visibility test reads. D_m is a min over splats of every vossel; a
+///          splat changes only for a vossel whose centroid or normal changed (or that appeared
+///          or vanished): the "changed" tiles C. Let cap_m(t) be the directions in which tile t
+///          (grown by 2h for splat and patch extents) appears from m, widened by m's angular
+///          margin (pixel pitch, beam divergence, camera dilation).
+///          1. A changed tile c that m's reach raster says m cannot reach (every cell of
+///             cap_m(c) nearer than c minus the depth margin) changes nothing: its old and new
+///             splats lie behind D_m everywhere they fall, and none of its vossels is visible.
+///          2. A reachable changed tile c can alter D_m only inside cap_m(c), and only at
+///             depths ≥ near(c) − 2h; so it can alter the visibility of tile t only when
+///             cap_m(t) meets cap_m(c) and far(t) + 4h ≥ near(c).
+///          The pairs to recompute are the tiles of 2 (c itself included); a LiDAR's are kept
+///          to the tiles where it has returns (it records nothing elsewhere). Everything else
+///          keeps its records bit for bit. The recomputation renders D_m from the whole new
+///          geometry, so its records and its new reach raster equal a rebuild's.
+#pragma once
+
+#include <chrono>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "lattice/flows/flows.h"
+#include "lattice/ingest/sources.h"
+#include "lattice/store/project_store.h"
+#include "lattice/tiles/tiling.h"
+
+namespace vasl::flows::internal {
+
+/// Times the stages of a flow into FlowResult::stage_seconds and reports each start.
+class StageClock {
+ public:
+  StageClock(FlowResult& result, const StageFn& stage) : result_(result), stage_(stage) {}
+  /// Closes the running stage (if any) and starts `name` at `fraction` of the flow.
+  void Start(const std::string& name, double fraction);
+  /// Closes the running stage.
+  void Finish();
+
+ private:
+  using Clock = std::chrono::steady_clock;
+  FlowResult& result_;
+  const StageFn& stage_;
+  std::string running_;
+  Clock::time_point t0_;
+};
+
+/// A source of the project as the catalog holds it, with its scan's batch.
+struct SourceRef {
+  store::SourceInfo info;
+  int32_t batch = 0;
+  bool lidar() const { return info.modality == records::Modality::kLidar; }
+};
+/// Every source of `scans`, in source-id order.
+std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans);
+
+/// The tiles of `all` whose records from `source` may change when the geometry of `changed`
+/// tiles changes (see @details), given the source's reach raster (nullptr: unknown, so every
+/// changed tile counts as reachable). `h` vossel edge, `T` tile edge in vossels.
+std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
+                                       const std::set<tiles::TileKey>& changed,
+                                       const std::set<tiles::TileKey>& all, int T, double h);
+
+/// A geometry change ready to propagate.
+struct Change {
+  records::VosselGeometry geometry;        ///< the new geometry, final (sums, centroids, normals)
+  std::vector<int32_t> old_to_new;         ///< per vossel of the old geometry: new index or −1
+  std::set<int32_t> dropped_sources;       ///< sources whose records and reach leave the project
+  ingest::SourceSet new_sources;           ///< sources computed on every tile (a new scan's)
+};
+
+/// Propagates `change` from `old`: finds the changed tiles (vossels that appeared, vanished or
+/// whose count, centroid or normal changed), carries every unaffected record over, recomputes
+/// the affected (older source, tile) pairs from their blobs, computes the new sources, fuses
+/// (§7, default profile) and fills `plan` with what changed. `old_sources` are the sources of
+/// `old` that stay. Returns the new snapshot (version not yet set).
+absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
+                                          const store::Snapshot& old, Change change,
+                                          const std::vector<SourceRef>& old_sources,
+                                          int64_t max_image_pixels, store::CommitPlan& plan,
+                                          FlowResult& result, StageClock& clock);
+
+/// Commits `next` under `plan`, fills the result's version, snapshot and write figures.
+absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
+                        const store::CommitPlan& plan, FlowResult& result, StageClock& clock);
+
+}  // namespace vasl::flows::internal

@@ -1,0 +1,74 @@
+/// @file flows.h
+/// @brief The flows that make new versions of a tiled project (ARCHITECTURE.md "The main
+///        flows"): incremental ingest, scan deletion and rebuild. Each lives in its own file
+///        (ingest_flow.cc, delete_flow.cc, rebuild_flow.cc) over the shared change propagation
+///        of change.h; the engine facade validates input, serialises writers and calls them.
+/// @details Rebuild is the oracle: it recomputes a whole project from its raw blobs. Ingest and
+///          delete change only what the change reaches (VASL-MODEL §5): the tiles whose vossels
+///          the scan's points touch, the vossels whose normal moved, and, for older sources, the
+///          (source, tile) pairs whose depth panorama the changed geometry can alter, found from
+///          each source's stored reach raster. Both give the same records, record by record, as
+///          a rebuild of the same scans (tests/flows/incremental_test.cc).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/ingest/scan_input.h"
+#include "lattice/ingest/sources.h"
+#include "lattice/store/project_store.h"
+
+namespace vasl::flows {
+
+/// Called as each stage of a flow starts: its name and the fraction of the flow done.
+using StageFn = std::function<void(const std::string& stage, double fraction)>;
+
+/// What a flow committed and what it cost.
+struct FlowResult {
+  std::shared_ptr<const store::Snapshot> snapshot;  ///< the committed version, in memory
+  int64_t version = 0;
+  std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
+  int64_t sources_computed = 0;  ///< sources whose records were computed on every tile they see
+  int64_t sources_revisited = 0;  ///< older sources recomputed on some tiles
+  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs recomputed
+  int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
+  int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
+};
+
+/// The LiDAR of a stored source, from its blob (packed float32 x, y, z, intensity).
+/// DATA_LOSS when the blob is damaged.
+absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
+                                              const store::SourceInfo& source, int32_t batch);
+/// A stored camera whose image is decoded from its blob on demand (`load`).
+ingest::CameraSource StoredCamera(const store::ProjectStore& store,
+                                  const store::SourceInfo& source, int32_t batch,
+                                  int64_t max_image_pixels);
+
+/// Incremental ingest of one validated scan whose blobs are stored: `info` carries its
+/// sources (ids, poses, blob hashes, sizes), `lidar` its points, `images` its decoded
+/// panoramas in the order of its camera sources. `head` is the project's HEAD snapshot.
+absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
+                                      const store::ScanInfo& info, const ingest::LidarData& lidar,
+                                      std::vector<ingest::LinearImage> images,
+                                      int64_t max_image_pixels, const StageFn& stage = {});
+
+/// A new version without scan `scan_name`: its vossels' sums are recomputed from the other
+/// scans' blobs in the tiles it touched, and the older sources are revisited where the removed
+/// geometry changes their depth panoramas (visibility can grow where geometry shrinks).
+/// NOT_FOUND for an unknown scan.
+absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::Snapshot& head,
+                                      const std::string& scan_name, int64_t max_image_pixels,
+                                      const StageFn& stage = {});
+
+/// Recomputes the whole project from its blobs (geometry, every source's records and reach,
+/// fusion) and commits it as a new version whose manifest replaces the previous one.
+/// FAILED_PRECONDITION for a project without scans.
+absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image_pixels,
+                                   const StageFn& stage = {});
+
+}  // namespace vasl::flows

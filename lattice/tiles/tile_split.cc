@@ -1,0 +1,150 @@
+#include "lattice/tiles/tile_split.h"
+
+#include <numeric>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "lattice/records/record_grid.h"
+
+namespace vasl::tiles {
+namespace {
+
+/// Copies element `from` of every per-vossel geometry array of `src` onto the end of `dst`.
+void AppendVossel(const records::VosselGeometry& src, size_t from, records::VosselGeometry& dst) {
+  dst.coord.push_back(src.coord[from]);
+  if (!src.point_count.empty()) dst.point_count.push_back(src.point_count[from]);
+  if (!src.centroid_m.empty()) dst.centroid_m.push_back(src.centroid_m[from]);
+  if (!src.normal.empty()) dst.normal.push_back(src.normal[from]);
+  if (!src.covariance_m2.empty()) dst.covariance_m2.push_back(src.covariance_m2[from]);
+  if (!src.sums.empty()) dst.sums.push_back(src.sums[from]);
+}
+
+/// Fused values of `vossels` (indices into `fused`'s arrays), in that order.
+records::FusedValues GatherFused(const records::FusedValues& fused,
+                                 const std::vector<int32_t>& vossels) {
+  records::FusedValues out;
+  out.profile = fused.profile;
+  for (const auto& [modality, fm] : fused.by_modality) {
+    records::FusedModality o;
+    o.channels = fm.channels;
+    o.value.reserve(vossels.size() * fm.channels);
+    for (int32_t v : vossels) {
+      for (int c = 0; c < fm.channels; ++c) o.value.push_back(fm.value[size_t(v) * fm.channels + c]);
+      o.weight.push_back(fm.weight[v]);
+      o.uncertainty.push_back(fm.uncertainty[v]);
+    }
+    out.by_modality.emplace(modality, std::move(o));
+  }
+  return out;
+}
+
+}  // namespace
+
+std::vector<TileKey> TilesOfVossels(const records::VosselGeometry& g, int T) {
+  std::vector<TileKey> out(g.size());
+  for (size_t v = 0; v < g.size(); ++v) out[v] = TileOf(g.coord[v], T);
+  return out;
+}
+
+std::map<TileKey, std::vector<int32_t>> VosselsByTile(const records::VosselGeometry& g, int T) {
+  std::map<TileKey, std::vector<int32_t>> out;
+  for (size_t v = 0; v < g.size(); ++v) out[TileOf(g.coord[v], T)].push_back(int32_t(v));
+  return out;
+}
+
+std::vector<TileContents> ExtractTiles(const records::VosselGeometry& g,
+                                       const records::RecordSet& recs,
+                                       const records::FusedValues& fused,
+                                       const std::set<TileKey>& keys, int T) {
+  const std::map<TileKey, std::vector<int32_t>> by_tile = VosselsByTile(g, T);
+  // First record of every vossel (records sorted by vossel).
+  std::vector<size_t> begin(g.size() + 1, 0);
+  for (size_t i = 0; i < recs.size(); ++i) ++begin[size_t(recs.vossel[i]) + 1];
+  for (size_t k = 0; k < g.size(); ++k) begin[k + 1] += begin[k];
+
+  const std::vector<TileKey> ordered(keys.begin(), keys.end());
+  std::vector<TileContents> out(ordered.size());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, ordered.size(), 1),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t t = r.begin(); t != r.end(); ++t) {
+      TileContents& tile = out[t];
+      tile.key = ordered[t];
+      tile.geometry.vossel_size_m = g.vossel_size_m;
+      tile.fused.profile = fused.profile;
+      auto it = by_tile.find(tile.key);
+      static const std::vector<int32_t> kNone;
+      const std::vector<int32_t>& members = it == by_tile.end() ? kNone : it->second;
+      for (int32_t v : members) AppendVossel(g, size_t(v), tile.geometry);
+      // Tile-local canonical order; `local[i]` is the new index of members[i].
+      const std::vector<int32_t> local = records::CanonicalizeVosselOrder(tile.geometry);
+      std::vector<int32_t> by_local(members.size());
+      for (size_t i = 0; i < members.size(); ++i) by_local[size_t(local[i])] = members[i];
+      std::vector<size_t> picked;
+      for (int32_t v : by_local) {
+        for (size_t k = begin[size_t(v)]; k < begin[size_t(v) + 1]; ++k) picked.push_back(k);
+      }
+      tile.records = recs.Select(picked);
+      // Records were picked in tile-local vossel order, each vossel's in (scan) order.
+      size_t at = 0;
+      for (size_t l = 0; l < by_local.size(); ++l) {
+        const size_t n = begin[size_t(by_local[l]) + 1] - begin[size_t(by_local[l])];
+        for (size_t k = 0; k < n; ++k) tile.records.vossel[at++] = int32_t(l);
+      }
+      if (!fused.by_modality.empty()) tile.fused = GatherFused(fused, by_local);
+    }
+  });
+  return out;
+}
+
+Assembled AssembleTiles(std::vector<TileContents>&& tiles, double h) {
+  Assembled out;
+  out.geometry.vossel_size_m = h;
+  size_t vossels = 0, records = 0;
+  for (const TileContents& t : tiles) {
+    vossels += t.geometry.size();
+    records += t.records.size();
+  }
+  out.geometry.coord.reserve(vossels);
+  out.records.Reserve(records);
+  std::vector<size_t> tile_first(tiles.size() + 1, 0);
+  for (size_t t = 0; t < tiles.size(); ++t) {
+    const TileContents& tile = tiles[t];
+    tile_first[t] = out.geometry.size();
+    for (size_t v = 0; v < tile.geometry.size(); ++v) AppendVossel(tile.geometry, v, out.geometry);
+    records::RecordSet shifted = tile.records;
+    for (int32_t& v : shifted.vossel) v += int32_t(tile_first[t]);
+    out.records.Append(shifted);
+  }
+  tile_first[tiles.size()] = out.geometry.size();
+  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(out.geometry);
+  for (int32_t& v : out.records.vossel) v = old_to_new[size_t(v)];
+  out.records.SortByVossel();
+  // Fused values: concatenated per modality, then permuted like the vossels.
+  std::vector<int32_t> new_to_old(old_to_new.size());
+  for (size_t i = 0; i < old_to_new.size(); ++i) new_to_old[size_t(old_to_new[i])] = int32_t(i);
+  records::FusedValues concat;
+  for (size_t t = 0; t < tiles.size(); ++t) {
+    const TileContents& tile = tiles[t];
+    if (!tile.fused.profile.empty()) concat.profile = tile.fused.profile;
+    for (const auto& [modality, fm] : tile.fused.by_modality) {
+      records::FusedModality& o = concat.by_modality[modality];
+      o.channels = fm.channels;
+      const size_t n = vossels;
+      o.value.resize(n * fm.channels, 0.0f);
+      o.weight.resize(n, 0.0f);
+      o.uncertainty.resize(n, 0.0f);
+      for (size_t v = 0; v < tile.geometry.size(); ++v) {
+        const size_t g = tile_first[t] + v;
+        for (int c = 0; c < fm.channels; ++c) o.value[g * fm.channels + c] = fm.value[v * fm.channels + c];
+        o.weight[g] = fm.weight[v];
+        o.uncertainty[g] = fm.uncertainty[v];
+      }
+    }
+  }
+  out.fused = GatherFused(concat, new_to_old);
+  tiles.clear();
+  return out;
+}
+
+}  // namespace vasl::tiles

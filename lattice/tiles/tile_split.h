@@ -1,0 +1,49 @@
+/// @file tile_split.h
+/// @brief Cutting a project's in-memory arrays (geometry, records, fused values) into tiles and
+///        putting tiles back together. A tile's contents are plain records:: structures with
+///        tile-local vossel indices, in the canonical order of the tile's own index grid, so
+///        that record_grid.h writes each tile as ordinary OpenVDB files.
+#pragma once
+
+#include <map>
+#include <set>
+#include <vector>
+
+#include "lattice/records/records.h"
+#include "lattice/tiles/tiling.h"
+
+namespace vasl::tiles {
+
+/// One tile of a version.
+struct TileContents {
+  TileKey key;
+  records::VosselGeometry geometry;  ///< the tile's vossels, tile-local canonical order
+  records::RecordSet records;        ///< sorted by (tile-local vossel, scan)
+  records::FusedValues fused;        ///< per tile-local vossel
+};
+
+/// The tile of every vossel of `geometry`.
+std::vector<TileKey> TilesOfVossels(const records::VosselGeometry& geometry, int tile_vossels);
+
+/// Vossel indices of `geometry` grouped by tile (ascending within a tile).
+std::map<TileKey, std::vector<int32_t>> VosselsByTile(const records::VosselGeometry& geometry,
+                                                       int tile_vossels);
+
+/// The contents of the tiles `keys` cut out of whole-project arrays (`records` sorted by vossel;
+/// `fused` per vossel of `geometry`, may be empty). Tiles without vossels come back empty.
+/// Parallel over tiles (TBB).
+std::vector<TileContents> ExtractTiles(const records::VosselGeometry& geometry,
+                                       const records::RecordSet& records,
+                                       const records::FusedValues& fused,
+                                       const std::set<TileKey>& keys, int tile_vossels);
+
+/// Whole-project arrays put together from tiles: vossels in canonical order of one index grid,
+/// records sorted by vossel (then scan), fused values per vossel. The tiles are consumed.
+struct Assembled {
+  records::VosselGeometry geometry;
+  records::RecordSet records;
+  records::FusedValues fused;
+};
+Assembled AssembleTiles(std::vector<TileContents>&& tiles, double vossel_size_m);
+
+}  // namespace vasl::tiles

@@ -1,0 +1,129 @@
+#include "lattice/tiles/tiling.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+#include "absl/strings/str_cat.h"
+
+namespace vasl::tiles {
+
+std::string ToString(const TileKey& key) { return absl::StrCat(key.x, "_", key.y, "_", key.z); }
+
+Box BoxOf(const TileKey& key, int T, double h) {
+  Box b;
+  b.min_m = h * (Eigen::Vector3d(key.x, key.y, key.z) * T - Eigen::Vector3d::Constant(0.5));
+  b.max_m = b.min_m + Eigen::Vector3d::Constant(T * h);
+  return b;
+}
+
+ViewCap CapOf(const Box& box, const Eigen::Vector3d& o, double grow_m) {
+  ViewCap cap;
+  const Eigen::Vector3d centre = 0.5 * (box.min_m + box.max_m);
+  const double radius = 0.5 * (box.max_m - box.min_m).norm() + grow_m;
+  const Eigen::Vector3d to_centre = centre - o;
+  const double dist = to_centre.norm();
+  const Eigen::Vector3d nearest = o.cwiseMax(box.min_m).cwiseMin(box.max_m);
+  cap.near_m = (nearest - o).norm();
+  double far2 = 0.0;
+  for (int c = 0; c < 8; ++c) {
+    const Eigen::Vector3d corner((c & 1) ? box.max_m.x() : box.min_m.x(),
+                                 (c & 2) ? box.max_m.y() : box.min_m.y(),
+                                 (c & 4) ? box.max_m.z() : box.min_m.z());
+    far2 = std::max(far2, (corner - o).squaredNorm());
+  }
+  cap.far_m = std::sqrt(far2);
+  if (dist <= radius) {
+    cap.everywhere = true;
+    cap.half_angle_rad = M_PI;
+    return cap;
+  }
+  cap.dir = to_centre / dist;
+  cap.half_angle_rad = std::asin(radius / dist);
+  return cap;
+}
+
+bool CapsOverlap(const ViewCap& a, const ViewCap& b, double margin_rad) {
+  if (a.everywhere || b.everywhere) return true;
+  const double angle = std::acos(std::clamp(a.dir.dot(b.dir), -1.0, 1.0));
+  return angle <= a.half_angle_rad + b.half_angle_rad + margin_rad;
+}
+
+ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size) {
+  ReachRaster r;
+  r.size = {(size.width_px + kReachBlockPx - 1) / kReachBlockPx,
+            (size.height_px + kReachBlockPx - 1) / kReachBlockPx};
+  r.max_depth_m.assign(size_t(r.size.width_px) * r.size.height_px,
+                       -std::numeric_limits<float>::infinity());
+  for (int j = 0; j < size.height_px; ++j) {
+    float* row = &r.max_depth_m[size_t(j / kReachBlockPx) * r.size.width_px];
+    const float* in = &depth_m[size_t(j) * size.width_px];
+    for (int i = 0; i < size.width_px; ++i) {
+      float& cell = row[i / kReachBlockPx];
+      cell = std::max(cell, in[i]);
+    }
+  }
+  return r;
+}
+
+bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,
+             double min_depth_m) {
+  const int W = reach.size.width_px, H = reach.size.height_px;
+  if (W <= 0 || H <= 0) return true;  // no raster: assume it reaches
+  const double dphi = 2.0 * M_PI / W, dpsi = M_PI / H;
+  if (cap.everywhere) {
+    for (float d : reach.max_depth_m) {
+      if (d >= min_depth_m) return true;
+    }
+    return false;
+  }
+  const Eigen::Vector3d dir_s = T_world_sensor.q_world_sensor.conjugate() * cap.dir;
+  const double psi_c = std::asin(std::clamp(dir_s.z(), -1.0, 1.0));
+  // Half-diagonal of a cell on the sphere (bounded by its angular extents) plus the cap.
+  const double reach_rad = cap.half_angle_rad + 0.5 * std::hypot(dphi, dpsi);
+  const double cos_reach = std::cos(std::min(reach_rad, M_PI));
+  const int j0 = std::max(0, int(std::floor((0.5 - (psi_c + reach_rad) / M_PI) * H)) - 1);
+  const int j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - reach_rad) / M_PI) * H)) + 1);
+  for (int j = j0; j <= j1; ++j) {
+    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    const double cpsi = std::cos(psi), spsi = std::sin(psi);
+    const float* row = &reach.max_depth_m[size_t(j) * W];
+    for (int i = 0; i < W; ++i) {
+      if (row[i] < min_depth_m) continue;
+      const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+      const Eigen::Vector3d d(cpsi * std::cos(phi), cpsi * std::sin(phi), spsi);
+      if (d.dot(dir_s) >= cos_reach) return true;
+    }
+  }
+  return false;
+}
+
+std::string SerializeReach(const ReachRaster& reach) {
+  std::string out = "VRCH";
+  const int32_t dims[2] = {reach.size.width_px, reach.size.height_px};
+  out.append(reinterpret_cast<const char*>(dims), sizeof(dims));
+  out.append(reinterpret_cast<const char*>(reach.max_depth_m.data()),
+             reach.max_depth_m.size() * sizeof(float));
+  return out;
+}
+
+absl::StatusOr<ReachRaster> ParseReach(const std::string& bytes) {
+  if (bytes.size() < 12 || bytes.compare(0, 4, "VRCH") != 0) {
+    return absl::DataLossError("not a reach raster (no VRCH header)");
+  }
+  int32_t dims[2];
+  std::memcpy(dims, bytes.data() + 4, sizeof(dims));
+  ReachRaster r;
+  r.size = {dims[0], dims[1]};
+  const size_t n = size_t(std::max(0, dims[0])) * size_t(std::max(0, dims[1]));
+  if (dims[0] <= 0 || dims[1] <= 0 || bytes.size() != 12 + n * sizeof(float)) {
+    return absl::DataLossError(absl::StrCat("reach raster of ", dims[0], "x", dims[1], " has ",
+                                            bytes.size(), " bytes"));
+  }
+  r.max_depth_m.resize(n);
+  std::memcpy(r.max_depth_m.data(), bytes.data() + 12, n * sizeof(float));
+  return r;
+}
+
+}  // namespace vasl::tiles

@@ -1,0 +1,100 @@
+/// @file tiling.h
+/// @brief Spatial tiles of the lattice (ARCHITECTURE.md "Storage of one project"): tile keys,
+///        their world boxes, the angular cap a tile covers from a sensor, and a sensor's coarse
+///        reach raster. These decide which (source, tile) pairs an incremental ingest must
+///        revisit (VASL-MODEL §5: "visibility is recomputed only for (scan, region) pairs whose
+///        depth panorama the new geometry changes").
+/// @details A tile holds the vossels k with floor(k / T) = key on each axis, T the project's
+///          tile edge in vossels. Its world box covers the cells of those vossels:
+///          [(T·key − ½)·h, (T·(key+1) − ½)·h] per axis (vossel centres at h·k, §1), so every
+///          centroid of the tile lies inside it.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <openvdb/openvdb.h>
+
+#include "absl/status/statusor.h"
+#include "lattice/geometry/equirect.h"
+#include "lattice/geometry/pose.h"
+
+namespace vasl::tiles {
+
+/// Default tile edge in vossels (64³ vossels: 3.2 m at h = 5 cm, 1.28 m at h = 2 cm; see
+/// README "Storage" for the measurement behind it). A project setting.
+inline constexpr int kDefaultTileVossels = 64;
+
+/// Integer coordinates of a tile.
+struct TileKey {
+  int32_t x = 0, y = 0, z = 0;
+  bool operator<(const TileKey& o) const {
+    return x != o.x ? x < o.x : (y != o.y ? y < o.y : z < o.z);
+  }
+  bool operator==(const TileKey& o) const { return x == o.x && y == o.y && z == o.z; }
+  bool operator!=(const TileKey& o) const { return !(*this == o); }
+};
+
+/// "x_y_z", as tile objects are listed.
+std::string ToString(const TileKey& key);
+
+/// The tile of vossel k (floor division per axis).
+inline TileKey TileOf(const openvdb::Coord& k, int tile_vossels) {
+  auto fdiv = [tile_vossels](int a) {
+    return a >= 0 ? a / tile_vossels : -((-a + tile_vossels - 1) / tile_vossels);
+  };
+  return {fdiv(k.x()), fdiv(k.y()), fdiv(k.z())};
+}
+
+/// World box of a tile (see @details), metres.
+struct Box {
+  Eigen::Vector3d min_m = Eigen::Vector3d::Zero();
+  Eigen::Vector3d max_m = Eigen::Vector3d::Zero();
+};
+Box BoxOf(const TileKey& key, int tile_vossels, double vossel_size_m);
+
+/// The directions and ranges at which a box appears from a sensor at `o`: a cone of half-angle
+/// `half_angle_rad` about `dir` (the box's bounding sphere, grown by `grow_m`), and the nearest
+/// and farthest distance from `o` to the box itself. `everywhere` when `o` lies inside the grown
+/// sphere (the box may appear in any direction).
+struct ViewCap {
+  Eigen::Vector3d dir = Eigen::Vector3d::UnitX();  ///< unit, world frame
+  double half_angle_rad = 0.0;
+  double near_m = 0.0;  ///< distance from o to the box (0 inside)
+  double far_m = 0.0;   ///< distance from o to the box's farthest corner
+  bool everywhere = false;
+};
+ViewCap CapOf(const Box& box, const Eigen::Vector3d& o_world, double grow_m);
+
+/// True when two caps seen from the same sensor may share a direction, up to `margin_rad`.
+bool CapsOverlap(const ViewCap& a, const ViewCap& b, double margin_rad);
+
+/// A sensor's reach: per cell of a coarse equirect raster (in the sensor frame, §2.1), an upper
+/// bound of the depth panorama's range over the cell's pixels (+inf where nothing is in the
+/// way). A tile whose cap meets no cell reaching its near distance is hidden from the sensor.
+struct ReachRaster {
+  geometry::EquirectSize size;   ///< raster size (cells)
+  std::vector<float> max_depth_m;  ///< row-major, row 0 up
+};
+
+/// Pixels of a depth panorama per reach cell along each axis.
+inline constexpr int kReachBlockPx = 16;
+
+/// The reach raster of a depth panorama (`depth_m` row-major over `size`): per block of
+/// kReachBlockPx² pixels, the maximum depth.
+ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size);
+
+/// True when some cell of `reach` that `cap` (world frame; the sensor at `T_world_sensor`) may
+/// cover holds a depth ≥ `min_depth_m`: the sensor may see something at that range in the cap.
+/// Conservative: cells are tested by their centre direction and angular half-diagonal.
+bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,
+             double min_depth_m);
+
+/// Bytes of a reach raster as stored (little-endian: magic "VRCH", width, height, floats).
+std::string SerializeReach(const ReachRaster& reach);
+/// DATA_LOSS when `bytes` is not a reach raster.
+absl::StatusOr<ReachRaster> ParseReach(const std::string& bytes);
+
+}  // namespace vasl::tiles
