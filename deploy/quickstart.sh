@@ -63,15 +63,17 @@ v = {x["name"]: x for x in json.load(open("out/scene/truth/views.json"))["views"
 print(",".join(str(c) for c in v["position"] + v["quaternion"]))')"
 vasl render --project demo --pose "$pose" --width 2048 --height 1024 -o out/demo.exr
 vasl inspect --project demo
+vasl versions --project demo
+vasl export --project demo -o out/demo.vdb
 
 cat <<MSG
 
 quickstart: done.
   server      vasld on $address, pid $(cat "$pidfile"), log $root/$log
-  data        $root/vasl-data/demo/ (catalog.sqlite, blobs/, versions/<n>/*.vdb, HEAD)
+  data        $root/vasl-data/demo/ (catalog.sqlite, blobs/, objects/<sha256> tile files, HEAD)
   scans       $root/out/scene/scan-*.json (+ .ply, -rgb.png), ground truth in out/scene/truth/
   render      $root/out/demo.exr (R,G,B,Z,N.x,N.y,N.z,U) and $root/out/demo.png
   CLI         .venv/bin/vasl --server $address scans --project demo
-  inspect     vdb_print -l vasl-data/demo/versions/\$(cat vasl-data/demo/HEAD)/records.vdb
+  export      $root/out/demo.vdb: the HEAD version as one OpenVDB file (vdb_print -l out/demo.vdb)
   stop        ./deploy/stop.sh   (or: kill \$(cat vasl-data/vasld.pid))
 MSG

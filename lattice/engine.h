@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/flows/flows.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/ingest/scan_input.h"
 #include "lattice/records/records.h"
@@ -113,6 +114,11 @@ class Engine {
 
   /// Versions still kept, oldest first, with what made each and the bytes it wrote.
   absl::StatusOr<std::vector<store::VersionInfo>> ListVersions(const std::string& project);
+
+  /// Writes version `version` (0: HEAD) of a project as one merged OpenVDB file at `path`
+  /// (flows::Export). FAILED_PRECONDITION for a project without versions.
+  absl::StatusOr<flows::ExportResult> Export(const std::string& project, int64_t version,
+                                             const std::filesystem::path& path);
 
   /// The render flow (§8) on an immutable snapshot.
   absl::StatusOr<RenderImage> Render(const std::string& project, const RenderRequest& request);

@@ -181,4 +181,42 @@ absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
   return formats;
 }
 
+void VersionToProto(const store::VersionInfo& info, v1::Version* out) {
+  out->set_version(info.version);
+  out->set_vossel_count(info.vossel_count);
+  out->set_record_count(info.record_count);
+  out->set_tile_count(info.tile_count);
+  out->set_bytes_written(info.bytes_written);
+  out->set_bytes_total(info.bytes_total);
+  out->set_made_by(info.made_by);
+  out->set_pinned(info.pinned);
+  out->set_created_utc(info.created_utc);
+}
+
+void ChangeStatsToProto(const IngestResult& result, v1::ChangeStats* out) {
+  out->set_sources_computed(result.sources_computed);
+  out->set_sources_revisited(result.sources_revisited);
+  out->set_pairs_revisited(result.pairs_revisited);
+  out->set_tiles_changed(result.tiles_changed);
+  out->set_bytes_written(result.bytes_written);
+}
+
+void StagesToProto(const std::vector<std::pair<std::string, double>>& stages,
+                   google::protobuf::RepeatedPtrField<v1::StageTime>* out) {
+  for (const auto& [stage, seconds] : stages) {
+    v1::StageTime* t = out->Add();
+    t->set_stage(stage);
+    t->set_seconds(seconds);
+  }
+}
+
+void ChangeToProto(const IngestResult& result, v1::ChangeResponse* out) {
+  out->set_version(result.version);
+  out->set_vossel_count(result.vossel_count);
+  out->set_record_count(result.record_count);
+  out->set_seconds(result.seconds);
+  StagesToProto(result.stage_seconds, out->mutable_stages());
+  ChangeStatsToProto(result, out->mutable_change());
+}
+
 }  // namespace vasl::server

@@ -26,6 +26,14 @@ v1::Modality ModalityToProto(records::Modality modality);
 void ProjectToProto(const ProjectInfo& info, v1::Project* out);
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out);
 void AttributeToProto(const records::AttributeInfo& info, v1::RecordAttribute* out);
+void VersionToProto(const store::VersionInfo& info, v1::Version* out);
+/// What a change recomputed and wrote (ingest, rebuild, deletion).
+void ChangeStatsToProto(const IngestResult& result, v1::ChangeStats* out);
+/// Version, counts, seconds, stages and change figures of a rebuild or deletion.
+void ChangeToProto(const IngestResult& result, v1::ChangeResponse* out);
+/// Per-stage seconds, in order.
+void StagesToProto(const std::vector<std::pair<std::string, double>>& stages,
+                   google::protobuf::RepeatedPtrField<v1::StageTime>* out);
 
 /// CreateProjectRequest -> settings (0 fields take the defaults). INVALID_ARGUMENT for a
 /// non-finite or negative vossel size or a negative retention.

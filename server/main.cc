@@ -85,6 +85,7 @@ int main(int argc, char** argv) {
   if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
   vasl::server::WorkerPool pool(workers);
   vasl::server::ServiceOptions service_options;
+  service_options.staging_dir = options.data_dir;
   service_options.render_chunk_bytes = options.render_chunk_bytes;
   vasl::server::VaslServiceImpl service(engine->get(), &pool, service_options);
 

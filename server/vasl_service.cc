@@ -2,8 +2,14 @@
 /// @brief vasl.v1.VaslService over the lattice Engine (callback API, worker pool).
 #include "server/vasl_service.h"
 
+#include <unistd.h>
+
+#include <atomic>
 #include <cstdio>
 #include <ctime>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <memory>
 #include <utility>
 
@@ -111,23 +117,8 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       p.set_received_bytes(received);
       p.set_elapsed_s(SecondsSince(start_));
     });
-    std::mutex stage_mutex;  // the engine may report from several threads
-    std::string last_stage;
-    ProgressFn progress = [&](const Progress& step) {
-      const double elapsed = SecondsSince(start_);
-      std::lock_guard<std::mutex> lock(stage_mutex);
-      service_->UpdateProgress(project, [&](v1::IngestProgress& p) {
-        p.set_stage(step.stage);
-        p.set_fraction(step.fraction);
-        p.set_elapsed_s(elapsed);
-      });
-      if (step.stage != last_stage) {
-        last_stage = step.stage;
-        service_->options().log(absl::StrFormat(
-            "IngestScan progress project=%s scan=%s stage=%s fraction=%.2f elapsed_s=%.1f",
-            project, scan.scan_name, step.stage, step.fraction, elapsed));
-      }
-    };
+    const ProgressFn progress =
+        service_->ProgressReporter("IngestScan", project, "scan=" + scan.scan_name, start_);
     absl::StatusOr<IngestResult> result =
         service_->engine()->IngestScan(project, scan, progress);
     if (!result.ok()) {
@@ -143,11 +134,8 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     response_->set_point_count(static_cast<int64_t>(scan.lidar.xyz_sensor_m.size() / 3));
     response_->set_ingest_seconds(result->seconds);
     response_->set_total_seconds(SecondsSince(start_));
-    for (const auto& [stage, seconds] : result->stage_seconds) {
-      v1::StageTime* t = response_->add_stages();
-      t->set_stage(stage);
-      t->set_seconds(seconds);
-    }
+    StagesToProto(result->stage_seconds, response_->mutable_stages());
+    ChangeStatsToProto(*result, response_->mutable_change());
     Finish(grpc::Status::OK, true);
   }
 
@@ -180,21 +168,21 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
 };
 
 // ---------------------------------------------------------------------------------------------
-// Render: one writer reactor per call. Renders and encodes on the pool, then streams the
-// metadata and each format's bytes in chunks; each write is started from the previous write's
-// completion.
-class RenderReactor final : public grpc::ServerWriteReactor<v1::RenderResponse> {
+// Server streams of bytes (Render, Export): one writer reactor per call. `Prepare` runs on the
+// pool and produces the first message and the byte payloads; then each payload is streamed in
+// chunks, each write started from the previous write's completion.
+template <typename Response>
+class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
  public:
-  RenderReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
-                const v1::RenderRequest* request)
-      : service_(service), context_(context), request_(*request), start_(Clock::now()) {
-    const bool queued = service_->pool()->Submit([this] { Run(); });
-    if (!queued) Done(Unavailable());
-  }
+  ChunkStreamReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                     const char* method, std::string project)
+      : service_(service), context_(context), method_(method), project_(std::move(project)),
+        start_(Clock::now()) {}
 
   void OnWriteDone(bool ok) override {
     if (!ok) {
-      Done(grpc::Status(grpc::StatusCode::CANCELLED, "the client stopped reading the render"));
+      Done(grpc::Status(grpc::StatusCode::CANCELLED,
+                        absl::StrCat("the client stopped reading the ", method_, " stream")));
       return;
     }
     WriteNext();
@@ -202,24 +190,81 @@ class RenderReactor final : public grpc::ServerWriteReactor<v1::RenderResponse> 
 
   void OnDone() override { delete this; }
 
+ protected:
+  /// Queues Run on the pool (call last in the derived constructor).
+  void Start() {
+    const bool queued = service_->pool()->Submit([this] { Run(); });
+    if (!queued) Done(Unavailable());
+  }
+  /// Fills `first_` and `payloads_` (tag, bytes), or returns an error.
+  virtual grpc::Status Prepare() = 0;
+  /// One chunk of payload `tag` at `offset`.
+  virtual void FillChunk(Response& out, int tag, int64_t offset, const char* data, size_t n) = 0;
+
+  VaslServiceImpl* service_;
+  Response first_;
+  std::vector<std::pair<int, std::string>> payloads_;
+
  private:
   void Run() {
     grpc::Status gone;
-    if (ClientGone(context_, &gone)) {
-      Done(gone);
-      return;
+    if (ClientGone(context_, &gone)) return Done(gone);
+    const grpc::Status prepared = Prepare();
+    if (!prepared.ok()) return Done(prepared);
+    this->StartWrite(&first_);
+  }
+
+  void WriteNext() {
+    const size_t chunk = static_cast<size_t>(service_->options().render_chunk_bytes);
+    while (index_ < payloads_.size() && offset_ >= payloads_[index_].second.size()) {
+      ++index_;
+      offset_ = 0;
     }
+    if (index_ >= payloads_.size()) return Done(grpc::Status::OK);
+    const auto& [tag, bytes] = payloads_[index_];
+    const size_t n = std::min(chunk, bytes.size() - offset_);
+    chunk_.Clear();
+    FillChunk(chunk_, tag, static_cast<int64_t>(offset_), bytes.data() + offset_, n);
+    offset_ += n;
+    this->StartWrite(&chunk_);
+  }
+
+  void Done(const grpc::Status& status) {
+    service_->LogRequest(method_, project_, status, start_);
+    this->Finish(status);
+  }
+
+  grpc::CallbackServerContext* context_;
+  const char* method_;
+  std::string project_;
+  Clock::time_point start_;
+  Response chunk_;
+  size_t index_ = 0;
+  size_t offset_ = 0;
+};
+
+// Render: renders and encodes, then streams the metadata and each format's bytes.
+class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
+ public:
+  RenderReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                const v1::RenderRequest* request)
+      : ChunkStreamReactor(service, context, "Render", request->project()), request_(*request) {
+    Start();
+  }
+
+ private:
+  grpc::Status Prepare() override {
     const EngineLimits& limits = service_->engine()->limits();
     absl::StatusOr<render::RenderRequest> request = RenderRequestFromProto(request_, limits);
-    if (!request.ok()) return Done(ToGrpcStatus(request.status()));
+    if (!request.ok()) return ToGrpcStatus(request.status());
     absl::StatusOr<std::vector<v1::ImageFormat>> formats = RenderFormatsFromProto(request_);
-    if (!formats.ok()) return Done(ToGrpcStatus(formats.status()));
+    if (!formats.ok()) return ToGrpcStatus(formats.status());
     if (request_.project().empty()) {
-      return Done(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "project is empty"));
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "project is empty");
     }
     const Clock::time_point render_start = Clock::now();
     absl::StatusOr<RenderImage> image = service_->engine()->Render(request_.project(), *request);
-    if (!image.ok()) return Done(ToGrpcStatus(image.status()));
+    if (!image.ok()) return ToGrpcStatus(image.status());
     const double render_seconds = SecondsSince(render_start);
     const Clock::time_point encode_start = Clock::now();
     v1::RenderMetadata* meta = first_.mutable_metadata();
@@ -227,10 +272,10 @@ class RenderReactor final : public grpc::ServerWriteReactor<v1::RenderResponse> 
       absl::StatusOr<std::string> bytes = format == v1::IMAGE_FORMAT_EXR
                                               ? render::EncodeExr(*image)
                                               : render::EncodePng(*image);
-      if (!bytes.ok()) return Done(ToGrpcStatus(bytes.status()));
+      if (!bytes.ok()) return ToGrpcStatus(bytes.status());
       meta->add_formats(format);
       meta->add_size_bytes(static_cast<int64_t>(bytes->size()));
-      encoded_.emplace_back(format, std::move(*bytes));
+      payloads_.emplace_back(format, std::move(*bytes));
     }
     meta->set_width_px(image->width_px);
     meta->set_height_px(image->height_px);
@@ -238,47 +283,77 @@ class RenderReactor final : public grpc::ServerWriteReactor<v1::RenderResponse> 
     meta->set_hit_pixels(image->hit_pixels);
     meta->set_render_seconds(render_seconds);
     meta->set_encode_seconds(SecondsSince(encode_start));
-    StartWrite(&first_);
+    return grpc::Status::OK;
   }
 
-  void WriteNext() {
-    const size_t chunk = static_cast<size_t>(service_->options().render_chunk_bytes);
-    while (format_index_ < encoded_.size() && offset_ >= encoded_[format_index_].second.size()) {
-      ++format_index_;
-      offset_ = 0;
-    }
-    if (format_index_ >= encoded_.size()) {
-      Done(grpc::Status::OK);
-      return;
-    }
-    const auto& [format, bytes] = encoded_[format_index_];
-    const size_t n = std::min(chunk, bytes.size() - offset_);
-    chunk_.Clear();
-    v1::RenderChunk* c = chunk_.mutable_chunk();
-    c->set_format(format);
-    c->set_offset_bytes(static_cast<int64_t>(offset_));
-    c->set_data(bytes.data() + offset_, n);
-    offset_ += n;
-    StartWrite(&chunk_);
+  void FillChunk(v1::RenderResponse& out, int tag, int64_t offset, const char* data,
+                 size_t n) override {
+    v1::RenderChunk* c = out.mutable_chunk();
+    c->set_format(static_cast<v1::ImageFormat>(tag));
+    c->set_offset_bytes(offset);
+    c->set_data(data, n);
   }
 
-  void Done(const grpc::Status& status) {
-    service_->LogRequest("Render", request_.project(), status, start_);
-    Finish(status);
-  }
-
-  VaslServiceImpl* service_;
-  grpc::CallbackServerContext* context_;
   v1::RenderRequest request_;
-  Clock::time_point start_;
-  v1::RenderResponse first_;
-  v1::RenderResponse chunk_;
-  std::vector<std::pair<v1::ImageFormat, std::string>> encoded_;
-  size_t format_index_ = 0;
-  size_t offset_ = 0;
+};
+
+// Export: writes the merged .vdb to a staging file, reads it back, streams it.
+class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
+ public:
+  ExportReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                const v1::ExportRequest* request)
+      : ChunkStreamReactor(service, context, "Export", request->project()), request_(*request) {
+    Start();
+  }
+
+ private:
+  grpc::Status Prepare() override {
+    if (request_.version() < 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("version must be >= 0 (0: HEAD), got ", request_.version()));
+    }
+    const std::filesystem::path staged = service_->ExportStagingPath();
+    absl::StatusOr<flows::ExportResult> result =
+        service_->engine()->Export(request_.project(), request_.version(), staged);
+    std::string bytes;
+    if (result.ok()) {
+      std::ifstream in(staged, std::ios::binary);
+      bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    }
+    std::error_code ec;
+    std::filesystem::remove(staged, ec);
+    if (!result.ok()) return ToGrpcStatus(result.status());
+    if (int64_t(bytes.size()) != result->size_bytes) {
+      return grpc::Status(grpc::StatusCode::INTERNAL, "export: the staged file changed size");
+    }
+    v1::ExportMetadata* meta = first_.mutable_metadata();
+    meta->set_version(result->version);
+    meta->set_vossel_count(result->vossel_count);
+    meta->set_record_count(result->record_count);
+    meta->set_size_bytes(result->size_bytes);
+    payloads_.emplace_back(0, std::move(bytes));
+    return grpc::Status::OK;
+  }
+
+  void FillChunk(v1::ExportResponse& out, int, int64_t offset, const char* data,
+                 size_t n) override {
+    v1::ExportChunk* c = out.mutable_chunk();
+    c->set_offset_bytes(offset);
+    c->set_data(data, n);
+  }
+
+  v1::ExportRequest request_;
 };
 
 }  // namespace
+
+std::filesystem::path VaslServiceImpl::ExportStagingPath() const {
+  static std::atomic<uint64_t> counter{0};
+  const std::filesystem::path dir = options_.staging_dir.empty()
+                                        ? std::filesystem::temp_directory_path()
+                                        : options_.staging_dir;
+  return dir / absl::StrCat(".tmp-export-", ::getpid(), "-", counter.fetch_add(1));
+}
 
 void StderrLogSink(const std::string& line) {
   const std::time_t now = std::time(nullptr);
@@ -321,6 +396,30 @@ v1::IngestProgress VaslServiceImpl::GetProgress(const std::string& project) {
   idle.set_state(v1::IngestProgress::STATE_IDLE);
   idle.set_project(project);
   return idle;
+}
+
+ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::string& project,
+                                             const std::string& what, Clock::time_point start) {
+  struct State {
+    std::mutex mu;  // the engine may report from several threads
+    std::string last_stage;
+  };
+  auto state = std::make_shared<State>();
+  return [this, method, project, what, start, state](const Progress& step) {
+    const double elapsed = SecondsSince(start);
+    std::lock_guard<std::mutex> lock(state->mu);
+    UpdateProgress(project, [&](v1::IngestProgress& p) {
+      p.set_state(v1::IngestProgress::STATE_PROCESSING);
+      p.set_stage(step.stage);
+      p.set_fraction(step.fraction);
+      p.set_elapsed_s(elapsed);
+    });
+    if (step.stage != state->last_stage) {
+      state->last_stage = step.stage;
+      options_.log(absl::StrFormat("%s progress project=%s %s stage=%s fraction=%.2f elapsed_s=%.1f",
+                                   method, project, what, step.stage, step.fraction, elapsed));
+    }
+  };
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext* context,
@@ -446,6 +545,61 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
     }
     return grpc::Status::OK;
   });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
+                                                   const v1::RebuildRequest* request,
+                                                   v1::ChangeResponse* response) {
+  return RunUnary(context, "Rebuild", request->project(), [this, context, request, response] {
+    const ProgressFn progress =
+        ProgressReporter("Rebuild", request->project(), "rebuild", Clock::now());
+    absl::StatusOr<IngestResult> result = engine_->Rebuild(request->project(), progress);
+    return FinishChange(request->project(), result, response);
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContext* context,
+                                                      const v1::DeleteScanRequest* request,
+                                                      v1::ChangeResponse* response) {
+  return RunUnary(context, "DeleteScan", request->project(), [this, request, response] {
+    if (request->scan().empty()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
+    }
+    const ProgressFn progress = ProgressReporter("DeleteScan", request->project(),
+                                                 "scan=" + request->scan(), Clock::now());
+    absl::StatusOr<IngestResult> result =
+        engine_->DeleteScan(request->project(), request->scan(), progress);
+    return FinishChange(request->project(), result, response);
+  });
+}
+
+grpc::Status VaslServiceImpl::FinishChange(const std::string& project,
+                                           const absl::StatusOr<IngestResult>& result,
+                                           v1::ChangeResponse* response) {
+  UpdateProgress(project, [&](v1::IngestProgress& p) {
+    p.set_state(result.ok() ? v1::IngestProgress::STATE_SUCCEEDED : v1::IngestProgress::STATE_FAILED);
+    p.set_fraction(result.ok() ? 1.0 : p.fraction());
+    p.set_message(result.ok() ? "" : std::string(result.status().message()));
+  });
+  if (!result.ok()) return ToGrpcStatus(result.status());
+  ChangeToProto(*result, response);
+  return grpc::Status::OK;
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerContext* context,
+                                                        const v1::ListVersionsRequest* request,
+                                                        v1::ListVersionsResponse* response) {
+  return RunUnary(context, "ListVersions", request->project(), [this, request, response] {
+    absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());
+    if (!versions.ok()) return ToGrpcStatus(versions.status());
+    for (const store::VersionInfo& v : *versions) VersionToProto(v, response->add_versions());
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerWriteReactor<v1::ExportResponse>* VaslServiceImpl::Export(
+    grpc::CallbackServerContext* context, const v1::ExportRequest* request) {
+  return new ExportReactor(this, context, request);
 }
 
 }  // namespace vasl::server

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <chrono>
+#include <filesystem>
 #include <functional>
 #include <map>
 #include <mutex>
@@ -30,6 +31,9 @@ struct ServiceOptions {
   /// Payload size of streamed render chunks, bytes.
   int64_t render_chunk_bytes = 1ll << 20;
   LogSink log = StderrLogSink;
+  /// Where Export stages merged files before streaming them (vasld: its data directory);
+  /// empty: the system's temp directory.
+  std::filesystem::path staging_dir;
 };
 
 class VaslServiceImpl final : public v1::VaslService::CallbackService {
@@ -59,7 +63,25 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
                                            const v1::InspectRecordsRequest* request,
                                            v1::InspectRecordsResponse* response) override;
 
+  grpc::ServerUnaryReactor* Rebuild(grpc::CallbackServerContext* context,
+                                    const v1::RebuildRequest* request,
+                                    v1::ChangeResponse* response) override;
+  grpc::ServerUnaryReactor* DeleteScan(grpc::CallbackServerContext* context,
+                                       const v1::DeleteScanRequest* request,
+                                       v1::ChangeResponse* response) override;
+  grpc::ServerUnaryReactor* ListVersions(grpc::CallbackServerContext* context,
+                                         const v1::ListVersionsRequest* request,
+                                         v1::ListVersionsResponse* response) override;
+  grpc::ServerWriteReactor<v1::ExportResponse>* Export(
+      grpc::CallbackServerContext* context, const v1::ExportRequest* request) override;
+
   // Used by the reactors (vasl_service.cc).
+  /// A progress callback for a long engine call: it updates the progress board of `project`
+  /// (GetIngestProgress) and logs one line per stage ("<method> progress project=… <what> …").
+  ProgressFn ProgressReporter(const char* method, const std::string& project,
+                              const std::string& what, std::chrono::steady_clock::time_point start);
+  /// Where Export stages its files (the data directory's .tmp-export-*).
+  std::filesystem::path ExportStagingPath() const;
   Engine* engine() const { return engine_; }
   WorkerPool* pool() const { return pool_; }
   const ServiceOptions& options() const { return options_; }
@@ -77,6 +99,9 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
                                      const std::string& project,
                                      std::function<grpc::Status()> body);
+  /// Marks a rebuild or deletion finished on the progress board and fills its response.
+  grpc::Status FinishChange(const std::string& project, const absl::StatusOr<IngestResult>& result,
+                            v1::ChangeResponse* response);
 
   Engine* engine_;
   WorkerPool* pool_;

@@ -14,7 +14,8 @@
 namespace vasl::flows::internal {
 namespace {
 
-/// Angular pitch (radians, the larger axis) of a source's depth panorama.
+/// Angular pitch (radians, the larger axis) of a source's depth panorama: the Δ of its
+/// visibility tolerance.
 double DepthPixelRad(const SourceRef& s) {
   const double pitch = s.lidar()
                            ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
@@ -59,37 +60,80 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans) {
   return out;
 }
 
+std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
+                                        const records::VosselGeometry& now,
+                                        const std::vector<int32_t>& old_to_new, int T) {
+  const int B = std::min(16, T);
+  const double h = now.vossel_size_m;
+  std::map<tiles::TileKey, ChangedBlock> blocks;  // keyed by block coordinates
+  auto add = [&](const records::VosselGeometry& g, size_t v) {
+    const tiles::TileKey b = tiles::TileOf(g.coord[v], B);
+    auto [it, fresh] = blocks.try_emplace(b);
+    ChangedBlock& block = it->second;
+    if (fresh) {
+      block.tile = tiles::TileOf(g.coord[v], T);
+      block.box = tiles::BoxOf(b, B, h);
+    }
+    block.centroid_m.push_back(g.centroid_m[v].cast<double>());
+    block.normal.push_back(g.normal[v].cast<double>());
+  };
+  std::vector<uint8_t> has_old(now.size(), 0);
+  for (size_t v = 0; v < old_to_new.size(); ++v) {
+    const int32_t n = old_to_new[v];
+    if (n < 0) {
+      add(old, v);
+      continue;
+    }
+    has_old[size_t(n)] = 1;
+    if (old.point_count[v] != now.point_count[size_t(n)] ||
+        old.centroid_m[v] != now.centroid_m[size_t(n)] || old.normal[v] != now.normal[size_t(n)]) {
+      add(old, v);
+      add(now, size_t(n));
+    }
+  }
+  for (size_t n = 0; n < now.size(); ++n) {
+    if (!has_old[n]) add(now, n);
+  }
+  std::vector<ChangedBlock> out;
+  out.reserve(blocks.size());
+  for (auto& [key, block] : blocks) out.push_back(std::move(block));
+  return out;
+}
+
 std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
-                                       const std::set<tiles::TileKey>& changed,
+                                       const std::vector<ChangedBlock>& changed,
                                        const std::set<tiles::TileKey>& all, int T, double h) {
   const Eigen::Vector3d o = source.info.pose.o_world;
   const double grow_m = 2.0 * h;
   const double margin_rad = AngularMarginRad(source);
   const double pixel_rad = DepthPixelRad(source);
-  const double tan_max = std::sqrt(1.0 - geometry::kCosIncidenceMin * geometry::kCosIncidenceMin) /
-                         geometry::kCosIncidenceMin;
-  auto widened = [&](const tiles::TileKey& key) {
-    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(key, T, h), o, grow_m);
+  const double tau_m = ingest::DepthToleranceM(h);
+  auto widen = [&](tiles::ViewCap cap) {
     cap.half_angle_rad += margin_rad;
     return cap;
   };
-  // 1. Changed tiles the source may reach (see change.h).
+  // 1. Changed blocks the source may reach (see change.h).
   std::vector<tiles::ViewCap> reached;
   std::set<tiles::TileKey> out;
-  for (const tiles::TileKey& c : changed) {
-    const tiles::ViewCap cap = widened(c);
-    // Visible needs D ≥ r − τ_k somewhere, τ_k at most τ + r·Δ·tanθ_max (visibility.h).
-    const double tolerance_m = ingest::DepthToleranceM(h) + cap.far_m * pixel_rad * tan_max;
-    const double min_depth = cap.near_m - grow_m - tolerance_m;
+  for (const ChangedBlock& c : changed) {
+    const tiles::ViewCap cap = widen(tiles::CapOf(c.box, o, grow_m));
+    double min_depth = cap.near_m - grow_m;
+    for (size_t k = 0; k < c.centroid_m.size(); ++k) {
+      const Eigen::Vector3d to_sensor = o - c.centroid_m[k];
+      const double r = to_sensor.norm();
+      const double cos_inc =
+          c.normal[k].squaredNorm() < 0.5 ? 1.0 : std::abs(c.normal[k].dot(to_sensor)) / std::max(r, 1e-9);
+      min_depth = std::min(min_depth, r - h - ingest::SlopeScaledToleranceM(tau_m, r, pixel_rad, cos_inc));
+    }
     if (reach != nullptr && !tiles::Reaches(*reach, source.info.pose, cap, min_depth)) continue;
     reached.push_back(cap);
-    out.insert(c);
+    out.insert(c.tile);
   }
   if (reached.empty()) return out;
-  // 2. Tiles whose view from the source passes through a reachable changed tile.
+  // 2. Tiles whose view from the source passes through a reachable changed block.
   for (const tiles::TileKey& t : all) {
     if (out.count(t)) continue;
-    const tiles::ViewCap cap = widened(t);
+    const tiles::ViewCap cap = widen(tiles::CapOf(tiles::BoxOf(t, T, h), o, grow_m));
     for (const tiles::ViewCap& c : reached) {
       if (cap.far_m + 2.0 * grow_m >= c.near_m && tiles::CapsOverlap(cap, c, 0.0)) {
         out.insert(t);
@@ -116,26 +160,9 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
 
   // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
   clock.Start("find changes", 0.45);
+  const std::vector<ChangedBlock> blocks = ChangedBlocks(old.geometry, g, change.old_to_new, T);
   std::set<tiles::TileKey> changed;
-  {
-    std::vector<uint8_t> has_old(g.size(), 0);
-    for (size_t v = 0; v < change.old_to_new.size(); ++v) {
-      const int32_t n = change.old_to_new[v];
-      if (n < 0) {
-        changed.insert(tiles::TileOf(old.geometry.coord[v], T));
-        continue;
-      }
-      has_old[size_t(n)] = 1;
-      if (old.geometry.point_count[v] != g.point_count[size_t(n)] ||
-          old.geometry.centroid_m[v] != g.centroid_m[size_t(n)] ||
-          old.geometry.normal[v] != g.normal[size_t(n)]) {
-        changed.insert(tile_of[size_t(n)]);
-      }
-    }
-    for (size_t n = 0; n < g.size(); ++n) {
-      if (!has_old[n]) changed.insert(tile_of[n]);
-    }
-  }
+  for (const ChangedBlock& b : blocks) changed.insert(b.tile);
   plan.geometry_tiles = changed;
 
   // 2. Which older sources must be recomputed on which tiles.
@@ -143,7 +170,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   for (const SourceRef& src : old_sources) {
     auto it = old.reach.find(src.info.id);
     std::set<tiles::TileKey> tiles_of_src =
-        AffectedTiles(src, it == old.reach.end() ? nullptr : &it->second, changed, all_tiles, T, h);
+        AffectedTiles(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_tiles, T, h);
     if (src.lidar() && !tiles_of_src.empty()) {
       absl::StatusOr<std::set<tiles::TileKey>> returns = store.SourceTiles(src.info.id);
       if (!returns.ok()) return returns.status();

@@ -8,9 +8,11 @@
 ///          or vanished): the "changed" tiles C. Let cap_m(t) be the directions in which tile t
 ///          (grown by 2h for splat and patch extents) appears from m, widened by m's angular
 ///          margin (pixel pitch, beam divergence, camera dilation).
-///          1. A changed tile c that m's reach raster says m cannot reach (every cell of
-///             cap_m(c) nearer than c minus the depth margin) changes nothing: its old and new
-///             splats lie behind D_m everywhere they fall, and none of its vossels is visible.
+///          1. A block c of changed vossels that m's reach raster says m cannot reach (every
+///             cell of cap_m(c) nearer than both c's near distance less 2h and every changed
+///             vossel's range less h and its visibility tolerance τ_k) changes nothing: its old
+///             and new splats lie behind D_m everywhere they fall, and none of its changed
+///             vossels is visible before or after.
 ///          2. A reachable changed tile c can alter D_m only inside cap_m(c), and only at
 ///             depths ≥ near(c) − 2h; so it can alter the visibility of tile t only when
 ///             cap_m(t) meets cap_m(c) and far(t) + 4h ≥ near(c).
@@ -58,11 +60,28 @@ struct SourceRef {
 /// Every source of `scans`, in source-id order.
 std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans);
 
-/// The tiles of `all` whose records from `source` may change when the geometry of `changed`
-/// tiles changes (see @details), given the source's reach raster (nullptr: unknown, so every
-/// changed tile counts as reachable). `h` vossel edge, `T` tile edge in vossels.
+/// A block of (at most) 16³ vossels holding changed vossels: the unit of the reach test, finer
+/// than a tile so that a change at one end of a tile is not taken as seen by every sensor that
+/// sees the tile's other end.
+struct ChangedBlock {
+  tiles::TileKey tile;                      ///< the tile the block lies in
+  tiles::Box box;                           ///< the cells of the block
+  std::vector<Eigen::Vector3d> centroid_m;  ///< changed vossels, in their old and new state
+  std::vector<Eigen::Vector3d> normal;      ///< their normals (zero: none)
+};
+
+/// Blocks of the vossels that appeared, vanished or whose count, centroid or normal changed
+/// between `old` and `now` (`old_to_new` maps old vossels to new ones, −1: gone).
+std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
+                                        const records::VosselGeometry& now,
+                                        const std::vector<int32_t>& old_to_new, int T);
+
+/// The tiles of `all` whose records from `source` may change when the `changed` blocks change
+/// (see @details; rule 1 is tested per block, with the depth margin of the block's own vossels'
+/// visibility tolerances), given the source's reach raster (nullptr: unknown, every changed
+/// block counts as reachable). `h` vossel edge, `T` tile edge in vossels.
 std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
-                                       const std::set<tiles::TileKey>& changed,
+                                       const std::vector<ChangedBlock>& changed,
                                        const std::set<tiles::TileKey>& all, int T, double h);
 
 /// A geometry change ready to propagate.

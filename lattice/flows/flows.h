@@ -12,6 +12,7 @@
 #pragma once
 
 #include <cstdint>
+#include <filesystem>
 #include <functional>
 #include <memory>
 #include <string>
@@ -70,5 +71,19 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
 /// FAILED_PRECONDITION for a project without scans.
 absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image_pixels,
                                    const StageFn& stage = {});
+
+/// What Export wrote.
+struct ExportResult {
+  int64_t version = 0;
+  int64_t vossel_count = 0;
+  int64_t record_count = 0;
+  int64_t size_bytes = 0;
+};
+
+/// The export query: one self-contained OpenVDB file at `path` holding every layer of
+/// `snapshot` (records::WriteVersionFile), for tools that want one file (Houdini, Blender,
+/// vdb_print).
+absl::StatusOr<ExportResult> Export(const store::Snapshot& snapshot,
+                                    const std::filesystem::path& path);
 
 }  // namespace vasl::flows

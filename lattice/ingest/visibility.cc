@@ -161,13 +161,9 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       if (to_sensor.squaredNorm() == 0.0) continue;
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
       const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
-      // Slope-scaled tolerance (choice): across one pixel of the depth panorama the range of a
-      // surface at incidence θ changes by about r·Δ·tanθ; without it a surface seen at grazing
-      // incidence would shadow itself between pixel centres.
       const double range_k = to_sensor.norm();
-      const double cos_inc = std::max(std::abs(n.dot(to_sensor)) / range_k, geometry::kCosIncidenceMin);
-      const double tan_inc = std::sqrt(1.0 - cos_inc * cos_inc) / cos_inc;
-      const double tolerance_m = tau_m + range_k * pixel_rad * tan_inc;
+      const double tolerance_m = SlopeScaledToleranceM(tau_m, range_k, pixel_rad,
+                                                       std::abs(n.dot(to_sensor)) / range_k);
       int lit = 0;
       for (int a = 0; a < kGrid; ++a) {
         for (int b = 0; b < kGrid; ++b) {

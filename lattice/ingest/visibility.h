@@ -3,6 +3,8 @@
 ///        (VASL-MODEL §5). Computed once per source at ingest; reweighting never runs it.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <vector>
 
 #include "lattice/geometry/equirect.h"
@@ -14,6 +16,15 @@ namespace vasl::ingest {
 
 /// §5 τ: depth tolerance of the visibility test, 1.5 h (choice).
 inline double DepthToleranceM(double vossel_size_m) { return 1.5 * vossel_size_m; }
+
+/// §5 (choice): the slope-scaled tolerance of the visibility test, τ_k = τ + r·Δ·tanθ with cosθ
+/// floored at kCosIncidenceMin: across one pixel of pitch Δ the range of a surface at incidence
+/// θ changes by about r·Δ·tanθ, and without it a surface seen at grazing incidence would shadow
+/// itself between pixel centres. `cos_inc` = |n·v|.
+inline double SlopeScaledToleranceM(double tau_m, double range_m, double pixel_rad, double cos_inc) {
+  const double c = std::max(cos_inc, geometry::kCosIncidenceMin);
+  return tau_m + range_m * pixel_rad * std::sqrt(1.0 - c * c) / c;
+}
 
 /// Per pixel, the nearest range (metres) of occupied geometry from one source; +inf: none.
 struct DepthPanorama {

@@ -244,7 +244,18 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
 }
 
 absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path) {
+  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, path.string());
+  if (!grids.ok()) return grids.status();
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("geometry"));
+  meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
+  return internal::WriteVdbFile(path, *grids, meta);
+}
+
+absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
+                                                   const std::string& where) {
   internal::EnsureOpenVdbInitialized();
+  const std::filesystem::path path(where);
   if (!geometry.index_grid) {
     return absl::InvalidArgumentError(
         "WriteGeometry: the geometry has no index grid; call CanonicalizeVosselOrder first");
@@ -320,10 +331,7 @@ absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem
       return Vec3d(c.x(), c.y(), c.z());
     }));
   }
-  openvdb::MetaMap meta;
-  meta.insertMeta("vasl_file", openvdb::StringMetadata("geometry"));
-  meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
-  return internal::WriteVdbFile(path, grids, meta);
+  return grids;
 }
 
 absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
@@ -414,6 +422,16 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
 
 absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused,
                         const std::filesystem::path& path) {
+  absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(geometry, fused);
+  if (!grids.ok()) return grids.status();
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("fused"));
+  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
+  return internal::WriteVdbFile(path, *grids, meta);
+}
+
+absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
+                                                const FusedValues& fused) {
   internal::EnsureOpenVdbInitialized();
   if (!geometry.index_grid) {
     return absl::InvalidArgumentError("WriteFused: the geometry has no index grid");
@@ -455,10 +473,7 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
     finish(GridOverVossels<openvdb::FloatGrid>(index, name + ".uncertainty",
                                                [&](int32_t v) { return fm.uncertainty[v]; }, keep));
   }
-  openvdb::MetaMap meta;
-  meta.insertMeta("vasl_file", openvdb::StringMetadata("fused"));
-  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
-  return internal::WriteVdbFile(path, grids, meta);
+  return grids;
 }
 
 absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,

@@ -186,7 +186,18 @@ struct PlannedAttribute {
 
 absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& records,
                           const std::filesystem::path& path) {
+  absl::StatusOr<openvdb::GridBase::Ptr> grid = RecordsGrid(geometry, records, path.string());
+  if (!grid.ok()) return grid.status();
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("records"));
+  return internal::WriteVdbFile(path, {*grid}, meta);
+}
+
+absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,
+                                                   const RecordSet& records,
+                                                   const std::string& where) {
   internal::EnsureOpenVdbInitialized();
+  const std::filesystem::path path(where);
   if (!geometry.index_grid) {
     return absl::InvalidArgumentError("WriteRecords: the geometry has no index grid");
   }
@@ -321,9 +332,7 @@ absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& recor
     grid->setName("records");
     grid->insertMeta("vasl_attributes", openvdb::StringMetadata(AttributeListMeta(infos)));
     grid->insertMeta("record_count", openvdb::Int64Metadata(static_cast<int64_t>(n)));
-    openvdb::MetaMap meta;
-    meta.insertMeta("vasl_file", openvdb::StringMetadata("records"));
-    return internal::WriteVdbFile(path, {grid}, meta);
+    return openvdb::GridBase::Ptr(grid);
   } catch (const std::exception& e) {
     return absl::InternalError(
         absl::StrCat("WriteRecords: OpenVDB failed building ", path.string(), ": ", e.what()));
@@ -487,6 +496,24 @@ absl::StatusOr<std::vector<AttributeInfo>> ListRecordAttributes(
     infos.push_back(std::move(info));
   }
   return infos;
+}
+
+absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& records,
+                              const FusedValues& fused, const std::filesystem::path& path) {
+  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, path.string());
+  if (!grids.ok()) return grids.status();
+  absl::StatusOr<openvdb::GridBase::Ptr> recs = RecordsGrid(geometry, records, path.string());
+  if (!recs.ok()) return recs.status();
+  absl::StatusOr<openvdb::GridCPtrVec> fused_grids = FusedGrids(geometry, fused);
+  if (!fused_grids.ok()) return fused_grids.status();
+  grids->push_back(*recs);
+  grids->insert(grids->end(), fused_grids->begin(), fused_grids->end());
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("version"));
+  meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
+  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
+  meta.insertMeta("record_count", openvdb::Int64Metadata(static_cast<int64_t>(records.size())));
+  return internal::WriteVdbFile(path, *grids, meta);
 }
 
 }  // namespace vasl::records

@@ -39,6 +39,22 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
 absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
                                       const std::filesystem::path& path);
 
+/// The grids of the files above, for writers that put several layers in one file (export):
+/// the geometry grids, the "records" PointDataGrid and the fused grids. `where` names the data
+/// in error messages.
+absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
+                                                   const std::string& where);
+absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,
+                                                   const RecordSet& records,
+                                                   const std::string& where);
+absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
+                                                const FusedValues& fused);
+
+/// Writes one self-contained OpenVDB file holding every layer of a version: the geometry grids,
+/// the "records" PointDataGrid and the fused grids (export, for tools that want one file).
+absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& records,
+                              const FusedValues& fused, const std::filesystem::path& path);
+
 /// Rebuilds `geometry.index_grid` and renumbers vossels into canonical order (leaf order, then
 /// voxel offset) from `geometry.coord`; returns old→new index map. Arrays are permuted.
 std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry);

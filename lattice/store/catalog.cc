@@ -138,6 +138,7 @@ CREATE TABLE reach(
   version INTEGER NOT NULL,
   source_id INTEGER NOT NULL,
   object TEXT NOT NULL,
+  bytes INTEGER NOT NULL,
   PRIMARY KEY (version, source_id));
 CREATE TABLE source_tiles(
   source_id INTEGER NOT NULL,

@@ -418,7 +418,8 @@ absl::StatusOr<std::vector<VersionInfo>> ProjectStore::ListVersions() const {
       "SELECT v.version, v.vossel_count, v.record_count, v.created_utc, v.made_by, "
       "v.bytes_written, v.pinned, "
       "(SELECT COUNT(*) FROM manifest m WHERE m.version = v.version AND m.layer = 'geometry'), "
-      "(SELECT COALESCE(SUM(bytes), 0) FROM manifest m WHERE m.version = v.version) "
+      "(SELECT COALESCE(SUM(bytes), 0) FROM manifest m WHERE m.version = v.version) + "
+      "(SELECT COALESCE(SUM(bytes), 0) FROM reach r WHERE r.version = v.version) "
       "FROM versions v WHERE v.pruned = 0 AND v.version <= ?1 ORDER BY v.version");
   if (!st.ok()) return st.status();
   st->Bind(1, head);
@@ -622,14 +623,14 @@ absl::StatusOr<Manifest> ProjectStore::LoadManifest(int64_t version) const {
     m.tiles[key][st->Text(3)] = {st->Text(4), st->Int(5), st->Int(6), st->Int(7)};
   }
   absl::StatusOr<Stmt> rs =
-      impl_->db.Prepare("SELECT source_id, object FROM reach WHERE version = ?1");
+      impl_->db.Prepare("SELECT source_id, object, bytes FROM reach WHERE version = ?1");
   if (!rs.ok()) return rs.status();
   rs->Bind(1, version);
   for (;;) {
     absl::StatusOr<bool> row = rs->Step();
     if (!row.ok()) return row.status();
     if (!*row) break;
-    m.reach[int32_t(rs->Int(0))] = rs->Text(1);
+    m.reach[int32_t(rs->Int(0))] = {rs->Text(1), 0, 0, rs->Int(2)};
   }
   return m;
 }
@@ -707,7 +708,8 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(int64
   snap->records = std::move(all.records);
   snap->fused = std::move(all.fused);
   if (snap->fused.profile.empty()) snap->fused.profile = "default";
-  for (const auto& [source, object] : snap->manifest.reach) {
+  for (const auto& [source, entry] : snap->manifest.reach) {
+    const std::string& object = entry.object;
     absl::StatusOr<std::string> bytes = objects.ReadBytes(object);
     if (!bytes.ok()) return bytes.status();
     absl::StatusOr<tiles::ReachRaster> reach = tiles::ParseReach(*bytes);
@@ -823,7 +825,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     absl::StatusOr<StoredObject> obj = im.objects->PutBytes(tiles::SerializeReach(it->second));
     if (!obj.ok()) return obj.status();
     bytes_written += obj->bytes;
-    manifest.reach[source] = obj->sha256;
+    manifest.reach[source] = {obj->sha256, 0, 0, obj->bytes};
   }
   for (int32_t source : plan.drop_reach) manifest.reach.erase(source);
   if (absl::Status s = im.objects->Sync(); !s.ok()) return s;
@@ -858,10 +860,11 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
             });
       }
     }
-    for (const auto& [source, object] : manifest.reach) {
-      run("INSERT INTO reach(version, source_id, object) VALUES (?1, ?2, ?3)", [&](Stmt& st) {
-        st.Bind(1, version).Bind(2, int64_t{source}).Bind(3, object);
-      });
+    for (const auto& [source, e] : manifest.reach) {
+      run("INSERT INTO reach(version, source_id, object, bytes) VALUES (?1, ?2, ?3, ?4)",
+          [&](Stmt& st) {
+            st.Bind(1, version).Bind(2, int64_t{source}).Bind(3, e.object).Bind(4, e.bytes);
+          });
     }
     if (!plan.delete_scan.empty()) {
       run("UPDATE scans SET deleted_in = ?2 WHERE name = ?1 AND deleted_in IS NULL",

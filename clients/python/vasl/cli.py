@@ -168,6 +168,46 @@ def _cmd_inspect(client: Client, args) -> int:
     return 0
 
 
+def _print_change(what: str, r) -> None:
+    c = r.change
+    print(f"{what}: version {r.version}, {r.vossel_count} vossels, {r.record_count} records, "
+          f"{r.seconds:.2f} s; {c.sources_computed} sources computed, {c.sources_revisited} "
+          f"revisited on {c.pairs_revisited} (source, tile) pairs; {c.tiles_changed} tiles, "
+          f"{c.bytes_written / 1e6:.1f} MB written")
+
+
+def _cmd_rebuild(client: Client, args) -> int:
+    _print_change(f"rebuilt {args.project}", client.rebuild(args.project))
+    return 0
+
+
+def _cmd_scan(client: Client, args) -> int:
+    _print_change(f"deleted scan {args.scan} from {args.project}",
+                  client.delete_scan(args.project, args.scan))
+    return 0
+
+
+def _cmd_versions(client: Client, args) -> int:
+    versions = client.list_versions(args.project)
+    if args.json:
+        print(json.dumps([v.__dict__ for v in versions], indent=2))
+        return 0
+    print(f"{'VERSION':>7} {'TILES':>5} {'VOSSELS':>9} {'RECORDS':>10} {'WRITTEN_MB':>10} "
+          f"{'TOTAL_MB':>9} {'PIN':>3}  MADE_BY")
+    for v in versions:
+        print(f"{v.version:>7} {v.tile_count:>5} {v.vossel_count:>9} {v.record_count:>10} "
+              f"{v.bytes_written / 1e6:>10.1f} {v.bytes_total / 1e6:>9.1f} "
+              f"{'yes' if v.pinned else '':>3}  {v.made_by}")
+    return 0
+
+
+def _cmd_export(client: Client, args) -> int:
+    r = client.export(args.project, args.output, args.version)
+    print(f"exported {args.project} version {r.version}: {r.record_count} records, "
+          f"{r.vossel_count} vossels, {r.size_bytes / 1e6:.1f} MB -> {r.path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vasl", description="Client of the vasld server.")
     parser.add_argument("--server", default=os.environ.get("VASL_SERVER", DEFAULT_SERVER),
@@ -216,13 +256,32 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("--project", required=True)
     inspect.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
     inspect.add_argument("--json", action="store_true")
+
+    rebuild = sub.add_parser("rebuild", help="recompute a project from its raw scans (new version)")
+    rebuild.add_argument("--project", required=True)
+
+    scan = sub.add_parser("scan", help="act on one scan of a project")
+    ssub = scan.add_subparsers(dest="scan_cmd", required=True)
+    delete = ssub.add_parser("delete", help="make a new version without the scan")
+    delete.add_argument("scan", help="the scan id")
+    delete.add_argument("--project", required=True)
+
+    versions = sub.add_parser("versions", help="list the kept versions of a project")
+    versions.add_argument("--project", required=True)
+    versions.add_argument("--json", action="store_true")
+
+    export = sub.add_parser("export", help="write a version as one OpenVDB file")
+    export.add_argument("--project", required=True)
+    export.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
+    export.add_argument("-o", "--output", required=True, metavar="SITE.vdb")
     return parser
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     handlers = {"project": _cmd_project, "ingest": _cmd_ingest, "render": _cmd_render,
-                "scans": _cmd_scans, "inspect": _cmd_inspect}
+                "scans": _cmd_scans, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
+                "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export}
     try:
         with Client(args.server, timeout_s=args.timeout) as client:
             return handlers[args.cmd](client, args)

@@ -17,8 +17,8 @@ import numpy as np
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
 from .readers import E57Scan, Manifest, read_e57, read_manifest, read_ply
-from .types import (Inspection, IngestResult, Pose, Project, RecordAttribute, RenderResult,
-                    Scan, Source)
+from .types import (ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult, Pose,
+                    Project, RecordAttribute, RenderResult, Scan, Source, Version)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
@@ -40,6 +40,16 @@ class VaslError(Exception):
         self.details = details or ""
         self.method = method
         super().__init__(f"{code.name}: {self.details}")
+
+
+def _change_stats(c) -> ChangeStats:
+    return ChangeStats(c.sources_computed, c.sources_revisited, c.pairs_revisited, c.tiles_changed,
+                       c.bytes_written)
+
+
+def _change(r) -> ChangeResult:
+    return ChangeResult(r.version, r.vossel_count, r.record_count, r.seconds,
+                        {s.stage: s.seconds for s in r.stages}, _change_stats(r.change))
 
 
 def _wrap(method: str, err: grpc.RpcError) -> VaslError:
@@ -314,7 +324,63 @@ class Client:
             raise _wrap("IngestScan", e) from None
         return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
                             r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
-                            {s.stage: s.seconds for s in r.stages})
+                            {s.stage: s.seconds for s in r.stages}, _change_stats(r.change))
+
+    # -- store: rebuild, deletion, versions, export ------------------------------------------
+    def rebuild(self, project: str) -> ChangeResult:
+        """Recomputes the whole project from its raw blobs as a new version."""
+        self._check_name(project)
+        return _change(self._call("Rebuild", pb.RebuildRequest(project=project)))
+
+    def delete_scan(self, project: str, scan: str) -> ChangeResult:
+        """A new version without `scan` (its blobs go when retention drops the last version
+        that has it)."""
+        self._check_name(project)
+        if not scan:
+            raise ValueError("scan must be a non-empty scan id")
+        return _change(self._call("DeleteScan", pb.DeleteScanRequest(project=project, scan=scan)))
+
+    def list_versions(self, project: str) -> List[Version]:
+        self._check_name(project)
+        r = self._call("ListVersions", pb.ListVersionsRequest(project=project))
+        return [Version(v.version, v.vossel_count, v.record_count, v.tile_count, v.bytes_written,
+                        v.bytes_total, v.made_by, v.pinned, v.created_utc) for v in r.versions]
+
+    def export(self, project: str, path: str, version: int = 0) -> ExportResult:
+        """Writes version `version` (0: HEAD) as one merged OpenVDB file at `path` (streamed;
+        written to `path`.part, then renamed)."""
+        self._check_name(project)
+        if version < 0:
+            raise ValueError(f"version must be >= 0 (0: HEAD), got {version}")
+        meta = None
+        part = path + ".part"
+        written = 0
+        try:
+            with open(part, "wb") as out:
+                for msg in self.stub.Export(pb.ExportRequest(project=project, version=version),
+                                            timeout=self.timeout_s):
+                    if msg.HasField("metadata"):
+                        meta = msg.metadata
+                    elif msg.HasField("chunk"):
+                        if msg.chunk.offset_bytes != written:
+                            raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                            f"export chunk at {msg.chunk.offset_bytes}, expected {written}",
+                                            "Export")
+                        out.write(msg.chunk.data)
+                        written += len(msg.chunk.data)
+        except grpc.RpcError as e:
+            os.unlink(part)
+            raise _wrap("Export", e) from None
+        except BaseException:
+            if os.path.exists(part):
+                os.unlink(part)
+            raise
+        if meta is None or written != meta.size_bytes:
+            os.unlink(part)
+            raise VaslError(grpc.StatusCode.DATA_LOSS,
+                            f"export stream ended after {written} bytes", "Export")
+        os.replace(part, path)
+        return ExportResult(meta.version, meta.vossel_count, meta.record_count, meta.size_bytes, path)
 
     # -- render --------------------------------------------------------------------------
     def render(self, project: str, pose, width_px: int = 2048, height_px: int = 1024, *,

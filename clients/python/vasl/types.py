@@ -102,6 +102,17 @@ class Scan:
 
 
 @dataclass
+class ChangeStats:
+    """What a change (ingest, rebuild, deletion) recomputed and wrote."""
+
+    sources_computed: int = 0  #: sources computed on every tile they see
+    sources_revisited: int = 0  #: older sources recomputed where the change reaches them
+    pairs_revisited: int = 0  #: (older source, tile) pairs recomputed
+    tiles_changed: int = 0  #: tiles whose objects the commit wrote
+    bytes_written: int = 0  #: bytes the commit wrote
+
+
+@dataclass
 class IngestResult:
     scan_id: int
     scan: str
@@ -113,6 +124,45 @@ class IngestResult:
     ingest_seconds: float
     total_seconds: float
     stages: Dict[str, float] = field(default_factory=dict)  #: stage -> seconds, in order
+    change: ChangeStats = field(default_factory=ChangeStats)
+
+
+@dataclass
+class ChangeResult:
+    """A version made by a rebuild or a scan deletion."""
+
+    version: int
+    vossel_count: int
+    record_count: int
+    seconds: float
+    stages: Dict[str, float] = field(default_factory=dict)
+    change: ChangeStats = field(default_factory=ChangeStats)
+
+
+@dataclass
+class Version:
+    """A kept version of a project and what made it."""
+
+    version: int
+    vossel_count: int
+    record_count: int
+    tile_count: int
+    bytes_written: int
+    bytes_total: int
+    made_by: str
+    pinned: bool
+    created_utc: str
+
+
+@dataclass
+class ExportResult:
+    """A version exported as one OpenVDB file."""
+
+    version: int
+    vossel_count: int
+    record_count: int
+    size_bytes: int
+    path: str
 
 
 @dataclass

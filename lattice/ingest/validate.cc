@@ -1,0 +1,90 @@
+#include "lattice/ingest/validate.h"
+
+#include <cmath>
+#include <set>
+
+#include "absl/strings/str_cat.h"
+
+namespace vasl::ingest {
+
+absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what) {
+  const Eigen::Vector4d q = pose.q_world_sensor.coeffs();
+  if (!pose.o_world.allFinite() || !q.allFinite() || std::abs(q.norm() - 1.0) > 1e-6) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, ": pose must have a finite position and a finite unit quaternion"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits) {
+  const auto bad = [&scan](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat("scan '", scan.scan_name, "': ", what));
+  };
+  if (scan.scan_name.empty() || scan.scan_name.size() > 128) {
+    return absl::InvalidArgumentError("scan id must be 1-128 characters");
+  }
+  if (absl::Status s = ValidatePose(scan.pose, "scan '" + scan.scan_name + "'"); !s.ok()) return s;
+  const LidarData& lidar = scan.lidar;
+  if (lidar.xyz_sensor_m.size() % 3 != 0) return bad("LiDAR xyz array length is not a multiple of 3");
+  const size_t n = lidar.xyz_sensor_m.size() / 3;
+  if (n == 0) return bad("no LiDAR points: a scan needs at least one return to place vossels");
+  if (int64_t(n) > limits.max_points_per_scan) {
+    return absl::ResourceExhaustedError(absl::StrCat("scan '", scan.scan_name, "' has ", n,
+                                                     " points, above the limit of ",
+                                                     limits.max_points_per_scan));
+  }
+  for (float v : lidar.xyz_sensor_m) {
+    if (!std::isfinite(v)) return bad("a LiDAR point has a NaN or infinite coordinate");
+  }
+  if (!lidar.intensity.empty() && lidar.intensity.size() != n) {
+    return bad(absl::StrCat("intensity has ", lidar.intensity.size(), " values for ", n, " points"));
+  }
+  for (float v : lidar.intensity) {
+    if (!std::isfinite(v)) return bad("a LiDAR intensity is NaN or infinite");
+  }
+  if (!(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
+    return bad("LiDAR divergence_rad must lie in (0, 0.1] radians");
+  }
+  if (int64_t(scan.panoramas.size()) > limits.max_panoramas_per_scan) {
+    return absl::ResourceExhaustedError(absl::StrCat("scan has ", scan.panoramas.size(),
+                                                     " panoramas, above the limit of ",
+                                                     limits.max_panoramas_per_scan));
+  }
+  std::set<std::string> names;
+  std::vector<LinearImage> images;
+  for (const PanoramaData& pano : scan.panoramas) {
+    const std::string what = absl::StrCat("panorama '", pano.name, "'");
+    if (pano.name.empty() || !names.insert(pano.name).second) {
+      return bad("panorama names must be non-empty and unique within the scan");
+    }
+    if (absl::Status s = ValidatePose(pano.pose, what); !s.ok()) return bad(std::string(s.message()));
+    if (pano.modality != records::Modality::kRgb && pano.modality != records::Modality::kIr) {
+      return bad(what + ": modality must be rgb or ir");
+    }
+    if (!(pano.angular_resolution_rad >= 0.0 && pano.angular_resolution_rad < 0.1)) {
+      return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
+    }
+    if (pano.encoded_image.empty()) return bad(what + ": no image bytes");
+    if (int64_t(pano.encoded_image.size()) > limits.max_image_bytes) {
+      return absl::ResourceExhaustedError(absl::StrCat(what, " has ", pano.encoded_image.size(),
+                                                       " bytes, above the limit of ",
+                                                       limits.max_image_bytes));
+    }
+    auto image = DecodeImage(pano.encoded_image, pano.modality == records::Modality::kIr,
+                                     limits.max_image_pixels);
+    if (!image.ok()) {
+      return absl::Status(image.status().code(),
+                          absl::StrCat("scan '", scan.scan_name, "', ", what, ": ", image.status().message()));
+    }
+    const double aspect = double(image->width_px) / image->height_px;
+    if (aspect < 1.95 || aspect > 2.05) {
+      return bad(absl::StrCat(what, " is ", image->width_px, "x", image->height_px,
+                              ": an equirectangular panorama spans 360°×180°, so its width must "
+                              "be twice its height"));
+    }
+    images.push_back(std::move(*image));
+  }
+  return images;
+}
+
+}  // namespace vasl::ingest

@@ -1,0 +1,35 @@
+/// @file validate.h
+/// @brief Everything a scan must satisfy before anything of it is stored (ARCHITECTURE.md
+///        "Errors and limits": bad input never changes a project).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "lattice/geometry/pose.h"
+#include "lattice/ingest/scan_input.h"
+#include "lattice/ingest/sources.h"
+
+namespace vasl::ingest {
+
+/// The client-controlled sizes a scan may reach.
+struct ScanLimits {
+  int64_t max_points_per_scan = 50'000'000;
+  int64_t max_panoramas_per_scan = 16;
+  int64_t max_image_bytes = 512ll << 20;      ///< one encoded image
+  int64_t max_image_pixels = 16384ll * 8192;  ///< one decoded image
+};
+
+/// INVALID_ARGUMENT naming `what` unless the pose has a finite position and a finite unit
+/// quaternion.
+absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what);
+
+/// Validates a scan (names, poses, finite points, intensities, divergence, panorama names,
+/// modalities, sizes, 2:1 equirect images) and decodes its panoramas, which it returns in
+/// order. INVALID_ARGUMENT for bad input, RESOURCE_EXHAUSTED above `limits`, each message
+/// naming the scan and the field.
+absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits);
+
+}  // namespace vasl::ingest
