@@ -460,10 +460,7 @@ TEST(CorridorSiteTest, LidarPointsLieOnAnalyticSurfaces) {
     const size_t n = scan.intensity.size();
     ASSERT_EQ(scan.xyz_sensor_m.size(), 3 * n);
     int kept_rows = 0;
-    for (int j = 0; j < settings.elevation_steps; ++j) {
-      const double psi = M_PI * (0.5 - (j + 0.5) / settings.elevation_steps);
-      if (psi >= -M_PI / 2 + settings.nadir_blind_rad) ++kept_rows;
-    }
+    for (int j = 0; j < settings.elevation_steps; ++j) kept_rows += LidarRowKept(settings, j);
     EXPECT_EQ(n, static_cast<size_t>(kept_rows) * settings.azimuth_steps);
     size_t within = 0, wrong_intensity = 0;
     double sum = 0.0, sum2 = 0.0;

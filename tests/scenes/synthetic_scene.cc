@@ -369,6 +369,11 @@ float Luminance(const Vector3f& rgb) {
   return 0.2126f * rgb[0] + 0.7152f * rgb[1] + 0.0722f * rgb[2];
 }
 
+bool LidarRowKept(const LidarSettings& settings, int j) {
+  const double psi = M_PI * (0.5 - (j + 0.5) / settings.elevation_steps);  // §2.1 row centre
+  return psi >= -M_PI / 2.0 + settings.nadir_blind_rad;
+}
+
 LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanner,
                         const LidarSettings& settings) {
   const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};
@@ -376,11 +381,9 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
   const int cols = std::max(0, settings.azimuth_steps);
   // Per-row outputs with a per-row RNG stream: the result does not depend on scheduling.
   std::vector<std::vector<float>> row_xyz(rows), row_int(rows);
-  const double nadir_limit = -M_PI / 2.0 + settings.nadir_blind_rad;
   tbb::parallel_for(tbb::blocked_range<int>(0, rows), [&](const tbb::blocked_range<int>& r) {
     for (int j = r.begin(); j < r.end(); ++j) {
-      const double psi = M_PI * (0.5 - (j + 0.5) / rows);  // §2.1 elevation of row j's centre
-      if (psi < nadir_limit) continue;
+      if (!LidarRowKept(settings, j)) continue;
       std::mt19937_64 rng(SplitMix64(settings.seed * 0x9E3779B97F4A7C15ull + j));
       std::normal_distribution<double> noise(0.0, settings.range_noise_m);
       std::vector<float>& xyz = row_xyz[j];

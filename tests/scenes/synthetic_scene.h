@@ -263,6 +263,10 @@ struct LidarSettings {
   uint64_t seed = 1;             ///< noise seed (results do not depend on thread count)
 };
 
+/// True when row `j` of the ray grid lies outside the nadir blind cone (its centre's elevation
+/// is at least −π/2 + nadir_blind_rad): GenerateLidar casts that row's rays.
+bool LidarRowKept(const LidarSettings& settings, int j);
+
 /// A LiDAR scan: points in the SENSOR frame, row-major over the ray grid (row 0 up).
 struct LidarScan {
   std::vector<float> xyz_sensor_m;  ///< 3 floats per point, sensor frame, metres

@@ -149,10 +149,7 @@ TEST(SyntheticSceneTest, LidarPointsLieOnAnalyticSurfaces) {
     ASSERT_EQ(scan.xyz_sensor_m.size(), 3 * n);
     // A closed room: every ray outside the nadir cone returns (rows whose centre is above −80°).
     int kept_rows = 0;
-    for (int j = 0; j < settings.elevation_steps; ++j) {
-      const double psi = M_PI * (0.5 - (j + 0.5) / settings.elevation_steps);
-      if (psi >= -M_PI / 2 + settings.nadir_blind_rad) ++kept_rows;
-    }
+    for (int j = 0; j < settings.elevation_steps; ++j) kept_rows += LidarRowKept(settings, j);
     EXPECT_EQ(n, static_cast<size_t>(kept_rows) * settings.azimuth_steps);
     size_t within = 0, wrong_intensity = 0, outside_room_if_world = 0;
     double sum = 0.0, sum2 = 0.0, lowest_elev = M_PI;
