@@ -1,6 +1,7 @@
 // vasl_bench: the speed figures of the flows users wait for (ingest, reweight, render, record
-// IO) on the synthetic room, on this machine. Run by deploy/bench.sh; speed goals live here,
-// not in timed tests. Usage: vasl_bench [--panorama-width W] [--repeat N]
+// IO) on the synthetic room, and the growth of the store over the corridor site, on this
+// machine. Run by deploy/bench.sh; speed goals live here, not in timed tests.
+// Usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only]
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -9,6 +10,8 @@
 #include <string>
 
 #include <tbb/info.h>
+
+#include "absl/strings/str_format.h"
 
 #include "lattice/engine.h"
 #include "lattice/fusion/fuse.h"
@@ -77,11 +80,20 @@ int Growth(const std::filesystem::path& dir, int pano_w) {
     auto versions = (*engine)->ListVersions("growth");
     if (!versions.ok()) return Fail(versions.status());
     seconds.push_back(r->seconds);
-    std::printf("%-8s %8.2f %9lld %9lld %9lld %8lld %9.0f %11.1f %11.1f\n",
+    // Stage seconds grouped: revisits of older sources, the scan's own sources, the rest.
+    double revisit = 0.0, own = 0.0;
+    std::string rest;
+    for (const auto& [stage, sec] : r->stage_seconds) {
+      if (stage.rfind("revisit", 0) == 0) revisit += sec;
+      else if (stage.rfind("records of", 0) == 0) own += sec;
+      else rest += absl::StrFormat(" %s %.2f;", stage, sec);
+    }
+    std::printf("%-8s %8.2f %9lld %9lld %9lld %8lld %9.0f %11.1f %11.1f   revisits %.2f; own "
+                "sources %.2f;%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
                 (long long)r->pairs_revisited, peak, r->bytes_written / 1e6,
-                versions->back().bytes_total / 1e6);
+                versions->back().bytes_total / 1e6, revisit, own, rest.c_str());
   }
   if (seconds.size() >= 2) {
     std::printf("last scan / second scan: %.2f (target <= 1.3)\n", seconds.back() / seconds[1]);
@@ -99,15 +111,22 @@ int Growth(const std::filesystem::path& dir, int pano_w) {
 int main(int argc, char** argv) {
   using namespace vasl;
   int pano_w = 2048, repeat = 5;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    if (!std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[i + 1]);
-    else if (!std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[i + 1]);
+  bool growth_only = false;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--growth-only")) growth_only = true;
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[++i]);
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[++i]);
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
   std::filesystem::remove_all(dir);
   std::printf("vasl_bench: %d threads, vossel %.2f m, panoramas %dx%d, LiDAR 1440x720 per scan\n",
               tbb::info::default_concurrency(), h, pano_w, pano_w / 2);
+  if (growth_only) {
+    const int rc = Growth(dir / "growth-engine", pano_w);
+    std::filesystem::remove_all(dir);
+    return rc;
+  }
 
   auto engine = Engine::Open(dir);
   if (!engine.ok()) return Fail(engine.status());
