@@ -136,6 +136,7 @@ struct Engine::Impl {
     result.sources_computed = flow.sources_computed;
     result.sources_revisited = flow.sources_revisited;
     result.pairs_revisited = flow.pairs_revisited;
+    result.blocks_revisited = flow.blocks_revisited;
     result.tiles_changed = flow.tiles_changed;
     result.bytes_written = flow.bytes_written;
     result.seconds = SecondsSince(t0);

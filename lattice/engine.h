@@ -66,7 +66,8 @@ struct IngestResult {
   int64_t new_vossels = 0;      ///< vossels this change added (negative: removed)
   int64_t sources_computed = 0;   ///< sources computed on every tile (the new scan's; all in a rebuild)
   int64_t sources_revisited = 0;  ///< older sources recomputed on the tiles the change reaches
-  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs recomputed
+  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
+  int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes the commit wrote
   double seconds = 0.0;         ///< wall time of the whole flow

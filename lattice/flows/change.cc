@@ -63,7 +63,7 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans) {
 std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
                                         const std::vector<int32_t>& old_to_new, int T) {
-  const int B = std::min(16, T);
+  const int B = BlockVossels(T);
   const double h = now.vossel_size_m;
   std::map<tiles::TileKey, ChangedBlock> blocks;  // keyed by block coordinates
   auto add = [&](const records::VosselGeometry& g, size_t v) {
@@ -71,6 +71,7 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     auto [it, fresh] = blocks.try_emplace(b);
     ChangedBlock& block = it->second;
     if (fresh) {
+      block.key = b;
       block.tile = tiles::TileOf(g.coord[v], T);
       block.box = tiles::BoxOf(b, B, h);
     }
@@ -100,9 +101,9 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
   return out;
 }
 
-std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
-                                       const std::vector<ChangedBlock>& changed,
-                                       const std::set<tiles::TileKey>& all, int T, double h) {
+std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::ReachRaster* reach,
+                                        const std::vector<ChangedBlock>& changed,
+                                        const std::set<tiles::TileKey>& all, int B, double h) {
   const Eigen::Vector3d o = source.info.pose.o_world;
   const double grow_m = 2.0 * h;
   const double margin_rad = AngularMarginRad(source);
@@ -127,13 +128,13 @@ std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::Rea
     }
     if (reach != nullptr && !tiles::Reaches(*reach, source.info.pose, cap, min_depth)) continue;
     reached.push_back(cap);
-    out.insert(c.tile);
+    out.insert(c.key);
   }
   if (reached.empty()) return out;
-  // 2. Tiles whose view from the source passes through a reachable changed block.
+  // 2. Blocks whose view from the source passes through a reachable changed block.
   for (const tiles::TileKey& t : all) {
     if (out.count(t)) continue;
-    const tiles::ViewCap cap = widen(tiles::CapOf(tiles::BoxOf(t, T, h), o, grow_m));
+    const tiles::ViewCap cap = widen(tiles::CapOf(tiles::BoxOf(t, B, h), o, grow_m));
     for (const tiles::ViewCap& c : reached) {
       if (cap.far_m + 2.0 * grow_m >= c.near_m && tiles::CapsOverlap(cap, c, 0.0)) {
         out.insert(t);
@@ -142,6 +143,34 @@ std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::Rea
     }
   }
   return out;
+}
+
+RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revisit,
+                   const std::set<tiles::TileKey>& all, int B, double h) {
+  const Eigen::Vector3d o = source.info.pose.o_world;
+  const double grow_m = 2.0 * h;
+  const double margin_rad = AngularMarginRad(source);
+  // A camera's tests read the dilated panorama: its pixels take the min over a window, so the
+  // splats must be exact that much farther out (one pixel more for rounding).
+  const double dilation_rad =
+      source.lidar() ? 0.0 : (ingest::CameraSampleRadiusPx() + 1.0) * DepthPixelRad(source);
+  RevisitCone cone;
+  for (const tiles::TileKey& b : revisit) {
+    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
+    cap.half_angle_rad += margin_rad + dilation_rad;
+    cone.exact.push_back(cap);
+  }
+  for (const tiles::TileKey& b : all) {
+    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
+    cap.half_angle_rad += margin_rad;
+    for (const tiles::ViewCap& c : cone.exact) {
+      if (tiles::CapsOverlap(cap, c, 0.0)) {
+        cone.context.insert(b);
+        break;
+      }
+    }
+  }
+  return cone;
 }
 
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
@@ -155,8 +184,13 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   next.tile_vossels = T;
   next.geometry = std::move(change.geometry);
   const records::VosselGeometry& g = next.geometry;
+  const int B = BlockVossels(T);
   const std::vector<tiles::TileKey> tile_of = tiles::TilesOfVossels(g, T);
-  std::set<tiles::TileKey> all_tiles(tile_of.begin(), tile_of.end());
+  const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
+  const std::set<tiles::TileKey> all_blocks(block_of.begin(), block_of.end());
+  auto tile_of_block = [B, T](const tiles::TileKey& b) {
+    return tiles::TileOf(openvdb::Coord(b.x * B, b.y * B, b.z * B), T);
+  };
 
   // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
   clock.Start("find changes", 0.45);
@@ -165,21 +199,20 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   for (const ChangedBlock& b : blocks) changed.insert(b.tile);
   plan.geometry_tiles = changed;
 
-  // 2. Which older sources must be recomputed on which tiles.
-  std::map<int32_t, std::set<tiles::TileKey>> revisit;
+  // 2. Which older sources must be recomputed on which blocks.
+  std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks
   for (const SourceRef& src : old_sources) {
     auto it = old.reach.find(src.info.id);
-    std::set<tiles::TileKey> tiles_of_src =
-        AffectedTiles(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_tiles, T, h);
-    if (src.lidar() && !tiles_of_src.empty()) {
+    std::set<tiles::TileKey> blocks_of_src =
+        AffectedBlocks(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_blocks, B, h);
+    if (src.lidar() && !blocks_of_src.empty()) {
       absl::StatusOr<std::set<tiles::TileKey>> returns = store.SourceTiles(src.info.id);
       if (!returns.ok()) return returns.status();
-      std::set<tiles::TileKey> kept;
-      std::set_intersection(tiles_of_src.begin(), tiles_of_src.end(), returns->begin(),
-                            returns->end(), std::inserter(kept, kept.begin()));
-      tiles_of_src.swap(kept);
+      for (auto b = blocks_of_src.begin(); b != blocks_of_src.end();) {
+        b = returns->count(tile_of_block(*b)) ? std::next(b) : blocks_of_src.erase(b);
+      }
     }
-    if (!tiles_of_src.empty()) revisit[src.info.id] = std::move(tiles_of_src);
+    if (!blocks_of_src.empty()) revisit[src.info.id] = std::move(blocks_of_src);
   }
 
   // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out.
@@ -196,7 +229,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
       }
       if (n < 0) continue;  // its vossel vanished (its tile is a changed one)
       auto it = revisit.find(scan);
-      if (it != revisit.end() && it->second.count(tile_of[size_t(n)])) continue;
+      if (it != revisit.end() && it->second.count(block_of[size_t(n)])) continue;
       keep.push_back(i);
     }
     next.records = old.records.Select(keep);
@@ -213,28 +246,45 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   for (const SourceRef& src : old_sources) {
     auto it = revisit.find(src.info.id);
     if (it == revisit.end()) continue;
-    clock.Start(absl::StrCat("revisit source ", src.info.id, " on ", it->second.size(), " tiles"),
+    std::set<tiles::TileKey> tiles_of_src;
+    for (const tiles::TileKey& b : it->second) tiles_of_src.insert(tile_of_block(b));
+    clock.Start(absl::StrCat("revisit source ", src.info.id, " on ", it->second.size(),
+                             " blocks of ", tiles_of_src.size(), " tiles"),
                 fraction);
     fraction += span;
-    std::vector<uint8_t> only(g.size(), 0);
-    for (size_t v = 0; v < g.size(); ++v) only[v] = it->second.count(tile_of[v]) ? 1 : 0;
+    // The revisited blocks, and the cone of blocks whose splats can fall where their
+    // visibility tests (and a camera's dilation) read: the depth panorama splats that cone only.
+    const RevisitCone cone = ConeOf(src, it->second, all_blocks, B, h);
+    std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
+    for (size_t v = 0; v < g.size(); ++v) {
+      only[v] = it->second.count(block_of[v]) ? 1 : 0;
+      context[v] = cone.context.count(block_of[v]) ? 1 : 0;
+    }
     ingest::SourceRecords recs;
     if (src.lidar()) {
       absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
       if (!lidar.ok()) return lidar.status();
-      recs = ingest::LidarRecords(g, *lidar, &only);
+      recs = ingest::LidarRecords(g, *lidar, &only, &context);
     } else {
       absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(
-          g, StoredCamera(store, src.info, src.batch, max_image_pixels), &only);
+          g, StoredCamera(store, src.info, src.batch, max_image_pixels), &only, &context);
       if (!r.ok()) return r.status();
       recs = std::move(*r);
+    }
+    auto before = old.reach.find(src.info.id);
+    if (before != old.reach.end() && before->second.size.width_px == recs.reach.size.width_px &&
+        before->second.size.height_px == recs.reach.size.height_px) {
+      recs.reach = tiles::MergeReach(
+          before->second, recs.reach,
+          tiles::CellCoverage(recs.reach.size, src.info.pose, cone.exact));
     }
     next.records.Append(recs.records);
     next.reach[src.info.id] = std::move(recs.reach);
     plan.reach_sources.insert(src.info.id);
-    record_tiles.insert(it->second.begin(), it->second.end());
+    record_tiles.insert(tiles_of_src.begin(), tiles_of_src.end());
     ++result.sources_revisited;
-    result.pairs_revisited += int64_t(it->second.size());
+    result.pairs_revisited += int64_t(tiles_of_src.size());
+    result.blocks_revisited += int64_t(it->second.size());
   }
 
   // 5. The new sources, on every tile.

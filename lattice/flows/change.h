@@ -16,9 +16,10 @@
 ///          2. A reachable changed tile c can alter D_m only inside cap_m(c), and only at
 ///             depths ≥ near(c) − 2h; so it can alter the visibility of tile t only when
 ///             cap_m(t) meets cap_m(c) and far(t) + 4h ≥ near(c).
-///          The pairs to recompute are the tiles of 2 (c itself included); a LiDAR's are kept
-///          to the tiles where it has returns (it records nothing elsewhere). Everything else
-///          keeps its records bit for bit. The recomputation renders D_m from the whole new
+///          The rules are applied to blocks of 16³ vossels (finer than tiles): the records of m
+///          recomputed are those on the blocks of 2 (c itself included); a LiDAR's are kept to
+///          the tiles where it has returns (it records nothing elsewhere). Everything else keeps
+///          its records bit for bit. The recomputation renders D_m from the whole new
 ///          geometry, so its records and its new reach raster equal a rebuild's.
 #pragma once
 
@@ -64,11 +65,15 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans);
 /// than a tile so that a change at one end of a tile is not taken as seen by every sensor that
 /// sees the tile's other end.
 struct ChangedBlock {
+  tiles::TileKey key;                       ///< the block's key (TileOf with BlockVossels(T))
   tiles::TileKey tile;                      ///< the tile the block lies in
   tiles::Box box;                           ///< the cells of the block
   std::vector<Eigen::Vector3d> centroid_m;  ///< changed vossels, in their old and new state
   std::vector<Eigen::Vector3d> normal;      ///< their normals (zero: none)
 };
+
+/// Edge of a block in vossels for tiles of edge T: 16, or T when smaller.
+inline int BlockVossels(int T) { return T < 16 ? T : 16; }
 
 /// Blocks of the vossels that appeared, vanished or whose count, centroid or normal changed
 /// between `old` and `now` (`old_to_new` maps old vossels to new ones, −1: gone).
@@ -76,13 +81,25 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
                                         const std::vector<int32_t>& old_to_new, int T);
 
-/// The tiles of `all` whose records from `source` may change when the `changed` blocks change
-/// (see @details; rule 1 is tested per block, with the depth margin of the block's own vossels'
-/// visibility tolerances), given the source's reach raster (nullptr: unknown, every changed
-/// block counts as reachable). `h` vossel edge, `T` tile edge in vossels.
-std::set<tiles::TileKey> AffectedTiles(const SourceRef& source, const tiles::ReachRaster* reach,
-                                       const std::vector<ChangedBlock>& changed,
-                                       const std::set<tiles::TileKey>& all, int T, double h);
+/// The blocks of `all` (block keys, edge B vossels) whose records from `source` may change when
+/// the `changed` blocks change (see @details, applied per block: rule 1 with the depth margin
+/// of the block's own changed vossels' visibility tolerances), given the source's reach raster
+/// (nullptr: unknown, every changed block counts as reachable). `h` vossel edge.
+std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::ReachRaster* reach,
+                                        const std::vector<ChangedBlock>& changed,
+                                        const std::set<tiles::TileKey>& all, int B, double h);
+
+/// Where a revisit of a source must see exactly: the caps (from the source) of the blocks it
+/// recomputes, widened by its angular margin and a camera's dilation, and the blocks whose
+/// splats can fall inside them, at any depth. Splatting the context alone gives the depth
+/// panorama of the whole lattice inside `exact` (and an upper bound elsewhere), so the records
+/// of the revisited blocks are a rebuild's.
+struct RevisitCone {
+  std::vector<tiles::ViewCap> exact;
+  std::set<tiles::TileKey> context;  ///< block keys
+};
+RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revisit,
+                   const std::set<tiles::TileKey>& all, int B, double h);
 
 /// A geometry change ready to propagate.
 struct Change {

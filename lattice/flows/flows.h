@@ -36,7 +36,8 @@ struct FlowResult {
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
   int64_t sources_computed = 0;  ///< sources whose records were computed on every tile they see
   int64_t sources_revisited = 0;  ///< older sources recomputed on some tiles
-  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs recomputed
+  int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
+  int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
 };

@@ -217,10 +217,11 @@ double CameraDepthPitchRad(double angular_resolution_rad, const geometry::Equire
 int CameraSampleRadiusPx() { return kCameraSampleRadiusPx; }
 
 SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
-                           const std::vector<uint8_t>* only) {
+                           const std::vector<uint8_t>* only, const std::vector<uint8_t>* context) {
   const double tau = DepthToleranceM(g.vossel_size_m);
-  const DepthPanorama depth = RenderDepthPanorama(
-      g, lidar.pose, DepthPanoramaSize(LidarDepthPitchRad(lidar.point_count())), lidar.divergence_rad);
+  const DepthPanorama depth =
+      RenderDepthPanorama(g, lidar.pose, DepthPanoramaSize(LidarDepthPitchRad(lidar.point_count())),
+                          lidar.divergence_rad, context);
   SourceRecords out;
   out.records = SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
@@ -229,7 +230,8 @@ SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& 
 
 absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
                                             const CameraSource& stored,
-                                            const std::vector<uint8_t>* only) {
+                                            const std::vector<uint8_t>* only,
+                                            const std::vector<uint8_t>* context) {
   CameraSource loaded;  // holds a decoded image only while this camera is sampled
   if (stored.image.pixels.empty() && stored.load) {
     absl::StatusOr<LinearImage> image = stored.load();
@@ -247,7 +249,8 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   const double dilation = cam.angular_resolution_rad > 0.0
                               ? cam.angular_resolution_rad
                               : geometry::EquirectPixelAngleRad(0.0, image_size);
-  DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation);
+  DepthPanorama depth =
+      RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation, context);
   DilateDepthPanorama(depth, kCameraSampleRadiusPx);
   SourceRecords out;
   out.records = SampleCamera(g, cam, ComputeVisibility(g, depth, tau, only));

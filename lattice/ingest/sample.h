@@ -36,15 +36,18 @@ struct SourceRecords {
 
 /// §5 then §3-§6 for one LiDAR: depth panorama of `geometry` from the LiDAR, visibility,
 /// records. With `only` (a flag per vossel) records are made for the flagged vossels alone;
-/// the depth panorama always comes from every vossel of `geometry`.
+/// with `context` the depth panorama splats only the flagged vossels (it must flag every vossel
+/// that can occlude an `only` vossel; the reach raster is then exact only where it does).
 SourceRecords LidarRecords(const records::VosselGeometry& geometry, const LidarSource& lidar,
-                           const std::vector<uint8_t>* only = nullptr);
+                           const std::vector<uint8_t>* only = nullptr,
+                           const std::vector<uint8_t>* context = nullptr);
 
 /// The same for one camera; its image is decoded through `load` when `image` is empty (and
 /// freed afterwards). Fails only when the image cannot be loaded.
 absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geometry,
                                             const CameraSource& camera,
-                                            const std::vector<uint8_t>* only = nullptr);
+                                            const std::vector<uint8_t>* only = nullptr,
+                                            const std::vector<uint8_t>* context = nullptr);
 
 /// Angular sampling of a source's depth panorama (radians per pixel): a LiDAR's from its point
 /// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's from its

@@ -33,7 +33,8 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
 }
 
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geometry::Pose& pose,
-                                  const geometry::EquirectSize& size, double divergence_rad) {
+                                  const geometry::EquirectSize& size, double divergence_rad,
+                                  const std::vector<uint8_t>* splat_only) {
   DepthPanorama out;
   out.pose = pose;
   out.size = size;
@@ -62,6 +63,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
 
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
+      if (splat_only != nullptr && !(*splat_only)[k]) continue;
       const Eigen::Vector3d centre_w = h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z());
       const Eigen::Vector3d c_s = R_sensor_world * (centre_w - pose.o_world);
       const double range = c_s.norm();

@@ -47,9 +47,12 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// grazing incidence. The paper uses the measured range image for
 /// LiDAR; the splatted lattice is used for every source here (choice): it has no holes between
 /// returns and equals the range image where returns exist. Parallel (TBB, atomic min).
+/// With `splat_only` (a flag per vossel) only the flagged vossels are splatted: the panorama is
+/// then exact wherever every vossel whose splat can fall is flagged (a revisit's cone).
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
                                   const geometry::Pose& T_world_sensor,
-                                  const geometry::EquirectSize& size, double divergence_rad);
+                                  const geometry::EquirectSize& size, double divergence_rad,
+                                  const std::vector<uint8_t>* splat_only = nullptr);
 
 /// Min-filters a depth panorama over a (2·radius_px+1)² window, columns wrapping at the seam:
 /// every occluder grows by `radius_px` pixels. Used for cameras, whose samples read a

@@ -92,6 +92,21 @@ ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::Eq
 bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,
              double min_depth_m);
 
+/// How the union of `caps` (world frame; the sensor at `T_world_sensor`) covers each cell of a
+/// raster of `size` cells: 2 when the whole cell lies inside a cap, 1 when it may overlap one,
+/// 0 when it lies outside every cap.
+std::vector<uint8_t> CellCoverage(const geometry::EquirectSize& size,
+                                  const geometry::Pose& T_world_sensor,
+                                  const std::vector<ViewCap>& caps);
+
+/// A reach raster recomputed from a depth panorama that splatted only the vossels of a cone
+/// (exact inside it, an upper bound elsewhere, since splats only lower a depth), merged into
+/// the previous one, which still bounds the depths outside the cone: cells wholly inside the
+/// cone (coverage 2) take the fresh value, cells on its edge (1) the larger of both, cells
+/// outside (0) the smaller. Both rasters must have the same size.
+ReachRaster MergeReach(const ReachRaster& old, const ReachRaster& fresh,
+                       const std::vector<uint8_t>& coverage);
+
 /// Bytes of a reach raster as stored (little-endian: magic "VRCH", width, height, floats).
 std::string SerializeReach(const ReachRaster& reach);
 /// DATA_LOSS when `bytes` is not a reach raster.

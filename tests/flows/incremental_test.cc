@@ -212,7 +212,7 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   CreateProject(*engine, "corridor");
   const scenes::CorridorSite site = scenes::CorridorSite::Default();
   ASSERT_GE(site.Stations().size(), 12u);
-  int64_t revisited_last_half = 0, pairs_last_half = 0;
+  int64_t revisited_last_half = 0, pairs_last_half = 0, blocks_last_half = 0;
   for (size_t i = 0; i < site.Stations().size(); ++i) {
     auto scan = scenes::MakeScanInput(site, i, SmallLidar(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
@@ -227,6 +227,7 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
     if (i >= site.Stations().size() / 2) {
       revisited_last_half += r->sources_revisited;
       pairs_last_half += r->pairs_revisited;
+      blocks_last_half += r->blocks_revisited;
     }
   }
   const int64_t n = int64_t(site.Stations().size());
@@ -238,6 +239,25 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   const Diff d = CompareProjects(*st, n, *st, n + 1);
   d.Print("corridor: incremental vs rebuild");
   ExpectSame(d);
+  // The invariant the revisit rules rest on (change.h): every cell of a source's stored reach
+  // raster bounds from above the depths the rebuild computes from the whole lattice.
+  {
+    auto inc = *st->LoadSnapshot(n);
+    auto full = *st->LoadSnapshot(n + 1);
+    size_t cells = 0, below = 0, tighter_equal = 0;
+    for (const auto& [source, exact] : full->reach) {
+      const tiles::ReachRaster& bound = inc->reach.at(source);
+      ASSERT_EQ(bound.max_depth_m.size(), exact.max_depth_m.size());
+      for (size_t c = 0; c < exact.max_depth_m.size(); ++c) {
+        ++cells;
+        below += bound.max_depth_m[c] < exact.max_depth_m[c] ? 1 : 0;
+        tighter_equal += bound.max_depth_m[c] == exact.max_depth_m[c] ? 1 : 0;
+      }
+    }
+    std::printf("  reach rasters: %zu cells, %zu equal to the rebuild's, %zu below it\n", cells,
+                tighter_equal, below);
+    EXPECT_EQ(below, 0u);
+  }
   // Revisits are per (source, tile): the older sources a scan reaches are recomputed on part of
   // the site only. (How many sources a scan reaches is the model's answer, not a tuning knob:
   // at grazing incidence §5's slope-scaled tolerance lets a sensor's visibility test reach
@@ -246,10 +266,10 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   int64_t older_sources_last_half = 0;  // 2 sources (LiDAR, camera) per earlier scan
   for (int64_t i = n / 2; i < n; ++i) older_sources_last_half += 2 * i;
   std::printf("  last %lld scans revisited %lld of %lld older sources, on %lld of %lld "
-              "(source, tile) pairs\n",
+              "(source, tile) pairs, %lld (source, block) pairs\n",
               (long long)(n - n / 2), (long long)revisited_last_half,
               (long long)older_sources_last_half, (long long)pairs_last_half,
-              (long long)(revisited_last_half * tiles));
+              (long long)(revisited_last_half * tiles), (long long)blocks_last_half);
   EXPECT_LT(pairs_last_half, revisited_last_half * tiles * 9 / 10);
   fs::remove_all(root);
 }

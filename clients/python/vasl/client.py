@@ -44,7 +44,7 @@ class VaslError(Exception):
 
 def _change_stats(c) -> ChangeStats:
     return ChangeStats(c.sources_computed, c.sources_revisited, c.pairs_revisited, c.tiles_changed,
-                       c.bytes_written)
+                       c.bytes_written, c.blocks_revisited)
 
 
 def _change(r) -> ChangeResult:

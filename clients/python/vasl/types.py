@@ -110,6 +110,7 @@ class ChangeStats:
     pairs_revisited: int = 0  #: (older source, tile) pairs recomputed
     tiles_changed: int = 0  #: tiles whose objects the commit wrote
     bytes_written: int = 0  #: bytes the commit wrote
+    blocks_revisited: int = 0  #: (older source, 16³-vossel block) pairs recomputed
 
 
 @dataclass
