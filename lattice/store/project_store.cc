@@ -162,14 +162,16 @@ struct ProjectStore::Impl {
         db.Exec("ROLLBACK;").IgnoreError();
         return s;
       }
-      for (const char* sql :
-           {"SELECT object FROM manifest UNION SELECT object FROM reach",
-            "SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scans sc ON src.scan_id = sc.id "
-            "WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 AND sc.version <= v.version "
-            "AND (sc.deleted_in IS NULL OR sc.deleted_in > v.version))"}) {
+      const std::pair<const char*, std::set<std::string>*> queries[] = {
+          {"SELECT object FROM manifest UNION SELECT object FROM reach", &live_objects},
+          {"SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scans sc ON src.scan_id = sc.id "
+           "WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 AND sc.version <= v.version "
+           "AND (sc.deleted_in IS NULL OR sc.deleted_in > v.version))",
+           &live_blobs}};
+      for (const auto& [sql, live_set] : queries) {
         absl::StatusOr<Stmt> st = db.Prepare(sql);
         if (!st.ok()) return st.status();
-        std::set<std::string>& live = sql[7] == 'o' ? live_objects : live_blobs;
+        std::set<std::string>& live = *live_set;
         for (;;) {
           absl::StatusOr<bool> row = st->Step();
           if (!row.ok()) return row.status();
@@ -806,9 +808,11 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
         return absl::InternalError(absl::StrCat("commit: tile ", tiles::ToString(w.key),
                                                 " has new records but no geometry object"));
       }
-      for (auto& [layer, entry] : manifest.tiles[w.key]) {  // counts follow the new contents
-        entry.vossels = w.layers.begin()->second.vossels;
-        if (layer == kLayerRecords) entry.records = w.layers.at(kLayerRecords).records;
+      // Every layer's counts follow the tile's new contents (a rewrite always has records).
+      const ManifestEntry& fresh = w.layers.at(kLayerRecords);
+      for (auto& [layer, entry] : manifest.tiles[w.key]) {
+        entry.vossels = fresh.vossels;
+        entry.records = fresh.records;
       }
     }
   }

@@ -190,7 +190,9 @@ class ProjectStore {
   absl::Status SetPinned(int64_t version, bool pinned);
   /// Retention: versions older than the newest keep_versions + 1 and not pinned are dropped,
   /// then every object and blob that no kept version references is removed. Returns the number
-  /// of files removed.
+  /// of files removed. Commit and Open run it.
+  /// @warning Call it only from the project's single writer, between its commits: the blobs of
+  /// a scan stored but not yet committed are not referenced by any version and would go.
   absl::StatusOr<int64_t> CollectGarbage();
 
   /// The object store holding tile files and reach rasters.
