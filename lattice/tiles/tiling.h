@@ -23,8 +23,8 @@
 
 namespace vasl::tiles {
 
-/// Default tile edge in vossels (64³ vossels: 3.2 m at h = 5 cm, 1.28 m at h = 2 cm; see
-/// README "Storage" for the measurement behind it). A project setting.
+/// Default tile edge in vossels (64³ vossels: 3.2 m at h = 5 cm, 1.28 m at h = 2 cm). Of 32, 64
+/// and 128 it writes the fewest bytes over a 12-scan site (README "Storage"). A project setting.
 inline constexpr int kDefaultTileVossels = 64;
 
 /// Integer coordinates of a tile.

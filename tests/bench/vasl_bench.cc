@@ -1,7 +1,7 @@
 // vasl_bench: the speed figures of the flows users wait for (ingest, reweight, render, record
 // IO) on the synthetic room, and the growth of the store over the corridor site, on this
 // machine. Run by deploy/bench.sh; speed goals live here, not in timed tests.
-// Usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only]
+// Usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only] [--tile-vossels T]
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -53,12 +53,13 @@ void ResetPeakRss() {
 /// Growth of the store (issue "A store that grows"): every scan of the corridor site ingested
 /// one at a time, with its seconds, what it recomputed, its peak RSS and the bytes its commit
 /// wrote against the project's total; then a rebuild of the same scans.
-int Growth(const std::filesystem::path& dir, int pano_w) {
+int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels) {
   using namespace vasl;
   auto engine = Engine::Open(dir);
   if (!engine.ok()) return Fail(engine.status());
   store::ProjectSettings settings;
   settings.vossel_size_m = 0.05;
+  settings.tile_vossels = tile_vossels;
   if (auto p = (*engine)->CreateProject("growth", settings); !p.ok()) return Fail(p.status());
   const scenes::CorridorSite site = scenes::CorridorSite::Default();
   scenes::LidarSettings lidar;
@@ -97,7 +98,23 @@ int Growth(const std::filesystem::path& dir, int pano_w) {
                 versions->back().bytes_total / 1e6, revisit, own, rest.c_str());
   }
   if (seconds.size() >= 2) {
-    std::printf("last scan / second scan: %.2f (target <= 1.3)\n", seconds.back() / seconds[1]);
+    double total = 0.0;
+    for (double s : seconds) total += s;
+    std::printf("last scan / second scan: %.2f (target <= 1.3); all %zu ingests %.1f s\n",
+                seconds.back() / seconds[1], seconds.size(), total);
+  }
+  auto versions = (*engine)->ListVersions("growth");
+  if (versions.ok() && !versions->empty()) {
+    int64_t written = 0;
+    for (const store::VersionInfo& v : *versions) written += v.bytes_written;
+    size_t objects = 0;
+    for (const auto& e : std::filesystem::directory_iterator(dir / "growth" / "objects")) {
+      objects += e.is_regular_file() ? 1 : 0;
+    }
+    std::printf("tiles %lld, objects on disk %zu, bytes written by all commits %.1f MB, "
+                "project %.1f MB\n",
+                (long long)versions->back().tile_count, objects, written / 1e6,
+                versions->back().bytes_total / 1e6);
   }
   ResetPeakRss();
   auto rebuilt = (*engine)->Rebuild("growth");
@@ -113,10 +130,12 @@ int main(int argc, char** argv) {
   using namespace vasl;
   int pano_w = 2048, repeat = 5;
   bool growth_only = false;
+  int tile_vossels = 64;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--growth-only")) growth_only = true;
     else if (i + 1 < argc && !std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[++i]);
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--tile-vossels")) tile_vossels = std::atoi(argv[++i]);
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
@@ -124,7 +143,7 @@ int main(int argc, char** argv) {
   std::printf("vasl_bench: %d threads, vossel %.2f m, panoramas %dx%d, LiDAR 1440x720 per scan\n",
               tbb::info::default_concurrency(), h, pano_w, pano_w / 2);
   if (growth_only) {
-    const int rc = Growth(dir / "growth-engine", pano_w);
+    const int rc = Growth(dir / "growth-engine", pano_w, tile_vossels);
     std::filesystem::remove_all(dir);
     return rc;
   }
@@ -209,7 +228,7 @@ int main(int argc, char** argv) {
   std::printf("\nrecords.vdb: %zu records, %.1f bytes/record on disk, write %.0f ms (%.1f M rec/s), "
               "read %.0f ms (%.1f M rec/s)\n", recs.size(), bytes / recs.size(), write_s * 1e3,
               recs.size() / write_s / 1e6, read_s * 1e3, recs.size() / read_s / 1e6);
-  if (int rc = Growth(dir / "growth-engine", pano_w); rc != 0) return rc;
+  if (int rc = Growth(dir / "growth-engine", pano_w, tile_vossels); rc != 0) return rc;
   std::filesystem::remove_all(dir);
   return 0;
 }
