@@ -39,7 +39,6 @@ absl::Status ValidateProjectName(const std::string& name) {
   return absl::OkStatus();
 }
 
-
 // Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
 // format of a LiDAR source.
 std::string PackPoints(const LidarData& lidar) {
@@ -52,6 +51,13 @@ std::string PackPoints(const LidarData& lidar) {
     std::memcpy(&bytes[i * 16], rec, 16);
   }
   return bytes;
+}
+
+// A flow's stage reports as the caller's progress (may be empty).
+flows::StageFn StageReporter(const ProgressFn& progress) {
+  return [&progress](const std::string& stage, double fraction) {
+    if (progress) progress({stage, fraction});
+  };
 }
 
 }  // namespace
@@ -125,7 +131,7 @@ struct Engine::Impl {
   IngestResult Finish(Project& p, flows::FlowResult flow, Clock::time_point t0, IngestResult result) {
     const int64_t vossels_before = p.head ? int64_t(p.head->geometry.size()) : 0;
     {
-      std::lock_guard<std::mutex> lock(head_mu_of(p));
+      std::lock_guard<std::mutex> lock(p.head_mu);
       p.head = flow.snapshot;
     }
     for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
@@ -142,13 +148,11 @@ struct Engine::Impl {
     result.seconds = SecondsSince(t0);
     return result;
   }
-  static std::mutex& head_mu_of(Project& p) { return p.head_mu; }
 
   ingest::ScanLimits ScanLimits() const {
     return {limits.max_points_per_scan, limits.max_panoramas_per_scan, limits.max_image_bytes,
             limits.max_image_pixels};
   }
-
 };
 
 Engine::Engine(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -296,9 +300,7 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
   if (!head.ok()) return head.status();
   auto flow = flows::IngestScan(st, **head, info, scan.lidar, std::move(*images),
                                 impl_->limits.max_image_pixels,
-                                [&](const std::string& stage, double fraction) {
-                                  if (progress) progress({stage, fraction});
-                                });
+                                StageReporter(progress));
   if (!flow.ok()) return flow.status();
   IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
   auto scans = st.ListScans();
@@ -313,9 +315,7 @@ absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const P
   Impl::Project& p = **found;
   std::lock_guard<std::mutex> writer(p.write_mu);
   auto flow = flows::Rebuild(*p.store, impl_->limits.max_image_pixels,
-                             [&](const std::string& stage, double fraction) {
-                               if (progress) progress({stage, fraction});
-                             });
+                             StageReporter(progress));
   if (!flow.ok()) return flow.status();
   return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
 }
@@ -330,9 +330,7 @@ absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, cons
   auto head = impl_->Snapshot(p, 0);
   if (!head.ok()) return head.status();
   auto flow = flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
-                                [&](const std::string& stage, double fraction) {
-                                  if (progress) progress({stage, fraction});
-                                });
+                                StageReporter(progress));
   if (!flow.ok()) return flow.status();
   return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
 }

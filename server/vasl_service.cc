@@ -550,7 +550,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
 grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
-  return RunUnary(context, "Rebuild", request->project(), [this, context, request, response] {
+  return RunUnary(context, "Rebuild", request->project(), [this, request, response] {
     const ProgressFn progress =
         ProgressReporter("Rebuild", request->project(), "rebuild", Clock::now());
     absl::StatusOr<IngestResult> result = engine_->Rebuild(request->project(), progress);

@@ -173,6 +173,19 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
   return cone;
 }
 
+absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
+    const store::ProjectStore& store, const SourceRef& source,
+    const records::VosselGeometry& geometry, int64_t max_image_pixels,
+    const std::vector<uint8_t>* only, const std::vector<uint8_t>* context) {
+  if (source.lidar()) {
+    absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, source.info, source.batch);
+    if (!lidar.ok()) return lidar.status();
+    return ingest::LidarRecords(geometry, *lidar, only, context);
+  }
+  return ingest::CameraRecords(
+      geometry, StoredCamera(store, source.info, source.batch, max_image_pixels), only, context);
+}
+
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           const store::Snapshot& old, Change change,
                                           const std::vector<SourceRef>& old_sources,
@@ -195,9 +208,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
   clock.Start("find changes", 0.45);
   const std::vector<ChangedBlock> blocks = ChangedBlocks(old.geometry, g, change.old_to_new, T);
-  std::set<tiles::TileKey> changed;
-  for (const ChangedBlock& b : blocks) changed.insert(b.tile);
-  plan.geometry_tiles = changed;
+  for (const ChangedBlock& b : blocks) plan.geometry_tiles.insert(b.tile);
 
   // 2. Which older sources must be recomputed on which blocks.
   std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks
@@ -260,17 +271,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
       only[v] = it->second.count(block_of[v]) ? 1 : 0;
       context[v] = cone.context.count(block_of[v]) ? 1 : 0;
     }
-    ingest::SourceRecords recs;
-    if (src.lidar()) {
-      absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
-      if (!lidar.ok()) return lidar.status();
-      recs = ingest::LidarRecords(g, *lidar, &only, &context);
-    } else {
-      absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(
-          g, StoredCamera(store, src.info, src.batch, max_image_pixels), &only, &context);
-      if (!r.ok()) return r.status();
-      recs = std::move(*r);
-    }
+    absl::StatusOr<ingest::SourceRecords> computed =
+        StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
+    if (!computed.ok()) return computed.status();
+    ingest::SourceRecords& recs = *computed;
     auto before = old.reach.find(src.info.id);
     if (before != old.reach.end() && before->second.size.width_px == recs.reach.size.width_px &&
         before->second.size.height_px == recs.reach.size.height_px) {

@@ -29,6 +29,7 @@
 #include <vector>
 
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/sample.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/store/project_store.h"
 #include "lattice/tiles/tiling.h"
@@ -100,6 +101,13 @@ struct RevisitCone {
 };
 RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revisit,
                    const std::set<tiles::TileKey>& all, int B, double h);
+
+/// The records (and reach raster) of a stored source on `geometry`, its points or image read
+/// back from its blob; `only` and `context` as ingest::LidarRecords / CameraRecords.
+absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
+    const store::ProjectStore& store, const SourceRef& source,
+    const records::VosselGeometry& geometry, int64_t max_image_pixels,
+    const std::vector<uint8_t>* only = nullptr, const std::vector<uint8_t>* context = nullptr);
 
 /// A geometry change ready to propagate.
 struct Change {

@@ -42,6 +42,11 @@ struct FlowResult {
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
 };
 
+/// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality) as
+/// the stages take them, without its points or image.
+ingest::LidarSource LidarOf(const store::SourceInfo& source, int32_t batch);
+ingest::CameraSource CameraOf(const store::SourceInfo& source, int32_t batch);
+
 /// The LiDAR of a stored source, from its blob (packed float32 x, y, z, intensity).
 /// DATA_LOSS when the blob is damaged.
 absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,

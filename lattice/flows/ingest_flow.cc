@@ -23,11 +23,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   size_t next_image = 0;
   for (const store::SourceInfo& src : info.sources) {
     if (src.modality == records::Modality::kLidar) {
-      ingest::LidarSource l;
-      l.id = src.id;
-      l.batch = info.batch;
-      l.pose = src.pose;
-      l.divergence_rad = src.divergence_rad;
+      ingest::LidarSource l = LidarOf(src, info.batch);
       l.xyz_sensor_m = lidar.xyz_sensor_m;
       l.intensity = lidar.intensity;
       change.new_sources.lidars.push_back(std::move(l));
@@ -35,12 +31,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       if (next_image >= images.size()) {
         return absl::InternalError("IngestScan: fewer decoded images than camera sources");
       }
-      ingest::CameraSource cam;
-      cam.id = src.id;
-      cam.batch = info.batch;
-      cam.pose = src.pose;
-      cam.modality = src.modality;
-      cam.angular_resolution_rad = src.divergence_rad;
+      ingest::CameraSource cam = CameraOf(src, info.batch);
       cam.image = std::move(images[next_image++]);
       change.new_sources.cameras.push_back(std::move(cam));
     }

@@ -46,19 +46,11 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   for (const internal::SourceRef& src : sources) {
     clock.Start(absl::StrCat("records of source ", src.info.id), fraction);
     fraction += span;
-    ingest::SourceRecords recs;
-    if (src.lidar()) {
-      absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
-      if (!lidar.ok()) return lidar.status();
-      recs = ingest::LidarRecords(next.geometry, *lidar);
-    } else {
-      absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(
-          next.geometry, StoredCamera(store, src.info, src.batch, max_image_pixels));
-      if (!r.ok()) return r.status();
-      recs = std::move(*r);
-    }
-    next.records.Append(recs.records);
-    next.reach[src.info.id] = std::move(recs.reach);
+    absl::StatusOr<ingest::SourceRecords> recs =
+        internal::StoredSourceRecords(store, src, next.geometry, max_image_pixels);
+    if (!recs.ok()) return recs.status();
+    next.records.Append(recs->records);
+    next.reach[src.info.id] = std::move(recs->reach);
     ++result.sources_computed;
   }
   next.records.SortByVossel();

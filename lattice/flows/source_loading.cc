@@ -6,6 +6,25 @@
 
 namespace vasl::flows {
 
+ingest::LidarSource LidarOf(const store::SourceInfo& s, int32_t batch) {
+  ingest::LidarSource out;
+  out.id = s.id;
+  out.batch = batch;
+  out.pose = s.pose;
+  out.divergence_rad = s.divergence_rad;
+  return out;
+}
+
+ingest::CameraSource CameraOf(const store::SourceInfo& s, int32_t batch) {
+  ingest::CameraSource cam;
+  cam.id = s.id;
+  cam.batch = batch;
+  cam.pose = s.pose;
+  cam.modality = s.modality;
+  cam.angular_resolution_rad = s.divergence_rad;
+  return cam;
+}
+
 absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
                                               const store::SourceInfo& s, int32_t batch) {
   absl::StatusOr<std::string> bytes = store.ReadBlob(s.blob_sha256);
@@ -14,11 +33,7 @@ absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
     return absl::DataLossError(
         absl::StrCat("points blob ", s.blob_sha256, " is not a whole number of points"));
   }
-  ingest::LidarSource out;
-  out.id = s.id;
-  out.batch = batch;
-  out.pose = s.pose;
-  out.divergence_rad = s.divergence_rad;
+  ingest::LidarSource out = LidarOf(s, batch);
   const size_t n = bytes->size() / 16;
   out.xyz_sensor_m.resize(3 * n);
   out.intensity.resize(n);
@@ -33,12 +48,7 @@ absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
 
 ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store::SourceInfo& src,
                                   int32_t batch, int64_t max_pixels) {
-  ingest::CameraSource cam;
-  cam.id = src.id;
-  cam.batch = batch;
-  cam.pose = src.pose;
-  cam.modality = src.modality;
-  cam.angular_resolution_rad = src.divergence_rad;
+  ingest::CameraSource cam = CameraOf(src, batch);
   const store::ProjectStore* st = &store;
   cam.load = [st, src, max_pixels]() -> absl::StatusOr<ingest::LinearImage> {
     absl::StatusOr<std::string> bytes = st->ReadBlob(src.blob_sha256);

@@ -202,6 +202,9 @@ struct ProjectStore::Impl {
     return removed;
   }
 
+  /// Kept versions numbered first..last, oldest first (ListVersions, HeadInfo).
+  absl::StatusOr<std::vector<VersionInfo>> QueryVersions(int64_t first, int64_t last);
+
   absl::StatusOr<bool> IsKept(int64_t version) {
     std::lock_guard<std::mutex> lock(db_mu);
     absl::StatusOr<Stmt> st = db.Prepare("SELECT pruned FROM versions WHERE version = ?1");
@@ -404,27 +407,31 @@ const ObjectStore& ProjectStore::objects() const { return *impl_->objects; }
 absl::StatusOr<VersionInfo> ProjectStore::HeadInfo() const {
   const int64_t head = impl_->head.load();
   if (head == 0) return VersionInfo{};
-  absl::StatusOr<std::vector<VersionInfo>> all = ListVersions();
-  if (!all.ok()) return all.status();
-  for (const VersionInfo& v : *all) {
-    if (v.version == head) return v;
+  absl::StatusOr<std::vector<VersionInfo>> one = impl_->QueryVersions(head, head);
+  if (!one.ok()) return one.status();
+  if (one->empty()) {
+    return absl::DataLossError(absl::StrCat("catalog has no row for HEAD version ", head,
+                                            " of project ", impl_->name));
   }
-  return absl::DataLossError(absl::StrCat("catalog has no row for HEAD version ", head,
-                                          " of project ", impl_->name));
+  return one->front();
 }
 
 absl::StatusOr<std::vector<VersionInfo>> ProjectStore::ListVersions() const {
-  const int64_t head = impl_->head.load();
-  std::lock_guard<std::mutex> lock(impl_->db_mu);
-  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+  return impl_->QueryVersions(1, impl_->head.load());
+}
+
+absl::StatusOr<std::vector<VersionInfo>> ProjectStore::Impl::QueryVersions(int64_t first,
+                                                                          int64_t last) {
+  std::lock_guard<std::mutex> lock(db_mu);
+  absl::StatusOr<Stmt> st = db.Prepare(
       "SELECT v.version, v.vossel_count, v.record_count, v.created_utc, v.made_by, "
       "v.bytes_written, v.pinned, "
       "(SELECT COUNT(*) FROM manifest m WHERE m.version = v.version AND m.layer = 'geometry'), "
       "(SELECT COALESCE(SUM(bytes), 0) FROM manifest m WHERE m.version = v.version) + "
       "(SELECT COALESCE(SUM(bytes), 0) FROM reach r WHERE r.version = v.version) "
-      "FROM versions v WHERE v.pruned = 0 AND v.version <= ?1 ORDER BY v.version");
+      "FROM versions v WHERE v.pruned = 0 AND v.version BETWEEN ?1 AND ?2 ORDER BY v.version");
   if (!st.ok()) return st.status();
-  st->Bind(1, head);
+  st->Bind(1, first).Bind(2, last);
   std::vector<VersionInfo> out;
   for (;;) {
     absl::StatusOr<bool> row = st->Step();
@@ -783,11 +790,9 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   //    the catalog does, so a failure here leaves only garbage for the next collection.
   std::set<tiles::TileKey> geometry_tiles = plan.geometry_tiles, record_tiles = plan.record_tiles;
   if (plan.replace_all) {
-    geometry_tiles.clear();
-    for (const auto& [key, members] :
-         tiles::VosselsByTile(snapshot.geometry, im.settings.tile_vossels)) {
-      geometry_tiles.insert(key);
-    }
+    const std::vector<tiles::TileKey> tile_of =
+        tiles::TilesOfVossels(snapshot.geometry, im.settings.tile_vossels);
+    geometry_tiles = std::set<tiles::TileKey>(tile_of.begin(), tile_of.end());
   }
   for (const tiles::TileKey& key : geometry_tiles) record_tiles.erase(key);
   int64_t bytes_written = 0;
