@@ -1,3 +1,4 @@
+#include "lattice/records/record_grid.h"
 #include "lattice/ingest/sample.h"
 
 #include <algorithm>
@@ -224,6 +225,7 @@ SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& 
                           lidar.divergence_rad, context);
   SourceRecords out;
   out.records = SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
+  records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;
 }
@@ -254,6 +256,7 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   DilateDepthPanorama(depth, kCameraSampleRadiusPx);
   SourceRecords out;
   out.records = SampleCamera(g, cam, ComputeVisibility(g, depth, tau, only));
+  records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;
 }

@@ -148,7 +148,11 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
 
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
                                      double tau_m, const std::vector<uint8_t>* only) {
-  constexpr int kGrid = 5;  // 5×5 PCF samples over the vossel's patch
+  // PCF samples over the vossel's patch: a 4×4 grid and the centre. 17 samples make V a
+  // multiple of 1/17, which the record's 8-bit `vis` stores exactly (code 15·lit of 255), so no
+  // V ≥ V_min test a profile can set flips between ingest and a reweight from disk (§7).
+  constexpr int kGrid = 4;
+  constexpr int kSamples = kGrid * kGrid + 1;
   std::vector<float> vis(g.size(), 0.0f);
   const double h = g.vossel_size_m;
   const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
@@ -167,9 +171,11 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       const double tolerance_m = SlopeScaledToleranceM(tau_m, range_k, pixel_rad,
                                                        std::abs(n.dot(to_sensor)) / range_k);
       int lit = 0;
-      for (int a = 0; a < kGrid; ++a) {
-        for (int b = 0; b < kGrid; ++b) {
-          const double sa = ((a + 0.5) / kGrid - 0.5) * h, sb = ((b + 0.5) / kGrid - 0.5) * h;
+      for (int sample = 0; sample < kSamples; ++sample) {
+        {
+          const int a = sample / kGrid, b = sample % kGrid;  // sample kGrid² is the centre
+          const double sa = sample == kGrid * kGrid ? 0.0 : ((a + 0.5) / kGrid - 0.5) * h;
+          const double sb = sample == kGrid * kGrid ? 0.0 : ((b + 0.5) / kGrid - 0.5) * h;
           const Eigen::Vector3d p_s = R_sensor_world * (x + sa * t1 + sb * t2 - depth.pose.o_world);
           const double range = p_s.norm();
           const Eigen::Vector2d uv = geometry::EquirectProject(p_s, depth.size);
@@ -178,7 +184,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
           if (depth.At(i, j) >= range - tolerance_m) ++lit;
         }
       }
-      vis[k] = float(lit) / float(kGrid * kGrid);
+      vis[k] = float(lit) / float(kSamples);
     }
   });
   return vis;

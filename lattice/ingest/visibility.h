@@ -61,7 +61,8 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
 /// sampling kernel).
 void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
 
-/// §5: V_{k,m} for every vossel: the share of a 5×5 grid of points over the vossel's surface
+/// §5: V_{k,m} for every vossel: the share of 17 points (a 4×4 grid and the centre; V is a
+/// multiple of 1/17, stored exactly by the record's 8-bit codec) over the vossel's surface
 /// patch (side h, in the plane (x_k, n_k)) whose pixel in `depth` satisfies
 /// D(p) ≥ r_p − τ_k (percentage-closer filtering over the vossel's projected footprint), with
 /// the slope-scaled tolerance τ_k = τ + r·Δ·tanθ (choice: Δ the depth panorama's pixel pitch,

@@ -134,7 +134,7 @@ void ForEachAttribute(RS& r, Fn&& fn) {
   fn("scan", r.scan, 1, Kind::kInt32);
   fn("modality", r.modality, 1, Kind::kInt8);
   fn("value", r.value, kValueChannels, Kind::kHalf);
-  fn("range", r.range_m, 1, Kind::kHalf);
+  fn("range", r.range_m, 1, Kind::kFloat);  // h/10 or better to 300 m: half errs 2.4 cm at 50 m
   fn("cos_inc", r.cos_inc, 1, Kind::kUnit16);
   fn("foot_major", r.foot_major_m, 1, Kind::kHalf);
   fn("foot_minor", r.foot_minor_m, 1, Kind::kHalf);
@@ -166,6 +166,31 @@ Kind ChooseKind(const std::vector<T>& a, Kind preferred) {
   }
   return preferred;
 }
+
+}  // namespace
+
+void RoundToStorage(RecordSet& records) {
+  ForEachAttribute(records, [](const char*, auto& values, int, Kind kind) {
+    using T = typename std::decay_t<decltype(values)>::value_type;
+    if constexpr (std::is_floating_point_v<T>) {
+      if (kind == Kind::kHalf) {
+        for (T& v : values) {
+          // Values past the half range stay float: ChooseKind widens such a file to float.
+          if (std::fabs(v) <= 65504.0f) v = Storage<HalfArray>::Decode(Storage<HalfArray>::Encode(v));
+        }
+      } else if (kind == Kind::kUnit8 || kind == Kind::kUnit16) {
+        Dispatch(kind, [&](auto tag) {
+          using S = Storage<typename decltype(tag)::type>;
+          if constexpr (std::is_same_v<typename S::S, uint8_t> || std::is_same_v<typename S::S, uint16_t>) {
+            for (T& v : values) v = S::Decode(S::Encode(v));
+          }
+        });
+      }
+    }
+  });
+}
+
+namespace {
 
 std::string AttributeListMeta(const std::vector<AttributeInfo>& infos) {
   std::string s;

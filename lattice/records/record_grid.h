@@ -27,6 +27,11 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path);
 /// `records` must be sorted by vossel (RecordSet::SortByVossel).
 absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& records,
                           const std::filesystem::path& path);
+/// Rounds every field of `records` to what its codec stores (half, 8- and 16-bit fixed point),
+/// exactly as WriteRecords then ReadRecords would. The flows round records as they make them,
+/// so fusion at ingest reads the same values a later reweight reads from disk and both give the
+/// same bits (VASL-MODEL §7). Idempotent.
+void RoundToStorage(RecordSet& records);
 /// Reads records.vdb back into flat arrays (sorted by vossel), given the version's geometry.
 absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                                       const std::filesystem::path& path);

@@ -1,6 +1,8 @@
 #include "lattice/records/vdb_io.h"
 
 #include <exception>
+#include <fstream>
+#include <iterator>
 #include <mutex>
 #include <system_error>
 
@@ -8,6 +10,7 @@
 #include <openvdb/points/PointDataGrid.h>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 
 namespace vasl::records::internal {
 
@@ -30,6 +33,36 @@ absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::Grid
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("cannot write ", path.string(), ": ", e.what()));
   }
+  return MakeUuidDeterministic(path);
+}
+
+absl::Status MakeUuidDeterministic(const std::filesystem::path& path) {
+  // OpenVDB's header: magic (8 bytes), file version, library major and minor (4 each), a
+  // has-grid-offsets byte, then the UUID as 36 ASCII characters.
+  constexpr std::streamoff kUuidAt = 21, kUuidLen = 36;
+  std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
+  if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
+  std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  if (bytes.size() < size_t(kUuidAt + kUuidLen) || bytes.compare(0, 4, " BDV") != 0 ||
+      bytes[kUuidAt + 8] != '-' || bytes[kUuidAt + 13] != '-') {
+    return absl::InternalError(absl::StrCat(path.string(), " has no OpenVDB header UUID"));
+  }
+  // Two FNV-1a 64-bit hashes of everything after the UUID, as a version-4-shaped UUID.
+  uint64_t a = 0xcbf29ce484222325ull, b = 0x84222325cbf29ce4ull;
+  for (size_t i = size_t(kUuidAt + kUuidLen); i < bytes.size(); ++i) {
+    const uint8_t c = uint8_t(bytes[i]);
+    a = (a ^ c) * 0x100000001b3ull;
+    b = (b ^ uint8_t(c + 0x5b)) * 0x100000001b3ull;
+  }
+  const std::string hex = absl::StrFormat("%016x%016x", a, b);
+  const std::string uuid = absl::StrCat(hex.substr(0, 8), "-", hex.substr(8, 4), "-4",
+                                        hex.substr(13, 3), "-a", hex.substr(17, 3), "-",
+                                        hex.substr(20, 12));
+  f.clear();
+  f.seekp(kUuidAt);
+  f.write(uuid.data(), kUuidLen);
+  f.close();
+  if (!f) return absl::InternalError(absl::StrCat("cannot rewrite the UUID of ", path.string()));
   return absl::OkStatus();
 }
 

@@ -16,6 +16,11 @@ namespace vasl::records::internal {
 /// Calls openvdb::initialize() exactly once per process (std::call_once). Thread-safe.
 void EnsureOpenVdbInitialized();
 
+/// Replaces the random UUID OpenVDB writes in a file's header by one derived from the file's
+/// own bytes, so that equal contents give equal files (tile objects are content-addressed:
+/// equal tiles must hash equal). Called by WriteVdbFile.
+absl::Status MakeUuidDeterministic(const std::filesystem::path& path);
+
 /// Writes `grids` with file-level `meta` to `path`, blosc-compressed (zip if blosc is absent).
 /// Errors: INTERNAL with the path and the OpenVDB message.
 absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::GridCPtrVec& grids,

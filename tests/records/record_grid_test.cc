@@ -149,7 +149,7 @@ TEST(CanonicalizeVosselOrderTest, EmptyArraysStayEmpty) {
 }
 
 // Claim (§6): records.vdb reproduces every record within its codec's precision:
-//   scan, modality, flags, batch, uv: exact; value, range, foot: half, |Δ| ≤ 2⁻¹¹·|x| + 6e-8;
+//   scan, modality, flags, batch, uv, range: exact; value, foot: half, |Δ| ≤ 2⁻¹¹·|x| + 6e-8;
 //   cos_inc: 16-bit unit range, |Δ| ≤ 0.5/65535; vis, conf: 8-bit unit range, |Δ| ≤ 0.5/255,
 //   and vis = 0.5 reads back ≥ 0.5 (RECORDS-NOTES pitfall 6).
 TEST(RecordGridTest, RoundTripWithinCodecPrecision) {
@@ -180,7 +180,7 @@ TEST(RecordGridTest, RoundTripWithinCodecPrecision) {
   const double conf_abs = WorstError(in.conf, out->conf, abs1);
   const double half_rel = std::ldexp(1.0, -11);
   EXPECT_LE(value_rel, half_rel);
-  EXPECT_LE(range_rel, half_rel);
+  EXPECT_EQ(range_rel, 0.0) << "range is stored as float";
   EXPECT_LE(major_rel, half_rel);
   EXPECT_LE(minor_rel, half_rel);
   EXPECT_LE(cos_abs, 0.5 / 65535 + 1e-7);
@@ -246,7 +246,7 @@ TEST(RecordGridTest, ListsAttributesWithTypeCodecStride) {
   const std::vector<std::tuple<std::string, std::string, std::string, int>> expect = {
       {"P", "vec3s", "null", 1},         {"scan", "int16", "null", 1},
       {"modality", "int8", "null", 1},   {"value", "float", "trnc", 3},
-      {"range", "float", "trnc", 1},     {"cos_inc", "float", "ufxpt16", 1},
+      {"range", "float", "null", 1},     {"cos_inc", "float", "ufxpt16", 1},
       {"foot_major", "float", "trnc", 1}, {"foot_minor", "float", "trnc", 1},
       {"uv", "float", "null", 2},        {"vis", "float", "ufxpt8", 1},
       {"conf", "float", "ufxpt8", 4},    {"flags", "int8", "null", 1},
@@ -404,6 +404,52 @@ TEST(FusedGridTest, RoundTripWeightedVossels) {
               n, size_t(weight->activeVoxelCount()),
               double(fs::file_size(dir / "fused-default.vdb")) / n);
   fs::remove_all(dir);
+}
+
+// Claim (§7, issue "Reweighting"): what weights read keeps its precision. range to h/10 or
+// better up to 300 m (h = 2 cm: 2 mm); V a multiple of 1/17 (the PCF's 17 samples) reads back
+// exactly, so no V ≥ V_min test flips for any V_min; RoundToStorage gives, bit for bit, what a
+// write and read of the file give.
+TEST(RecordGridTest, WeightInputsKeepTheirPrecision) {
+  const fs::path dir = TestDir("precision");
+  VosselGeometry g = RandomGeometry(4000, 9);
+  CanonicalizeVosselOrder(g);
+  RecordSet in = RandomRecords(g.size(), 10);
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> range(0.1f, 300.0f);
+  for (size_t i = 0; i < in.size(); ++i) {
+    in.range_m[i] = range(rng);
+    in.vis[i] = float(int(i % 18)) / 17.0f;
+  }
+  RecordSet rounded = in;
+  RoundToStorage(rounded);
+  const fs::path path = dir / "records.vdb";
+  ASSERT_TRUE(WriteRecords(g, in, path).ok());
+  absl::StatusOr<RecordSet> out = ReadRecords(g, path);
+  ASSERT_TRUE(out.ok()) << out.status();
+  double worst_range = 0.0;
+  size_t flips = 0, tests = 0;
+  for (size_t i = 0; i < in.size(); ++i) {
+    worst_range = std::max(worst_range, std::fabs(double(out->range_m[i]) - in.range_m[i]));
+    ASSERT_EQ(out->vis[i], in.vis[i]) << "V = " << int(i % 18) << "/17 must read back exactly";
+    for (int m = 0; m <= 1000; ++m) {  // V_min on a fine grid and at every multiple of 1/17
+      const float v_min = m <= 982 ? float(m) / 982.0f : float(m - 983) / 17.0f;
+      flips += (in.vis[i] >= v_min) != (out->vis[i] >= v_min);
+      ++tests;
+    }
+  }
+  EXPECT_LE(worst_range, 0.002) << "range must keep h/10 = 2 mm at h = 2 cm up to 300 m";
+  EXPECT_EQ(flips, 0u);
+  // Rounding in memory is exactly the file's round trip.
+  EXPECT_EQ(rounded.value, out->value);
+  EXPECT_EQ(rounded.range_m, out->range_m);
+  EXPECT_EQ(rounded.cos_inc, out->cos_inc);
+  EXPECT_EQ(rounded.foot_major_m, out->foot_major_m);
+  EXPECT_EQ(rounded.foot_minor_m, out->foot_minor_m);
+  EXPECT_EQ(rounded.vis, out->vis);
+  EXPECT_EQ(rounded.conf, out->conf);
+  std::printf("weight inputs: %zu records, worst range error %.3g m to 300 m; %zu V >= V_min "
+              "tests, %zu flipped\n", in.size(), worst_range, tests, flips);
 }
 
 }  // namespace
