@@ -68,6 +68,8 @@ struct Engine::Impl {
     std::mutex write_mu;  ///< one writer per project
     std::mutex head_mu;   ///< guards `head`
     std::shared_ptr<const store::Snapshot> head;
+    /// Fused values of HEAD under other profiles, by layer, loaded from its tiles (head_mu).
+    std::map<std::string, std::shared_ptr<const records::FusedValues>> head_profile_fused;
   };
 
   fs::path data_dir;
@@ -100,6 +102,7 @@ struct Engine::Impl {
         auto snap = p.store->LoadSnapshot(head);
         if (!snap.ok()) return snap.status();
         p.head = *snap;
+        p.head_profile_fused.clear();
       }
       return p.head;
     }
@@ -133,6 +136,7 @@ struct Engine::Impl {
     {
       std::lock_guard<std::mutex> lock(p.head_mu);
       p.head = flow.snapshot;
+      p.head_profile_fused.clear();
     }
     for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
     result.version = flow.version;
@@ -147,6 +151,51 @@ struct Engine::Impl {
     result.bytes_written = flow.bytes_written;
     result.seconds = SecondsSince(t0);
     return result;
+  }
+
+  /// Profile `name` (empty: the project's active one) at `revision` (0: latest).
+  absl::StatusOr<reweight::NamedProfile> Profile(Project& p, const std::string& name,
+                                                 int32_t revision) {
+    std::string resolved = name;
+    if (resolved.empty()) {
+      absl::StatusOr<std::string> active = p.store->ActiveProfile();
+      if (!active.ok()) return active.status();
+      resolved = *active;
+    }
+    return reweight::LoadProfile(*p.store, resolved, revision);
+  }
+
+  /// Fused values of `snap` under `profile`: the default layer, a layer every tile holds (read
+  /// from the tiles, cached for HEAD), or none (nullptr: the caller fuses on the fly).
+  absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
+      Project& p, const std::shared_ptr<const store::Snapshot>& snap,
+      const fusion::WeightingProfile& profile) {
+    if (profile.name == fusion::kDefaultProfileName) {
+      return std::shared_ptr<const records::FusedValues>(snap, &snap->fused);
+    }
+    const std::string layer = store::FusedLayerName(profile.name, profile.version);
+    const std::vector<std::string> complete = store::CompleteProfileLayers(snap->manifest);
+    if (std::find(complete.begin(), complete.end(), layer) == complete.end()) {
+      return std::shared_ptr<const records::FusedValues>();
+    }
+    if (auto it = snap->profile_fused.find(layer); it != snap->profile_fused.end()) {
+      return std::shared_ptr<const records::FusedValues>(snap, &it->second);
+    }
+    const bool is_head = snap->version == p.store->head_version();
+    if (is_head) {
+      std::lock_guard<std::mutex> lock(p.head_mu);
+      auto it = p.head_profile_fused.find(layer);
+      if (it != p.head_profile_fused.end()) return it->second;
+    }
+    auto loaded = p.store->LoadSnapshot(snap->version, {layer});
+    if (!loaded.ok()) return loaded.status();
+    auto values = std::make_shared<const records::FusedValues>((*loaded)->profile_fused.at(layer));
+    if (is_head) {
+      std::lock_guard<std::mutex> lock(p.head_mu);
+      if (p.head_profile_fused.size() > 4) p.head_profile_fused.clear();  // a small cache
+      p.head_profile_fused[layer] = values;
+    }
+    return values;
   }
 
   ingest::ScanLimits ScanLimits() const {
@@ -371,34 +420,119 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
     return absl::FailedPreconditionError(
         absl::StrCat("project '", project, "' has no scans yet: ingest one before rendering"));
   }
+  auto profile = impl_->Profile(**p, request.profile, request.profile_revision);
+  if (!profile.ok()) return profile.status();
   auto snap = impl_->Snapshot(**p, request.version);
   if (!snap.ok()) return snap.status();
-  const store::Snapshot& snapshot = **snap;
-  render::ViewBlendInputs blend;
-  absl::StatusOr<fusion::RecordWeightsResult> weights;
-  if (request.eta > 0.0) {  // §8 view term: the records, their §7 weights, the source origins
-    weights = fusion::RecordWeights(snapshot.records, snapshot.geometry.size(),
-                                    snapshot.geometry.vossel_size_m, fusion::WeightingProfile{});
-    if (!weights.ok()) return weights.status();
-    auto scans = (*p)->store->ListScans();
-    if (!scans.ok()) return scans.status();
-    for (const store::ScanInfo& scan : *scans) {
-      for (const store::SourceInfo& src : scan.sources) {
-        if (src.id < 0) continue;
-        if (size_t(src.id) >= blend.source_origin_m.size()) {
-          blend.source_origin_m.resize(size_t(src.id) + 1, Eigen::Vector3d::Constant(NAN));
-        }
-        blend.source_origin_m[size_t(src.id)] = src.pose.o_world;
-      }
-    }
-    blend.records = &snapshot.records;
-    blend.weight = &weights->weight;
-    blend.begin = &weights->begin;
+  auto stored = impl_->StoredFused(**p, *snap, profile->profile);
+  if (!stored.ok()) return stored.status();
+  std::shared_ptr<const records::FusedValues> fused = *stored;
+  if (!fused) {  // no fused tiles under this profile in the version: fuse for this render
+    auto on_the_fly = fusion::Fuse((*snap)->records, (*snap)->geometry.size(),
+                                   (*snap)->geometry.vossel_size_m, profile->profile);
+    if (!on_the_fly.ok()) return on_the_fly.status();
+    fused = std::make_shared<const records::FusedValues>(std::move(*on_the_fly));
   }
-  auto image = render::RenderEquirect(snapshot.geometry, snapshot.fused, request, &blend);
+  auto image = flows::RenderQuery(*(*p)->store, **snap, *fused, profile->profile, request);
   if (!image.ok()) return image.status();
-  image->version = snapshot.version;
+  image->fused_on_the_fly = *stored == nullptr;
   return image;
+}
+
+absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(
+    const std::string& project, const fusion::WeightingProfile& profile) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return reweight::CreateProfile(*(*p)->store, profile);
+}
+
+absl::StatusOr<std::vector<reweight::NamedProfile>> Engine::ListProfiles(
+    const std::string& project, std::string* active) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  auto a = (*p)->store->ActiveProfile();
+  if (!a.ok()) return a.status();
+  if (active != nullptr) *active = *a;
+  return reweight::ListProfiles(*(*p)->store);
+}
+
+absl::StatusOr<reweight::NamedProfile> Engine::GetProfile(const std::string& project,
+                                                          const std::string& name,
+                                                          int32_t revision) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return impl_->Profile(**p, name, revision);
+}
+
+absl::Status Engine::SetActiveProfile(const std::string& project, const std::string& name) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->SetActiveProfile(name);
+}
+
+absl::StatusOr<reweight::ReweightResult> Engine::Reweight(const std::string& project,
+                                                          const std::string& name,
+                                                          int32_t revision,
+                                                          const ProgressFn& progress) {
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  auto profile = impl_->Profile(p, name, revision);
+  if (!profile.ok()) return profile.status();
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  auto result = reweight::Reweight(*p.store, profile->profile, [&](int64_t done, int64_t total) {
+    if (progress) progress({absl::StrCat("fused tile ", done, " of ", total), double(done) / total});
+  });
+  if (!result.ok()) return result.status();
+  if (!result->unchanged) {  // HEAD keeps its arrays; only its manifest gained a layer
+    std::lock_guard<std::mutex> lock(p.head_mu);
+    if (p.head) {
+      auto manifest = p.store->LoadManifest(result->version);
+      if (!manifest.ok()) return manifest.status();
+      auto next = std::make_shared<store::Snapshot>(*p.head);
+      next->version = result->version;
+      next->manifest = std::move(*manifest);
+      p.head = std::move(next);
+      p.head_profile_fused.clear();
+    }
+  }
+  return result;
+}
+
+absl::StatusOr<reweight::NormaliseOutcome> Engine::Normalise(const std::string& project,
+                                                             const std::string& base,
+                                                             const std::string& name) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  if ((*p)->store->head_version() == 0) {
+    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
+  }
+  auto profile = impl_->Profile(**p, base, 0);
+  if (!profile.ok()) return profile.status();
+  auto snap = impl_->Snapshot(**p, 0);
+  if (!snap.ok()) return snap.status();
+  return reweight::NormaliseProfile(*(*p)->store, **snap, profile->profile, name);
+}
+
+absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
+    const std::string& project, int64_t version, const Eigen::Vector3d& min_m,
+    const Eigen::Vector3d& max_m, const std::string& profile_name, int64_t limit) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  if ((*p)->store->head_version() == 0) {
+    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
+  }
+  auto profile = impl_->Profile(**p, profile_name, 0);
+  if (!profile.ok()) return profile.status();
+  auto snap = impl_->Snapshot(**p, version);
+  if (!snap.ok()) return snap.status();
+  return flows::QueryRecords(*(*p)->store, **snap, min_m, max_m, profile->profile, limit);
+}
+
+absl::Status Engine::SetPinned(const std::string& project, int64_t version, bool pinned) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->SetPinned(version, pinned);
 }
 
 absl::StatusOr<RecordsInspection> Engine::InspectRecords(const std::string& project,

@@ -24,6 +24,9 @@
 #include "lattice/ingest/scan_input.h"
 #include "lattice/records/records.h"
 #include "lattice/render/render.h"
+#include "lattice/reweight/normalise_flow.h"
+#include "lattice/reweight/profiles.h"
+#include "lattice/reweight/reweight_flow.h"
 #include "lattice/store/project_store.h"
 
 namespace vasl {
@@ -121,7 +124,48 @@ class Engine {
   absl::StatusOr<flows::ExportResult> Export(const std::string& project, int64_t version,
                                              const std::filesystem::path& path);
 
-  /// The render flow (§8) on an immutable snapshot.
+  /// Weighting profiles (§7). CreateProfile stores a new revision of `profile.name` (1 for a
+  /// new name); "default" is built in and cannot be redefined.
+  absl::StatusOr<reweight::NamedProfile> CreateProfile(const std::string& project,
+                                                       const fusion::WeightingProfile& profile);
+  /// The built-in default and the latest revision of every stored profile; `active` is set to
+  /// the project's active profile name.
+  absl::StatusOr<std::vector<reweight::NamedProfile>> ListProfiles(const std::string& project,
+                                                                   std::string* active);
+  /// Profile `name` at `revision` (0: latest; empty name: the active profile).
+  absl::StatusOr<reweight::NamedProfile> GetProfile(const std::string& project,
+                                                    const std::string& name, int32_t revision);
+  /// The profile renders, queries and ingest use when none is named.
+  absl::Status SetActiveProfile(const std::string& project, const std::string& name);
+
+  /// The reweight flow (§7): a new version whose tiles hold fused values under profile `name`
+  /// at `revision` (0: latest; empty: active), from the stored records alone.
+  absl::StatusOr<reweight::ReweightResult> Reweight(const std::string& project,
+                                                    const std::string& name, int32_t revision,
+                                                    const ProgressFn& progress = {});
+
+  /// Multi-scan radiometric normalisation (§7) of HEAD's RGB records weighed under profile
+  /// `base` (empty: active): the gains become a new revision of profile `name` (empty: base's
+  /// name, "normalised" for the default). Reweight under it to store its fused tiles.
+  absl::StatusOr<reweight::NormaliseOutcome> Normalise(const std::string& project,
+                                                       const std::string& base,
+                                                       const std::string& name);
+
+  /// Provenance query on version `version` (0: HEAD): the records of the vossels whose cells
+  /// meet the world box, with their weights under profile `profile` (empty: active).
+  absl::StatusOr<flows::RecordsQueryResult> QueryRecords(const std::string& project,
+                                                         int64_t version,
+                                                         const Eigen::Vector3d& min_m,
+                                                         const Eigen::Vector3d& max_m,
+                                                         const std::string& profile,
+                                                         int64_t limit);
+
+  /// Pins (or unpins) a kept version against retention.
+  absl::Status SetPinned(const std::string& project, int64_t version, bool pinned);
+
+  /// The render flow (§8) on an immutable snapshot, under the request's profile: its fused
+  /// tiles when the version holds them on every tile, else fused for this render (the image
+  /// says so).
   absl::StatusOr<RenderImage> Render(const std::string& project, const RenderRequest& request);
 
   /// Record attributes of a version (0: HEAD) with type, codec and stride, and its size.

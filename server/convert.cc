@@ -161,7 +161,97 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
         absl::StrCat("max_range_m must be >= 0 (0: 1000 m), got ", request.max_range_m()));
   }
   if (request.max_range_m() > 0.0) out.max_range_m = request.max_range_m();
+  if (request.profile_revision() < 0) {
+    return absl::InvalidArgumentError("profile_revision must be >= 0 (0: the latest)");
+  }
+  out.profile = request.profile();
+  out.profile_revision = request.profile_revision();
   return out;
+}
+
+absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingProfile& p) {
+  fusion::WeightingProfile out;
+  out.name = p.name();
+  if (p.has_alpha()) out.alpha = p.alpha();
+  if (p.has_beta()) out.beta = p.beta();
+  if (p.has_rho()) out.rho = p.rho();
+  if (p.kappa_size() != 0) {
+    if (p.kappa_size() != int(out.kappa.size())) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "profile kappa needs ", out.kappa.size(),
+          " values (saturation, flare, dirt, codec) or none; got ", p.kappa_size()));
+    }
+    for (int f = 0; f < p.kappa_size(); ++f) out.kappa[size_t(f)] = p.kappa(f);
+  }
+  if (p.has_v_min()) out.v_min = p.v_min();
+  if (p.has_lambda_src()) out.lambda_src = p.lambda_src();
+  if (p.has_theta_max_rad()) out.theta_max_rad = p.theta_max_rad();
+  if (p.has_proximity_m()) out.proximity_m = p.proximity_m();
+  out.mode = p.mode() == v1::WeightingProfile::MODE_NEAREST ? fusion::FusionMode::kNearest
+                                                             : fusion::FusionMode::kBlend;
+  for (const auto& [source, g] : p.scan_gain()) out.scan_gain[source] = g;
+  for (const v1::ChannelGain& cg : p.channel_gain()) {
+    if (cg.gain_size() < 1 || cg.gain_size() > records::kValueChannels) {
+      return absl::InvalidArgumentError(absl::StrCat("channel_gain of source ", cg.source(),
+                                                     " needs 1 to ", records::kValueChannels,
+                                                     " gains; got ", cg.gain_size()));
+    }
+    std::array<double, records::kValueChannels> a;
+    for (int c = 0; c < records::kValueChannels; ++c) a[size_t(c)] = cg.gain(std::min(c, cg.gain_size() - 1));
+    out.channel_gain[cg.source()] = a;
+  }
+  if (absl::Status s = fusion::ValidateProfile(out); !s.ok()) return s;
+  return out;
+}
+
+void ProfileToProto(const fusion::WeightingProfile& p, const std::string& created_utc,
+                    v1::WeightingProfile* out) {
+  out->set_name(p.name);
+  out->set_revision(p.version);
+  out->set_alpha(p.alpha);
+  out->set_beta(p.beta);
+  out->set_rho(p.rho);
+  for (double k : p.kappa) out->add_kappa(k);
+  out->set_v_min(p.v_min);
+  out->set_lambda_src(p.lambda_src);
+  out->set_theta_max_rad(p.theta_max_rad);
+  out->set_proximity_m(p.proximity_m);
+  out->set_mode(p.mode == fusion::FusionMode::kNearest ? v1::WeightingProfile::MODE_NEAREST
+                                                       : v1::WeightingProfile::MODE_BLEND);
+  for (const auto& [source, g] : p.scan_gain) (*out->mutable_scan_gain())[source] = g;
+  for (const auto& [source, a] : p.channel_gain) {
+    v1::ChannelGain* cg = out->add_channel_gain();
+    cg->set_source(source);
+    for (double g : a) cg->add_gain(g);
+  }
+  out->set_created_utc(created_utc);
+}
+
+void RecordRowToProto(const flows::RecordRow& r, v1::RecordRow* out) {
+  out->set_vossel(r.vossel);
+  out->set_kx(r.coord.x());
+  out->set_ky(r.coord.y());
+  out->set_kz(r.coord.z());
+  out->mutable_centroid_m()->set_x(r.centroid_m.x());
+  out->mutable_centroid_m()->set_y(r.centroid_m.y());
+  out->mutable_centroid_m()->set_z(r.centroid_m.z());
+  out->set_source(r.source);
+  out->set_source_name(r.source_name);
+  out->set_scan_id(r.scan_id);
+  out->set_scan(r.scan_name);
+  out->set_modality(ModalityToProto(r.modality));
+  for (int c = 0; c < records::ChannelCount(r.modality); ++c) out->add_value(r.value[size_t(c)]);
+  out->set_range_m(r.range_m);
+  out->set_cos_inc(r.cos_inc);
+  out->set_foot_major_m(r.foot_major_m);
+  out->set_foot_minor_m(r.foot_minor_m);
+  out->set_vis(r.vis);
+  out->set_u_px(r.uv_px[0]);
+  out->set_v_px(r.uv_px[1]);
+  for (float c : r.conf) out->add_conf(c);
+  out->set_flags(r.flags);
+  out->set_batch(r.batch);
+  out->set_weight(r.weight);
 }
 
 absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(

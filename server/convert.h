@@ -46,6 +46,13 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
 
 /// The formats to encode, in request order, duplicates dropped; empty request: EXR only.
 /// INVALID_ARGUMENT for IMAGE_FORMAT_UNSPECIFIED or an unknown value.
+/// A client's profile with the model's defaults where it leaves fields unset; INVALID_ARGUMENT
+/// for values out of range.
+absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingProfile& profile);
+void ProfileToProto(const fusion::WeightingProfile& profile, const std::string& created_utc,
+                    v1::WeightingProfile* out);
+void RecordRowToProto(const flows::RecordRow& row, v1::RecordRow* out);
+
 absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
     const v1::RenderRequest& request);
 

@@ -281,6 +281,9 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     meta->set_height_px(image->height_px);
     meta->set_version(image->version);
     meta->set_hit_pixels(image->hit_pixels);
+    meta->set_profile(image->profile);
+    meta->set_profile_revision(image->profile_revision);
+    meta->set_fused_on_the_fly(image->fused_on_the_fly);
     meta->set_render_seconds(render_seconds);
     meta->set_encode_seconds(SecondsSince(encode_start));
     return grpc::Status::OK;
@@ -600,6 +603,167 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerCont
 grpc::ServerWriteReactor<v1::ExportResponse>* VaslServiceImpl::Export(
     grpc::CallbackServerContext* context, const v1::ExportRequest* request) {
   return new ExportReactor(this, context, request);
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::CreateProfile(grpc::CallbackServerContext* context,
+                                                         const v1::CreateProfileRequest* request,
+                                                         v1::WeightingProfile* response) {
+  return RunUnary(context, "CreateProfile", request->project(), [this, request, response] {
+    if (!request->has_profile()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "profile is required");
+    }
+    absl::StatusOr<fusion::WeightingProfile> profile = ProfileFromProto(request->profile());
+    if (!profile.ok()) return ToGrpcStatus(profile.status());
+    absl::StatusOr<reweight::NamedProfile> made = engine_->CreateProfile(request->project(), *profile);
+    if (!made.ok()) return ToGrpcStatus(made.status());
+    if (request->activate()) {
+      absl::Status s = engine_->SetActiveProfile(request->project(), made->profile.name);
+      if (!s.ok()) return ToGrpcStatus(s);
+    }
+    ProfileToProto(made->profile, made->created_utc, response);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::GetProfile(grpc::CallbackServerContext* context,
+                                                      const v1::GetProfileRequest* request,
+                                                      v1::WeightingProfile* response) {
+  return RunUnary(context, "GetProfile", request->project(), [this, request, response] {
+    absl::StatusOr<reweight::NamedProfile> p =
+        engine_->GetProfile(request->project(), request->name(), request->revision());
+    if (!p.ok()) return ToGrpcStatus(p.status());
+    ProfileToProto(p->profile, p->created_utc, response);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerContext* context,
+                                                        const v1::ListProfilesRequest* request,
+                                                        v1::ListProfilesResponse* response) {
+  return RunUnary(context, "ListProfiles", request->project(), [this, request, response] {
+    std::string active;
+    absl::StatusOr<std::vector<reweight::NamedProfile>> all =
+        engine_->ListProfiles(request->project(), &active);
+    if (!all.ok()) return ToGrpcStatus(all.status());
+    for (const reweight::NamedProfile& p : *all) {
+      ProfileToProto(p.profile, p.created_utc, response->add_profiles());
+    }
+    response->set_active(active);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
+    grpc::CallbackServerContext* context, const v1::SetActiveProfileRequest* request,
+    v1::WeightingProfile* response) {
+  return RunUnary(context, "SetActiveProfile", request->project(), [this, request, response] {
+    if (request->name().empty()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "name the profile to activate");
+    }
+    absl::Status s = engine_->SetActiveProfile(request->project(), request->name());
+    if (!s.ok()) return ToGrpcStatus(s);
+    absl::StatusOr<reweight::NamedProfile> p =
+        engine_->GetProfile(request->project(), request->name(), 0);
+    if (!p.ok()) return ToGrpcStatus(p.status());
+    ProfileToProto(p->profile, p->created_utc, response);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext* context,
+                                                    const v1::ReweightRequest* request,
+                                                    v1::ReweightResponse* response) {
+  return RunUnary(context, "Reweight", request->project(), [this, request, response] {
+    if (request->revision() < 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
+    }
+    const ProgressFn progress = ProgressReporter("Reweight", request->project(),
+                                                 "profile=" + request->profile(), Clock::now());
+    absl::StatusOr<reweight::ReweightResult> r =
+        engine_->Reweight(request->project(), request->profile(), request->revision(), progress);
+    UpdateProgress(request->project(), [&](v1::IngestProgress& p) {
+      p.set_state(r.ok() ? v1::IngestProgress::STATE_SUCCEEDED : v1::IngestProgress::STATE_FAILED);
+      p.set_fraction(r.ok() ? 1.0 : p.fraction());
+      p.set_message(r.ok() ? "" : std::string(r.status().message()));
+    });
+    if (!r.ok()) return ToGrpcStatus(r.status());
+    std::string name;
+    int32_t revision = 1;
+    if (!store::ParseFusedLayerName(r->layer, &name, &revision)) name = fusion::kDefaultProfileName;
+    response->set_version(r->version);
+    response->set_profile(name);
+    response->set_revision(revision);
+    response->set_tile_count(r->tiles);
+    response->set_record_count(r->records);
+    response->set_vossel_count(r->vossels);
+    response->set_bytes_written(r->bytes_written);
+    response->set_unchanged(r->unchanged);
+    response->set_seconds(r->seconds);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerContext* context,
+                                                        const v1::QueryRecordsRequest* request,
+                                                        v1::QueryRecordsResponse* response) {
+  return RunUnary(context, "QueryRecords", request->project(), [this, request, response] {
+    if (!request->has_min_m()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          "min_m is required: the point, or the box's low corner");
+    }
+    if (request->limit() < 0 || request->version() < 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "limit and version must be >= 0");
+    }
+    const auto vec = [](const v1::Vec3& v) { return Eigen::Vector3d(v.x(), v.y(), v.z()); };
+    const Eigen::Vector3d lo = vec(request->min_m());
+    const Eigen::Vector3d hi = request->has_max_m() ? vec(request->max_m()) : lo;
+    const int64_t limit = request->limit() == 0 ? 10000 : std::min<int64_t>(request->limit(), 1000000);
+    absl::StatusOr<reweight::NamedProfile> profile =
+        engine_->GetProfile(request->project(), request->profile(), 0);
+    if (!profile.ok()) return ToGrpcStatus(profile.status());
+    absl::StatusOr<flows::RecordsQueryResult> r = engine_->QueryRecords(
+        request->project(), request->version(), lo, hi, profile->profile.name, limit);
+    if (!r.ok()) return ToGrpcStatus(r.status());
+    response->set_version(request->version());
+    response->set_profile(profile->profile.name);
+    response->set_revision(profile->profile.version);
+    response->set_vossel_count(r->vossels);
+    response->set_truncated(r->truncated);
+    for (const flows::RecordRow& row : r->rows) RecordRowToProto(row, response->add_records());
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext* context,
+                                                     const v1::NormaliseRequest* request,
+                                                     v1::NormaliseResponse* response) {
+  return RunUnary(context, "Normalise", request->project(), [this, request, response] {
+    absl::StatusOr<reweight::NormaliseOutcome> r =
+        engine_->Normalise(request->project(), request->base_profile(), request->name());
+    if (!r.ok()) return ToGrpcStatus(r.status());
+    ProfileToProto(r->profile.profile, r->profile.created_utc, response->mutable_profile());
+    response->set_vossels_used(r->solve.vossels_used);
+    response->set_pairs_used(r->solve.pairs_used);
+    for (double c : r->solve.cost_before) response->add_cost_before(c);
+    for (double c : r->solve.cost_after) response->add_cost_after(c);
+    for (int32_t s : r->solve.unlinked_sources) response->add_unlinked_sources(s);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::PinVersion(grpc::CallbackServerContext* context,
+                                                      const v1::PinVersionRequest* request,
+                                                      v1::Version* response) {
+  return RunUnary(context, "PinVersion", request->project(), [this, request, response] {
+    absl::Status s = engine_->SetPinned(request->project(), request->version(), request->pinned());
+    if (!s.ok()) return ToGrpcStatus(s);
+    absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());
+    if (!versions.ok()) return ToGrpcStatus(versions.status());
+    for (const store::VersionInfo& v : *versions) {
+      if (v.version == request->version()) VersionToProto(v, response);
+    }
+    return grpc::Status::OK;
+  });
 }
 
 }  // namespace vasl::server

@@ -72,6 +72,30 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* ListVersions(grpc::CallbackServerContext* context,
                                          const v1::ListVersionsRequest* request,
                                          v1::ListVersionsResponse* response) override;
+  grpc::ServerUnaryReactor* CreateProfile(grpc::CallbackServerContext* context,
+                                          const v1::CreateProfileRequest* request,
+                                          v1::WeightingProfile* response) override;
+  grpc::ServerUnaryReactor* GetProfile(grpc::CallbackServerContext* context,
+                                       const v1::GetProfileRequest* request,
+                                       v1::WeightingProfile* response) override;
+  grpc::ServerUnaryReactor* ListProfiles(grpc::CallbackServerContext* context,
+                                         const v1::ListProfilesRequest* request,
+                                         v1::ListProfilesResponse* response) override;
+  grpc::ServerUnaryReactor* SetActiveProfile(grpc::CallbackServerContext* context,
+                                             const v1::SetActiveProfileRequest* request,
+                                             v1::WeightingProfile* response) override;
+  grpc::ServerUnaryReactor* Reweight(grpc::CallbackServerContext* context,
+                                     const v1::ReweightRequest* request,
+                                     v1::ReweightResponse* response) override;
+  grpc::ServerUnaryReactor* QueryRecords(grpc::CallbackServerContext* context,
+                                         const v1::QueryRecordsRequest* request,
+                                         v1::QueryRecordsResponse* response) override;
+  grpc::ServerUnaryReactor* Normalise(grpc::CallbackServerContext* context,
+                                      const v1::NormaliseRequest* request,
+                                      v1::NormaliseResponse* response) override;
+  grpc::ServerUnaryReactor* PinVersion(grpc::CallbackServerContext* context,
+                                       const v1::PinVersionRequest* request,
+                                       v1::Version* response) override;
   grpc::ServerWriteReactor<v1::ExportResponse>* Export(
       grpc::CallbackServerContext* context, const v1::ExportRequest* request) override;
 

@@ -9,6 +9,7 @@
 #include "lattice/geometry/footprint.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/ingest/visibility.h"
+#include "lattice/reweight/profiles.h"
 #include "lattice/tiles/tile_split.h"
 
 namespace vasl::flows::internal {
@@ -315,12 +316,26 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records
   //    keep their fused values.
   clock.Start("fuse", 0.85);
-  absl::StatusOr<records::FusedValues> fused =
-      fusion::Fuse(next.records, g.size(), h, fusion::WeightingProfile{});
-  if (!fused.ok()) return fused.status();
-  next.fused = std::move(*fused);
+  if (absl::Status s = FuseAll(store, old.manifest, next); !s.ok()) return s;
   plan.record_tiles = std::move(record_tiles);
   return next;
+}
+
+absl::Status FuseAll(const store::ProjectStore& store, const store::Manifest& head,
+                     store::Snapshot& next) {
+  const size_t n = next.geometry.size();
+  const double h = next.geometry.vossel_size_m;
+  absl::StatusOr<records::FusedValues> fused = fusion::Fuse(next.records, n, h, fusion::WeightingProfile{});
+  if (!fused.ok()) return fused.status();
+  next.fused = std::move(*fused);
+  absl::StatusOr<std::vector<fusion::WeightingProfile>> profiles =
+      reweight::MaintainedProfiles(store, head);
+  if (!profiles.ok()) return profiles.status();
+  absl::StatusOr<std::map<std::string, records::FusedValues>> others =
+      reweight::FuseProfiles(next.records, n, h, *profiles);
+  if (!others.ok()) return others.status();
+  next.profile_fused = std::move(*others);
+  return absl::OkStatus();
 }
 
 absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,

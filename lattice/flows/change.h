@@ -128,6 +128,12 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           int64_t max_image_pixels, store::CommitPlan& plan,
                                           FlowResult& result, StageClock& clock);
 
+/// §7 fusion of `next`'s records under the default profile and under every profile whose
+/// fused layers the project keeps (reweight::MaintainedProfiles of `head`): fills next.fused
+/// and next.profile_fused, so that the tiles a commit rewrites keep every profile's layer.
+absl::Status FuseAll(const store::ProjectStore& store, const store::Manifest& head,
+                     store::Snapshot& next);
+
 /// Commits `next` under `plan`, fills the result's version, snapshot and write figures.
 absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
                         const store::CommitPlan& plan, FlowResult& result, StageClock& clock);

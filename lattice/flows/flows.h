@@ -22,6 +22,8 @@
 #include "absl/status/statusor.h"
 #include "lattice/ingest/scan_input.h"
 #include "lattice/ingest/sources.h"
+#include "lattice/fusion/profile.h"
+#include "lattice/render/render.h"
 #include "lattice/store/project_store.h"
 
 namespace vasl::flows {
@@ -77,6 +79,51 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
 /// FAILED_PRECONDITION for a project without scans.
 absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image_pixels,
                                    const StageFn& stage = {});
+
+/// The render query (§8) of `snapshot` whose fused values under `profile` are `fused`: with
+/// η > 0 the records are weighed under `profile` (§7) and scaled by its channel gains; the
+/// sources' origins come from the catalog.
+absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store,
+                                               const store::Snapshot& snapshot,
+                                               const records::FusedValues& fused,
+                                               const fusion::WeightingProfile& profile,
+                                               const render::RenderRequest& request);
+
+/// One record of a provenance query, with its vossel and the §7 weight it gets under the
+/// query's profile.
+struct RecordRow {
+  int32_t vossel = 0;
+  openvdb::Coord coord;             ///< the vossel's index-space coordinate k
+  Eigen::Vector3f centroid_m;       ///< the vossel's centroid
+  int32_t source = 0;               ///< record `scan` field: the source id
+  int64_t scan_id = 0;              ///< the scan the source belongs to (0: unknown)
+  std::string scan_name;
+  std::string source_name;
+  records::Modality modality = records::Modality::kUnspecified;
+  std::array<float, records::kValueChannels> value{};
+  float range_m = 0, cos_inc = 0, foot_major_m = 0, foot_minor_m = 0, vis = 0;
+  std::array<float, 2> uv_px{};
+  std::array<float, records::kConfidenceCount> conf{};
+  int8_t flags = 0;
+  int32_t batch = 0;
+  float weight = 0;                 ///< w_{k,m} under the profile
+};
+
+/// Provenance query: every record of the vossels whose cells meet the world box
+/// [min_m, max_m] (a point: min = max), in vossel then source order, at most `limit`
+/// (`truncated` says when more matched). INVALID_ARGUMENT for a box with min > max or
+/// non-finite corners.
+struct RecordsQueryResult {
+  std::vector<RecordRow> rows;
+  int64_t vossels = 0;
+  bool truncated = false;
+};
+absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store,
+                                                const store::Snapshot& snapshot,
+                                                const Eigen::Vector3d& min_m,
+                                                const Eigen::Vector3d& max_m,
+                                                const fusion::WeightingProfile& profile,
+                                                int64_t limit);
 
 /// What Export wrote.
 struct ExportResult {

@@ -55,10 +55,13 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   }
   next.records.SortByVossel();
   clock.Start("fuse", 0.85);
-  absl::StatusOr<records::FusedValues> fused =
-      fusion::Fuse(next.records, next.geometry.size(), h, fusion::WeightingProfile{});
-  if (!fused.ok()) return fused.status();
-  next.fused = std::move(*fused);
+  store::Manifest head_manifest;  // the profiles whose layers HEAD keeps stay kept
+  if (store.head_version() > 0) {
+    absl::StatusOr<store::Manifest> m = store.LoadManifest(store.head_version());
+    if (!m.ok()) return m.status();
+    head_manifest = std::move(*m);
+  }
+  if (absl::Status s = internal::FuseAll(store, head_manifest, next); !s.ok()) return s;
 
   store::CommitPlan plan;
   plan.made_by = "rebuild";

@@ -1,6 +1,7 @@
 #include "lattice/fusion/fuse.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 
 #include <tbb/blocked_range.h>
@@ -13,6 +14,10 @@
 namespace vasl::fusion {
 
 using records::Modality;
+
+namespace {
+constexpr std::array<float, records::kValueChannels> kUnitGain = {1.0f, 1.0f, 1.0f};
+}  // namespace
 
 absl::Status ValidateProfile(const WeightingProfile& p) {
   const auto bad = [&p](const char* what) {
@@ -29,7 +34,32 @@ absl::Status ValidateProfile(const WeightingProfile& p) {
   for (const auto& [scan, g] : p.scan_gain) {
     if (!std::isfinite(g) || g < 0.0) return bad("scan gains g_m must be finite and ≥ 0");
   }
+  for (const auto& [scan, a] : p.channel_gain) {
+    for (double g : a) {
+      if (!std::isfinite(g) || g <= 0.0) return bad("channel gains a_{m,c} must be finite and > 0");
+    }
+  }
+  if (p.name.empty() || p.name.size() > 63) return bad("the name must have 1 to 63 characters");
+  for (char ch : p.name) {
+    if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '_' || ch == '.')) {
+      return bad("the name may hold only letters, digits, '-', '_' and '.'");
+    }
+  }
   return absl::OkStatus();
+}
+
+std::vector<std::array<float, records::kValueChannels>> DenseChannelGains(
+    const WeightingProfile& profile, const records::RecordSet& recs) {
+  int32_t max_id = 0;
+  for (int32_t s : recs.scan) max_id = std::max(max_id, s);
+  for (const auto& [s, a] : profile.channel_gain) max_id = std::max(max_id, s);
+  std::vector<std::array<float, records::kValueChannels>> out(size_t(max_id) + 1);
+  for (auto& a : out) a.fill(1.0f);
+  for (const auto& [s, a] : profile.channel_gain) {
+    if (s < 0) continue;
+    for (int c = 0; c < records::kValueChannels; ++c) out[size_t(s)][c] = float(a[c]);
+  }
+  return out;
 }
 
 absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& recs,
@@ -111,6 +141,10 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
     channel[m] = &f;
   }
 
+  // a_{m,c} per source id, dense: the hot loop reads an array, not a map.
+  const std::vector<std::array<float, records::kValueChannels>> gain =
+      DenseChannelGains(profile, recs);
+
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
                     [&](const tbb::blocked_range<size_t>& range) {
     for (size_t k = range.begin(); k != range.end(); ++k) {
@@ -126,10 +160,12 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
         if (!(w > 0.0)) continue;
         const int c = int(FusedChannelOf(Modality(recs.modality[i])));
         const float* v = &recs.value[i * records::kValueChannels];
+        const float* a = recs.scan[i] >= 0 ? gain[size_t(recs.scan[i])].data() : kUnitGain.data();
         sum_w[c] += w;
         for (int ch = 0; ch < records::kValueChannels; ++ch) {
-          sum_wc[c][ch] += w * v[ch];
-          sum_wcc[c][ch] += w * double(v[ch]) * v[ch];
+          const double x = double(a[ch]) * v[ch];
+          sum_wc[c][ch] += w * x;
+          sum_wcc[c][ch] += w * x * x;
         }
         if (w > best_w[c]) {
           best_w[c] = w;
@@ -144,8 +180,10 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
           const double mean = sum_wc[c][ch] / sum_w[c];
           variance += std::max(0.0, sum_wcc[c][ch] / sum_w[c] - mean * mean);
           f.value[k * f.channels + ch] = float(
-              profile.mode == FusionMode::kNearest ? recs.value[best_i[c] * records::kValueChannels + ch]
-                                                   : mean);
+              profile.mode == FusionMode::kNearest
+                  ? double(recs.scan[best_i[c]] >= 0 ? gain[size_t(recs.scan[best_i[c]])][ch] : 1.0f) *
+                        recs.value[best_i[c] * records::kValueChannels + ch]
+                  : mean);
         }
         variance /= f.channels;
         f.weight[k] = float(sum_w[c]);

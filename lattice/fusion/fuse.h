@@ -2,6 +2,7 @@
 /// @brief Fusion and reweighting (VASL-MODEL §7): one pass over the records.
 #pragma once
 
+#include <array>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -10,11 +11,12 @@
 
 namespace vasl::fusion {
 
-/// The channel a record fuses into: derived records fuse into the RGB channels they edit (§10),
-/// every other modality into its own (§7).
-inline records::Modality FusedChannelOf(records::Modality m) {
-  return m == records::Modality::kDerived ? records::Modality::kRgb : m;
-}
+using records::FusedChannelOf;
+
+/// a_{m,c} of `profile` (§7) as an array indexed by source id, covering every source id in
+/// `records` (1 where the profile has none). Fusion and the §8 view blend scale C_{k,m,c} by it.
+std::vector<std::array<float, records::kValueChannels>> DenseChannelGains(
+    const WeightingProfile& profile, const records::RecordSet& records);
 
 /// Offsets of each vossel's records in a RecordSet sorted by vossel: vossel k's records are
 /// [begin[k], begin[k+1]). INTERNAL when the records are not sorted by a valid index.

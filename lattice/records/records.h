@@ -37,6 +37,10 @@ inline constexpr int kModalityCount = 6;
 inline int ChannelCount(Modality m) { return (m == Modality::kRgb || m == Modality::kDerived) ? 3 : 1; }
 const char* ModalityName(Modality m);
 
+/// The fused channel a record's modality fuses into (§7): derived records fuse into the RGB
+/// channels they edit (§10), every other modality into its own.
+inline Modality FusedChannelOf(Modality m) { return m == Modality::kDerived ? Modality::kRgb : m; }
+
 /// Bits of RecordSet::flags (§6).
 enum RecordFlag : int8_t {
   kFlagDerived = 1 << 0,      ///< derived (back-projected) rather than raw

@@ -155,8 +155,12 @@ bool ViewBlend(const ViewBlendInputs& blend, const records::VosselGeometry& geom
     if (!o_m.allFinite()) continue;
     const double facing = std::max(0.0, (o_m - x).normalized().dot(v_o));
     const double wv = w * std::pow(facing, request.eta);
+    const bool gained = size_t(src) < blend.channel_gain.size();
     sum_w += wv;
-    for (int c = 0; c < 3; ++c) sum_c[c] += wv * recs.value[i * records::kValueChannels + c];
+    for (int c = 0; c < 3; ++c) {
+      const double a = gained ? blend.channel_gain[size_t(src)][c] : 1.0;
+      sum_c[c] += wv * a * recs.value[i * records::kValueChannels + c];
+    }
   }
   if (!(sum_w > 0.0)) return false;
   for (int c = 0; c < 3; ++c) rgb[c] = float(sum_c[c] / sum_w);

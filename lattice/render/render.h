@@ -3,7 +3,9 @@
 ///        uncertainty image from any pose, by hierarchical DDA over the lattice.
 #pragma once
 
+#include <array>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -18,6 +20,8 @@ struct RenderRequest {
   int width_px = 2048;          ///< W, columns spanning 2π of azimuth (§2.1)
   int height_px = 1024;         ///< H, rows spanning π of elevation (§2.1)
   int64_t version = 0;          ///< 0: HEAD
+  std::string profile;          ///< weighting profile (§7); empty: the project's active one
+  int32_t profile_revision = 0; ///< 0: the profile's latest revision
   double eta = 0.0;             ///< view term η (§8); 0 uses the fused colour C_k
   double max_range_m = 1000.0;  ///< rays stop here
 };
@@ -27,6 +31,9 @@ struct RenderImage {
   int width_px = 0;                ///< W, pixels
   int height_px = 0;               ///< H, pixels
   int64_t version = 0;             ///< version rendered
+  std::string profile;             ///< profile whose fused values it shows
+  int32_t profile_revision = 0;
+  bool fused_on_the_fly = false;   ///< the version holds no fused tiles for it: fused for this render
   std::vector<float> rgb;          ///< 3 per pixel, linear; 0 where no hit
   std::vector<float> depth_m;      ///< 1 per pixel: range along the ray; +inf where no hit
   std::vector<float> normal;       ///< 3 per pixel, world frame; 0 where no hit
@@ -42,6 +49,8 @@ struct ViewBlendInputs {
   const std::vector<size_t>* begin = nullptr;   ///< vossel k's records: [begin[k], begin[k+1])
   /// o_m, world metres, indexed by source id (record `scan`); non-finite for unknown ids.
   std::vector<Eigen::Vector3d> source_origin_m;
+  /// a_{m,c} of the profile (§7) by source id (fusion::DenseChannelGains); empty or short: 1.
+  std::vector<std::array<float, 3>> channel_gain;
 };
 
 /// Renders `request` from a version's geometry and fused values (§8). Parallel over rows (TBB).

@@ -115,7 +115,8 @@ CREATE TABLE project(
   vossel_size_m REAL NOT NULL,
   keep_versions INTEGER NOT NULL,
   tile_vossels INTEGER NOT NULL,
-  created_utc TEXT NOT NULL);
+  created_utc TEXT NOT NULL,
+  active_profile TEXT NOT NULL DEFAULT 'default');
 CREATE TABLE versions(
   version INTEGER PRIMARY KEY,
   vossel_count INTEGER NOT NULL,
@@ -171,6 +172,12 @@ CREATE TABLE sources(
   version INTEGER NOT NULL);
 CREATE INDEX sources_by_scan ON sources(scan_id);
 CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL;
+CREATE TABLE profiles(
+  name TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  body TEXT NOT NULL,
+  created_utc TEXT NOT NULL,
+  PRIMARY KEY (name, revision));
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
   kind TEXT NOT NULL,
@@ -179,6 +186,28 @@ CREATE TABLE batches(
   created_utc TEXT NOT NULL);
 COMMIT;
 )sql"));
+}
+
+absl::Status MigrateSchema(Db& db, int64_t from) {
+  if (from == kCatalogSchemaVersion) return absl::OkStatus();
+  if (from != 2) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("no migration from catalog schema ", from, " to ", kCatalogSchemaVersion));
+  }
+  absl::Status s = db.Exec(absl::StrCat(R"sql(
+BEGIN IMMEDIATE;
+CREATE TABLE profiles(
+  name TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  body TEXT NOT NULL,
+  created_utc TEXT NOT NULL,
+  PRIMARY KEY (name, revision));
+ALTER TABLE project ADD COLUMN active_profile TEXT NOT NULL DEFAULT 'default';
+UPDATE schema_version SET version = )sql", kCatalogSchemaVersion, R"sql(;
+COMMIT;
+)sql"));
+  if (!s.ok()) db.Exec("ROLLBACK;").IgnoreError();
+  return s;
 }
 
 absl::Status DropRowsNewerThan(Db& db, int64_t head) {

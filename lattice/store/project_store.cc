@@ -96,6 +96,12 @@ absl::Status RunSql(Db& db, std::string_view sql, Bind&& bind) {
   return st->Run();
 }
 
+/// The records layer's entry of a tile (zeros when it has none).
+ManifestEntry RecordsOf(const std::map<std::string, ManifestEntry>& layers) {
+  auto it = layers.find(kLayerRecords);
+  return it == layers.end() ? ManifestEntry{} : it->second;
+}
+
 /// The objects of one tile as written by a commit.
 struct WrittenTile {
   tiles::TileKey key;
@@ -219,8 +225,9 @@ struct ProjectStore::Impl {
   absl::StatusOr<std::vector<WrittenTile>> WriteTiles(const Snapshot& snapshot,
                                                       const std::set<tiles::TileKey>& keys,
                                                       bool with_geometry) {
-    std::vector<tiles::TileContents> cut = tiles::ExtractTiles(
-        snapshot.geometry, snapshot.records, snapshot.fused, keys, settings.tile_vossels);
+    std::vector<tiles::TileContents> cut =
+        tiles::ExtractTiles(snapshot.geometry, snapshot.records, snapshot.fused, keys,
+                            settings.tile_vossels, &snapshot.profile_fused);
     std::vector<WrittenTile> out(cut.size());
     std::vector<absl::Status> status(cut.size());
     tbb::parallel_for(tbb::blocked_range<size_t>(0, cut.size(), 1),
@@ -255,6 +262,12 @@ struct ProjectStore::Impl {
         if (s.ok()) {
           s = put(kLayerFusedDefault, [&](const fs::path& f) {
             return records::WriteFused(tile.geometry, tile.fused, f);
+          });
+        }
+        for (const auto& [layer, fused] : tile.profile_fused) {
+          if (!s.ok()) break;
+          s = put(layer.c_str(), [&](const fs::path& f) {
+            return records::WriteFused(tile.geometry, fused, f);
           });
         }
         status[t] = s;
@@ -357,11 +370,18 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
   impl->dir = dir;
   impl->head = *head;
   {
-    absl::StatusOr<Stmt> st = impl->db.Prepare("SELECT MAX(version) FROM schema_version");
-    if (!st.ok()) return st.status();
-    absl::StatusOr<bool> row = st->Step();
-    if (!row.ok()) return row.status();
-    const int64_t schema = *row ? st->Int(0) : 0;
+    int64_t schema = 0;
+    {
+      absl::StatusOr<Stmt> st = impl->db.Prepare("SELECT MAX(version) FROM schema_version");
+      if (!st.ok()) return st.status();
+      absl::StatusOr<bool> row = st->Step();
+      if (!row.ok()) return row.status();
+      schema = *row ? st->Int(0) : 0;
+    }  // the statement is released before migrating
+    if (schema >= 2 && schema < internal::kCatalogSchemaVersion) {
+      if (absl::Status s = internal::MigrateSchema(impl->db, schema); !s.ok()) return s;
+      schema = internal::kCatalogSchemaVersion;
+    }
     if (schema != internal::kCatalogSchemaVersion) {
       return absl::FailedPreconditionError(absl::StrCat(
           "catalog ", (dir / kCatalogFile).string(), " has schema version ", schema,
@@ -403,6 +423,7 @@ const std::string& ProjectStore::created_utc() const { return impl_->created_utc
 const fs::path& ProjectStore::dir() const { return impl_->dir; }
 int64_t ProjectStore::head_version() const { return impl_->head.load(); }
 const ObjectStore& ProjectStore::objects() const { return *impl_->objects; }
+ObjectStore& ProjectStore::writable_objects() { return *impl_->objects; }
 
 absl::StatusOr<VersionInfo> ProjectStore::HeadInfo() const {
   const int64_t head = impl_->head.load();
@@ -644,7 +665,132 @@ absl::StatusOr<Manifest> ProjectStore::LoadManifest(int64_t version) const {
   return m;
 }
 
-absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(int64_t version) const {
+std::string FusedLayerName(const std::string& name, int32_t revision) {
+  if (name == "default") return kLayerFusedDefault;
+  return absl::StrCat("fused-", name, "@", revision);
+}
+
+bool ParseFusedLayerName(const std::string& layer, std::string* name, int32_t* revision) {
+  constexpr std::string_view kPrefix = "fused-";
+  if (layer.rfind(kPrefix, 0) != 0 || layer == kLayerFusedDefault) return false;
+  const size_t at = layer.rfind('@');
+  if (at == std::string::npos || at <= kPrefix.size()) return false;
+  int32_t r = 0;
+  if (!absl::SimpleAtoi(absl::string_view(layer.data() + at + 1, layer.size() - at - 1), &r) ||
+      r < 1) {
+    return false;
+  }
+  *name = layer.substr(kPrefix.size(), at - kPrefix.size());
+  *revision = r;
+  return true;
+}
+
+std::vector<std::string> CompleteProfileLayers(const Manifest& manifest) {
+  std::map<std::string, size_t> count;
+  for (const auto& [key, layers] : manifest.tiles) {
+    for (const auto& [layer, entry] : layers) {
+      std::string name;
+      int32_t revision = 0;
+      if (ParseFusedLayerName(layer, &name, &revision)) ++count[layer];
+    }
+  }
+  std::vector<std::string> out;
+  for (const auto& [layer, n] : count) {
+    if (n == manifest.tiles.size()) out.push_back(layer);
+  }
+  return out;
+}
+
+absl::StatusOr<StoredProfile> ProjectStore::PutProfile(
+    const std::string& name, const std::function<std::string(int32_t)>& text_of) {
+  Impl& im = *impl_;
+  std::lock_guard<std::mutex> lock(im.db_mu);
+  absl::Status s = im.db.Exec("BEGIN IMMEDIATE;");
+  if (!s.ok()) return s;
+  StoredProfile out;
+  out.name = name;
+  out.created_utc = internal::UtcNowIso8601();
+  {
+    absl::StatusOr<Stmt> st =
+        im.db.Prepare("SELECT COALESCE(MAX(revision), 0) FROM profiles WHERE name = ?1");
+    absl::StatusOr<bool> row = st.ok() ? st->Bind(1, name).Step() : st.status();
+    if (!row.ok()) s = row.status();
+    else out.revision = int32_t(st->Int(0)) + 1;
+  }
+  if (s.ok()) {
+    out.text = text_of(out.revision);
+    s = RunSql(im.db, "INSERT INTO profiles(name, revision, body, created_utc) VALUES (?1, ?2, ?3, ?4)",
+               [&](Stmt& st) {
+                 st.Bind(1, name).Bind(2, int64_t{out.revision}).Bind(3, out.text);
+                 st.Bind(4, out.created_utc);
+               });
+  }
+  if (s.ok()) s = im.db.Exec("COMMIT;");
+  if (!s.ok()) {
+    im.db.Exec("ROLLBACK;").IgnoreError();
+    return s;
+  }
+  return out;
+}
+
+absl::StatusOr<StoredProfile> ProjectStore::GetProfile(const std::string& name,
+                                                       int32_t revision) const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      revision > 0 ? "SELECT revision, body, created_utc FROM profiles WHERE name = ?1 AND revision = ?2"
+                   : "SELECT revision, body, created_utc FROM profiles WHERE name = ?1 "
+                     "ORDER BY revision DESC LIMIT 1");
+  if (!st.ok()) return st.status();
+  st->Bind(1, name);
+  if (revision > 0) st->Bind(2, int64_t{revision});
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) {
+    return absl::NotFoundError(absl::StrCat(
+        "project ", impl_->name, " has no weighting profile \"", name, "\"",
+        revision > 0 ? absl::StrCat(" at revision ", revision) : ""));
+  }
+  return StoredProfile{name, int32_t(st->Int(0)), st->Text(1), st->Text(2)};
+}
+
+absl::StatusOr<std::vector<StoredProfile>> ProjectStore::ListProfiles() const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT p.name, p.revision, p.body, p.created_utc FROM profiles p "
+      "WHERE p.revision = (SELECT MAX(q.revision) FROM profiles q WHERE q.name = p.name) "
+      "ORDER BY p.name");
+  if (!st.ok()) return st.status();
+  std::vector<StoredProfile> out;
+  for (;;) {
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out.push_back({st->Text(0), int32_t(st->Int(1)), st->Text(2), st->Text(3)});
+  }
+  return out;
+}
+
+absl::StatusOr<std::string> ProjectStore::ActiveProfile() const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT active_profile FROM project WHERE id = 1");
+  if (!st.ok()) return st.status();
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  return *row ? st->Text(0) : std::string("default");
+}
+
+absl::Status ProjectStore::SetActiveProfile(const std::string& name) {
+  if (name != "default") {
+    absl::StatusOr<StoredProfile> p = GetProfile(name);
+    if (!p.ok()) return p.status();
+  }
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  return RunSql(impl_->db, "UPDATE project SET active_profile = ?1 WHERE id = 1",
+                [&](Stmt& st) { st.Bind(1, name); });
+}
+
+absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
+    int64_t version, const std::vector<std::string>& profile_layers) const {
   if (version < 0) {
     return absl::InvalidArgumentError(absl::StrCat("version must be >= 0; got ", version));
   }
@@ -707,6 +853,18 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(int64
         continue;
       }
       tile.fused = std::move(*fused);
+      for (const std::string& layer : profile_layers) {
+        absl::StatusOr<fs::path> path = path_of(layer.c_str());
+        absl::StatusOr<records::FusedValues> values =
+            path.ok() ? records::ReadFused(tile.geometry, *path) : path.status();
+        if (!values.ok()) {
+          status[t] = absl::IsDataLoss(values.status()) && !path.ok()
+                          ? absl::NotFoundError(values.status().message())
+                          : values.status();
+          break;
+        }
+        tile.profile_fused[layer] = std::move(*values);
+      }
     }
   });
   for (const absl::Status& s : status) {
@@ -716,6 +874,7 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(int64
   snap->geometry = std::move(all.geometry);
   snap->records = std::move(all.records);
   snap->fused = std::move(all.fused);
+  snap->profile_fused = std::move(all.profile_fused);
   if (snap->fused.profile.empty()) snap->fused.profile = "default";
   for (const auto& [source, entry] : snap->manifest.reach) {
     const std::string& object = entry.object;
@@ -740,7 +899,14 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   };
 
   // Bad input never changes the project: validate everything before writing.
-  if (std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
+  if (plan.layers_only &&
+      (plan.add_scan || !plan.delete_scan.empty() || plan.replace_all ||
+       !plan.geometry_tiles.empty() || !plan.record_tiles.empty() || !plan.reach_sources.empty() ||
+       !plan.drop_reach.empty() || im.head.load() == 0)) {
+    return absl::InvalidArgumentError(
+        "a layers-only commit changes layers of an existing version and nothing else");
+  }
+  if (!plan.layers_only && std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
       1e-9 * im.settings.vossel_size_m) {
     return absl::InvalidArgumentError(
         absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
@@ -805,9 +971,16 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
         manifest.tiles.erase(w.key);
         continue;
       }
+      // A rewritten tile keeps no layer it did not rewrite but its geometry: a profile's
+      // fused values the flow did not recompute would be stale.
+      std::map<std::string, ManifestEntry>& row = manifest.tiles[w.key];
+      for (auto it = row.begin(); it != row.end();) {
+        if (it->first != kLayerGeometry && !w.layers.count(it->first)) it = row.erase(it);
+        else ++it;
+      }
       for (auto& [layer, entry] : w.layers) {
         bytes_written += entry.bytes;
-        manifest.tiles[w.key][layer] = entry;
+        row[layer] = entry;
       }
       if (!with_geometry && !manifest.tiles[w.key].count(kLayerGeometry)) {
         return absl::InternalError(absl::StrCat("commit: tile ", tiles::ToString(w.key),
@@ -837,6 +1010,32 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     manifest.reach[source] = {obj->sha256, 0, 0, obj->bytes};
   }
   for (int32_t source : plan.drop_reach) manifest.reach.erase(source);
+  for (const auto& [key, layers] : plan.put_layers) {
+    auto tile = manifest.tiles.find(key);
+    if (tile == manifest.tiles.end()) {
+      return absl::InternalError(absl::StrCat("commit: layers for tile ", tiles::ToString(key),
+                                              ", which version ", head, " does not have"));
+    }
+    for (const auto& [layer, entry] : layers) {
+      if (layer == kLayerGeometry || layer == kLayerRecords) {
+        return absl::InternalError("commit: put_layers may not replace geometry or records");
+      }
+      ManifestEntry e = entry;
+      e.vossels = RecordsOf(tile->second).vossels;
+      e.records = RecordsOf(tile->second).records;
+      bytes_written += e.bytes;
+      tile->second[layer] = e;
+    }
+  }
+  int64_t vossel_count = int64_t(snapshot.geometry.size());
+  int64_t record_count = int64_t(snapshot.records.size());
+  if (plan.layers_only) {
+    vossel_count = record_count = 0;
+    for (const auto& [key, layers] : manifest.tiles) {
+      vossel_count += RecordsOf(layers).vossels;
+      record_count += RecordsOf(layers).records;
+    }
+  }
   if (absl::Status s = im.objects->Sync(); !s.ok()) return s;
   if (fault == CommitStage::kAfterObjects) {
     if (!crash) im.Collect().IgnoreError();
@@ -854,8 +1053,8 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     run("INSERT INTO versions(version, vossel_count, record_count, created_utc, made_by, "
         "bytes_written) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
         [&](Stmt& st) {
-          st.Bind(1, version).Bind(2, int64_t(snapshot.geometry.size()));
-          st.Bind(3, int64_t(snapshot.records.size())).Bind(4, now).Bind(5, plan.made_by);
+          st.Bind(1, version).Bind(2, vossel_count);
+          st.Bind(3, record_count).Bind(4, now).Bind(5, plan.made_by);
           st.Bind(6, bytes_written);
         });
     for (const auto& [key, layers] : manifest.tiles) {

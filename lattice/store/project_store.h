@@ -20,6 +20,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <optional>
@@ -85,12 +86,20 @@ struct ManifestEntry {
 inline constexpr char kLayerGeometry[] = "geometry";
 inline constexpr char kLayerRecords[] = "records";
 inline constexpr char kLayerFusedDefault[] = "fused-default";
+/// The layer of fused values under profile `name` at `revision`: "fused-default" for the
+/// built-in default profile, "fused-<name>@<revision>" for the others.
+std::string FusedLayerName(const std::string& name, int32_t revision);
+/// The profile name and revision of a fused layer other than the default's; false otherwise.
+bool ParseFusedLayerName(const std::string& layer, std::string* name, int32_t* revision);
 
 /// A version's manifest: per tile and layer its object; per source its reach raster.
 struct Manifest {
   std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> tiles;
   std::map<int32_t, ManifestEntry> reach;  ///< source id → its reach raster's object
 };
+
+/// The fused layers besides the default's that every tile of `manifest` holds.
+std::vector<std::string> CompleteProfileLayers(const Manifest& manifest);
 
 /// An immutable version of a project, loaded whole into memory.
 struct Snapshot {
@@ -99,6 +108,9 @@ struct Snapshot {
   records::VosselGeometry geometry;  ///< every vossel, canonical order, with sums
   records::RecordSet records;        ///< sorted by vossel
   records::FusedValues fused;        ///< under the default profile
+  /// Fused values under other profiles, by layer (FusedLayerName): a commit writes each of
+  /// them for the tiles it changes; LoadSnapshot fills the layers asked for.
+  std::map<std::string, records::FusedValues> profile_fused;
   Manifest manifest;
   std::map<int32_t, tiles::ReachRaster> reach;  ///< source id → its reach raster
 };
@@ -136,6 +148,20 @@ struct CommitPlan {
   std::map<int32_t, std::set<tiles::TileKey>> source_tiles;
   /// Name of a scan this version deletes.
   std::string delete_scan;
+  /// Objects already put in the object store (a reweight's fused tiles), set as the given
+  /// layers of tiles the previous version has.
+  std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> put_layers;
+  /// The commit changes layers only (put_layers): the snapshot is not read, the new version
+  /// keeps the previous one's geometry, records and counts.
+  bool layers_only = false;
+};
+
+/// A weighting profile revision as the catalog keeps it; its text is fusion::ProfileToText's.
+struct StoredProfile {
+  std::string name;
+  int32_t revision = 0;
+  std::string text;
+  std::string created_utc;
 };
 
 class ProjectStore {
@@ -173,9 +199,11 @@ class ProjectStore {
   /// Tiles in which a LiDAR source has returns (recorded when its scan was committed).
   absl::StatusOr<std::set<tiles::TileKey>> SourceTiles(int32_t source_id) const;
 
-  /// Loads version `version` (0: an empty snapshot with this project's vossel size).
-  /// NOT_FOUND when it does not exist or retention removed it.
-  absl::StatusOr<std::shared_ptr<const Snapshot>> LoadSnapshot(int64_t version) const;
+  /// Loads version `version` (0: an empty snapshot with this project's vossel size), with the
+  /// fused layers `profile_layers` (FusedLayerName) besides the default's.
+  /// NOT_FOUND when it does not exist or retention removed it, or a layer is missing from a tile.
+  absl::StatusOr<std::shared_ptr<const Snapshot>> LoadSnapshot(
+      int64_t version, const std::vector<std::string>& profile_layers = {}) const;
   /// The manifest of a kept version.
   absl::StatusOr<Manifest> LoadManifest(int64_t version) const;
 
@@ -183,6 +211,18 @@ class ProjectStore {
   /// changed. Writes the changed tiles' objects, the manifest rows, the scan rows, then HEAD;
   /// runs retention. Returns the new version number.
   absl::StatusOr<int64_t> Commit(const Snapshot& snapshot, const CommitPlan& plan);
+
+  /// Stores a new revision of profile `name` (1 + the latest; 1 for a new name) made by
+  /// `text_of(revision)`, and returns it. Profiles are project metadata, not versioned data.
+  absl::StatusOr<StoredProfile> PutProfile(
+      const std::string& name, const std::function<std::string(int32_t revision)>& text_of);
+  /// Revision `revision` of profile `name` (0: the latest). NOT_FOUND when there is none.
+  absl::StatusOr<StoredProfile> GetProfile(const std::string& name, int32_t revision = 0) const;
+  /// The latest revision of every stored profile, by name.
+  absl::StatusOr<std::vector<StoredProfile>> ListProfiles() const;
+  /// The profile renders, queries and ingest fusion use when none is named ("default" until set).
+  absl::StatusOr<std::string> ActiveProfile() const;
+  absl::Status SetActiveProfile(const std::string& name);
 
   /// Versions still kept (not removed by retention), oldest first.
   absl::StatusOr<std::vector<VersionInfo>> ListVersions() const;
@@ -197,6 +237,9 @@ class ProjectStore {
 
   /// The object store holding tile files and reach rasters.
   const ObjectStore& objects() const;
+  /// The same, for the single writer that puts objects before a commit names them
+  /// (CommitPlan::put_layers). Objects no version names are collected by the next commit.
+  ObjectStore& writable_objects();
   /// Lists the record attributes of a version's records (type, codec, stride) from one of its
   /// tile files.
   absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(int64_t version) const;

@@ -39,6 +39,43 @@ records::FusedValues GatherFused(const records::FusedValues& fused,
   return out;
 }
 
+/// Keeps only the channels the tile's records fuse into.
+void KeepOwnChannels(const records::RecordSet& recs, records::FusedValues& fused) {
+  bool present[records::kModalityCount] = {};
+  for (int8_t m : recs.modality) present[int(records::FusedChannelOf(records::Modality(m)))] = true;
+  for (auto it = fused.by_modality.begin(); it != fused.by_modality.end();) {
+    if (!present[int(it->first)]) it = fused.by_modality.erase(it);
+    else ++it;
+  }
+}
+
+/// Tiles' fused values (each per tile-local vossel, tiles in order, tile t's vossels starting at
+/// tile_first[t]) concatenated per channel, then permuted by new_to_old.
+records::FusedValues ConcatFused(const std::vector<const records::FusedValues*>& parts,
+                                 const std::vector<size_t>& tile_first,
+                                 const std::vector<int32_t>& new_to_old) {
+  const size_t n = new_to_old.size();
+  records::FusedValues concat;
+  for (size_t t = 0; t < parts.size(); ++t) {
+    if (parts[t] == nullptr) continue;
+    if (!parts[t]->profile.empty()) concat.profile = parts[t]->profile;
+    for (const auto& [modality, fm] : parts[t]->by_modality) {
+      records::FusedModality& o = concat.by_modality[modality];
+      o.channels = fm.channels;
+      o.value.resize(n * fm.channels, 0.0f);
+      o.weight.resize(n, 0.0f);
+      o.uncertainty.resize(n, 0.0f);
+      for (size_t v = 0; v < tile_first[t + 1] - tile_first[t]; ++v) {
+        const size_t g = tile_first[t] + v;
+        for (int c = 0; c < fm.channels; ++c) o.value[g * fm.channels + c] = fm.value[v * fm.channels + c];
+        o.weight[g] = fm.weight[v];
+        o.uncertainty[g] = fm.uncertainty[v];
+      }
+    }
+  }
+  return GatherFused(concat, new_to_old);
+}
+
 }  // namespace
 
 std::vector<TileKey> TilesOfVossels(const records::VosselGeometry& g, int T) {
@@ -53,10 +90,10 @@ std::map<TileKey, std::vector<int32_t>> VosselsByTile(const records::VosselGeome
   return out;
 }
 
-std::vector<TileContents> ExtractTiles(const records::VosselGeometry& g,
-                                       const records::RecordSet& recs,
-                                       const records::FusedValues& fused,
-                                       const std::set<TileKey>& keys, int T) {
+std::vector<TileContents> ExtractTiles(
+    const records::VosselGeometry& g, const records::RecordSet& recs,
+    const records::FusedValues& fused, const std::set<TileKey>& keys, int T,
+    const std::map<std::string, records::FusedValues>* profile_fused) {
   const std::map<TileKey, std::vector<int32_t>> by_tile = VosselsByTile(g, T);
   // First record of every vossel (records sorted by vossel).
   std::vector<size_t> begin(g.size() + 1, 0);
@@ -92,6 +129,14 @@ std::vector<TileContents> ExtractTiles(const records::VosselGeometry& g,
         for (size_t k = 0; k < n; ++k) tile.records.vossel[at++] = int32_t(l);
       }
       if (!fused.by_modality.empty()) tile.fused = GatherFused(fused, by_local);
+      KeepOwnChannels(tile.records, tile.fused);
+      if (profile_fused != nullptr) {
+        for (const auto& [layer, values] : *profile_fused) {
+          records::FusedValues& f = tile.profile_fused[layer];
+          f = GatherFused(values, by_local);
+          KeepOwnChannels(tile.records, f);
+        }
+      }
     }
   });
   return out;
@@ -120,29 +165,24 @@ Assembled AssembleTiles(std::vector<TileContents>&& tiles, double h) {
   const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(out.geometry);
   for (int32_t& v : out.records.vossel) v = old_to_new[size_t(v)];
   out.records.SortByVossel();
-  // Fused values: concatenated per modality, then permuted like the vossels.
+  // Fused values: concatenated per channel, then permuted like the vossels. A profile's layer
+  // is assembled when every tile holds it.
   std::vector<int32_t> new_to_old(old_to_new.size());
   for (size_t i = 0; i < old_to_new.size(); ++i) new_to_old[size_t(old_to_new[i])] = int32_t(i);
-  records::FusedValues concat;
-  for (size_t t = 0; t < tiles.size(); ++t) {
-    const TileContents& tile = tiles[t];
-    if (!tile.fused.profile.empty()) concat.profile = tile.fused.profile;
-    for (const auto& [modality, fm] : tile.fused.by_modality) {
-      records::FusedModality& o = concat.by_modality[modality];
-      o.channels = fm.channels;
-      const size_t n = vossels;
-      o.value.resize(n * fm.channels, 0.0f);
-      o.weight.resize(n, 0.0f);
-      o.uncertainty.resize(n, 0.0f);
-      for (size_t v = 0; v < tile.geometry.size(); ++v) {
-        const size_t g = tile_first[t] + v;
-        for (int c = 0; c < fm.channels; ++c) o.value[g * fm.channels + c] = fm.value[v * fm.channels + c];
-        o.weight[g] = fm.weight[v];
-        o.uncertainty[g] = fm.uncertainty[v];
+  std::vector<const records::FusedValues*> parts(tiles.size());
+  for (size_t t = 0; t < tiles.size(); ++t) parts[t] = &tiles[t].fused;
+  out.fused = ConcatFused(parts, tile_first, new_to_old);
+  if (!tiles.empty()) {
+    for (const auto& [layer, first] : tiles.front().profile_fused) {
+      bool everywhere = true;
+      for (size_t t = 0; t < tiles.size() && everywhere; ++t) {
+        auto it = tiles[t].profile_fused.find(layer);
+        everywhere = it != tiles[t].profile_fused.end();
+        if (everywhere) parts[t] = &it->second;
       }
+      if (everywhere) out.profile_fused[layer] = ConcatFused(parts, tile_first, new_to_old);
     }
   }
-  out.fused = GatherFused(concat, new_to_old);
   tiles.clear();
   return out;
 }

@@ -7,6 +7,7 @@
 
 #include <map>
 #include <set>
+#include <string>
 #include <vector>
 
 #include "lattice/records/records.h"
@@ -19,7 +20,9 @@ struct TileContents {
   TileKey key;
   records::VosselGeometry geometry;  ///< the tile's vossels, tile-local canonical order
   records::RecordSet records;        ///< sorted by (tile-local vossel, scan)
-  records::FusedValues fused;        ///< per tile-local vossel
+  records::FusedValues fused;        ///< per tile-local vossel, under the default profile
+  /// Fused values under other profiles, by layer name (store::FusedLayerName).
+  std::map<std::string, records::FusedValues> profile_fused;
 };
 
 /// The tile of every vossel of `geometry`.
@@ -30,12 +33,13 @@ std::map<TileKey, std::vector<int32_t>> VosselsByTile(const records::VosselGeome
                                                        int tile_vossels);
 
 /// The contents of the tiles `keys` cut out of whole-project arrays (`records` sorted by vossel;
-/// `fused` per vossel of `geometry`, may be empty). Tiles without vossels come back empty.
-/// Parallel over tiles (TBB).
-std::vector<TileContents> ExtractTiles(const records::VosselGeometry& geometry,
-                                       const records::RecordSet& records,
-                                       const records::FusedValues& fused,
-                                       const std::set<TileKey>& keys, int tile_vossels);
+/// `fused` and each of `profile_fused` per vossel of `geometry`, may be empty). A tile's fused
+/// values hold exactly the channels its own records fuse into (records::FusedChannelOf), as
+/// fusing the tile alone gives them. Tiles without vossels come back empty. Parallel (TBB).
+std::vector<TileContents> ExtractTiles(
+    const records::VosselGeometry& geometry, const records::RecordSet& records,
+    const records::FusedValues& fused, const std::set<TileKey>& keys, int tile_vossels,
+    const std::map<std::string, records::FusedValues>* profile_fused = nullptr);
 
 /// Whole-project arrays put together from tiles: vossels in canonical order of one index grid,
 /// records sorted by vossel (then scan), fused values per vossel. The tiles are consumed.
@@ -43,6 +47,7 @@ struct Assembled {
   records::VosselGeometry geometry;
   records::RecordSet records;
   records::FusedValues fused;
+  std::map<std::string, records::FusedValues> profile_fused;  ///< layers every tile holds
 };
 Assembled AssembleTiles(std::vector<TileContents>&& tiles, double vossel_size_m);
 

@@ -119,7 +119,7 @@ def _cmd_render(client: Client, args) -> int:
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
     r = client.render(args.project, pose, args.width, args.height, version=args.version,
-                      formats=("exr", "png"), eta=args.eta, decode=False)
+                      formats=("exr", "png"), eta=args.eta, decode=False, profile=args.profile)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     png = out[:-4] + ".png"
     with open(out, "wb") as f:
@@ -129,7 +129,8 @@ def _cmd_render(client: Client, args) -> int:
     total = r.width_px * r.height_px
     print(f"rendered {r.width_px}x{r.height_px} from version {r.version}: "
           f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
-          f"{r.render_seconds:.2f} s")
+          f"{r.render_seconds:.2f} s, profile {r.profile} revision {r.profile_revision}"
+          + (" (fused for this render: run vasl reweight to store it)" if r.fused_on_the_fly else ""))
     print(f"wrote {out} (R,G,B,Z,N.x,N.y,N.z,U float) and {png}")
     return 0
 
@@ -208,6 +209,150 @@ def _cmd_export(client: Client, args) -> int:
     return 0
 
 
+def _read_profile_file(path: str) -> dict:
+    """A profile from a .json or .toml file (a table of parameters, VASL-MODEL §7)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if path.lower().endswith(".toml"):
+        import tomllib
+        try:
+            return tomllib.loads(data.decode("utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise ValueError(f"{path}: not a TOML profile: {e}") from None
+    try:
+        return json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not a JSON profile: {e}") from None
+
+
+def _parse_setting(text: str):
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise ValueError(f"--set takes KEY=VALUE, got {text!r}")
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value.strip()
+
+
+def _print_profile(p: dict, active: bool = False) -> None:
+    print(f"profile {p['name']} revision {p['revision']}" + ("  (active)" if active else ""))
+    for key in ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad", "proximity_m", "mode"):
+        print(f"  {key:<14} {p[key]}")
+    print("  kappa          " + ", ".join(f"{k} {v:g}" for k, v in p["kappa"].items()))
+    for source, g in p["scan_gain"].items():
+        print(f"  scan_gain      source {source}: {g:g}")
+    for source, gains in p["channel_gain"].items():
+        print(f"  channel_gain   source {source}: " + ", ".join(f"{g:.4f}" for g in gains))
+    if p["created_utc"]:
+        print(f"  created_utc    {p['created_utc']}")
+
+
+def _cmd_profile(client: Client, args) -> int:
+    if args.profile_cmd == "create":
+        profile = _read_profile_file(args.file) if args.file else {}
+        for text in args.set or []:
+            key, value = _parse_setting(text)
+            profile[key] = value
+        if "name" in profile and profile["name"] != args.name:
+            raise ValueError(f"the file names profile {profile['name']!r}, the command {args.name!r}")
+        profile["name"] = args.name
+        p = client.create_profile(args.project, profile, activate=args.activate)
+        print(f"created profile {p['name']} revision {p['revision']}"
+              + (" (active)" if args.activate else ""))
+        return 0
+    if args.profile_cmd == "activate":
+        p = client.set_active_profile(args.project, args.name)
+        print(f"active profile of {args.project}: {p['name']} (revision {p['revision']})")
+        return 0
+    if args.profile_cmd == "show":
+        p = client.get_profile(args.project, args.name or "", args.revision)
+        if args.json:
+            print(json.dumps(p, indent=2))
+        else:
+            _print_profile(p)
+        return 0
+    profiles, active = client.list_profiles(args.project)
+    if args.json:
+        print(json.dumps({"active": active, "profiles": profiles}, indent=2))
+        return 0
+    print(f"{'NAME':<24} {'REV':>4} {'ALPHA':>6} {'BETA':>6} {'RHO':>6} {'V_MIN':>6} {'MODE':<8} "
+          f"{'GAINS':>5}  CREATED")
+    for p in profiles:
+        mark = "*" if p["name"] == active else " "
+        print(f"{mark}{p['name']:<23} {p['revision']:>4} {p['alpha']:>6g} {p['beta']:>6g} "
+              f"{p['rho']:>6g} {p['v_min']:>6g} {p['mode']:<8} {len(p['channel_gain']):>5}  "
+              f"{p['created_utc']}")
+    return 0
+
+
+def _cmd_reweight(client: Client, args) -> int:
+    bar = _ProgressLine(f"reweight {args.project}") if not args.quiet else None
+    try:
+        r = client.reweight(args.project, args.profile or "", args.revision, progress=bar)
+    finally:
+        if bar:
+            bar.done()
+    if r.unchanged:
+        print(f"{args.project}: version {r.version} already holds fused tiles under "
+              f"{r.profile} revision {r.revision}")
+        return 0
+    rate = r.record_count / r.seconds / 1e6 if r.seconds > 0 else 0.0
+    print(f"reweighted {args.project} under {r.profile} revision {r.revision}: version "
+          f"{r.version}, {r.record_count} records in {r.tile_count} tiles, {r.seconds:.2f} s "
+          f"({rate:.1f} M records/s), {r.bytes_written / 1e6:.1f} MB written")
+    return 0
+
+
+def _cmd_normalise(client: Client, args) -> int:
+    r = client.normalise(args.project, args.profile or "", args.name or "")
+    p = r.profile
+    print(f"normalised {args.project}: profile {p['name']} revision {p['revision']} holds gains "
+          f"of {len(p['channel_gain'])} sources ({r.vossels_used} shared vossels)")
+    for c, name in enumerate("RGB"):
+        print(f"  {name}: disagreement {r.cost_before[c]:.4g} -> {r.cost_after[c]:.4g}")
+    for source, gains in p["channel_gain"].items():
+        print(f"  source {source}: " + ", ".join(f"{g:.4f}" for g in gains))
+    if r.unlinked_sources:
+        print(f"  sources sharing too little with the others (gain 1): {r.unlinked_sources}")
+    print(f"apply it: vasl reweight --project {args.project} --profile {p['name']}")
+    return 0
+
+
+def _cmd_records(client: Client, args) -> int:
+    def numbers(text, n, what):
+        try:
+            v = [float(x) for x in text.split(",")]
+        except ValueError:
+            v = []
+        if len(v) != n:
+            raise ValueError(f"--{what} takes {n} comma-separated numbers, got {text!r}")
+        return v
+    at = numbers(args.at, 3, "at") if args.at else None
+    box = numbers(args.box, 6, "box") if args.box else None
+    r = client.query_records(args.project, at=at, box=box, profile=args.profile or "",
+                             version=args.version, limit=args.limit)
+    if args.json:
+        print(json.dumps(r.__dict__, indent=2))
+        return 0
+    print(f"{len(r.records)} records on {r.vossel_count} vossels, weights under {r.profile} "
+          f"revision {r.revision}" + (" (truncated: raise --limit)" if r.truncated else ""))
+    print(f"{'K':<16} {'SCAN':<14} {'SOURCE':<12} {'MOD':<7} {'VALUE':<20} {'RANGE':>7} {'COS':>5} "
+          f"{'VIS':>5} {'BATCH':>5} {'FLAGS':>5} {'WEIGHT':>9}")
+    for x in r.records:
+        value = ",".join(f"{v:.3f}" for v in x["value"])
+        print(f"{','.join(map(str, x['k'])):<16} {x['scan']:<14} {x['source_name']:<12} "
+              f"{x['modality']:<7} {value:<20} {x['range_m']:>7.3f} {x['cos_inc']:>5.2f} "
+              f"{x['vis']:>5.2f} {x['batch']:>5} {x['flags']:>5} {x['weight']:>9.4g}")
+    return 0
+
+
+def _cmd_pin(client: Client, args) -> int:
+    v = client.pin_version(args.project, args.version, not args.unpin)
+    print(f"version {v.version} of {args.project} is {'pinned' if v.pinned else 'not pinned'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vasl", description="Client of the vasld server.")
     parser.add_argument("--server", default=os.environ.get("VASL_SERVER", DEFAULT_SERVER),
@@ -245,6 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--height", type=int, default=1024)
     render.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
     render.add_argument("--eta", type=float, default=0.0, help="view term (VASL-MODEL §8)")
+    render.add_argument("--profile", default="",
+                        help="weighting profile (default: the project's active one)")
     render.add_argument("-o", "--output", required=True, metavar="OUT.exr",
                         help="EXR output; the PNG preview is written beside it")
 
@@ -270,6 +417,55 @@ def build_parser() -> argparse.ArgumentParser:
     versions.add_argument("--project", required=True)
     versions.add_argument("--json", action="store_true")
 
+    profile = sub.add_parser("profile", help="weighting profiles (VASL-MODEL §7)")
+    prsub = profile.add_subparsers(dest="profile_cmd", required=True)
+    pcreate = prsub.add_parser("create", help="store a new revision of a profile")
+    pcreate.add_argument("name")
+    pcreate.add_argument("--project", required=True)
+    pcreate.add_argument("--file", metavar="PROFILE.json|.toml",
+                         help="parameters: alpha, beta, rho, kappa, v_min, lambda_src, "
+                              "theta_max_deg, proximity_m, mode, scan_gain, channel_gain")
+    pcreate.add_argument("--set", action="append", metavar="KEY=VALUE",
+                         help="one parameter (JSON value), after the file's; repeatable")
+    pcreate.add_argument("--activate", action="store_true", help="make it the active profile")
+    plist = prsub.add_parser("list", help="list profiles (* marks the active one)")
+    plist.add_argument("--project", required=True)
+    plist.add_argument("--json", action="store_true")
+    pshow = prsub.add_parser("show", help="show a profile revision")
+    pshow.add_argument("name", nargs="?", help="default: the active profile")
+    pshow.add_argument("--project", required=True)
+    pshow.add_argument("--revision", type=int, default=0, help="0: the latest")
+    pshow.add_argument("--json", action="store_true")
+    pact = prsub.add_parser("activate", help="make a profile the one renders and queries use")
+    pact.add_argument("name")
+    pact.add_argument("--project", required=True)
+
+    reweight = sub.add_parser("reweight", help="fuse a project under a profile (new version)")
+    reweight.add_argument("--project", required=True)
+    reweight.add_argument("--profile", default="", help="default: the active profile")
+    reweight.add_argument("--revision", type=int, default=0, help="0: the latest")
+    reweight.add_argument("--quiet", action="store_true", help="no progress display")
+
+    normalise = sub.add_parser("normalise", help="solve per-scan colour gains into a profile")
+    normalise.add_argument("--project", required=True)
+    normalise.add_argument("--profile", default="", help="profile whose weights the solve uses")
+    normalise.add_argument("--name", default="", help="profile to store the gains in")
+
+    recs = sub.add_parser("records", help="the records of a vossel or a box, with weights")
+    recs.add_argument("--project", required=True)
+    where = recs.add_mutually_exclusive_group(required=True)
+    where.add_argument("--at", metavar="x,y,z", help="the vossel holding this world point")
+    where.add_argument("--box", metavar="x0,y0,z0,x1,y1,z1", help="every vossel meeting the box")
+    recs.add_argument("--profile", default="", help="weights under this profile (default: active)")
+    recs.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
+    recs.add_argument("--limit", type=int, default=0, help="most records to list (0: 10000)")
+    recs.add_argument("--json", action="store_true")
+
+    pin = sub.add_parser("pin", help="pin a version against retention")
+    pin.add_argument("version", type=int)
+    pin.add_argument("--project", required=True)
+    pin.add_argument("--unpin", action="store_true")
+
     export = sub.add_parser("export", help="write a version as one OpenVDB file")
     export.add_argument("--project", required=True)
     export.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
@@ -281,7 +477,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     handlers = {"project": _cmd_project, "ingest": _cmd_ingest, "render": _cmd_render,
                 "scans": _cmd_scans, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
-                "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export}
+                "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
+                "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
+                "records": _cmd_records, "pin": _cmd_pin}
     try:
         with Client(args.server, timeout_s=args.timeout) as client:
             return handlers[args.cmd](client, args)

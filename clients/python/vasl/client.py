@@ -17,8 +17,9 @@ import numpy as np
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
 from .readers import E57Scan, Manifest, read_e57, read_manifest, read_ply
-from .types import (ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult, Pose,
-                    Project, RecordAttribute, RenderResult, Scan, Source, Version)
+from .types import (CONFIDENCE_FACTORS, ChangeResult, ChangeStats, ExportResult, Inspection,
+                    IngestResult, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery,
+                    RenderResult, ReweightResult, Scan, Source, Version)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
@@ -75,6 +76,64 @@ def _pose_from_pb(p: pb.Pose) -> Pose:
 def _project(p: pb.Project) -> Project:
     return Project(p.name, p.description, p.vossel_size_m, p.head_version, p.scan_count,
                    p.vossel_count, p.record_count, p.created_utc)
+
+
+_PROFILE_NUMBERS = ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad",
+                    "proximity_m")
+_PROFILE_KEYS = set(_PROFILE_NUMBERS) | {"name", "kappa", "mode", "scan_gain", "channel_gain",
+                                         "theta_max_deg", "revision", "created_utc"}
+
+
+def profile_to_pb(profile: dict) -> pb.WeightingProfile:
+    """A weighting profile from a dict (as read from JSON or TOML): name, alpha, beta, rho,
+    kappa (4 numbers, or a table by factor name), v_min, lambda_src, theta_max_rad or
+    theta_max_deg, proximity_m, mode ("blend" or "nearest"), scan_gain {source id: g},
+    channel_gain {source id: [r, g, b]}. Unset fields take the model's defaults."""
+    if not isinstance(profile, dict):
+        raise ValueError("a profile must be a table of parameters")
+    unknown = set(profile) - _PROFILE_KEYS
+    if unknown:
+        raise ValueError(f"unknown profile parameter(s) {sorted(unknown)}; known: {sorted(_PROFILE_KEYS)}")
+    out = pb.WeightingProfile(name=str(profile.get("name", "")))
+    for key in _PROFILE_NUMBERS:
+        if key in profile:
+            setattr(out, key, float(profile[key]))
+    if "theta_max_deg" in profile:
+        if "theta_max_rad" in profile:
+            raise ValueError("give theta_max_rad or theta_max_deg, not both")
+        out.theta_max_rad = float(np.deg2rad(float(profile["theta_max_deg"])))
+    kappa = profile.get("kappa")
+    if isinstance(kappa, dict):
+        bad = set(kappa) - set(CONFIDENCE_FACTORS)
+        if bad:
+            raise ValueError(f"kappa factors must be among {CONFIDENCE_FACTORS}, got {sorted(bad)}")
+        kappa = [float(kappa.get(f, 1.0)) for f in CONFIDENCE_FACTORS]
+    if kappa is not None:
+        if len(kappa) != len(CONFIDENCE_FACTORS):
+            raise ValueError(f"kappa needs {len(CONFIDENCE_FACTORS)} values {CONFIDENCE_FACTORS}")
+        out.kappa.extend(float(k) for k in kappa)
+    mode = profile.get("mode", "blend")
+    if mode not in ("blend", "nearest"):
+        raise ValueError(f"mode must be 'blend' or 'nearest', got {mode!r}")
+    out.mode = pb.WeightingProfile.MODE_NEAREST if mode == "nearest" else pb.WeightingProfile.MODE_BLEND
+    for source, g in (profile.get("scan_gain") or {}).items():
+        out.scan_gain[int(source)] = float(g)
+    for source, gains in (profile.get("channel_gain") or {}).items():
+        gains = [float(g) for g in (gains if isinstance(gains, (list, tuple)) else [gains])]
+        out.channel_gain.add(source=int(source), gain=gains)
+    return out
+
+
+def profile_from_pb(p: pb.WeightingProfile) -> dict:
+    """The dict form of a profile (profile_to_pb's input), with its revision and time."""
+    return {"name": p.name, "revision": p.revision, "alpha": p.alpha, "beta": p.beta,
+            "rho": p.rho, "kappa": dict(zip(CONFIDENCE_FACTORS, p.kappa)), "v_min": p.v_min,
+            "lambda_src": p.lambda_src, "theta_max_rad": p.theta_max_rad,
+            "proximity_m": p.proximity_m,
+            "mode": "nearest" if p.mode == pb.WeightingProfile.MODE_NEAREST else "blend",
+            "scan_gain": {int(k): v for k, v in sorted(p.scan_gain.items())},
+            "channel_gain": {int(c.source): list(c.gain) for c in p.channel_gain},
+            "created_utc": p.created_utc}
 
 
 def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None) -> bytes:
@@ -326,6 +385,21 @@ class Client:
                             r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
                             {s.stage: s.seconds for s in r.stages}, _change_stats(r.change))
 
+    def _poll_progress(self, project: str, future, progress, poll_s: float = 0.5) -> None:
+        """Reports the server's progress of a long call in `project` until `future` is done."""
+        last = None
+        while progress and not future.done():
+            time.sleep(poll_s)
+            try:
+                p = self.stub.GetIngestProgress(pb.GetIngestProgressRequest(project=project),
+                                                timeout=5)
+            except grpc.RpcError:
+                continue
+            key = (p.stage, round(p.fraction, 2))
+            if p.state == pb.IngestProgress.STATE_PROCESSING and key != last:
+                last = key
+                progress({"stage": p.stage, "fraction": p.fraction})
+
     # -- store: rebuild, deletion, versions, export ------------------------------------------
     def rebuild(self, project: str) -> ChangeResult:
         """Recomputes the whole project from its raw blobs as a new version."""
@@ -382,12 +456,103 @@ class Client:
         os.replace(part, path)
         return ExportResult(meta.version, meta.vossel_count, meta.record_count, meta.size_bytes, path)
 
+    def pin_version(self, project: str, version: int, pinned: bool = True) -> Version:
+        """Pins (or unpins) a kept version: pinned versions survive retention."""
+        self._check_name(project)
+        if version <= 0:
+            raise ValueError(f"version must be > 0, got {version}")
+        v = self._call("PinVersion", pb.PinVersionRequest(project=project, version=version,
+                                                          pinned=pinned))
+        return Version(v.version, v.vossel_count, v.record_count, v.tile_count, v.bytes_written,
+                       v.bytes_total, v.made_by, v.pinned, v.created_utc)
+
+    # -- weighting profiles and reweighting (VASL-MODEL §7) ------------------------------
+    def create_profile(self, project: str, profile: Union[dict, pb.WeightingProfile], *,
+                       activate: bool = False) -> dict:
+        """Stores a new revision of profile `profile["name"]` (1 for a new name)."""
+        self._check_name(project)
+        p = profile if isinstance(profile, pb.WeightingProfile) else profile_to_pb(profile)
+        if not p.name:
+            raise ValueError("a profile needs a name")
+        return profile_from_pb(self._call("CreateProfile", pb.CreateProfileRequest(
+            project=project, profile=p, activate=activate)))
+
+    def get_profile(self, project: str, name: str = "", revision: int = 0) -> dict:
+        """Profile `name` (empty: the active one) at `revision` (0: the latest)."""
+        self._check_name(project)
+        return profile_from_pb(self._call("GetProfile", pb.GetProfileRequest(
+            project=project, name=name, revision=revision)))
+
+    def list_profiles(self, project: str):
+        """(profiles, active name): the built-in default, then the latest revision of each."""
+        self._check_name(project)
+        r = self._call("ListProfiles", pb.ListProfilesRequest(project=project))
+        return [profile_from_pb(p) for p in r.profiles], r.active
+
+    def set_active_profile(self, project: str, name: str) -> dict:
+        self._check_name(project)
+        return profile_from_pb(self._call("SetActiveProfile", pb.SetActiveProfileRequest(
+            project=project, name=name)))
+
+    def reweight(self, project: str, profile: str = "", revision: int = 0, *,
+                 progress: Optional[Callable[[dict], None]] = None) -> ReweightResult:
+        """A new version whose tiles hold fused values under `profile` (default: the active
+        one), from the stored records alone. `progress` gets {"stage", "fraction"} dicts."""
+        self._check_name(project)
+        if revision < 0:
+            raise ValueError("revision must be >= 0 (0: the latest)")
+        request = pb.ReweightRequest(project=project, profile=profile, revision=revision)
+        future = self.stub.Reweight.future(request, timeout=self.timeout_s)
+        self._poll_progress(project, future, progress)
+        try:
+            r = future.result()
+        except grpc.RpcError as e:
+            raise _wrap("Reweight", e) from None
+        return ReweightResult(r.version, r.profile, r.revision, r.tile_count, r.record_count,
+                              r.vossel_count, r.bytes_written, r.unchanged, r.seconds)
+
+    def normalise(self, project: str, base_profile: str = "", name: str = "") -> NormaliseResult:
+        """Solves per-source per-channel gains on HEAD's RGB records (weighed under
+        `base_profile`) and stores them as a new revision of profile `name`."""
+        self._check_name(project)
+        r = self._call("Normalise", pb.NormaliseRequest(project=project,
+                                                        base_profile=base_profile, name=name))
+        return NormaliseResult(profile_from_pb(r.profile), r.vossels_used, r.pairs_used,
+                               list(r.cost_before), list(r.cost_after), list(r.unlinked_sources))
+
+    def query_records(self, project: str, *, at=None, box=None, profile: str = "",
+                      version: int = 0, limit: int = 0) -> RecordsQuery:
+        """Provenance: the records of the vossel at world point `at` (x, y, z), or of every
+        vossel meeting `box` (x0, y0, z0, x1, y1, z1), with their weights under `profile`."""
+        self._check_name(project)
+        if (at is None) == (box is None):
+            raise ValueError("give exactly one of at=(x, y, z) or box=(x0, y0, z0, x1, y1, z1)")
+        corners = [float(v) for v in (at if at is not None else box)]
+        if len(corners) != (3 if at is not None else 6) or not np.all(np.isfinite(corners)):
+            raise ValueError("at needs 3 finite numbers, box 6")
+        lo = pb.Vec3(x=corners[0], y=corners[1], z=corners[2])
+        hi = lo if at is not None else pb.Vec3(x=corners[3], y=corners[4], z=corners[5])
+        r = self._call("QueryRecords", pb.QueryRecordsRequest(
+            project=project, version=version, min_m=lo, max_m=hi, profile=profile, limit=limit))
+        rows = [{"vossel": x.vossel, "k": [x.kx, x.ky, x.kz],
+                 "centroid_m": [x.centroid_m.x, x.centroid_m.y, x.centroid_m.z],
+                 "scan": x.scan, "scan_id": x.scan_id, "source": x.source,
+                 "source_name": x.source_name, "modality": _MODALITY_NAMES.get(x.modality, "?"),
+                 "value": list(x.value), "range_m": x.range_m, "cos_inc": x.cos_inc,
+                 "foot_major_m": x.foot_major_m, "foot_minor_m": x.foot_minor_m, "vis": x.vis,
+                 "uv_px": [x.u_px, x.v_px], "conf": dict(zip(CONFIDENCE_FACTORS, x.conf)),
+                 "flags": x.flags, "derived": bool(x.flags & 1), "batch": x.batch,
+                 "weight": x.weight} for x in r.records]
+        return RecordsQuery(r.version, r.profile, r.revision, r.vossel_count, r.truncated, rows)
+
     # -- render --------------------------------------------------------------------------
     def render(self, project: str, pose, width_px: int = 2048, height_px: int = 1024, *,
                version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
-               max_range_m: float = 0.0, decode: bool = True) -> RenderResult:
+               max_range_m: float = 0.0, decode: bool = True, profile: str = "",
+               profile_revision: int = 0) -> RenderResult:
         """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
-        `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty."""
+        `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
+        `profile` names the weighting profile (default: the project's active one)."""
         self._check_name(project)
         if int(width_px) <= 0 or int(height_px) <= 0:
             raise ValueError(f"width_px and height_px must be > 0, got {width_px}x{height_px}")
@@ -399,7 +564,8 @@ class Client:
         request = pb.RenderRequest(project=project, pose=pose_to_pb(Pose.parse(pose)),
                                    width_px=int(width_px), height_px=int(height_px),
                                    version=version, formats=[_FORMATS[f] for f in formats],
-                                   eta=eta, max_range_m=max_range_m)
+                                   eta=eta, max_range_m=max_range_m, profile=profile,
+                                   profile_revision=int(profile_revision))
         meta = None
         parts: Dict[int, bytearray] = {}
         try:
@@ -422,7 +588,9 @@ class Client:
                                 f"render format {fmt}: got {len(parts.get(fmt, b''))} of {size} bytes",
                                 "Render")
         result = RenderResult(meta.width_px, meta.height_px, meta.version, meta.hit_pixels,
-                              meta.render_seconds)
+                              meta.render_seconds, profile=meta.profile,
+                              profile_revision=meta.profile_revision,
+                              fused_on_the_fly=meta.fused_on_the_fly)
         if pb.IMAGE_FORMAT_EXR in parts:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
         if pb.IMAGE_FORMAT_PNG in parts:

@@ -179,6 +179,9 @@ class RenderResult:
     depth_m: Optional[np.ndarray] = None  #: (H, W) float32 metres along the ray; +inf no hit
     normal: Optional[np.ndarray] = None  #: (H, W, 3) float32 world frame
     uncertainty: Optional[np.ndarray] = None  #: (H, W) float32
+    profile: str = "default"  #: the weighting profile rendered under
+    profile_revision: int = 1
+    fused_on_the_fly: bool = False  #: no stored fused tiles for the profile: fused for this render
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
 
@@ -202,3 +205,46 @@ class Inspection:
     tile_count: int
     record_count: int
     attributes: List[RecordAttribute] = field(default_factory=list)
+
+
+#: Confidence factors of a record, in the order of `kappa` and `conf` (VASL-MODEL §9).
+CONFIDENCE_FACTORS = ("saturation", "flare", "dirt", "codec")
+
+
+@dataclass
+class ReweightResult:
+    """A version whose tiles hold fused values under a profile (VASL-MODEL §7)."""
+
+    version: int
+    profile: str
+    revision: int
+    tile_count: int
+    record_count: int
+    vossel_count: int
+    bytes_written: int
+    unchanged: bool  #: HEAD already held the profile's fused tiles: no new version
+    seconds: float
+
+
+@dataclass
+class NormaliseResult:
+    """Gains a_{m,c} stored as a new profile revision, with what the solve achieved."""
+
+    profile: dict
+    vossels_used: int
+    pairs_used: int
+    cost_before: List[float]
+    cost_after: List[float]
+    unlinked_sources: List[int]
+
+
+@dataclass
+class RecordsQuery:
+    """Records of the vossels in a box, with their weights under a profile."""
+
+    version: int
+    profile: str
+    revision: int
+    vossel_count: int
+    truncated: bool
+    records: List[dict] = field(default_factory=list)

@@ -1,0 +1,152 @@
+// The query flows (flows.h): renders (§8) and provenance queries of a loaded version under a
+// weighting profile (§7). They read; they never change a project.
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <memory>
+
+#include "absl/strings/str_cat.h"
+#include "lattice/flows/flows.h"
+#include "lattice/fusion/fuse.h"
+
+namespace vasl::flows {
+namespace {
+
+/// Where each source stood, by source id (non-finite for unknown ids), and its scan.
+struct SourceTable {
+  std::vector<Eigen::Vector3d> origin_m;
+  std::map<int32_t, std::pair<const store::ScanInfo*, const store::SourceInfo*>> by_id;
+  std::vector<store::ScanInfo> scans;
+};
+
+absl::StatusOr<std::unique_ptr<SourceTable>> Sources(const store::ProjectStore& store,
+                                                     int64_t version) {
+  auto out = std::make_unique<SourceTable>();
+  absl::StatusOr<std::vector<store::ScanInfo>> scans = store.ListScans(version);
+  if (!scans.ok()) return scans.status();
+  out->scans = std::move(*scans);
+  for (const store::ScanInfo& scan : out->scans) {
+    for (const store::SourceInfo& src : scan.sources) {
+      if (src.id < 0) continue;
+      if (size_t(src.id) >= out->origin_m.size()) {
+        out->origin_m.resize(size_t(src.id) + 1, Eigen::Vector3d::Constant(NAN));
+      }
+      out->origin_m[size_t(src.id)] = src.pose.o_world;
+      out->by_id[src.id] = {&scan, &src};
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store,
+                                               const store::Snapshot& snapshot,
+                                               const records::FusedValues& fused,
+                                               const fusion::WeightingProfile& profile,
+                                               const render::RenderRequest& request) {
+  render::ViewBlendInputs blend;
+  absl::StatusOr<fusion::RecordWeightsResult> weights;
+  if (request.eta > 0.0) {  // §8 view term: the records, their §7 weights, the source origins
+    weights = fusion::RecordWeights(snapshot.records, snapshot.geometry.size(),
+                                    snapshot.geometry.vossel_size_m, profile);
+    if (!weights.ok()) return weights.status();
+    absl::StatusOr<std::unique_ptr<SourceTable>> sources = Sources(store, snapshot.version);
+    if (!sources.ok()) return sources.status();
+    blend.source_origin_m = std::move((*sources)->origin_m);
+    for (const auto& a : fusion::DenseChannelGains(profile, snapshot.records)) {
+      blend.channel_gain.push_back(a);
+    }
+    blend.records = &snapshot.records;
+    blend.weight = &weights->weight;
+    blend.begin = &weights->begin;
+  }
+  absl::StatusOr<render::RenderImage> image =
+      render::RenderEquirect(snapshot.geometry, fused, request, &blend);
+  if (!image.ok()) return image.status();
+  image->version = snapshot.version;
+  image->profile = profile.name;
+  image->profile_revision = profile.version;
+  return image;
+}
+
+absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store,
+                                                const store::Snapshot& snapshot,
+                                                const Eigen::Vector3d& min_m,
+                                                const Eigen::Vector3d& max_m,
+                                                const fusion::WeightingProfile& profile,
+                                                int64_t limit) {
+  if (!min_m.allFinite() || !max_m.allFinite() || (min_m.array() > max_m.array()).any()) {
+    return absl::InvalidArgumentError(
+        "a records query needs a finite box with min <= max on every axis (a point: min = max)");
+  }
+  if (limit <= 0) return absl::InvalidArgumentError("a records query's limit must be positive");
+  const records::VosselGeometry& g = snapshot.geometry;
+  const double h = g.vossel_size_m;
+  // Cells k with h·(k − ½) ≤ x < h·(k + ½) meet the box.
+  const openvdb::Coord lo(int(std::floor(min_m.x() / h + 0.5)), int(std::floor(min_m.y() / h + 0.5)),
+                          int(std::floor(min_m.z() / h + 0.5)));
+  const openvdb::Coord hi(int(std::floor(max_m.x() / h + 0.5)), int(std::floor(max_m.y() / h + 0.5)),
+                          int(std::floor(max_m.z() / h + 0.5)));
+  RecordsQueryResult out;
+  if (g.size() == 0 || !g.index_grid) return out;
+  absl::StatusOr<fusion::RecordWeightsResult> weights =
+      fusion::RecordWeights(snapshot.records, g.size(), h, profile);
+  if (!weights.ok()) return weights.status();
+  absl::StatusOr<std::unique_ptr<SourceTable>> sources = Sources(store, snapshot.version);
+  if (!sources.ok()) return sources.status();
+  std::vector<int32_t> vossels;
+  const openvdb::CoordBBox box(lo, hi);
+  for (auto it = g.index_grid->cbeginValueOn(); it; ++it) {
+    openvdb::CoordBBox b;
+    it.getBoundingBox(b);
+    if (!b.hasOverlap(box)) continue;
+    if (it.isVoxelValue()) {
+      vossels.push_back(*it);
+    } else {
+      b.intersect(box);
+      for (auto c = b.begin(); c; ++c) {
+        int32_t v = -1;
+        if (g.index_grid->tree().probeValue(*c, v)) vossels.push_back(v);
+      }
+    }
+  }
+  std::sort(vossels.begin(), vossels.end());
+  out.vossels = int64_t(vossels.size());
+  const records::RecordSet& r = snapshot.records;
+  for (int32_t k : vossels) {
+    for (size_t i = weights->begin[size_t(k)]; i < weights->begin[size_t(k) + 1]; ++i) {
+      if (int64_t(out.rows.size()) >= limit) {
+        out.truncated = true;
+        return out;
+      }
+      RecordRow row;
+      row.vossel = k;
+      row.coord = g.coord[size_t(k)];
+      row.centroid_m = g.centroid_m[size_t(k)];
+      row.source = r.scan[i];
+      auto src = (*sources)->by_id.find(r.scan[i]);
+      if (src != (*sources)->by_id.end()) {
+        row.scan_id = src->second.first->id;
+        row.scan_name = src->second.first->name;
+        row.source_name = src->second.second->name;
+      }
+      row.modality = records::Modality(r.modality[i]);
+      for (int c = 0; c < records::kValueChannels; ++c) row.value[c] = r.value[i * records::kValueChannels + c];
+      row.range_m = r.range_m[i];
+      row.cos_inc = r.cos_inc[i];
+      row.foot_major_m = r.foot_major_m[i];
+      row.foot_minor_m = r.foot_minor_m[i];
+      row.vis = r.vis[i];
+      row.uv_px = {r.uv_px[2 * i], r.uv_px[2 * i + 1]};
+      for (int f = 0; f < records::kConfidenceCount; ++f) row.conf[f] = r.conf[i * records::kConfidenceCount + f];
+      row.flags = r.flags[i];
+      row.batch = r.batch[i];
+      row.weight = weights->weight[i];
+      out.rows.push_back(std::move(row));
+    }
+  }
+  return out;
+}
+
+}  // namespace vasl::flows

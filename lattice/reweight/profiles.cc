@@ -1,0 +1,101 @@
+#include "lattice/reweight/profiles.h"
+
+#include "absl/strings/str_cat.h"
+#include "lattice/fusion/fuse.h"
+
+namespace vasl::reweight {
+
+absl::StatusOr<NamedProfile> LoadProfile(const store::ProjectStore& store, const std::string& name,
+                                         int32_t revision) {
+  if (name == fusion::kDefaultProfileName) {
+    if (revision > 1) {
+      return absl::NotFoundError(absl::StrCat("the built-in profile \"default\" has only revision 1"));
+    }
+    return NamedProfile{};
+  }
+  absl::StatusOr<store::StoredProfile> stored = store.GetProfile(name, revision);
+  if (!stored.ok()) return stored.status();
+  absl::StatusOr<fusion::WeightingProfile> p = fusion::ProfileFromText(stored->text);
+  if (!p.ok()) return p.status();
+  p->name = stored->name;
+  p->version = stored->revision;
+  return NamedProfile{std::move(*p), stored->created_utc};
+}
+
+absl::StatusOr<NamedProfile> CreateProfile(store::ProjectStore& store,
+                                           fusion::WeightingProfile profile) {
+  if (profile.name == fusion::kDefaultProfileName) {
+    return absl::InvalidArgumentError(
+        "\"default\" is the built-in profile of the model's defaults; give the profile "
+        "another name");
+  }
+  if (absl::Status s = fusion::ValidateProfile(profile); !s.ok()) return s;
+  absl::StatusOr<store::StoredProfile> stored =
+      store.PutProfile(profile.name, [&profile](int32_t revision) {
+        profile.version = revision;
+        return fusion::ProfileToText(profile);
+      });
+  if (!stored.ok()) return stored.status();
+  profile.version = stored->revision;
+  return NamedProfile{std::move(profile), stored->created_utc};
+}
+
+absl::StatusOr<std::vector<NamedProfile>> ListProfiles(const store::ProjectStore& store) {
+  absl::StatusOr<std::vector<store::StoredProfile>> stored = store.ListProfiles();
+  if (!stored.ok()) return stored.status();
+  std::vector<NamedProfile> out = {NamedProfile{}};
+  for (const store::StoredProfile& s : *stored) {
+    absl::StatusOr<fusion::WeightingProfile> p = fusion::ProfileFromText(s.text);
+    if (!p.ok()) return p.status();
+    p->name = s.name;
+    p->version = s.revision;
+    out.push_back({std::move(*p), s.created_utc});
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<fusion::WeightingProfile>> MaintainedProfiles(
+    const store::ProjectStore& store, const store::Manifest& head) {
+  std::map<std::string, int32_t> wanted;  // layer name → (name, revision) below
+  std::vector<std::pair<std::string, int32_t>> order;
+  auto want = [&](const std::string& name, int32_t revision) {
+    const std::string layer = store::FusedLayerName(name, revision);
+    if (name == fusion::kDefaultProfileName || wanted.count(layer)) return;
+    wanted[layer] = revision;
+    order.emplace_back(name, revision);
+  };
+  for (const auto& [key, layers] : head.tiles) {
+    for (const auto& [layer, entry] : layers) {
+      std::string name;
+      int32_t revision = 0;
+      if (store::ParseFusedLayerName(layer, &name, &revision)) want(name, revision);
+    }
+  }
+  absl::StatusOr<std::string> active = store.ActiveProfile();
+  if (!active.ok()) return active.status();
+  if (*active != fusion::kDefaultProfileName) {
+    absl::StatusOr<store::StoredProfile> latest = store.GetProfile(*active);
+    if (latest.ok()) want(*active, latest->revision);
+  }
+  std::vector<fusion::WeightingProfile> out;
+  for (const auto& [name, revision] : order) {
+    absl::StatusOr<NamedProfile> p = LoadProfile(store, name, revision);
+    if (!p.ok()) return p.status();
+    out.push_back(std::move(p->profile));
+  }
+  return out;
+}
+
+absl::StatusOr<std::map<std::string, records::FusedValues>> FuseProfiles(
+    const records::RecordSet& records, size_t vossel_count, double vossel_size_m,
+    const std::vector<fusion::WeightingProfile>& profiles) {
+  std::map<std::string, records::FusedValues> out;
+  for (const fusion::WeightingProfile& p : profiles) {
+    absl::StatusOr<records::FusedValues> f = fusion::Fuse(records, vossel_count, vossel_size_m, p);
+    if (!f.ok()) return f.status();
+    out[store::FusedLayerName(p.name, p.version)] = std::move(*f);
+  }
+  return out;
+}
+
+}  // namespace vasl::reweight
