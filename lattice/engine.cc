@@ -529,6 +529,18 @@ absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
   return flows::QueryRecords(*(*p)->store, **snap, min_m, max_m, profile->profile, limit);
 }
 
+absl::StatusOr<IngestResult> Engine::Rollback(const std::string& project, int64_t version,
+                                              const ProgressFn& progress) {
+  const auto t0 = Clock::now();
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  auto flow = flows::Rollback(*p.store, version, StageReporter(progress));
+  if (!flow.ok()) return flow.status();
+  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+}
+
 absl::Status Engine::SetPinned(const std::string& project, int64_t version, bool pinned) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();

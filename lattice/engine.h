@@ -160,6 +160,11 @@ class Engine {
                                                          const std::string& profile,
                                                          int64_t limit);
 
+  /// A new version that gives back kept version `version` (flows::Rollback): its tiles, its
+  /// fused layers and its scans.
+  absl::StatusOr<IngestResult> Rollback(const std::string& project, int64_t version,
+                                        const ProgressFn& progress = {});
+
   /// Pins (or unpins) a kept version against retention.
   absl::Status SetPinned(const std::string& project, int64_t version, bool pinned);
 

@@ -6,8 +6,26 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
+#include "google/protobuf/util/time_util.h"
 
 namespace vasl::server {
+
+void TimestampFromIso(const std::string& iso, google::protobuf::Timestamp* out) {
+  // The catalog holds RFC 3339 times (UtcNowIso8601, or what TimestampToIso wrote); a time
+  // that does not parse is left unset rather than made up.
+  if (!google::protobuf::util::TimeUtil::FromString(iso, out)) out->Clear();
+}
+
+absl::StatusOr<std::string> TimestampToIso(const google::protobuf::Timestamp& ts,
+                                           absl::string_view field) {
+  using google::protobuf::util::TimeUtil;
+  if (ts.seconds() < TimeUtil::kTimestampMinSeconds || ts.seconds() > TimeUtil::kTimestampMaxSeconds ||
+      ts.nanos() < 0 || ts.nanos() > 999'999'999) {
+    return absl::InvalidArgumentError(absl::StrCat(field, " is not a valid time (seconds ",
+                                                   ts.seconds(), ", nanos ", ts.nanos(), ")"));
+  }
+  return google::protobuf::util::TimeUtil::ToString(ts);
+}
 
 absl::StatusOr<geometry::Pose> PoseFromProto(const v1::Pose& pose, absl::string_view field) {
   Eigen::Vector3d position_m = Eigen::Vector3d::Zero();
@@ -76,18 +94,18 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
   out->set_scan_count(info.scan_count);
   out->set_vossel_count(info.vossel_count);
   out->set_record_count(info.record_count);
-  out->set_created_utc(info.created_utc);
+  TimestampFromIso(info.created_utc, out->mutable_create_time());
 }
 
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
   out->set_id(scan.id);
   out->set_name(scan.name);
   out->set_rig(scan.rig);
-  out->set_captured_utc(scan.captured_utc);
+  if (!scan.captured_utc.empty()) TimestampFromIso(scan.captured_utc, out->mutable_capture_time());
   PoseToProto(scan.pose, out->mutable_pose());
   out->set_batch(scan.batch);
   out->set_version(scan.version);
-  out->set_created_utc(scan.created_utc);
+  TimestampFromIso(scan.created_utc, out->mutable_create_time());
   for (const store::SourceInfo& src : scan.sources) {
     v1::Source* s = out->add_sources();
     s->set_id(src.id);
@@ -224,7 +242,7 @@ void ProfileToProto(const fusion::WeightingProfile& p, const std::string& create
     cg->set_source(source);
     for (double g : a) cg->add_gain(g);
   }
-  out->set_created_utc(created_utc);
+  if (!created_utc.empty()) TimestampFromIso(created_utc, out->mutable_create_time());
 }
 
 void RecordRowToProto(const flows::RecordRow& r, v1::RecordRow* out) {
@@ -280,7 +298,7 @@ void VersionToProto(const store::VersionInfo& info, v1::Version* out) {
   out->set_bytes_total(info.bytes_total);
   out->set_made_by(info.made_by);
   out->set_pinned(info.pinned);
-  out->set_created_utc(info.created_utc);
+  TimestampFromIso(info.created_utc, out->mutable_commit_time());
 }
 
 void ChangeStatsToProto(const IngestResult& result, v1::ChangeStats* out) {

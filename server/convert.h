@@ -15,6 +15,13 @@ namespace vasl::server {
 
 /// Proto pose -> T_world_sensor (VASL-MODEL §2). Absent position: origin; absent quaternion:
 /// identity. INVALID_ARGUMENT (naming `field`) for a non-finite value or a zero quaternion.
+/// An RFC 3339 time from the catalog as a Timestamp (cleared when it does not parse).
+void TimestampFromIso(const std::string& iso, google::protobuf::Timestamp* out);
+/// A client's Timestamp as the RFC 3339 text the catalog keeps; INVALID_ARGUMENT when out of
+/// range.
+absl::StatusOr<std::string> TimestampToIso(const google::protobuf::Timestamp& ts,
+                                           absl::string_view field);
+
 absl::StatusOr<geometry::Pose> PoseFromProto(const v1::Pose& pose, absl::string_view field);
 void PoseToProto(const geometry::Pose& pose, v1::Pose* out);
 

@@ -98,6 +98,12 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
   }
   absl::StatusOr<geometry::Pose> pose = PoseFromProto(header.pose(), "header.pose");
   if (!pose.ok()) return pose.status();
+  std::string captured;
+  if (header.has_capture_time()) {
+    absl::StatusOr<std::string> iso = TimestampToIso(header.capture_time(), "header.capture_time");
+    if (!iso.ok()) return iso.status();
+    captured = *iso;
+  }
   if (!header.has_lidar()) {
     return absl::InvalidArgumentError(
         "header.lidar is required: divergence_rad, point_format and point_count");
@@ -176,7 +182,7 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
   project_ = header.project();
   scan_.scan_name = header.scan();
   scan_.rig = header.rig();
-  scan_.captured_utc = header.captured_utc();
+  scan_.captured_utc = captured;
   scan_.pose = *pose;
   scan_.lidar.divergence_rad = lidar.divergence_rad();
   point_count_ = lidar.point_count();

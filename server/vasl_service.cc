@@ -2,6 +2,8 @@
 /// @brief vasl.v1.VaslService over the lattice Engine (callback API, worker pool).
 #include "server/vasl_service.h"
 
+#include <algorithm>
+
 #include <unistd.h>
 
 #include <atomic>
@@ -17,6 +19,7 @@
 #include "absl/strings/str_format.h"
 #include "lattice/render/encode.h"
 #include "server/convert.h"
+#include "server/paging.h"
 #include "server/ingest_assembler.h"
 #include "server/status_util.h"
 
@@ -470,12 +473,18 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContex
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerContext* context,
-                                                        const v1::ListProjectsRequest* /*request*/,
+                                                        const v1::ListProjectsRequest* request,
                                                         v1::ListProjectsResponse* response) {
-  return RunUnary(context, "ListProjects", "", [this, response] {
+  return RunUnary(context, "ListProjects", "", [this, request, response] {
     absl::StatusOr<std::vector<ProjectInfo>> infos = engine_->ListProjects();
     if (!infos.ok()) return ToGrpcStatus(infos.status());
-    for (const ProjectInfo& info : *infos) ProjectToProto(info, response->add_projects());
+    std::sort(infos->begin(), infos->end(),
+              [](const ProjectInfo& a, const ProjectInfo& b) { return a.name < b.name; });
+    auto page = Page(*infos, request->page_size(), request->page_token(),
+                     [](const ProjectInfo& p) { return p.name; },
+                     response->mutable_next_page_token());
+    if (!page.ok()) return ToGrpcStatus(page.status());
+    for (const ProjectInfo* info : *page) ProjectToProto(*info, response->add_projects());
     return grpc::Status::OK;
   });
 }
@@ -486,7 +495,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListScans(grpc::CallbackServerContext
   return RunUnary(context, "ListScans", request->project(), [this, request, response] {
     absl::StatusOr<std::vector<store::ScanInfo>> scans = engine_->ListScans(request->project());
     if (!scans.ok()) return ToGrpcStatus(scans.status());
-    for (const store::ScanInfo& scan : *scans) ScanToProto(scan, response->add_scans());
+    auto page = Page(*scans, request->page_size(), request->page_token(),
+                     [](const store::ScanInfo& s) { return IntKey(s.id); },
+                     response->mutable_next_page_token());
+    if (!page.ok()) return ToGrpcStatus(page.status());
+    for (const store::ScanInfo* scan : *page) ScanToProto(*scan, response->add_scans());
     return grpc::Status::OK;
   });
 }
@@ -595,7 +608,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerCont
   return RunUnary(context, "ListVersions", request->project(), [this, request, response] {
     absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());
     if (!versions.ok()) return ToGrpcStatus(versions.status());
-    for (const store::VersionInfo& v : *versions) VersionToProto(v, response->add_versions());
+    auto page = Page(*versions, request->page_size(), request->page_token(),
+                     [](const store::VersionInfo& v) { return IntKey(v.version); },
+                     response->mutable_next_page_token());
+    if (!page.ok()) return ToGrpcStatus(page.status());
+    for (const store::VersionInfo* v : *page) VersionToProto(*v, response->add_versions());
     return grpc::Status::OK;
   });
 }
@@ -645,8 +662,16 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerCont
     absl::StatusOr<std::vector<reweight::NamedProfile>> all =
         engine_->ListProfiles(request->project(), &active);
     if (!all.ok()) return ToGrpcStatus(all.status());
-    for (const reweight::NamedProfile& p : *all) {
-      ProfileToProto(p.profile, p.created_utc, response->add_profiles());
+    // The built-in default first, then by name: its key sorts first.
+    auto page = Page(*all, request->page_size(), request->page_token(),
+                     [](const reweight::NamedProfile& p) {
+                       return p.profile.name == fusion::kDefaultProfileName ? std::string()
+                                                                           : "n" + p.profile.name;
+                     },
+                     response->mutable_next_page_token());
+    if (!page.ok()) return ToGrpcStatus(page.status());
+    for (const reweight::NamedProfile* p : *page) {
+      ProfileToProto(p->profile, p->created_utc, response->add_profiles());
     }
     response->set_active(active);
     return grpc::Status::OK;
@@ -748,6 +773,19 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
     for (double c : r->solve.cost_after) response->add_cost_after(c);
     for (int32_t s : r->solve.unlinked_sources) response->add_unlinked_sources(s);
     return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
+                                                    const v1::RollbackRequest* request,
+                                                    v1::ChangeResponse* response) {
+  return RunUnary(context, "Rollback", request->project(), [this, request, response] {
+    const ProgressFn progress =
+        ProgressReporter("Rollback", request->project(),
+                         absl::StrCat("version=", request->version()), Clock::now());
+    absl::StatusOr<IngestResult> result =
+        engine_->Rollback(request->project(), request->version(), progress);
+    return FinishChange(request->project(), result, response);
   });
 }
 

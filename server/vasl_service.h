@@ -93,6 +93,9 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* Normalise(grpc::CallbackServerContext* context,
                                       const v1::NormaliseRequest* request,
                                       v1::NormaliseResponse* response) override;
+  grpc::ServerUnaryReactor* Rollback(grpc::CallbackServerContext* context,
+                                     const v1::RollbackRequest* request,
+                                     v1::ChangeResponse* response) override;
   grpc::ServerUnaryReactor* PinVersion(grpc::CallbackServerContext* context,
                                        const v1::PinVersionRequest* request,
                                        v1::Version* response) override;

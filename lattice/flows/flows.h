@@ -125,6 +125,12 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
                                                 const fusion::WeightingProfile& profile,
                                                 int64_t limit);
 
+/// A new version that gives back version `version` of the project: its manifest (every tile
+/// and layer, shared, nothing rewritten), its counts and its live scans. NOT_FOUND when
+/// retention removed it, INVALID_ARGUMENT for HEAD or a later version.
+absl::StatusOr<FlowResult> Rollback(store::ProjectStore& store, int64_t version,
+                                    const StageFn& stage = {});
+
 /// What Export wrote.
 struct ExportResult {
   int64_t version = 0;

@@ -171,7 +171,11 @@ CREATE TABLE sources(
   point_count INTEGER NOT NULL,
   version INTEGER NOT NULL);
 CREATE INDEX sources_by_scan ON sources(scan_id);
-CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL;
+CREATE TABLE scan_lives(
+  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+  from_version INTEGER NOT NULL,
+  to_version INTEGER,
+  PRIMARY KEY (scan_id, from_version));
 CREATE TABLE profiles(
   name TEXT NOT NULL,
   revision INTEGER NOT NULL,
@@ -189,13 +193,14 @@ COMMIT;
 }
 
 absl::Status MigrateSchema(Db& db, int64_t from) {
-  if (from == kCatalogSchemaVersion) return absl::OkStatus();
-  if (from != 2) {
+  if (from < 2 || from > kCatalogSchemaVersion) {
     return absl::FailedPreconditionError(
         absl::StrCat("no migration from catalog schema ", from, " to ", kCatalogSchemaVersion));
   }
-  absl::Status s = db.Exec(absl::StrCat(R"sql(
-BEGIN IMMEDIATE;
+  // Each step takes the catalog one schema forward.
+  static const char* const kSteps[] = {
+      // 2 → 3: weighting profiles and the active profile.
+      R"sql(
 CREATE TABLE profiles(
   name TEXT NOT NULL,
   revision INTEGER NOT NULL,
@@ -203,9 +208,21 @@ CREATE TABLE profiles(
   created_utc TEXT NOT NULL,
   PRIMARY KEY (name, revision));
 ALTER TABLE project ADD COLUMN active_profile TEXT NOT NULL DEFAULT 'default';
-UPDATE schema_version SET version = )sql", kCatalogSchemaVersion, R"sql(;
-COMMIT;
-)sql"));
+)sql",
+      // 3 → 4: the spans of versions each scan is live in.
+      R"sql(
+CREATE TABLE scan_lives(
+  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+  from_version INTEGER NOT NULL,
+  to_version INTEGER,
+  PRIMARY KEY (scan_id, from_version));
+INSERT INTO scan_lives(scan_id, from_version, to_version) SELECT id, version, deleted_in FROM scans;
+DROP INDEX IF EXISTS live_scan_names;
+)sql"};
+  std::string sql = "BEGIN IMMEDIATE;\n";
+  for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += kSteps[v - 2];
+  absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");
+  absl::Status s = db.Exec(sql);
   if (!s.ok()) db.Exec("ROLLBACK;").IgnoreError();
   return s;
 }
@@ -216,6 +233,8 @@ absl::Status DropRowsNewerThan(Db& db, int64_t head) {
                           "DELETE FROM reach WHERE version > ?1",
                           "DELETE FROM source_tiles WHERE version > ?1",
                           "UPDATE scans SET deleted_in = NULL WHERE deleted_in > ?1",
+                          "UPDATE scan_lives SET to_version = NULL WHERE to_version > ?1",
+                          "DELETE FROM scan_lives WHERE from_version > ?1",
                           "DELETE FROM sources WHERE version > ?1",
                           "DELETE FROM scans WHERE version > ?1",
                           "DELETE FROM batches WHERE version > ?1",

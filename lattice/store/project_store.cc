@@ -170,9 +170,9 @@ struct ProjectStore::Impl {
       }
       const std::pair<const char*, std::set<std::string>*> queries[] = {
           {"SELECT object FROM manifest UNION SELECT object FROM reach", &live_objects},
-          {"SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scans sc ON src.scan_id = sc.id "
-           "WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 AND sc.version <= v.version "
-           "AND (sc.deleted_in IS NULL OR sc.deleted_in > v.version))",
+          {"SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scan_lives l "
+           "ON src.scan_id = l.scan_id WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 "
+           "AND l.from_version <= v.version AND (l.to_version IS NULL OR l.to_version > v.version))",
            &live_blobs}};
       for (const auto& [sql, live_set] : queries) {
         absl::StatusOr<Stmt> st = db.Prepare(sql);
@@ -535,9 +535,10 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
   std::map<int64_t, size_t> by_id;
   {
     absl::StatusOr<Stmt> st = impl_->db.Prepare(
-        "SELECT id, name, rig, captured_utc, qx, qy, qz, qw, ox_m, oy_m, oz_m, batch, version, "
-        "created_utc, COALESCE(deleted_in, 0) FROM scans WHERE version <= ?1 "
-        "AND (deleted_in IS NULL OR deleted_in > ?1) ORDER BY id");
+        "SELECT s.id, s.name, s.rig, s.captured_utc, s.qx, s.qy, s.qz, s.qw, s.ox_m, s.oy_m, "
+        "s.oz_m, s.batch, s.version, s.created_utc, COALESCE(l.to_version, 0) FROM scans s "
+        "JOIN scan_lives l ON l.scan_id = s.id WHERE l.from_version <= ?1 "
+        "AND (l.to_version IS NULL OR l.to_version > ?1) ORDER BY s.id");
     if (!st.ok()) return st.status();
     st->Bind(1, v);
     for (;;) {
@@ -588,7 +589,8 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
 absl::StatusOr<bool> ProjectStore::HasScan(const std::string& name) const {
   std::lock_guard<std::mutex> lock(impl_->db_mu);
   absl::StatusOr<Stmt> st =
-      impl_->db.Prepare("SELECT 1 FROM scans WHERE name = ?1 AND deleted_in IS NULL");
+      impl_->db.Prepare("SELECT 1 FROM scans s JOIN scan_lives l ON l.scan_id = s.id "
+                        "WHERE s.name = ?1 AND l.to_version IS NULL");
   if (!st.ok()) return st.status();
   st->Bind(1, name);
   return st->Step();
@@ -899,6 +901,25 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   };
 
   // Bad input never changes the project: validate everything before writing.
+  const bool no_snapshot = plan.layers_only || plan.rollback_to > 0;
+  if (plan.rollback_to > 0) {
+    if (plan.layers_only || !plan.put_layers.empty() || plan.add_scan || !plan.delete_scan.empty() ||
+        plan.replace_all || !plan.geometry_tiles.empty() || !plan.record_tiles.empty() ||
+        !plan.reach_sources.empty() || !plan.drop_reach.empty()) {
+      return absl::InvalidArgumentError("a rollback commit changes nothing else");
+    }
+    if (plan.rollback_to >= im.head.load()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "roll back to a version before HEAD (", im.head.load(), "); got ", plan.rollback_to));
+    }
+    absl::StatusOr<bool> kept = im.IsKept(plan.rollback_to);
+    if (!kept.ok()) return kept.status();
+    if (!*kept) {
+      return absl::NotFoundError(absl::StrCat("project ", im.name, " no longer keeps version ",
+                                              plan.rollback_to, " (retention removed it; pin "
+                                              "versions you may roll back to)"));
+    }
+  }
   if (plan.layers_only &&
       (plan.add_scan || !plan.delete_scan.empty() || plan.replace_all ||
        !plan.geometry_tiles.empty() || !plan.record_tiles.empty() || !plan.reach_sources.empty() ||
@@ -906,7 +927,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     return absl::InvalidArgumentError(
         "a layers-only commit changes layers of an existing version and nothing else");
   }
-  if (!plan.layers_only && std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
+  if (!no_snapshot && std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
       1e-9 * im.settings.vossel_size_m) {
     return absl::InvalidArgumentError(
         absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
@@ -947,7 +968,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   const int64_t version = head + 1;
   Manifest manifest;
   if (head > 0 && !plan.replace_all) {
-    absl::StatusOr<Manifest> previous = LoadManifest(head);
+    absl::StatusOr<Manifest> previous = LoadManifest(plan.rollback_to > 0 ? plan.rollback_to : head);
     if (!previous.ok()) return previous.status();
     manifest = std::move(*previous);
   }
@@ -1029,7 +1050,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   }
   int64_t vossel_count = int64_t(snapshot.geometry.size());
   int64_t record_count = int64_t(snapshot.records.size());
-  if (plan.layers_only) {
+  if (no_snapshot) {
     vossel_count = record_count = 0;
     for (const auto& [key, layers] : manifest.tiles) {
       vossel_count += RecordsOf(layers).vossels;
@@ -1074,8 +1095,47 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
             st.Bind(1, version).Bind(2, int64_t{source}).Bind(3, e.object).Bind(4, e.bytes);
           });
     }
+    if (plan.rollback_to > 0 && s.ok()) {
+      // Scans live at HEAD but not at the target end; scans live at the target but not at
+      // HEAD live again, from this version on.
+      auto live_at = [&](int64_t v) -> absl::StatusOr<std::set<int64_t>> {
+        absl::StatusOr<Stmt> st = im.db.Prepare(
+            "SELECT scan_id FROM scan_lives WHERE from_version <= ?1 "
+            "AND (to_version IS NULL OR to_version > ?1)");
+        if (!st.ok()) return st.status();
+        st->Bind(1, v);
+        std::set<int64_t> ids;
+        for (;;) {
+          absl::StatusOr<bool> row = st->Step();
+          if (!row.ok()) return row.status();
+          if (!*row) break;
+          ids.insert(st->Int(0));
+        }
+        return ids;
+      };
+      absl::StatusOr<std::set<int64_t>> live_now = live_at(head), then = live_at(plan.rollback_to);
+      if (!live_now.ok()) s = live_now.status();
+      else if (!then.ok()) s = then.status();
+      if (s.ok()) {
+        for (int64_t id : *live_now) {
+          if (then->count(id)) continue;
+          run("UPDATE scan_lives SET to_version = ?2 WHERE scan_id = ?1 AND to_version IS NULL",
+              [&](Stmt& st) { st.Bind(1, id).Bind(2, version); });
+          run("UPDATE scans SET deleted_in = ?2 WHERE id = ?1 AND deleted_in IS NULL",
+              [&](Stmt& st) { st.Bind(1, id).Bind(2, version); });
+        }
+        for (int64_t id : *then) {
+          if (live_now->count(id)) continue;
+          run("INSERT INTO scan_lives(scan_id, from_version) VALUES (?1, ?2)",
+              [&](Stmt& st) { st.Bind(1, id).Bind(2, version); });
+        }
+      }
+    }
     if (!plan.delete_scan.empty()) {
       run("UPDATE scans SET deleted_in = ?2 WHERE name = ?1 AND deleted_in IS NULL",
+          [&](Stmt& st) { st.Bind(1, plan.delete_scan).Bind(2, version); });
+      run("UPDATE scan_lives SET to_version = ?2 WHERE to_version IS NULL AND scan_id IN "
+          "(SELECT id FROM scans WHERE name = ?1)",
           [&](Stmt& st) { st.Bind(1, plan.delete_scan).Bind(2, version); });
     }
     if (plan.add_scan) {
@@ -1090,12 +1150,13 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
           });
       int64_t scan_id = 0;
       if (s.ok()) {
-        absl::StatusOr<Stmt> st =
-            im.db.Prepare("SELECT id FROM scans WHERE name = ?1 AND deleted_in IS NULL");
-        absl::StatusOr<bool> row = st.ok() ? st->Bind(1, scan.name).Step() : st.status();
+        absl::StatusOr<Stmt> st = im.db.Prepare("SELECT last_insert_rowid()");
+        absl::StatusOr<bool> row = st.ok() ? st->Step() : st.status();
         if (!row.ok()) s = row.status();
         else if (*row) scan_id = st->Int(0);
       }
+      run("INSERT INTO scan_lives(scan_id, from_version) VALUES (?1, ?2)",
+          [&](Stmt& st) { st.Bind(1, scan_id).Bind(2, version); });
       for (const SourceInfo& src : scan.sources) {
         run("INSERT INTO sources(id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, "
             "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version) "

@@ -154,6 +154,10 @@ struct CommitPlan {
   /// The commit changes layers only (put_layers): the snapshot is not read, the new version
   /// keeps the previous one's geometry, records and counts.
   bool layers_only = false;
+  /// > 0: a rollback. The new version's manifest, counts and live scans are those of this
+  /// kept version (scans added since end, scans deleted since live again); nothing else may be
+  /// set and the snapshot is not read.
+  int64_t rollback_to = 0;
 };
 
 /// A weighting profile revision as the catalog keeps it; its text is fusion::ProfileToText's.

@@ -114,5 +114,11 @@ def test_profiles_reweight_records_normalise_and_pin_from_the_cli(client, server
     assert [v["made_by"] for v in versions][2:] == ["reweight under profile steep revision 2",
                                                    "reweight under profile normalised revision 1"]
     assert versions[0]["pinned"]
+    out = _vasl(server, "rollback", "3", "--project", PROJECT).stdout
+    print(out)
+    assert "rolled reweight-e2e back to version 3: version 5" in out, out
+    back = client.render(PROJECT, POSE, 256, 128, formats=("exr",), profile="steep")
+    assert not back.fused_on_the_fly and np.array_equal(back.rgb, stored.rgb)
+    assert client.list_versions(PROJECT)[-1].made_by == "rollback to version 3"
     missing = _vasl(server, "reweight", "--project", PROJECT, "--profile", "nope", check=False)
     assert missing.returncode == 1 and "NOT_FOUND" in missing.stderr, missing.stderr

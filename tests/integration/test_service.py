@@ -49,3 +49,39 @@ def test_request_log_lines(server, client):
     lines = [l for l in server.log().splitlines() if "ListProjects" in l]
     print("\n" + (lines[-1] if lines else "(none)"))
     assert lines and re.search(r"ListProjects project=- code=OK ms=\d+\.\d", lines[-1])
+
+
+def test_list_calls_page_and_times_are_timestamps(server, client, ingested):
+    """Every List RPC pages with a token that survives changes between calls; times are
+    google.protobuf.Timestamp (the client shows them as RFC 3339)."""
+    from vasl._proto import vasl_pb2 as pb
+
+    for name in ("page-a", "page-b", "page-c"):
+        client.create_project(name, vossel_size_m=0.1)
+    everything = [p.name for p in client.list_projects()]
+    assert everything == sorted(everything) and {"page-a", "page-b", "page-c"} <= set(everything)
+    assert [p.name for p in client.list_projects(page_size=1)] == everything
+    first = client.stub.ListProjects(pb.ListProjectsRequest(page_size=2))
+    assert len(first.projects) == 2 and first.next_page_token
+    rest = client.stub.ListProjects(pb.ListProjectsRequest(page_size=1000,
+                                                           page_token=first.next_page_token))
+    assert [p.name for p in first.projects] + [p.name for p in rest.projects] == everything
+    assert rest.next_page_token == ""
+    try:
+        client.stub.ListProjects(pb.ListProjectsRequest(page_token="bogus"))
+        raise AssertionError("a bogus page token was accepted")
+    except grpc.RpcError as e:
+        assert e.code() == grpc.StatusCode.INVALID_ARGUMENT, e
+    from conftest import E2E_PROJECT
+    project = E2E_PROJECT
+    assert ingested
+    scans = client.list_scans(project, page_size=1)
+    assert [s.name for s in scans] == [s.name for s in client.list_scans(project)]
+    assert len(scans) >= 2
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(\.\d+)?Z", s.created_utc) for s in scans)
+    assert all(s.captured_utc.startswith("2026-") for s in scans), [s.captured_utc for s in scans]
+    versions = client.list_versions(project, page_size=1)
+    assert [v.version for v in versions] == [v.version for v in client.list_versions(project)]
+    assert all(v.created_utc.endswith("Z") for v in versions)
+    raw = client.stub.GetProject(pb.GetProjectRequest(project=project))
+    assert raw.HasField("create_time") and raw.create_time.seconds > 1.7e9

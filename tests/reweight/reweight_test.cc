@@ -254,5 +254,69 @@ TEST_F(ReweightTest, PinnedVersionSurvivesAndRevisionsStayReadable) {
   EXPECT_EQ(engine_->SetActiveProfile("h", "nope").code(), absl::StatusCode::kNotFound);
 }
 
+// Claim (history): a rollback to a kept version is a new commit that gives back that version's
+// tiles and fused layers object for object, and its scans (deleted ones return, later ones
+// leave, their names free again); what made each version is listed.
+TEST_F(ReweightTest, RollbackGivesBackAVersionExactly) {
+  Create("b");
+  for (size_t i = 0; i < 2; ++i) Ingest("b", i);  // v1, v2
+  ASSERT_TRUE(engine_->CreateProfile("b", Sharp()).ok());
+  ASSERT_TRUE(engine_->Reweight("b", "sharp", 0).ok());  // v3
+  Ingest("b", 2);                                         // v4
+  auto names = [&](int64_t v) {
+    auto st = store::ProjectStore::Open(root_ / "b");
+    std::vector<std::string> out;
+    const std::vector<store::ScanInfo> scans = *(*st)->ListScans(v);
+    for (const store::ScanInfo& s : scans) out.push_back(s.name);
+    return out;
+  };
+  const std::vector<std::string> at3 = names(3);
+  ASSERT_EQ(at3.size(), 2u);
+  ASSERT_TRUE(engine_->DeleteScan("b", at3[0]).ok());  // v5
+  RenderRequest req;
+  req.pose = room_.NovelViews()[0];
+  req.width_px = 256;
+  req.height_px = 128;
+  req.profile = "sharp";
+  req.version = 3;
+  auto before = engine_->Render("b", req);
+  ASSERT_TRUE(before.ok()) << before.status();
+
+  auto rolled = engine_->Rollback("b", 3);
+  ASSERT_TRUE(rolled.ok()) << rolled.status();
+  EXPECT_EQ(rolled->version, 6);
+  int compared = 0;
+  const store::Manifest m3 = Manifest("b", 3), m6 = Manifest("b", 6);
+  const int differ = Differing(m3, m6, {store::kLayerGeometry, store::kLayerRecords,
+                                        store::kLayerFusedDefault, store::FusedLayerName("sharp", 1)},
+                               &compared);
+  EXPECT_EQ(differ, 0) << "of " << compared;
+  EXPECT_EQ(m3.reach.size(), m6.reach.size());
+  EXPECT_EQ(names(6), at3) << "the deleted scan is back, the later one gone";
+  req.version = 0;
+  auto after = engine_->Render("b", req);
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_FALSE(after->fused_on_the_fly);
+  EXPECT_EQ(after->rgb, before->rgb);
+  EXPECT_EQ(after->depth_m, before->depth_m);
+  auto info = engine_->GetProject("b");
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->scan_count, 2);
+  Ingest("b", 2);  // the scan that left can come in again: v7
+  EXPECT_EQ(names(7).size(), 3u);
+  auto versions = engine_->ListVersions("b");
+  ASSERT_TRUE(versions.ok());
+  std::vector<std::string> made_by;
+  for (const store::VersionInfo& v : *versions) made_by.push_back(v.made_by);
+  std::printf("history:");
+  for (const std::string& m : made_by) std::printf(" [%s]", m.c_str());
+  std::printf("\nrollback: %d tile objects of version 3 given back unchanged, %d differ\n",
+              compared - differ, differ);
+  ASSERT_GE(made_by.size(), 3u);
+  EXPECT_EQ(made_by[made_by.size() - 2], "rollback to version 3");
+  EXPECT_EQ(made_by[2], "reweight under profile sharp revision 1");
+  EXPECT_EQ(engine_->Rollback("b", 7).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 }  // namespace
 }  // namespace vasl

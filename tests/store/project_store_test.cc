@@ -579,5 +579,49 @@ TEST(ProjectStoreTest, CommitWritesOnlyChangedTiles) {
   fs::remove_all(root);
 }
 
+// Claim: a catalog of an earlier schema (2: before profiles and scan lives) opens migrated,
+// keeps its versions and scans, and takes profiles and rollbacks afterwards.
+TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
+  const fs::path root = TestRoot("migrate");
+  {
+    auto store = ProjectStore::Create(root / "p", "p", {});
+    ASSERT_TRUE(store.ok());
+    for (const char* name : {"a", "b"}) {
+      const ScanInfo scan = MakeScan(**store, name, name[0] == 'a' ? 0.0 : 3.0);
+      ASSERT_TRUE(CommitScan(**store, MakeSnapshot(3, 400, 0.02, SourceIds(scan), scan.batch), scan).ok());
+    }
+  }
+  {  // Take the catalog back to schema 2, as an earlier vasl wrote it.
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open((root / "p" / "catalog.sqlite").c_str(), &db), SQLITE_OK);
+    char* err = nullptr;
+    const int rc = sqlite3_exec(db,
+        "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; "
+        "ALTER TABLE project DROP COLUMN active_profile; "
+        "CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL; "
+        "UPDATE schema_version SET version = 2; COMMIT;", nullptr, nullptr, &err);
+    EXPECT_EQ(rc, SQLITE_OK) << (err ? err : "");
+    sqlite3_free(err);
+    sqlite3_close(db);
+  }
+  auto store = ProjectStore::Open(root / "p");
+  ASSERT_TRUE(store.ok()) << store.status();
+  EXPECT_EQ((*store)->head_version(), 2);
+  EXPECT_EQ((*store)->ListScans(2)->size(), 2u);
+  EXPECT_EQ((*store)->ListScans(1)->size(), 1u);
+  EXPECT_TRUE(*(*store)->HasScan("a"));
+  EXPECT_EQ(*(*store)->ActiveProfile(), "default");
+  auto put = (*store)->PutProfile("p1", [](int32_t r) { return absl::StrCat("revision ", r); });
+  ASSERT_TRUE(put.ok()) << put.status();
+  EXPECT_EQ(put->revision, 1);
+  CommitPlan back;
+  back.made_by = "rollback to version 1";
+  back.rollback_to = 1;
+  ASSERT_TRUE((*store)->Commit(Snapshot{}, back).ok());
+  EXPECT_EQ((*store)->ListScans(0)->size(), 1u);
+  EXPECT_FALSE(*(*store)->HasScan("b"));
+  fs::remove_all(root);
+}
+
 }  // namespace
 }  // namespace vasl::store

@@ -347,6 +347,12 @@ def _cmd_records(client: Client, args) -> int:
     return 0
 
 
+def _cmd_rollback(client: Client, args) -> int:
+    _print_change(f"rolled {args.project} back to version {args.version}",
+                  client.rollback(args.project, args.version))
+    return 0
+
+
 def _cmd_pin(client: Client, args) -> int:
     v = client.pin_version(args.project, args.version, not args.unpin)
     print(f"version {v.version} of {args.project} is {'pinned' if v.pinned else 'not pinned'}")
@@ -461,6 +467,10 @@ def build_parser() -> argparse.ArgumentParser:
     recs.add_argument("--limit", type=int, default=0, help="most records to list (0: 10000)")
     recs.add_argument("--json", action="store_true")
 
+    rollback = sub.add_parser("rollback", help="a new version that gives back an earlier one")
+    rollback.add_argument("version", type=int)
+    rollback.add_argument("--project", required=True)
+
     pin = sub.add_parser("pin", help="pin a version against retention")
     pin.add_argument("version", type=int)
     pin.add_argument("--project", required=True)
@@ -479,7 +489,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "scans": _cmd_scans, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
-                "records": _cmd_records, "pin": _cmd_pin}
+                "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback}
     try:
         with Client(args.server, timeout_s=args.timeout) as client:
             return handlers[args.cmd](client, args)

@@ -13,6 +13,7 @@ from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence,
 
 import grpc
 import numpy as np
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
@@ -73,9 +74,27 @@ def _pose_from_pb(p: pb.Pose) -> Pose:
                  p.quaternion_xyzw.w))
 
 
+def _iso(msg, field: str) -> str:
+    """A Timestamp field as RFC 3339 text ("" when unset)."""
+    return getattr(msg, field).ToJsonString() if msg.HasField(field) else ""
+
+
+def _timestamp(iso: str, what: str):
+    """RFC 3339 text (e.g. 2026-11-22T12:00:00Z) as a Timestamp; None for ""."""
+    if not iso:
+        return None
+    ts = Timestamp()
+    try:
+        ts.FromJsonString(iso)
+    except ValueError:
+        raise ValueError(f"{what} must be an RFC 3339 time such as 2026-11-22T12:00:00Z, "
+                         f"got {iso!r}") from None
+    return ts
+
+
 def _project(p: pb.Project) -> Project:
     return Project(p.name, p.description, p.vossel_size_m, p.head_version, p.scan_count,
-                   p.vossel_count, p.record_count, p.created_utc)
+                   p.vossel_count, p.record_count, _iso(p, "create_time"))
 
 
 _PROFILE_NUMBERS = ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad",
@@ -133,7 +152,7 @@ def profile_from_pb(p: pb.WeightingProfile) -> dict:
             "mode": "nearest" if p.mode == pb.WeightingProfile.MODE_NEAREST else "blend",
             "scan_gain": {int(k): v for k, v in sorted(p.scan_gain.items())},
             "channel_gain": {int(c.source): list(c.gain) for c in p.channel_gain},
-            "created_utc": p.created_utc}
+            "created_utc": _iso(p, "create_time")}
 
 
 def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None) -> bytes:
@@ -262,19 +281,32 @@ class Client:
         self._check_name(name)
         return _project(self._call("GetProject", pb.GetProjectRequest(project=name)))
 
-    def list_projects(self) -> List[Project]:
-        return [_project(p) for p in self._call("ListProjects", pb.ListProjectsRequest()).projects]
+    def _pages(self, method: str, request, items: str, page_size: int = 0):
+        """Every item of a paged List call, page after page."""
+        request.page_size = page_size
+        out = []
+        while True:
+            resp = self._call(method, request)
+            out.extend(getattr(resp, items))
+            if not resp.next_page_token:
+                return out, resp
+            request.page_token = resp.next_page_token
 
-    def list_scans(self, project: str) -> List[Scan]:
+    def list_projects(self, *, page_size: int = 0) -> List[Project]:
+        projects, _ = self._pages("ListProjects", pb.ListProjectsRequest(), "projects", page_size)
+        return [_project(p) for p in projects]
+
+    def list_scans(self, project: str, *, page_size: int = 0) -> List[Scan]:
         self._check_name(project)
-        resp = self._call("ListScans", pb.ListScansRequest(project=project))
+        listed, _ = self._pages("ListScans", pb.ListScansRequest(project=project), "scans",
+                                page_size)
         scans = []
-        for s in resp.scans:
+        for s in listed:
             sources = [Source(x.id, x.name, _MODALITY_NAMES.get(x.modality, "unspecified"),
                               _pose_from_pb(x.pose), x.blob_sha256, x.width_px, x.height_px,
                               x.divergence_rad, x.point_count) for x in s.sources]
-            scans.append(Scan(s.id, s.name, s.rig, s.captured_utc, _pose_from_pb(s.pose), s.batch,
-                              s.version, s.created_utc, sources))
+            scans.append(Scan(s.id, s.name, s.rig, _iso(s, "capture_time"), _pose_from_pb(s.pose),
+                              s.batch, s.version, _iso(s, "create_time"), sources))
         return scans
 
     # -- ingest --------------------------------------------------------------------------
@@ -312,8 +344,11 @@ class Client:
         if not (divergence_rad > 0 and np.isfinite(divergence_rad)):
             raise ValueError(f"divergence_rad must be > 0, got {divergence_rad}")
         point_bytes = pack_points(points, intensity)
-        header = pb.ScanHeader(project=project, scan=scan, rig=rig, captured_utc=captured_utc,
+        header = pb.ScanHeader(project=project, scan=scan, rig=rig,
                                pose=pose_to_pb(Pose.parse(pose)))
+        captured = _timestamp(captured_utc, "captured_utc")
+        if captured is not None:
+            header.capture_time.CopyFrom(captured)
         header.lidar.divergence_rad = divergence_rad
         header.lidar.point_format = pb.POINT_FORMAT_XYZI_F32LE
         header.lidar.point_count = len(point_bytes) // 16
@@ -414,11 +449,12 @@ class Client:
             raise ValueError("scan must be a non-empty scan id")
         return _change(self._call("DeleteScan", pb.DeleteScanRequest(project=project, scan=scan)))
 
-    def list_versions(self, project: str) -> List[Version]:
+    def list_versions(self, project: str, *, page_size: int = 0) -> List[Version]:
         self._check_name(project)
-        r = self._call("ListVersions", pb.ListVersionsRequest(project=project))
+        versions, _ = self._pages("ListVersions", pb.ListVersionsRequest(project=project),
+                                  "versions", page_size)
         return [Version(v.version, v.vossel_count, v.record_count, v.tile_count, v.bytes_written,
-                        v.bytes_total, v.made_by, v.pinned, v.created_utc) for v in r.versions]
+                        v.bytes_total, v.made_by, v.pinned, _iso(v, "commit_time")) for v in versions]
 
     def export(self, project: str, path: str, version: int = 0) -> ExportResult:
         """Writes version `version` (0: HEAD) as one merged OpenVDB file at `path` (streamed;
@@ -456,6 +492,14 @@ class Client:
         os.replace(part, path)
         return ExportResult(meta.version, meta.vossel_count, meta.record_count, meta.size_bytes, path)
 
+    def rollback(self, project: str, version: int) -> ChangeResult:
+        """A new version that gives back kept version `version`: its tiles, fused layers and
+        scans."""
+        self._check_name(project)
+        if version <= 0:
+            raise ValueError(f"version must be > 0, got {version}")
+        return _change(self._call("Rollback", pb.RollbackRequest(project=project, version=version)))
+
     def pin_version(self, project: str, version: int, pinned: bool = True) -> Version:
         """Pins (or unpins) a kept version: pinned versions survive retention."""
         self._check_name(project)
@@ -464,7 +508,7 @@ class Client:
         v = self._call("PinVersion", pb.PinVersionRequest(project=project, version=version,
                                                           pinned=pinned))
         return Version(v.version, v.vossel_count, v.record_count, v.tile_count, v.bytes_written,
-                       v.bytes_total, v.made_by, v.pinned, v.created_utc)
+                       v.bytes_total, v.made_by, v.pinned, _iso(v, "commit_time"))
 
     # -- weighting profiles and reweighting (VASL-MODEL §7) ------------------------------
     def create_profile(self, project: str, profile: Union[dict, pb.WeightingProfile], *,
@@ -483,11 +527,12 @@ class Client:
         return profile_from_pb(self._call("GetProfile", pb.GetProfileRequest(
             project=project, name=name, revision=revision)))
 
-    def list_profiles(self, project: str):
+    def list_profiles(self, project: str, *, page_size: int = 0):
         """(profiles, active name): the built-in default, then the latest revision of each."""
         self._check_name(project)
-        r = self._call("ListProfiles", pb.ListProfilesRequest(project=project))
-        return [profile_from_pb(p) for p in r.profiles], r.active
+        profiles, last = self._pages("ListProfiles", pb.ListProfilesRequest(project=project),
+                                     "profiles", page_size)
+        return [profile_from_pb(p) for p in profiles], last.active
 
     def set_active_profile(self, project: str, name: str) -> dict:
         self._check_name(project)
