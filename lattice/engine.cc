@@ -436,6 +436,9 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   auto image = flows::RenderQuery(*(*p)->store, **snap, *fused, profile->profile, request);
   if (!image.ok()) return image.status();
   image->fused_on_the_fly = *stored == nullptr;
+  auto id = (*p)->store->RecordRender(flows::RenderRecordOf(request, *image));
+  if (!id.ok()) return id.status();
+  image->render_id = *id;
   return image;
 }
 

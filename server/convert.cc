@@ -184,6 +184,19 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
   }
   out.profile = request.profile();
   out.profile_revision = request.profile_revision();
+  if (request.has_pinhole()) {
+    const v1::PinholeCamera& c = request.pinhole();
+    out.projection = render::Projection::kPinhole;
+    out.pinhole.fx_px = c.fx_px();
+    out.pinhole.fy_px = c.fy_px();
+    out.pinhole.cx_px = c.cx_px();
+    out.pinhole.cy_px = c.cy_px();
+    out.pinhole.k1 = c.k1();
+    out.pinhole.k2 = c.k2();
+    out.pinhole.k3 = c.k3();
+    out.pinhole.p1 = c.p1();
+    out.pinhole.p2 = c.p2();
+  }
   return out;
 }
 

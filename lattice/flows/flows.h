@@ -89,6 +89,10 @@ absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store
                                                const fusion::WeightingProfile& profile,
                                                const render::RenderRequest& request);
 
+/// What the catalog records of a render (its pose, projection, profile and version).
+store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
+                                   const render::RenderImage& image);
+
 /// One record of a provenance query, with its vossel and the §7 weight it gets under the
 /// query's profile.
 struct RecordRow {

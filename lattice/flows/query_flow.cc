@@ -6,6 +6,7 @@
 #include <memory>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
 
@@ -68,6 +69,28 @@ absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store
   image->profile = profile.name;
   image->profile_revision = profile.version;
   return image;
+}
+
+store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
+                                   const render::RenderImage& image) {
+  store::RenderRecord r;
+  r.version = image.version;
+  r.profile = image.profile;
+  r.revision = image.profile_revision;
+  r.width_px = image.width_px;
+  r.height_px = image.height_px;
+  r.pose = request.pose;
+  if (request.projection == render::Projection::kPinhole) {
+    const geometry::PinholeIntrinsics& k = request.pinhole;
+    r.projection = "pinhole";
+    r.camera = absl::StrFormat("fx %.17g fy %.17g cx %.17g cy %.17g k1 %.17g k2 %.17g k3 %.17g "
+                               "p1 %.17g p2 %.17g", k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1,
+                               k.k2, k.k3, k.p1, k.p2);
+  } else {
+    r.projection = "equirect";
+  }
+  absl::StrAppend(&r.camera, r.camera.empty() ? "" : " ", absl::StrFormat("eta %.17g", request.eta));
+  return r;
 }
 
 absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store,

@@ -53,7 +53,8 @@ absl::Status ValidateImage(const RenderImage& image) {
   }
   const size_t pixels = static_cast<size_t>(image.width_px) * image.height_px;
   if (image.rgb.size() != 3 * pixels || image.depth_m.size() != pixels ||
-      image.normal.size() != 3 * pixels || image.uncertainty.size() != pixels) {
+      image.normal.size() != 3 * pixels || image.uncertainty.size() != pixels ||
+      (!image.alpha.empty() && image.alpha.size() != pixels)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "image arrays disagree with its size ", image.width_px, "x", image.height_px, ": ",
         image.rgb.size(), " rgb, ", image.depth_m.size(), " depth, ", image.normal.size(),
@@ -77,6 +78,12 @@ absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
   const int h = image.height_px;
   std::string bytes;
   try {
+    // Coverage (§8): images made before the alpha channel existed count every hit as covered.
+    std::vector<float> alpha = image.alpha;
+    if (alpha.size() != image.depth_m.size()) {
+      alpha.assign(image.depth_m.size(), 0.0f);
+      for (size_t i = 0; i < alpha.size(); ++i) alpha[i] = std::isfinite(image.depth_m[i]) ? 1.0f : 0.0f;
+    }
     Imf::Header header(w, h);  // data window (0,0)-(w-1,h-1)
     header.compression() = Imf::ZIP_COMPRESSION;
     header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
@@ -90,6 +97,7 @@ absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
         {"B", image.rgb.data() + 2, 3},    {"Z", image.depth_m.data(), 1},
         {"N.x", image.normal.data() + 0, 3}, {"N.y", image.normal.data() + 1, 3},
         {"N.z", image.normal.data() + 2, 3}, {"U", image.uncertainty.data(), 1},
+        {"A", alpha.data(), 1},
     };
     Imf::FrameBuffer frame;
     for (const Plane& p : planes) {
@@ -112,9 +120,20 @@ absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
 absl::StatusOr<std::string> EncodePng(const RenderImage& image) {
   if (absl::Status s = ValidateImage(image); !s.ok()) return s;
   const size_t pixels = static_cast<size_t>(image.width_px) * image.height_px;
-  std::vector<uint8_t> srgb(3 * pixels);
-  for (size_t i = 0; i < 3 * pixels; ++i) {
-    srgb[i] = static_cast<uint8_t>(std::lround(LinearToSrgb(image.rgb[i]) * 255.0f));
+  // RGBA: alpha 0 where the ray hit nothing or a vossel without colour, whose RGB is the
+  // neutral grey 128 (a viewer shows it as transparent; one that ignores alpha, as grey).
+  const bool has_alpha = image.alpha.size() == pixels;
+  std::vector<uint8_t> srgb(4 * pixels);
+  for (size_t p = 0; p < pixels; ++p) {
+    const bool covered = has_alpha ? image.alpha[p] > 0.0f : std::isfinite(image.depth_m[p]);
+    const bool colourless = !covered && std::isfinite(image.depth_m[p]);
+    for (int c = 0; c < 3; ++c) {
+      srgb[4 * p + c] = colourless ? uint8_t{128}
+                        : !covered ? uint8_t{0}
+                                   : static_cast<uint8_t>(std::lround(
+                                         LinearToSrgb(image.rgb[3 * p + c]) * 255.0f));
+    }
+    srgb[4 * p + 3] = covered ? 255 : 0;
   }
   std::vector<unsigned char> bytes;
   OIIO::Filesystem::IOVecOutput proxy(bytes);
@@ -126,7 +145,8 @@ absl::StatusOr<std::string> EncodePng(const RenderImage& image) {
   if (!out->supports("ioproxy") || !out->set_ioproxy(&proxy)) {
     return absl::InternalError("OpenImageIO's PNG writer cannot write to memory (no ioproxy)");
   }
-  const OIIO::ImageSpec spec(image.width_px, image.height_px, 3, OIIO::TypeDesc::UINT8);
+  OIIO::ImageSpec spec(image.width_px, image.height_px, 4, OIIO::TypeDesc::UINT8);
+  spec.alpha_channel = 3;
   if (!out->open("render.png", spec) || !out->write_image(OIIO::TypeDesc::UINT8, srgb.data()) ||
       !out->close()) {
     return absl::InternalError(

@@ -10,10 +10,12 @@
 
 namespace vasl::render {
 
-/// EXR bytes: half-free float channels R, G, B (linear), Z (metres, +inf no hit),
-/// N.x, N.y, N.z (world), U; ZIP compression.
+/// EXR bytes: float channels R, G, B (linear), Z (metres, +inf no hit), N.x, N.y, N.z
+/// (world), U (+inf where the hit vossel has no colour) and A (coverage: 1 where the pixel has
+/// a colour); ZIP compression.
 absl::StatusOr<std::string> EncodeExr(const RenderImage& image);
-/// PNG bytes: RGB 8-bit, sRGB transfer, no-hit pixels black.
+/// PNG bytes: RGBA 8-bit, sRGB transfer; alpha 0 where the ray hit nothing (RGB black) or a
+/// vossel without colour (RGB neutral grey 128).
 absl::StatusOr<std::string> EncodePng(const RenderImage& image);
 
 /// The standard sRGB OETF (IEC 61966-2-1): linear [0, 1] → encoded [0, 1], piecewise

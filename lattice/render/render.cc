@@ -204,6 +204,21 @@ absl::Status ValidateInputs(const records::VosselGeometry& geometry,
     return absl::InvalidArgumentError(
         "render pose must have a finite position and a unit quaternion");
   }
+  if (request.projection == Projection::kPinhole) {
+    const geometry::PinholeIntrinsics& k = request.pinhole;
+    for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
+      if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
+    }
+    if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "pinhole focal lengths must be > 0 pixels, got fx ", k.fx_px, ", fy ", k.fy_px));
+    }
+    if (std::max({std::abs(k.k1), std::abs(k.k2), std::abs(k.k3)}) > 10.0 ||
+        std::max(std::abs(k.p1), std::abs(k.p2)) > 1.0) {
+      return absl::InvalidArgumentError(
+          "pinhole distortion out of range (|k1|, |k2|, |k3| <= 10, |p1|, |p2| <= 1)");
+    }
+  }
   if (!(cell_margin_vox >= 0.0 && cell_margin_vox < 1.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("cell margin must lie in [0, 1) vossels, got ", cell_margin_vox));
@@ -266,6 +281,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   image.depth_m.assign(pixels, std::numeric_limits<float>::infinity());
   image.normal.assign(3 * pixels, 0.0f);
   image.uncertainty.assign(pixels, 0.0f);
+  image.alpha.assign(pixels, 0.0f);
   if (geometry.size() == 0) return image;
 
   Scene scene;
@@ -281,18 +297,24 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
       active_box.min().asVec3d(), active_box.max().asVec3d() + openvdb::Vec3d(1.0));
 
   const geometry::EquirectSize size{width, height};
-  std::atomic<int64_t> hit_pixels{0};
+  std::atomic<int64_t> hit_pixels{0}, colourless_pixels{0};
+  const bool pinhole = request.projection == Projection::kPinhole;
+  geometry::PinholeIntrinsics intrinsics = request.pinhole;
+  intrinsics.width_px = width;
+  intrinsics.height_px = height;
   std::atomic<bool> bad{false};
   std::atomic<int32_t> bad_index{0};
   tbb::parallel_for(tbb::blocked_range<int>(0, height), [&](const tbb::blocked_range<int>& rows) {
     AccessorT acc(*scene.tree);
     HddaT hdda;
-    int64_t hits = 0;
+    int64_t hits = 0, colourless = 0;
     for (int j = rows.begin(); j != rows.end(); ++j) {
       for (int i = 0; i < width; ++i) {
-        // §2.1 inverse at the pixel centre, rotated into the world.
-        const Eigen::Vector3d d_world = request.pose.DirectionToWorld(
-            geometry::EquirectUnproject(i + 0.5, j + 0.5, size)).normalized();
+        // The projection's inverse (§2.1 or §2.2) at the pixel centre, rotated into the world.
+        const Eigen::Vector3d d_sensor =
+            pinhole ? geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics)
+                    : geometry::EquirectUnproject(i + 0.5, j + 0.5, size);
+        const Eigen::Vector3d d_world = request.pose.DirectionToWorld(d_sensor).normalized();
         SurfaceHit hit;
         int32_t bad_value = 0;
         if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, &hit, &bad_value)) {
@@ -306,22 +328,24 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const size_t p = static_cast<size_t>(j) * width + i;
         image.depth_m[p] = static_cast<float>(hit.range_m);
         for (int c = 0; c < 3; ++c) image.normal[3 * p + c] = static_cast<float>(hit.normal[c]);
-        if (scene.rgb == nullptr) {
-          // No rgb record anywhere: U = 1/sqrt(Σw) with Σw = 0 (§7).
+        const size_t k = static_cast<size_t>(hit.vossel);
+        if (scene.rgb == nullptr || !(scene.rgb->weight[k] > 0.0f)) {
+          // No colour record of positive weight: no colour, which is not black (§8). U is
+          // 1/sqrt(Σw) with Σw = 0.
           image.uncertainty[p] = std::numeric_limits<float>::infinity();
+          ++colourless;
           continue;
         }
-        const size_t k = static_cast<size_t>(hit.vossel);
         image.uncertainty[p] = scene.rgb->uncertainty[k];
+        image.alpha[p] = 1.0f;
         if (request.eta > 0.0 && ViewBlend(*blend, geometry, k, request, &image.rgb[3 * p])) {
           continue;  // §8 with the view term
         }
-        if (scene.rgb->weight[k] > 0.0f) {  // §8 with η = 0: C = C_k
-          for (int c = 0; c < 3; ++c) image.rgb[3 * p + c] = scene.rgb->value[3 * k + c];
-        }
+        for (int c = 0; c < 3; ++c) image.rgb[3 * p + c] = scene.rgb->value[3 * k + c];  // C = C_k
       }
     }
     hit_pixels.fetch_add(hits);
+    colourless_pixels.fetch_add(colourless);
   });
   if (bad.load()) {
     return absl::InvalidArgumentError(
@@ -329,6 +353,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
                      " outside [0, ", geometry.size(), "): geometry and index grid disagree"));
   }
   image.hit_pixels = hit_pixels.load();
+  image.colourless_pixels = colourless_pixels.load();
   return image;
 }
 

@@ -9,16 +9,26 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
 namespace vasl::render {
 
+/// How a render's pixels map to rays.
+enum class Projection {
+  kEquirect,  ///< §2.1: W columns span 2π of azimuth, H rows π of elevation; sensor frame x forward, z up
+  kPinhole,   ///< §2.2: `pinhole` intrinsics and distortion; camera frame x right, y down, z forward
+};
+
 /// What to render (§8).
 struct RenderRequest {
-  geometry::Pose pose;          ///< T_world_camera of the virtual panorama
-  int width_px = 2048;          ///< W, columns spanning 2π of azimuth (§2.1)
-  int height_px = 1024;         ///< H, rows spanning π of elevation (§2.1)
+  geometry::Pose pose;          ///< T_world_camera (the projection's own camera frame)
+  int width_px = 2048;          ///< W: equirect columns spanning 2π, or pinhole image width
+  int height_px = 1024;         ///< H: equirect rows spanning π, or pinhole image height
+  Projection projection = Projection::kEquirect;
+  /// Pinhole intrinsics and distortion (width and height are the request's); pinhole only.
+  geometry::PinholeIntrinsics pinhole;
   int64_t version = 0;          ///< 0: HEAD
   std::string profile;          ///< weighting profile (§7); empty: the project's active one
   int32_t profile_revision = 0; ///< 0: the profile's latest revision
@@ -34,10 +44,16 @@ struct RenderImage {
   std::string profile;             ///< profile whose fused values it shows
   int32_t profile_revision = 0;
   bool fused_on_the_fly = false;   ///< the version holds no fused tiles for it: fused for this render
+  int64_t render_id = 0;           ///< the id the project's catalog recorded it under (0: none)
   std::vector<float> rgb;          ///< 3 per pixel, linear; 0 where no hit
   std::vector<float> depth_m;      ///< 1 per pixel: range along the ray; +inf where no hit
   std::vector<float> normal;       ///< 3 per pixel, world frame; 0 where no hit
-  std::vector<float> uncertainty;  ///< 1 per pixel: U_k; 0 where no hit
+  std::vector<float> uncertainty;  ///< 1 per pixel: U_k; 0 where no hit; +inf where the hit has no colour
+  /// 1 per pixel: coverage. 1 where the ray hit a vossel that has colour; 0 where it hit
+  /// nothing, or hit a vossel without any colour record of positive weight (§8: no colour is
+  /// not black; its rgb stays 0 and U = +inf).
+  std::vector<float> alpha;
+  int64_t colourless_pixels = 0;   ///< hit pixels whose vossel has no colour
   int64_t hit_pixels = 0;          ///< pixels whose ray met a vossel within max_range_m
 };
 
@@ -54,7 +70,8 @@ struct ViewBlendInputs {
 };
 
 /// Renders `request` from a version's geometry and fused values (§8). Parallel over rows (TBB).
-/// @details Each pixel's ray (§2.1 inverse at the pixel centre, rotated by the pose) is marched
+/// @details Each pixel's ray (the projection's inverse at the pixel centre, §2.1 or §2.2,
+///          rotated by the pose) is marched
 ///          by hierarchical DDA over `geometry.index_grid` (empty space skipped per node); the
 ///          first active vossel whose plane (x_k, n_k) the ray crosses at range ≥ 0 inside the
 ///          vossel's cell, expanded by internal::kDefaultCellMarginVox (0.25 h) to close cracks
@@ -63,7 +80,8 @@ struct ViewBlendInputs {
 ///          occlude) when η = 0; when η > 0, C = Σ w·max(0, v_{k,m}·v_{k,o})^η·C_{k,m} / Σ (same
 ///          weights) over the vossel's rgb and derived records (v the unit vectors from x_k to
 ///          the source and to the render origin), falling back to C_k when no record faces the
-///          view (choice); U = rgb U_k (+inf for hits when `fused` has no rgb modality). A vossel
+///          view (choice); U = rgb U_k. A hit vossel without colour of positive weight gets
+///          alpha 0, rgb 0 and U = +inf (also when `fused` has no rgb modality). A vossel
 ///          with a zero normal is hit where the ray enters its cell, with N = 0.
 ///          `image.version` is copied from the request (the engine sets the resolved version).
 /// @return INVALID_ARGUMENT for a non-positive or over-large (> 2^28 pixels) size, η < 0,

@@ -182,6 +182,18 @@ CREATE TABLE profiles(
   body TEXT NOT NULL,
   created_utc TEXT NOT NULL,
   PRIMARY KEY (name, revision));
+CREATE TABLE renders(
+  id INTEGER PRIMARY KEY,
+  version INTEGER NOT NULL,
+  profile TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  projection TEXT NOT NULL,
+  width_px INTEGER NOT NULL,
+  height_px INTEGER NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  camera TEXT NOT NULL,
+  created_utc TEXT NOT NULL);
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
   kind TEXT NOT NULL,
@@ -218,6 +230,21 @@ CREATE TABLE scan_lives(
   PRIMARY KEY (scan_id, from_version));
 INSERT INTO scan_lives(scan_id, from_version, to_version) SELECT id, version, deleted_in FROM scans;
 DROP INDEX IF EXISTS live_scan_names;
+)sql",
+      // 4 → 5: renders, to be cited by what comes back.
+      R"sql(
+CREATE TABLE renders(
+  id INTEGER PRIMARY KEY,
+  version INTEGER NOT NULL,
+  profile TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  projection TEXT NOT NULL,
+  width_px INTEGER NOT NULL,
+  height_px INTEGER NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  camera TEXT NOT NULL,
+  created_utc TEXT NOT NULL);
 )sql"};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += kSteps[v - 2];

@@ -772,6 +772,53 @@ absl::StatusOr<std::vector<StoredProfile>> ProjectStore::ListProfiles() const {
   return out;
 }
 
+absl::StatusOr<int64_t> ProjectStore::RecordRender(const RenderRecord& r) {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::Status s = RunSql(
+      impl_->db,
+      "INSERT INTO renders(version, profile, revision, projection, width_px, height_px, qx, qy, "
+      "qz, qw, ox_m, oy_m, oz_m, camera, created_utc) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, "
+      "?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+      [&](Stmt& st) {
+        st.Bind(1, r.version).Bind(2, r.profile).Bind(3, int64_t{r.revision}).Bind(4, r.projection);
+        st.Bind(5, int64_t{r.width_px}).Bind(6, int64_t{r.height_px});
+        BindPose(st, 7, r.pose);
+        st.Bind(14, r.camera).Bind(15, internal::UtcNowIso8601());
+      });
+  if (!s.ok()) return s;
+  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT last_insert_rowid()");
+  if (!st.ok()) return st.status();
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  return st->Int(0);
+}
+
+absl::StatusOr<RenderRecord> ProjectStore::GetRender(int64_t id) const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT version, profile, revision, projection, width_px, height_px, qx, qy, qz, qw, ox_m, "
+      "oy_m, oz_m, camera, created_utc FROM renders WHERE id = ?1");
+  if (!st.ok()) return st.status();
+  st->Bind(1, id);
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) {
+    return absl::NotFoundError(absl::StrCat("project ", impl_->name, " has no render ", id));
+  }
+  RenderRecord r;
+  r.id = id;
+  r.version = st->Int(0);
+  r.profile = st->Text(1);
+  r.revision = int32_t(st->Int(2));
+  r.projection = st->Text(3);
+  r.width_px = int(st->Int(4));
+  r.height_px = int(st->Int(5));
+  r.pose = ColumnPose(*st, 6);
+  r.camera = st->Text(13);
+  r.created_utc = st->Text(14);
+  return r;
+}
+
 absl::StatusOr<std::string> ProjectStore::ActiveProfile() const {
   std::lock_guard<std::mutex> lock(impl_->db_mu);
   absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT active_profile FROM project WHERE id = 1");

@@ -160,6 +160,19 @@ struct CommitPlan {
   int64_t rollback_to = 0;
 };
 
+/// A render as the catalog records it, so that an image that comes back can cite it.
+struct RenderRecord {
+  int64_t id = 0;            ///< assigned by RecordRender
+  int64_t version = 0;
+  std::string profile;
+  int32_t revision = 0;
+  std::string projection;    ///< "equirect" or "pinhole"
+  int width_px = 0, height_px = 0;
+  geometry::Pose pose;       ///< T_world_camera
+  std::string camera;        ///< projection parameters as text (pinhole intrinsics), may be empty
+  std::string created_utc;
+};
+
 /// A weighting profile revision as the catalog keeps it; its text is fusion::ProfileToText's.
 struct StoredProfile {
   std::string name;
@@ -227,6 +240,11 @@ class ProjectStore {
   /// The profile renders, queries and ingest fusion use when none is named ("default" until set).
   absl::StatusOr<std::string> ActiveProfile() const;
   absl::Status SetActiveProfile(const std::string& name);
+
+  /// Records a render and returns its id (ids grow; they are never reused).
+  absl::StatusOr<int64_t> RecordRender(const RenderRecord& render);
+  /// A recorded render; NOT_FOUND for an unknown id.
+  absl::StatusOr<RenderRecord> GetRender(int64_t id) const;
 
   /// Versions still kept (not removed by retention), oldest first.
   absl::StatusOr<std::vector<VersionInfo>> ListVersions() const;

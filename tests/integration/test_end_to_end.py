@@ -3,6 +3,7 @@ that match the analytic ground truth (VASL-MODEL §8), from a station camera and
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -135,3 +136,39 @@ def test_cli_render_writes_exr_and_png(ingested, server, views, tmp_path):
     channels = decode_exr(out.read_bytes())
     assert set(channels) >= {"R", "G", "B", "Z", "N.x", "N.y", "N.z", "U"}, sorted(channels)
     assert channels["Z"].shape == (128, 256)
+
+
+def test_pinhole_renders_alpha_and_render_ids(ingested, client, server, views, tmp_path):
+    """Pinhole renders from the CLI and the client; every render gets a new id; a hit without
+    colour has alpha 0 and U = inf (never black with alpha 1)."""
+    v = views["novel-1"]
+    pose = ",".join(str(x) for x in list(v["position"]) + list(v["quaternion"]))
+    out = tmp_path / "pin.exr"
+    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "render",
+                        "--project", E2E_PROJECT, "--pose", pose, "--width", "160", "--height",
+                        "120", "--pinhole", "100,100,80,60", "-o", str(out)],
+                       capture_output=True, text=True)
+    print("\n" + r.stdout)
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"render \d+: pinhole 160x120", r.stdout), r.stdout
+    from vasl import decode_exr
+
+    channels = decode_exr(out.read_bytes())
+    assert channels["A"].shape == (120, 160)
+    png = (tmp_path / "pin.png").read_bytes()
+    assert png[25] == 6, "the PNG is RGBA (colour type 6)"
+    a = client.render(E2E_PROJECT, v, 160, 120, formats=("exr",),
+                      pinhole={"fx_px": 100, "fy_px": 100, "cx_px": 80, "cy_px": 60})
+    b = client.render(E2E_PROJECT, v, 64, 32, formats=("exr",))
+    assert b.render_id > a.render_id > 0
+    hit = np.isfinite(a.depth_m)
+    colourless = hit & (a.alpha == 0)
+    assert int(colourless.sum()) == a.colourless_pixels
+    assert np.all(np.isinf(a.uncertainty[colourless]))
+    assert np.all(a.alpha[~hit] == 0) and np.all(a.alpha[hit & ~colourless] == 1)
+    print(f"pinhole 160x120: {int(hit.sum())} hit pixels, {a.colourless_pixels} without colour; "
+          f"render ids {a.render_id}, {b.render_id}")
+    bad = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "render",
+                          "--project", E2E_PROJECT, "--pose", pose, "--pinhole", "0,100,80,60",
+                          "-o", str(out)], capture_output=True, text=True)
+    assert bad.returncode == 1 and "INVALID_ARGUMENT" in bad.stderr, bad.stderr

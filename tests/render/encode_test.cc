@@ -60,7 +60,7 @@ RenderImage MakeImage() {
   return img;
 }
 
-// Claim (§8 outputs): the EXR holds exactly the FLOAT channels R, G, B, Z, N.x, N.y, N.z, U over
+// Claim (§8 outputs): the EXR holds exactly the FLOAT channels R, G, B, Z, N.x, N.y, N.z, U, A over
 // a W×H data window, ZIP-compressed, row 0 = top, and every value reads back bit-exact
 // (including Z = +inf for no-hit pixels).
 TEST(EncodeTest, ExrRoundTripExact) {
@@ -83,7 +83,7 @@ TEST(EncodeTest, ExrRoundTripExact) {
     EXPECT_EQ(it.channel().type, Imf::FLOAT) << it.name();
   }
   // OpenEXR lists channels sorted by name.
-  EXPECT_EQ(names, (std::vector<std::string>{"B", "G", "N.x", "N.y", "N.z", "R", "U", "Z"}));
+  EXPECT_EQ(names, (std::vector<std::string>{"A", "B", "G", "N.x", "N.y", "N.z", "R", "U", "Z"}));
 
   const size_t n = static_cast<size_t>(img.width_px) * img.height_px;
   std::map<std::string, std::vector<float>> planes;
@@ -158,30 +158,97 @@ TEST(EncodeTest, PngIsEightBitSrgb) {
   const OIIO::ImageSpec& spec = in->spec();
   EXPECT_EQ(spec.width, 256);
   EXPECT_EQ(spec.height, 2);
-  EXPECT_EQ(spec.nchannels, 3);
+  EXPECT_EQ(spec.nchannels, 4);
+  EXPECT_EQ(spec.alpha_channel, 3);
   EXPECT_EQ(spec.format, OIIO::TypeDesc::UINT8);
-  std::vector<uint8_t> px(3 * n);
-  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, px.data())) << in->geterror();
+  std::vector<uint8_t> px(4 * n);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 4, OIIO::TypeDesc::UINT8, px.data())) << in->geterror();
   in->close();
 
   int worst = 0;
   for (int i = 0; i < 256; ++i) {
     for (int c = 0; c < 3; ++c) {
-      worst = std::max(worst, std::abs(px[3 * i + c] - ExpectedSrgb8(img.rgb[3 * i + c])));
+      worst = std::max(worst, std::abs(px[4 * i + c] - ExpectedSrgb8(img.rgb[3 * i + c])));
     }
   }
   int anchor_worst = 0;
   for (int a = 0; a < 8; ++a) {
     for (int c = 0; c < 3; ++c) {
-      anchor_worst = std::max(anchor_worst, std::abs(px[3 * (256 + a) + c] - anchor_expect[a]));
+      anchor_worst = std::max(anchor_worst, std::abs(px[4 * (256 + a) + c] - anchor_expect[a]));
     }
   }
   std::printf("PNG 256x2: %zu bytes; ramp worst |decoded − expected| = %d; anchors 0.18→%d "
               "0.5→%d 1→%d −0.2→%d 1.7→%d NaN→%d, worst anchor error %d\n",
-              bytes->size(), worst, px[3 * 256], px[3 * 257], px[3 * 258], px[3 * 259],
-              px[3 * 260], px[3 * 261], anchor_worst);
+              bytes->size(), worst, px[4 * 256], px[4 * 257], px[4 * 258], px[4 * 259],
+              px[4 * 260], px[4 * 261], anchor_worst);
   EXPECT_LE(worst, 1);
   EXPECT_LE(anchor_worst, 1);
+  int opaque = 0;
+  for (size_t p = 0; p < n; ++p) opaque += px[4 * p + 3] == 255;
+  EXPECT_EQ(opaque, int(n)) << "every pixel hit (an image without alpha counts hits as covered)";
+}
+
+// Claim (§8: no colour is not black): a hit pixel without colour (alpha 0) is neutral grey with
+// alpha 0 in the PNG; a pixel that hit nothing is black with alpha 0; the EXR's A channel
+// carries the coverage and U = +inf stays.
+TEST(EncodeTest, NoColourIsNotBlack) {
+  RenderImage img = MakeImage();
+  const size_t n = img.depth_m.size();
+  img.alpha.assign(n, 1.0f);
+  for (size_t p = 0; p < n; ++p) {
+    if (!std::isfinite(img.depth_m[p])) img.alpha[p] = 0.0f;
+    if (p % 5 == 1) {  // hit, but the vossel has no colour
+      img.alpha[p] = 0.0f;
+      img.uncertainty[p] = std::numeric_limits<float>::infinity();
+      for (int c = 0; c < 3; ++c) img.rgb[3 * p + c] = 0.0f;
+    }
+  }
+  auto png = EncodePng(img);
+  ASSERT_TRUE(png.ok()) << png.status();
+  std::vector<unsigned char> buffer(png->begin(), png->end());
+  OIIO::Filesystem::IOMemReader reader(buffer.data(), buffer.size());
+  OIIO::ImageSpec config;  // read the file's own RGB, not premultiplied by alpha
+  config.attribute("oiio:UnassociatedAlpha", 1);
+  OIIO::Filesystem::IOProxy* proxy = &reader;
+  config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
+  auto in = OIIO::ImageInput::open("render.png", &config);
+  ASSERT_TRUE(in);
+  std::vector<uint8_t> px(4 * n);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 4, OIIO::TypeDesc::UINT8, px.data()));
+  in->close();
+  int colourless = 0, missed = 0;
+  for (size_t p = 0; p < n; ++p) {
+    const bool hit = std::isfinite(img.depth_m[p]);
+    if (hit && img.alpha[p] == 0.0f) {
+      ++colourless;
+      EXPECT_EQ(px[4 * p], 128);
+      EXPECT_EQ(px[4 * p + 3], 0);
+    } else if (!hit) {
+      ++missed;
+      EXPECT_EQ(px[4 * p], 0);
+      EXPECT_EQ(px[4 * p + 3], 0);
+    } else {
+      EXPECT_EQ(px[4 * p + 3], 255);
+    }
+  }
+  EXPECT_GT(colourless, 3);
+  EXPECT_GT(missed, 3);
+  auto exr = EncodeExr(img);
+  ASSERT_TRUE(exr.ok());
+  StringIStream stream(*exr);
+  Imf::InputFile file(stream);
+  std::vector<float> a(n, -1.0f), u(n, -1.0f);
+  Imf::FrameBuffer frame;
+  frame.insert("A", Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(a.data()), sizeof(float),
+                               sizeof(float) * img.width_px));
+  frame.insert("U", Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(u.data()), sizeof(float),
+                               sizeof(float) * img.width_px));
+  file.setFrameBuffer(frame);
+  file.readPixels(0, img.height_px - 1);
+  EXPECT_EQ(a, img.alpha);
+  for (size_t p = 0; p < n; ++p) {
+    if (p % 5 == 1) EXPECT_TRUE(std::isinf(u[p]));
+  }
 }
 
 // Claim (ARCHITECTURE "Errors"): an image whose arrays disagree with its size is

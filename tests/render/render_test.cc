@@ -13,6 +13,7 @@
 #include <openvdb/openvdb.h>
 
 #include "lattice/geometry/equirect.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/render/render_internal.h"
 
 namespace vasl::render {
@@ -208,7 +209,10 @@ int FindHitVossel(const Lattice& lat, const RenderImage& img, size_t p, const Ei
           same &= img.rgb[3 * p + c] == expect_rgb;
           same &= std::abs(img.normal[3 * p + c] - n_cam[c]) <= 1e-3;
         }
-        same &= img.uncertainty[p] == rgb.uncertainty[v];
+        // §8: a vossel without colour says so: alpha 0, U = +inf (never black with alpha 1).
+        const bool coloured = rgb.weight[v] > 0;
+        same &= img.uncertainty[p] == (coloured ? rgb.uncertainty[v] : std::numeric_limits<float>::infinity());
+        same &= img.alpha[p] == (coloured ? 1.0f : 0.0f);
         if (same) return v;
       }
   return -1;
@@ -251,6 +255,7 @@ TEST(RenderTest, MatchesAnalyticWallAndSphere) {
         EXPECT_EQ(img.rgb[3 * p], 0.0f);
         EXPECT_EQ(img.normal[3 * p + 2], 0.0f);
         EXPECT_EQ(img.uncertainty[p], 0.0f);
+        EXPECT_EQ(img.alpha[p], 0.0f);
         continue;
       }
       const int v = FindHitVossel(lat, img, p, req.pose.o_world, d);
@@ -294,6 +299,7 @@ TEST(RenderTest, MatchesAnalyticWallAndSphere) {
   EXPECT_LT(max_sphere_normal_rad, 2.0 * kH / scene.sphere_r_m);
   EXPECT_EQ(identified, img.hit_pixels);
   EXPECT_GT(zero_weight_hits, 0);
+  EXPECT_EQ(img.colourless_pixels, zero_weight_hits);
 }
 
 // Claim (§8, *(choice)* of render_internal.h): accepting plane crossings up to 0.25 vossel
@@ -548,6 +554,82 @@ TEST(RenderTest, RejectsBadInput) {
   const absl::Status idx = RenderEquirect(bad_index, lat.fused, req).status();
   EXPECT_EQ(idx.code(), absl::StatusCode::kInvalidArgument);
   std::printf("out-of-range index grid: %s\n", idx.ToString().c_str());
+}
+
+// Claim (§8 with §2.2): a pinhole render marches the pinhole's own pixel rays. Against the
+// analytic wall and sphere, every interior pixel's depth is within 0.1 h and ≥ 99.5% of the
+// analytic hits are hits; its principal pixel shows what the equirect render's pixel with the
+// same ray shows, to float rounding; each pixel's ray projects back onto its pixel centre.
+TEST(RenderTest, PinholeRendersItsOwnRays) {
+  const AnalyticScene scene;
+  const Lattice lat = BuildLattice(scene);
+  RenderRequest req;
+  req.projection = Projection::kPinhole;
+  req.width_px = 161;
+  req.height_px = 121;
+  req.pinhole = {161, 121, 90.0, 92.0, 80.5, 60.5, -0.03, 0.004, 0.0, 0.0005, -0.0003};
+  Eigen::Matrix3d R;  // camera x right → world −y, y down → world −z, z forward → world +x
+  R.col(0) = Eigen::Vector3d(0, -1, 0);
+  R.col(1) = Eigen::Vector3d(0, 0, -1);
+  R.col(2) = Eigen::Vector3d(1, 0, 0);
+  req.pose.o_world = CameraPose().o_world;
+  req.pose.q_world_sensor = Eigen::Quaterniond(R);
+  auto img = RenderEquirect(lat.geometry, lat.fused, req);
+  ASSERT_TRUE(img.ok()) << img.status();
+  int64_t analytic_hits = 0, covered = 0, interior = 0, interior_ok = 0;
+  double max_err_vox = 0.0, max_reproj_px = 0.0;
+  for (int j = 0; j < req.height_px; ++j) {
+    for (int i = 0; i < req.width_px; ++i) {
+      const size_t p = size_t(j) * req.width_px + i;
+      const Eigen::Vector3d d_cam =
+          geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), req.pinhole);
+      const auto uv = geometry::PinholeProject(d_cam, req.pinhole);
+      ASSERT_TRUE(uv.has_value());
+      max_reproj_px = std::max(max_reproj_px, (*uv - Eigen::Vector2d(i + 0.5, j + 0.5)).norm());
+      const Eigen::Vector3d d = (R * d_cam).normalized();
+      const AnalyticHit a = TraceAnalytic(scene, req.pose.o_world, d);
+      const bool hit = std::isfinite(img->depth_m[p]);
+      if (a.object == 0) continue;
+      ++analytic_hits;
+      covered += hit;
+      if (hit && a.edge_distance_m >= 2 * kH && a.cos_inc >= 0.5) {
+        ++interior;
+        const double err = std::abs(img->depth_m[p] - a.range_m) / kH;
+        max_err_vox = std::max(max_err_vox, err);
+        interior_ok += err < 0.1;
+      }
+    }
+  }
+  // The equirect pixel whose centre ray is the pinhole's principal ray (odd W and H: φ = ψ = 0).
+  RenderRequest eq;
+  eq.pose.o_world = req.pose.o_world;
+  eq.width_px = 1025;
+  eq.height_px = 513;
+  auto pano = RenderEquirect(lat.geometry, lat.fused, eq);
+  ASSERT_TRUE(pano.ok());
+  const size_t pp = size_t(60) * req.width_px + 80;
+  const size_t ep = size_t(eq.height_px / 2) * eq.width_px + eq.width_px / 2;
+  const double depth_diff = std::abs(double(img->depth_m[pp]) - pano->depth_m[ep]);
+  std::printf("pinhole %dx%d: %lld analytic hits, covered %.3f%%; %lld interior pixels, depth < "
+              "0.1h for %.3f%%, max %.4f h; reprojection max %.2g px; principal pixel vs equirect "
+              "centre: depth %.6f vs %.6f m\n",
+              req.width_px, req.height_px, (long long)analytic_hits, 100.0 * covered / analytic_hits,
+              (long long)interior, 100.0 * interior_ok / std::max<int64_t>(1, interior), max_err_vox,
+              max_reproj_px, img->depth_m[pp], pano->depth_m[ep]);
+  EXPECT_GE(double(covered) / analytic_hits, 0.995);
+  EXPECT_GT(interior, 5000);
+  EXPECT_EQ(interior_ok, interior);
+  EXPECT_LT(max_reproj_px, 1e-6);
+  ASSERT_TRUE(std::isfinite(pano->depth_m[ep]));
+  EXPECT_LT(depth_diff, 1e-5);
+  for (int c = 0; c < 3; ++c) {
+    EXPECT_EQ(img->rgb[3 * pp + c], pano->rgb[3 * ep + c]);
+    EXPECT_NEAR(img->normal[3 * pp + c], pano->normal[3 * ep + c], 1e-6);
+  }
+  EXPECT_EQ(img->uncertainty[pp], pano->uncertainty[ep]);
+  req.pinhole.fx_px = 0.0;
+  EXPECT_EQ(RenderEquirect(lat.geometry, lat.fused, req).status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

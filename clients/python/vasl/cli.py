@@ -118,8 +118,18 @@ def _cmd_render(client: Client, args) -> int:
     out = args.output
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
+    pinhole = None
+    if args.pinhole:
+        try:
+            v = [float(x) for x in args.pinhole.split(",")]
+        except ValueError:
+            v = []
+        if len(v) not in (4, 9):
+            raise ValueError("--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
+        pinhole = dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"), v))
     r = client.render(args.project, pose, args.width, args.height, version=args.version,
-                      formats=("exr", "png"), eta=args.eta, decode=False, profile=args.profile)
+                      formats=("exr", "png"), eta=args.eta, decode=False, profile=args.profile,
+                      pinhole=pinhole)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     png = out[:-4] + ".png"
     with open(out, "wb") as f:
@@ -127,11 +137,15 @@ def _cmd_render(client: Client, args) -> int:
     with open(png, "wb") as f:
         f.write(r.png)
     total = r.width_px * r.height_px
-    print(f"rendered {r.width_px}x{r.height_px} from version {r.version}: "
+    print(f"render {r.render_id}: {'pinhole' if pinhole else 'equirect'} "
+          f"{r.width_px}x{r.height_px} from version {r.version}: "
           f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
           f"{r.render_seconds:.2f} s, profile {r.profile} revision {r.profile_revision}"
           + (" (fused for this render: run vasl reweight to store it)" if r.fused_on_the_fly else ""))
-    print(f"wrote {out} (R,G,B,Z,N.x,N.y,N.z,U float) and {png}")
+    if r.colourless_pixels:
+        print(f"{r.colourless_pixels} hit pixels show vossels without colour: alpha 0 and U = inf "
+              f"in the EXR, transparent grey in the PNG")
+    print(f"wrote {out} (R,G,B,Z,N.x,N.y,N.z,U,A float) and {png} (RGBA)")
     return 0
 
 
@@ -396,6 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--height", type=int, default=1024)
     render.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
     render.add_argument("--eta", type=float, default=0.0, help="view term (VASL-MODEL §8)")
+    render.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
+                        help="a pinhole render (pixels; camera x right, y down, z forward) "
+                             "instead of an equirectangular panorama")
     render.add_argument("--profile", default="",
                         help="weighting profile (default: the project's active one)")
     render.add_argument("-o", "--output", required=True, metavar="OUT.exr",

@@ -594,10 +594,12 @@ class Client:
     def render(self, project: str, pose, width_px: int = 2048, height_px: int = 1024, *,
                version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
                max_range_m: float = 0.0, decode: bool = True, profile: str = "",
-               profile_revision: int = 0) -> RenderResult:
+               profile_revision: int = 0, pinhole: Optional[dict] = None) -> RenderResult:
         """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
         `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
-        `profile` names the weighting profile (default: the project's active one)."""
+        `profile` names the weighting profile (default: the project's active one). `pinhole`
+        ({"fx_px", "fy_px", "cx_px", "cy_px"} and optional "k1", "k2", "k3", "p1", "p2") makes a
+        pinhole render of width_px × height_px in the camera frame x right, y down, z forward."""
         self._check_name(project)
         if int(width_px) <= 0 or int(height_px) <= 0:
             raise ValueError(f"width_px and height_px must be > 0, got {width_px}x{height_px}")
@@ -611,6 +613,13 @@ class Client:
                                    version=version, formats=[_FORMATS[f] for f in formats],
                                    eta=eta, max_range_m=max_range_m, profile=profile,
                                    profile_revision=int(profile_revision))
+        if pinhole is not None:
+            keys = {"fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"}
+            unknown = set(pinhole) - keys
+            if unknown or not {"fx_px", "fy_px", "cx_px", "cy_px"} <= set(pinhole):
+                raise ValueError(f"pinhole needs fx_px, fy_px, cx_px, cy_px (and optionally k1, "
+                                 f"k2, k3, p1, p2); got {sorted(pinhole)}")
+            request.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
         meta = None
         parts: Dict[int, bytearray] = {}
         try:
@@ -635,7 +644,8 @@ class Client:
         result = RenderResult(meta.width_px, meta.height_px, meta.version, meta.hit_pixels,
                               meta.render_seconds, profile=meta.profile,
                               profile_revision=meta.profile_revision,
-                              fused_on_the_fly=meta.fused_on_the_fly)
+                              fused_on_the_fly=meta.fused_on_the_fly, render_id=meta.render_id,
+                              colourless_pixels=meta.colourless_pixels)
         if pb.IMAGE_FORMAT_EXR in parts:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
         if pb.IMAGE_FORMAT_PNG in parts:
@@ -647,6 +657,7 @@ class Client:
             if "N.x" in ch:
                 result.normal = np.stack([ch["N.x"], ch["N.y"], ch["N.z"]], axis=-1)
             result.uncertainty = ch.get("U")
+            result.alpha = ch.get("A")
         return result
 
     # -- inspection ----------------------------------------------------------------------

@@ -182,6 +182,9 @@ class RenderResult:
     profile: str = "default"  #: the weighting profile rendered under
     profile_revision: int = 1
     fused_on_the_fly: bool = False  #: no stored fused tiles for the profile: fused for this render
+    render_id: int = 0  #: the id the project recorded this render under (cite it when editing)
+    colourless_pixels: int = 0  #: hit pixels whose vossel has no colour (alpha 0, never black)
+    alpha: Optional[np.ndarray] = None  #: (H, W) float32 coverage: 1 where the pixel has a colour
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
 
