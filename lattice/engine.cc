@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
+#include "lattice/ingest/backproject.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/validate.h"
 
@@ -351,6 +352,80 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
                                 impl_->limits.max_image_pixels,
                                 StageReporter(progress));
   if (!flow.ok()) return flow.status();
+  IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
+  auto scans = st.ListScans();
+  if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
+  return done;
+}
+
+absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
+                                                 const BackProjectInput& input,
+                                                 const ProgressFn& progress) {
+  const auto t0 = Clock::now();
+  auto found = impl_->Find(project);
+  if (!found.ok()) return found.status();
+  Impl::Project& p = **found;
+  store::ProjectStore& st = *p.store;
+  if (absl::Status s = ingest::ValidatePose(input.pose, "back-projection"); !s.ok()) return s;
+  if (int64_t(input.image.size()) > impl_->limits.max_image_bytes) {
+    return absl::ResourceExhaustedError(absl::StrCat("image of ", input.image.size(),
+                                                     " bytes exceeds the limit of ",
+                                                     impl_->limits.max_image_bytes));
+  }
+  auto image = ingest::DecodeRgbzImage(input.image, impl_->limits.max_image_pixels);
+  if (!image.ok()) return image.status();
+  if (input.pinhole) {
+    const geometry::PinholeIntrinsics& k = input.intrinsics;
+    for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
+      if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
+    }
+    if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
+      return absl::InvalidArgumentError("pinhole focal lengths must be > 0 pixels");
+    }
+  }
+  if (input.render_id > 0) {
+    if (auto r = st.GetRender(input.render_id); !r.ok()) return r.status();
+  }
+  std::lock_guard<std::mutex> writer(p.write_mu);
+  auto head = impl_->Snapshot(p, 0);
+  if (!head.ok()) return head.status();
+  auto batch = st.NextBatchId();
+  if (!batch.ok()) return batch.status();
+  auto source_id = st.NextSourceId();
+  if (!source_id.ok()) return source_id.status();
+  store::ScanInfo info;
+  info.name = input.name.empty() ? absl::StrCat("backproject-", *batch) : input.name;
+  if (auto exists = st.HasScan(info.name); !exists.ok() || *exists) {
+    return exists.ok() ? absl::AlreadyExistsError(absl::StrCat("project '", project,
+                                                               "' already has a scan or batch '",
+                                                               info.name, "'"))
+                       : exists.status();
+  }
+  info.rig = "derived";
+  info.pose = input.pose;
+  info.batch = *batch;
+  auto blob = st.PutBlob(input.image);
+  if (!blob.ok()) return blob.status();
+  store::SourceInfo src;
+  src.id = *source_id;
+  src.name = "image";
+  src.modality = records::Modality::kDerived;
+  src.pose = input.pose;
+  src.blob_sha256 = *blob;
+  src.width_px = image->width_px;
+  src.height_px = image->height_px;
+  src.camera = flows::DerivedCameraText(input.pinhole, input.intrinsics, input.render_id);
+  info.sources.push_back(src);
+  ingest::DerivedSource derived;
+  derived.pose = input.pose;
+  derived.pinhole = input.pinhole;
+  derived.intrinsics = input.intrinsics;
+  derived.image = std::move(*image);
+  auto flow = flows::BackProject(st, **head, info, std::move(derived), StageReporter(progress));
+  if (!flow.ok()) return flow.status();  // the blob is collected with the next commit
+  IngestResult result;
+  result.pixels_back_projected = flow->pixels_back_projected;
+  result.pixels_outside = flow->pixels_outside;
   IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
   auto scans = st.ListScans();
   if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;

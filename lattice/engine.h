@@ -73,8 +73,20 @@ struct IngestResult {
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes the commit wrote
+  int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
+  int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   double seconds = 0.0;         ///< wall time of the whole flow
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
+};
+
+/// An RGBZ image sent back as derived data (§10).
+struct BackProjectInput {
+  std::string name;             ///< the batch's name (a scan of its own); empty: "backproject-<batch>"
+  geometry::Pose pose;          ///< T_world_camera of the image, in its projection's frame
+  bool pinhole = false;         ///< false: equirectangular
+  geometry::PinholeIntrinsics intrinsics;  ///< pinhole only (size from the image)
+  std::string image;            ///< OpenEXR bytes with channels R, G, B, Z [, N.x, N.y, N.z, U, A]
+  int64_t render_id = 0;        ///< the render it came from (0: none)
 };
 
 /// What InspectRecords reports of a version's records.
@@ -105,6 +117,14 @@ class Engine {
   /// normals → visibility → records → fuse → atomic commit. `progress` may be empty.
   absl::StatusOr<IngestResult> IngestScan(const std::string& project, const ScanInput& scan,
                                           const ProgressFn& progress = {});
+
+  /// Back-projection (§10): the image's pixels become derived records (modality derived,
+  /// V = 1) of the vossels they land on, in a new batch that is a scan of its own (delete it to
+  /// roll the batch back); raw records are never replaced. INVALID_ARGUMENT for an image
+  /// without R, G, B, Z, a bad pose or projection, or no pixel landing on geometry; NOT_FOUND
+  /// for an unknown render; ALREADY_EXISTS for a name in use.
+  absl::StatusOr<IngestResult> BackProject(const std::string& project, const BackProjectInput& input,
+                                           const ProgressFn& progress = {});
 
   /// Recomputes the whole project from its raw blobs as a new version (the oracle the
   /// incremental flows agree with). FAILED_PRECONDITION for a project without scans.

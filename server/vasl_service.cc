@@ -47,6 +47,121 @@ bool ClientGone(grpc::CallbackServerContext* context, grpc::Status* status) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// BackProject: a header, then the image's bytes; the engine runs on the pool.
+class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectRequest> {
+ public:
+  BackProjectReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                     v1::BackProjectResponse* response)
+      : service_(service), context_(context), response_(response), start_(Clock::now()) {
+    StartRead(&request_);
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {
+      EndOfStream();
+      return;
+    }
+    if (absl::Status s = Add(); !s.ok()) {
+      Finish(ToGrpcStatus(s));
+      return;
+    }
+    request_.Clear();
+    StartRead(&request_);
+  }
+
+  void OnDone() override { delete this; }
+
+ private:
+  absl::Status Add() {
+    if (request_.has_header()) {
+      if (has_header_) return absl::InvalidArgumentError("a back-projection stream has one header");
+      const v1::BackProjectHeader& h = request_.header();
+      has_header_ = true;
+      project_ = h.project();
+      if (!h.has_pose()) return absl::InvalidArgumentError("header.pose is required");
+      absl::StatusOr<geometry::Pose> pose = PoseFromProto(h.pose(), "header.pose");
+      if (!pose.ok()) return pose.status();
+      input_.pose = *pose;
+      input_.name = h.name();
+      input_.render_id = h.render_id();
+      if (h.has_pinhole()) {
+        const v1::PinholeCamera& c = h.pinhole();
+        input_.pinhole = true;
+        input_.intrinsics = {0, 0, c.fx_px(), c.fy_px(), c.cx_px(), c.cy_px(), c.k1(), c.k2(),
+                             c.k3(), c.p1(), c.p2()};
+      }
+      const int64_t limit = service_->engine()->limits().max_image_bytes;
+      if (h.image_size_bytes() <= 0 || h.image_size_bytes() > limit) {
+        return h.image_size_bytes() <= 0
+                   ? absl::InvalidArgumentError("header.image_size_bytes must be > 0")
+                   : absl::ResourceExhaustedError(absl::StrCat(
+                         "image of ", h.image_size_bytes(), " bytes exceeds the limit of ", limit));
+      }
+      expected_ = h.image_size_bytes();
+      return absl::OkStatus();
+    }
+    if (!has_header_) return absl::InvalidArgumentError("the first message must be the header");
+    if (int64_t(input_.image.size() + request_.image_chunk().size()) > expected_) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "more image bytes than header.image_size_bytes (", expected_, ")"));
+    }
+    input_.image.append(request_.image_chunk());
+    return absl::OkStatus();
+  }
+
+  void EndOfStream() {
+    if (context_->IsCancelled()) {
+      Finish(grpc::Status(grpc::StatusCode::CANCELLED, "the client cancelled the back-projection"));
+      return;
+    }
+    if (!has_header_) {
+      Finish(ToGrpcStatus(absl::InvalidArgumentError("the stream ended before its header")));
+      return;
+    }
+    if (int64_t(input_.image.size()) != expected_) {
+      Finish(ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
+          "the stream ended after ", input_.image.size(), " of ", expected_, " image bytes"))));
+      return;
+    }
+    if (!service_->pool()->Submit([this] { Run(); })) Finish(Unavailable());
+  }
+
+  void Run() {
+    const ProgressFn progress = service_->ProgressReporter(
+        "BackProject", project_, "name=" + input_.name, start_);
+    absl::StatusOr<IngestResult> r = service_->engine()->BackProject(project_, input_, progress);
+    if (!r.ok()) {
+      Finish(ToGrpcStatus(r.status()));
+      return;
+    }
+    auto scans = service_->engine()->ListScans(project_);
+    if (scans.ok() && !scans->empty()) response_->set_name(scans->back().name);
+    response_->set_version(r->version);
+    response_->set_pixels_back_projected(r->pixels_back_projected);
+    response_->set_pixels_outside(r->pixels_outside);
+    response_->set_record_count(r->record_count);
+    response_->set_seconds(r->seconds);
+    ChangeStatsToProto(*r, response_->mutable_change());
+    Finish(grpc::Status::OK);
+  }
+
+  void Finish(const grpc::Status& status) {
+    service_->LogRequest("BackProject", project_, status, start_);
+    grpc::ServerReadReactor<v1::BackProjectRequest>::Finish(status);
+  }
+
+  VaslServiceImpl* service_;
+  grpc::CallbackServerContext* context_;
+  v1::BackProjectResponse* response_;
+  v1::BackProjectRequest request_;
+  BackProjectInput input_;
+  std::string project_;
+  bool has_header_ = false;
+  int64_t expected_ = 0;
+  Clock::time_point start_;
+};
+
+// ---------------------------------------------------------------------------------------------
 // IngestScan: one reader reactor per stream. Reads and assembles on gRPC's threads (cheap
 // appends), runs the engine on the pool, finishes from there.
 class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest> {
@@ -789,6 +904,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext*
         engine_->Rollback(request->project(), request->version(), progress);
     return FinishChange(request->project(), result, response);
   });
+}
+
+grpc::ServerReadReactor<v1::BackProjectRequest>* VaslServiceImpl::BackProject(
+    grpc::CallbackServerContext* context, v1::BackProjectResponse* response) {
+  return new BackProjectReactor(this, context, response);
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::PinVersion(grpc::CallbackServerContext* context,

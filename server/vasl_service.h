@@ -96,6 +96,8 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* Rollback(grpc::CallbackServerContext* context,
                                      const v1::RollbackRequest* request,
                                      v1::ChangeResponse* response) override;
+  grpc::ServerReadReactor<v1::BackProjectRequest>* BackProject(
+      grpc::CallbackServerContext* context, v1::BackProjectResponse* response) override;
   grpc::ServerUnaryReactor* PinVersion(grpc::CallbackServerContext* context,
                                        const v1::PinVersionRequest* request,
                                        v1::Version* response) override;

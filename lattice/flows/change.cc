@@ -7,6 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/geometry/footprint.h"
+#include "lattice/ingest/backproject.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/ingest/visibility.h"
 #include "lattice/reweight/profiles.h"
@@ -183,6 +184,14 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
     if (!lidar.ok()) return lidar.status();
     return ingest::LidarRecords(geometry, *lidar, only, context);
   }
+  if (source.derived()) {  // §10: its pixels land on vossels again; no depth panorama
+    absl::StatusOr<ingest::DerivedSource> derived =
+        LoadDerived(store, source.info, source.batch, max_image_pixels);
+    if (!derived.ok()) return derived.status();
+    ingest::SourceRecords out;
+    out.records = ingest::BackProjectRecords(geometry, *derived, only);
+    return out;
+  }
   return ingest::CameraRecords(
       geometry, StoredCamera(store, source.info, source.batch, max_image_pixels), only, context);
 }
@@ -214,6 +223,16 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   // 2. Which older sources must be recomputed on which blocks.
   std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks
   for (const SourceRef& src : old_sources) {
+    if (src.derived()) {
+      // A derived source's records depend on which vossels exist where its pixels land and on
+      // their normals: exactly the changed blocks.
+      std::set<tiles::TileKey> changed;
+      for (const ChangedBlock& b : blocks) {
+        if (all_blocks.count(b.key)) changed.insert(b.key);
+      }
+      if (!changed.empty()) revisit[src.info.id] = std::move(changed);
+      continue;
+    }
     auto it = old.reach.find(src.info.id);
     std::set<tiles::TileKey> blocks_of_src =
         AffectedBlocks(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_blocks, B, h);
@@ -266,7 +285,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     fraction += span;
     // The revisited blocks, and the cone of blocks whose splats can fall where their
     // visibility tests (and a camera's dilation) read: the depth panorama splats that cone only.
-    const RevisitCone cone = ConeOf(src, it->second, all_blocks, B, h);
+    const RevisitCone cone = src.derived() ? RevisitCone{} : ConeOf(src, it->second, all_blocks, B, h);
     std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
     for (size_t v = 0; v < g.size(); ++v) {
       only[v] = it->second.count(block_of[v]) ? 1 : 0;
@@ -276,6 +295,14 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
         StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
     if (!computed.ok()) return computed.status();
     ingest::SourceRecords& recs = *computed;
+    if (src.derived()) {
+      next.records.Append(recs.records);
+      record_tiles.insert(tiles_of_src.begin(), tiles_of_src.end());
+      ++result.sources_revisited;
+      result.pairs_revisited += int64_t(tiles_of_src.size());
+      result.blocks_revisited += int64_t(it->second.size());
+      continue;
+    }
     auto before = old.reach.find(src.info.id);
     if (before != old.reach.end() && before->second.size.width_px == recs.reach.size.width_px &&
         before->second.size.height_px == recs.reach.size.height_px) {
@@ -303,6 +330,16 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   for (const ingest::LidarSource& lidar : change.new_sources.lidars) {
     clock.Start(absl::StrCat("records of source ", lidar.id), fraction);
     add_new(ingest::LidarRecords(g, lidar), lidar.id);
+  }
+  for (const ingest::DerivedSource& d : change.new_sources.derived) {
+    clock.Start(absl::StrCat("back-project source ", d.id), fraction);
+    ingest::BackProjectStats stats;
+    records::RecordSet recs = ingest::BackProjectRecords(g, d, nullptr, &stats);
+    for (int32_t v : recs.vossel) record_tiles.insert(tile_of[size_t(v)]);
+    next.records.Append(recs);
+    ++result.sources_computed;
+    result.pixels_back_projected += stats.pixels_used;
+    result.pixels_outside += stats.pixels_outside;
   }
   for (ingest::CameraSource& cam : change.new_sources.cameras) {
     clock.Start(absl::StrCat("records of source ", cam.id), fraction);

@@ -58,6 +58,8 @@ struct SourceRef {
   store::SourceInfo info;
   int32_t batch = 0;
   bool lidar() const { return info.modality == records::Modality::kLidar; }
+  /// An image sent back as derived data (§10): no geometry, no depth panorama, no reach.
+  bool derived() const { return info.modality == records::Modality::kDerived; }
 };
 /// Every source of `scans`, in source-id order.
 std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans);

@@ -42,12 +42,23 @@ struct FlowResult {
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
+  int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
+  int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
 };
 
 /// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality) as
 /// the stages take them, without its points or image.
 ingest::LidarSource LidarOf(const store::SourceInfo& source, int32_t batch);
 ingest::CameraSource CameraOf(const store::SourceInfo& source, int32_t batch);
+
+/// A derived source's camera text (SourceInfo::camera) and back: "equirect" or "pinhole fx fy
+/// cx cy k1 k2 k3 p1 p2", then " render ID" when it cites a render.
+std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k, int64_t render_id);
+/// A stored derived source whose image is decoded from its blob on demand. DATA_LOSS for a
+/// camera text or image it cannot read.
+absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
+                                                  const store::SourceInfo& source, int32_t batch,
+                                                  int64_t max_image_pixels);
 
 /// The LiDAR of a stored source, from its blob (packed float32 x, y, z, intensity).
 /// DATA_LOSS when the blob is damaged.
@@ -65,6 +76,13 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
                                       const store::ScanInfo& info, const ingest::LidarData& lidar,
                                       std::vector<ingest::LinearImage> images,
                                       int64_t max_image_pixels, const StageFn& stage = {});
+
+/// Back-projection (§10): a new version whose records gain the derived records of `image` (a
+/// validated, decoded RGBZ image whose blob is stored), as the one derived source of `info` (a
+/// scan of its own, so that `DeleteScan` rolls the batch back). Geometry does not change.
+absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::Snapshot& head,
+                                       const store::ScanInfo& info, ingest::DerivedSource image,
+                                       const StageFn& stage = {});
 
 /// A new version without scan `scan_name`: its vossels' sums are recomputed from the other
 /// scans' blobs in the tiles it touched, and the older sources are revisited where the removed

@@ -50,7 +50,7 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
         internal::StoredSourceRecords(store, src, next.geometry, max_image_pixels);
     if (!recs.ok()) return recs.status();
     next.records.Append(recs->records);
-    next.reach[src.info.id] = std::move(recs->reach);
+    if (!src.derived()) next.reach[src.info.id] = std::move(recs->reach);
     ++result.sources_computed;
   }
   next.records.SortByVossel();

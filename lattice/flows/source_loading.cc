@@ -1,7 +1,13 @@
 // Sources of a stored project, read back from their blobs (flows.h).
 #include <cstring>
+#include <string>
+#include <vector>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
+#include "lattice/ingest/backproject.h"
 #include "lattice/flows/flows.h"
 
 namespace vasl::flows {
@@ -43,6 +49,49 @@ absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
     std::copy(rec, rec + 3, &out.xyz_sensor_m[3 * i]);
     out.intensity[i] = rec[3];
   }
+  return out;
+}
+
+std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k,
+                              int64_t render_id) {
+  std::string s = pinhole ? absl::StrFormat("pinhole %.17g %.17g %.17g %.17g %.17g %.17g %.17g "
+                                            "%.17g %.17g",
+                                            k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3,
+                                            k.p1, k.p2)
+                          : std::string("equirect");
+  if (render_id > 0) absl::StrAppend(&s, " render ", render_id);
+  return s;
+}
+
+absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
+                                                  const store::SourceInfo& src, int32_t batch,
+                                                  int64_t max_pixels) {
+  ingest::DerivedSource out;
+  out.id = src.id;
+  out.batch = batch;
+  out.pose = src.pose;
+  std::vector<std::string> f = absl::StrSplit(src.camera, ' ', absl::SkipEmpty());
+  if (!f.empty() && f[0] == "pinhole" && f.size() >= 10) {
+    out.pinhole = true;
+    double* v[] = {&out.intrinsics.fx_px, &out.intrinsics.fy_px, &out.intrinsics.cx_px,
+                   &out.intrinsics.cy_px, &out.intrinsics.k1, &out.intrinsics.k2,
+                   &out.intrinsics.k3, &out.intrinsics.p1, &out.intrinsics.p2};
+    for (int i = 0; i < 9; ++i) {
+      if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
+        return absl::DataLossError(absl::StrCat("source ", src.id, ": bad camera '", src.camera, "'"));
+      }
+    }
+  } else if (f.empty() || f[0] != "equirect") {
+    return absl::DataLossError(absl::StrCat("source ", src.id, ": bad camera '", src.camera, "'"));
+  }
+  absl::StatusOr<std::string> bytes = store.ReadBlob(src.blob_sha256);
+  if (!bytes.ok()) return bytes.status();
+  absl::StatusOr<ingest::DerivedImage> image = ingest::DecodeRgbzImage(*bytes, max_pixels);
+  if (!image.ok()) {
+    return absl::DataLossError(
+        absl::StrCat("stored image ", src.blob_sha256, ": ", image.status().message()));
+  }
+  out.image = std::move(*image);
   return out;
 }
 

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
@@ -55,9 +56,32 @@ struct CameraSource {
   double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
 };
 
+/// An RGBZ[N,U,A] image sent back as derived data (§10): a render, edited or refined.
+struct DerivedImage {
+  int width_px = 0;
+  int height_px = 0;
+  std::vector<float> rgb;          ///< 3 per pixel, linear
+  std::vector<float> depth_m;      ///< range along each pixel's ray; non-finite: no surface
+  std::vector<float> normal;       ///< 3 per pixel (world), or empty
+  std::vector<float> uncertainty;  ///< 1 per pixel, or empty
+  std::vector<float> alpha;        ///< 1 per pixel coverage, or empty (every finite Z counts)
+};
+
+/// A derived source: an image with its pose and projection, back-projected into records (§10).
+struct DerivedSource {
+  int32_t id = 0;                  ///< source id (record `scan`)
+  int32_t batch = 0;
+  geometry::Pose pose;             ///< T_world_camera of the image (the projection's frame)
+  bool pinhole = false;            ///< false: equirect (§2.1)
+  geometry::PinholeIntrinsics intrinsics;  ///< when pinhole (width and height are the image's)
+  DerivedImage image;              ///< decoded, or empty with `load` set
+  std::function<absl::StatusOr<DerivedImage>()> load;
+};
+
 struct SourceSet {
   std::vector<LidarSource> lidars;
   std::vector<CameraSource> cameras;
+  std::vector<DerivedSource> derived;
 };
 
 }  // namespace vasl::ingest

@@ -169,7 +169,8 @@ CREATE TABLE sources(
   height_px INTEGER NOT NULL,
   divergence_rad REAL NOT NULL,
   point_count INTEGER NOT NULL,
-  version INTEGER NOT NULL);
+  version INTEGER NOT NULL,
+  camera TEXT NOT NULL DEFAULT '');
 CREATE INDEX sources_by_scan ON sources(scan_id);
 CREATE TABLE scan_lives(
   scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
@@ -245,6 +246,10 @@ CREATE TABLE renders(
   ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
   camera TEXT NOT NULL,
   created_utc TEXT NOT NULL);
+)sql",
+      // 5 → 6: the projection of a derived source.
+      R"sql(
+ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';
 )sql"};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += kSteps[v - 2];

@@ -24,7 +24,7 @@ struct sqlite3_stmt;
 namespace vasl::store::internal {
 
 /// 2: tiled versions (manifest, reach, source_tiles), scan deletion, made_by and pins.
-inline constexpr int kCatalogSchemaVersion = 5;
+inline constexpr int kCatalogSchemaVersion = 6;
 
 /// One prepared statement; Bind* take 1-based parameter indices, Column* 0-based columns.
 class Stmt {
@@ -80,7 +80,8 @@ absl::Status CreateSchema(Db& db);
 /// Brings a catalog of schema `from` (2 or later) to kCatalogSchemaVersion in one transaction:
 /// 2 → 3 adds weighting profiles and the project's active profile; 3 → 4 keeps each scan's
 /// spans of versions in scan_lives (a rollback can bring a deleted scan back); 4 → 5 records
-/// every render (renders), so that what comes back can cite it.
+/// every render (renders), so that what comes back can cite it; 5 → 6 keeps a source's
+/// projection (sources.camera) for images sent back as derived data.
 absl::Status MigrateSchema(Db& db, int64_t from);
 
 /// Deletes catalog rows of versions newer than `head` (versions, manifests, reach, source tiles,

@@ -561,7 +561,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
   }
   absl::StatusOr<Stmt> st = impl_->db.Prepare(
       "SELECT id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, oz_m, blob_sha256, "
-      "width_px, height_px, divergence_rad, point_count FROM sources WHERE version <= ?1 "
+      "width_px, height_px, divergence_rad, point_count, camera FROM sources WHERE version <= ?1 "
       "ORDER BY id");
   if (!st.ok()) return st.status();
   st->Bind(1, v);
@@ -580,6 +580,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
     src.height_px = static_cast<int>(st->Int(13));
     src.divergence_rad = st->Real(14);
     src.point_count = st->Int(15);
+    src.camera = st->Text(16);
     auto it = by_id.find(src.scan_id);
     if (it != by_id.end()) scans[it->second].sources.push_back(std::move(src));
   }
@@ -1206,16 +1207,16 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
           [&](Stmt& st) { st.Bind(1, scan_id).Bind(2, version); });
       for (const SourceInfo& src : scan.sources) {
         run("INSERT INTO sources(id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, "
-            "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version) "
+            "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version, camera) "
             "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
-            "?17)",
+            "?17, ?18)",
             [&](Stmt& st) {
               st.Bind(1, int64_t{src.id}).Bind(2, scan_id).Bind(3, src.name);
               st.Bind(4, int64_t{static_cast<int>(src.modality)});
               BindPose(st, 5, src.pose);
               st.Bind(12, src.blob_sha256).Bind(13, int64_t{src.width_px});
               st.Bind(14, int64_t{src.height_px}).Bind(15, src.divergence_rad);
-              st.Bind(16, src.point_count).Bind(17, version);
+              st.Bind(16, src.point_count).Bind(17, version).Bind(18, src.camera);
             });
       }
       for (const auto& [source, keys] : plan.source_tiles) {

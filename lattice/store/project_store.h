@@ -58,6 +58,9 @@ struct SourceInfo {
   int height_px = 0;
   double divergence_rad = 0.0;      ///< LiDAR beam divergence, or camera angular resolution (0: from image size)
   int64_t point_count = 0;          ///< LiDAR points; 0 for cameras
+  /// Derived sources (§10): the image's projection, "equirect" or "pinhole fx fy cx cy k1 k2 k3
+  /// p1 p2" and, after "render", the render it came from. Empty for LiDAR and cameras.
+  std::string camera;
 };
 
 /// One ingested scan with its sources.

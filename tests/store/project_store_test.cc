@@ -596,7 +596,8 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
     ASSERT_EQ(sqlite3_open((root / "p" / "catalog.sqlite").c_str(), &db), SQLITE_OK);
     char* err = nullptr;
     const int rc = sqlite3_exec(db,
-        "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; "
+        "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; DROP TABLE renders; "
+        "ALTER TABLE sources DROP COLUMN camera; "
         "ALTER TABLE project DROP COLUMN active_profile; "
         "CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL; "
         "UPDATE schema_version SET version = 2; COMMIT;", nullptr, nullptr, &err);

@@ -118,15 +118,7 @@ def _cmd_render(client: Client, args) -> int:
     out = args.output
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
-    pinhole = None
-    if args.pinhole:
-        try:
-            v = [float(x) for x in args.pinhole.split(",")]
-        except ValueError:
-            v = []
-        if len(v) not in (4, 9):
-            raise ValueError("--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
-        pinhole = dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"), v))
+    pinhole = _parse_pinhole(args.pinhole)
     r = client.render(args.project, pose, args.width, args.height, version=args.version,
                       formats=("exr", "png"), eta=args.eta, decode=False, profile=args.profile,
                       pinhole=pinhole)
@@ -367,6 +359,47 @@ def _cmd_rollback(client: Client, args) -> int:
     return 0
 
 
+def _parse_pinhole(text):
+    if not text:
+        return None
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) not in (4, 9):
+        raise ValueError("--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
+    return dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"), v))
+
+
+def _cmd_backproject(client: Client, args) -> int:
+    r = client.back_project(args.project, args.image, Pose.parse(args.pose), name=args.name,
+                            pinhole=_parse_pinhole(args.pinhole), render_id=args.render)
+    print(f"back-projected {args.image} as batch {r['name']}: version {r['version']}, "
+          f"{r['pixels_back_projected']} pixels -> derived records, {r['pixels_outside']} "
+          f"pixels outside the lattice, {r['record_count']} records, {r['seconds']:.2f} s")
+    return 0
+
+
+def _cmd_batch(client: Client, args) -> int:
+    if args.batch_cmd == "rollback":
+        _print_change(f"rolled back batch {args.name} of {args.project}",
+                      client.delete_scan(args.project, args.name))
+        return 0
+    batches = [s for s in client.list_scans(args.project)
+               if any(src.modality == "derived" for src in s.sources)]
+    if args.json:
+        print(json.dumps([{"name": s.name, "batch": s.batch, "version": s.version,
+                           "created_utc": s.created_utc} for s in batches], indent=2))
+        return 0
+    if not batches:
+        print(f"no derived batches in project {args.project}")
+        return 0
+    print(f"{'NAME':<24} {'BATCH':>5} {'VERSION':>7}  CREATED")
+    for s in batches:
+        print(f"{s.name:<24} {s.batch:>5} {s.version:>7}  {s.created_utc}")
+    return 0
+
+
 def _cmd_pin(client: Client, args) -> int:
     v = client.pin_version(args.project, args.version, not args.unpin)
     print(f"version {v.version} of {args.project} is {'pinned' if v.pinned else 'not pinned'}")
@@ -484,6 +517,25 @@ def build_parser() -> argparse.ArgumentParser:
     recs.add_argument("--limit", type=int, default=0, help="most records to list (0: 10000)")
     recs.add_argument("--json", action="store_true")
 
+    bp = sub.add_parser("backproject", help="send an RGBZ EXR back as derived data (§10)")
+    bp.add_argument("image", metavar="IMAGE.exr", help="channels R, G, B, Z [, N.x, N.y, N.z, U, A]")
+    bp.add_argument("--project", required=True)
+    bp.add_argument("--pose", required=True, metavar="x,y,z[,qx,qy,qz,qw]",
+                    help="the image's camera pose (a render's pose)")
+    bp.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
+                    help="a pinhole image (default: equirectangular)")
+    bp.add_argument("--render", type=int, default=0, metavar="ID", help="the render it came from")
+    bp.add_argument("--name", default="", help="the batch's name (default backproject-<batch>)")
+
+    batch = sub.add_parser("batch", help="derived batches: list, roll back")
+    bsub = batch.add_subparsers(dest="batch_cmd", required=True)
+    blist = bsub.add_parser("list", help="list derived batches")
+    blist.add_argument("--project", required=True)
+    blist.add_argument("--json", action="store_true")
+    brb = bsub.add_parser("rollback", help="a new version without a derived batch")
+    brb.add_argument("name")
+    brb.add_argument("--project", required=True)
+
     rollback = sub.add_parser("rollback", help="a new version that gives back an earlier one")
     rollback.add_argument("version", type=int)
     rollback.add_argument("--project", required=True)
@@ -506,7 +558,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "scans": _cmd_scans, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
-                "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback}
+                "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,
+                "backproject": _cmd_backproject, "batch": _cmd_batch}
     try:
         with Client(args.server, timeout_s=args.timeout) as client:
             return handlers[args.cmd](client, args)

@@ -500,6 +500,37 @@ class Client:
             raise ValueError(f"version must be > 0, got {version}")
         return _change(self._call("Rollback", pb.RollbackRequest(project=project, version=version)))
 
+    def back_project(self, project: str, image: Union[bytes, str], pose, *, name: str = "",
+                     pinhole: Optional[dict] = None, render_id: int = 0) -> dict:
+        """Sends an RGBZ image (OpenEXR bytes or a path; channels R, G, B, Z and optionally
+        N.x, N.y, N.z, U, A) back as derived data (VASL-MODEL §10): its pixels become derived
+        records in a new batch `name`. `pose` is the image's camera pose; `pinhole` as for
+        render (unset: equirectangular); `render_id` cites the render it came from."""
+        self._check_name(project)
+        if isinstance(image, (str, os.PathLike)):
+            with open(image, "rb") as f:
+                image = f.read()
+        if not image:
+            raise ValueError("the image is empty")
+        header = pb.BackProjectHeader(project=project, name=name, pose=pose_to_pb(Pose.parse(pose)),
+                                      render_id=int(render_id), image_size_bytes=len(image))
+        if pinhole is not None:
+            header.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
+
+        def requests():
+            yield pb.BackProjectRequest(header=header)
+            for at in range(0, len(image), self.chunk_bytes):
+                yield pb.BackProjectRequest(image_chunk=image[at:at + self.chunk_bytes])
+
+        try:
+            r = self.stub.BackProject(requests(), timeout=self.timeout_s)
+        except grpc.RpcError as e:
+            raise _wrap("BackProject", e) from None
+        return {"name": r.name, "version": r.version,
+                "pixels_back_projected": r.pixels_back_projected,
+                "pixels_outside": r.pixels_outside, "record_count": r.record_count,
+                "seconds": r.seconds}
+
     def pin_version(self, project: str, version: int, pinned: bool = True) -> Version:
         """Pins (or unpins) a kept version: pinned versions survive retention."""
         self._check_name(project)
