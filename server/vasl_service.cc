@@ -554,7 +554,14 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
   const bool queued = pool_->Submit([this, context, reactor, method, project, start,
                                      body = std::move(body)] {
     grpc::Status status;
-    if (!ClientGone(context, &status)) status = body();
+    try {
+      if (!ClientGone(context, &status)) status = body();
+    } catch (const std::exception& e) {  // a bug or exhausted memory: answer, do not hang or die
+      status = grpc::Status(grpc::StatusCode::INTERNAL,
+                            std::string("unexpected error in the server: ") + e.what());
+    } catch (...) {
+      status = grpc::Status(grpc::StatusCode::INTERNAL, "unexpected error in the server");
+    }
     LogRequest(method, project, status, start);
     reactor->Finish(status);
   });

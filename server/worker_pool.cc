@@ -3,6 +3,8 @@
 #include "server/worker_pool.h"
 
 #include <algorithm>
+#include <cstdio>
+#include <exception>
 
 namespace vasl::server {
 
@@ -45,7 +47,15 @@ void WorkerPool::Loop() {
       task = std::move(tasks_.front());
       tasks_.pop_front();
     }
-    task();
+    // A task that throws must not end the process (std::terminate on a worker thread): the
+    // RPC tasks catch their own errors and answer; this is the last line of defence.
+    try {
+      task();
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "vasld: a worker task threw: %s\n", e.what());
+    } catch (...) {
+      std::fprintf(stderr, "vasld: a worker task threw a non-standard exception\n");
+    }
   }
 }
 

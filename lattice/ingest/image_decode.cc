@@ -56,6 +56,10 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
     return absl::InvalidArgumentError("decoded image is empty");
   }
+  if (spec.nchannels > 16) {  // the buffer below is width × height × channels floats
+    return absl::ResourceExhaustedError(absl::StrCat("image has ", spec.nchannels,
+                                                     " channels; at most 16 are decoded"));
+  }
   if (int64_t(spec.width) * spec.height > max_pixels) {
     return absl::ResourceExhaustedError(absl::StrCat("image of ", spec.width, "x", spec.height,
                                                      " pixels exceeds the limit of ", max_pixels));

@@ -29,16 +29,18 @@ std::string ReadFile(const std::filesystem::path& p) {
   return s.str();
 }
 
-// Encodes a 3-channel gradient with OpenImageIO in the format the extension names.
-std::string Encode(const std::string& ext, OIIO::TypeDesc type, int w, int h) {
+// Encodes a `channels`-channel gradient with OpenImageIO in the format the extension names.
+std::string Encode(const std::string& ext, OIIO::TypeDesc type, int w, int h, int channels = 3) {
   const std::filesystem::path path =
       std::filesystem::temp_directory_path() / ("vasl-decode-" + std::to_string(::getpid()) + ext);
-  std::vector<float> pixels(size_t(w) * h * 3);
+  std::vector<float> pixels(size_t(w) * h * channels);
   for (int j = 0; j < h; ++j)
     for (int i = 0; i < w; ++i)
-      for (int c = 0; c < 3; ++c) pixels[(size_t(j) * w + i) * 3 + c] = float(i + c) / float(w + 2);
+      for (int c = 0; c < channels; ++c) {
+        pixels[(size_t(j) * w + i) * channels + c] = float(i + c % 3) / float(w + 2);
+      }
   auto out = OIIO::ImageOutput::create(path.string());
-  OIIO::ImageSpec spec(w, h, 3, type);
+  OIIO::ImageSpec spec(w, h, channels, type);
   EXPECT_TRUE(out && out->open(path.string(), spec));
   EXPECT_TRUE(out->write_image(OIIO::TypeDesc::FLOAT, pixels.data()));
   out->close();
@@ -123,6 +125,17 @@ TEST(ImageDecodeTest, RealPanoramaMatchesEquirectPitch) {
   std::printf("stated pixel pitch %.17g rad, 2π/W = %.17g rad\n", pixel_width, geometry::AzimuthPitchRad(size));
   EXPECT_NEAR(pixel_width, geometry::AzimuthPitchRad(size), 1e-10);
   EXPECT_NEAR(pixel_height, geometry::ElevationPitchRad(size), 1e-10);
+}
+
+// Claim (issue "Reliability"): a small image that declares many channels cannot make the
+// decoder size a huge buffer: more than 16 channels is RESOURCE_EXHAUSTED, naming the count.
+TEST(ImageDecodeTest, RefusesImagesWithTooManyChannels) {
+  auto many = DecodeImage(Encode(".exr", OIIO::TypeDesc::HALF, 8, 4, 40), false, 1 << 20);
+  ASSERT_FALSE(many.ok());
+  EXPECT_EQ(many.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(many.status().message().find("40 channels"), std::string::npos) << many.status();
+  auto four = DecodeImage(Encode(".exr", OIIO::TypeDesc::HALF, 8, 4, 4), false, 1 << 20);
+  EXPECT_TRUE(four.ok()) << four.status();
 }
 
 }  // namespace

@@ -85,3 +85,16 @@ def test_list_calls_page_and_times_are_timestamps(server, client, ingested):
     assert all(v.created_utc.endswith("Z") for v in versions)
     raw = client.stub.GetProject(pb.GetProjectRequest(project=project))
     assert raw.HasField("create_time") and raw.create_time.seconds > 1.7e9
+
+
+def test_a_second_vasld_on_a_served_port_refuses_to_start(server, tmp_path):
+    """gRPC's SO_REUSEPORT is off: a second server on the same address fails to bind, rather
+    than sharing connections with the first."""
+    import subprocess
+
+    from conftest import VASLD
+
+    r = subprocess.run([VASLD, "--address", server.address, "--data-dir", str(tmp_path / "d2")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0, r.stdout + r.stderr
+    assert "cannot listen" in r.stderr, r.stderr
