@@ -184,6 +184,11 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
   }
   out.profile = request.profile();
   out.profile_revision = request.profile_revision();
+  if (request.layers() < 0 || request.layers() > render::kMaxLayers) {
+    return absl::InvalidArgumentError(absl::StrCat("layers must lie in [0, ", render::kMaxLayers,
+                                                   "] (0: 1), got ", request.layers()));
+  }
+  out.layers = std::max(1, request.layers());
   if (request.has_pinhole()) {
     const v1::PinholeCamera& c = request.pinhole();
     out.projection = render::Projection::kPinhole;
@@ -289,9 +294,10 @@ absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
     const v1::RenderRequest& request) {
   std::vector<v1::ImageFormat> formats;
   for (int f : request.formats()) {
-    if (f != v1::IMAGE_FORMAT_EXR && f != v1::IMAGE_FORMAT_PNG) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("formats: ", f, " is not IMAGE_FORMAT_EXR (1) or IMAGE_FORMAT_PNG (2)"));
+    if (f != v1::IMAGE_FORMAT_EXR && f != v1::IMAGE_FORMAT_PNG && f != v1::IMAGE_FORMAT_DEEP_EXR) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "formats: ", f, " is not IMAGE_FORMAT_EXR (1), IMAGE_FORMAT_PNG (2) or "
+          "IMAGE_FORMAT_DEEP_EXR (3)"));
     }
     auto format = static_cast<v1::ImageFormat>(f);
     if (std::find(formats.begin(), formats.end(), format) == formats.end()) {

@@ -387,8 +387,9 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     const Clock::time_point encode_start = Clock::now();
     v1::RenderMetadata* meta = first_.mutable_metadata();
     for (v1::ImageFormat format : *formats) {
-      absl::StatusOr<std::string> bytes = format == v1::IMAGE_FORMAT_EXR
-                                              ? render::EncodeExr(*image)
+      absl::StatusOr<std::string> bytes = format == v1::IMAGE_FORMAT_EXR ? render::EncodeExr(*image)
+                                          : format == v1::IMAGE_FORMAT_DEEP_EXR
+                                              ? render::EncodeDeepExr(*image)
                                               : render::EncodePng(*image);
       if (!bytes.ok()) return ToGrpcStatus(bytes.status());
       meta->add_formats(format);

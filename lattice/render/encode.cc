@@ -12,11 +12,14 @@
 #include <vector>
 
 #include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfPartType.h>
 #include <OpenEXR/ImfCompression.h>
 #include <OpenEXR/ImfFrameBuffer.h>
 #include <OpenEXR/ImfHeader.h>
 #include <OpenEXR/ImfIO.h>
 #include <OpenEXR/ImfLineOrder.h>
+#include <OpenEXR/ImfDeepFrameBuffer.h>
+#include <OpenEXR/ImfDeepScanLineOutputFile.h>
 #include <OpenEXR/ImfOutputFile.h>
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
@@ -113,6 +116,70 @@ absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
     file.writePixels(h);
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("OpenEXR failed to encode the render: ", e.what()));
+  }
+  return bytes;
+}
+
+absl::StatusOr<std::string> EncodeDeepExr(const RenderImage& image) {
+  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
+  const int w = image.width_px;
+  const int h = image.height_px;
+  const size_t pixels = size_t(w) * size_t(h);
+  const size_t L = size_t(std::max(1, image.layers));
+  const bool deep = L > 1;
+  if (deep && (image.layer_count.size() != pixels || image.deep_depth_m.size() != pixels * L ||
+               image.deep_rgb.size() != 3 * pixels * L || image.deep_alpha.size() != pixels * L)) {
+    return absl::InvalidArgumentError("the image's layer arrays disagree with its size and layers");
+  }
+  // Samples front to back, packed per pixel: R, G, B, A, Z each in its own array.
+  std::vector<unsigned int> count(pixels, 0);
+  std::vector<size_t> first(pixels + 1, 0);
+  for (size_t p = 0; p < pixels; ++p) {
+    count[p] = deep ? image.layer_count[p] : (std::isfinite(image.depth_m[p]) ? 1u : 0u);
+    first[p + 1] = first[p] + count[p];
+  }
+  const size_t total = first[pixels];
+  std::vector<float> r(total), g(total), b(total), a(total), z(total);
+  for (size_t p = 0; p < pixels; ++p) {
+    for (size_t s = 0; s < count[p]; ++s) {
+      const size_t o = first[p] + s;
+      const size_t q = deep ? p * L + s : p;
+      const float* rgb = deep ? &image.deep_rgb[3 * q] : &image.rgb[3 * p];
+      r[o] = rgb[0];
+      g[o] = rgb[1];
+      b[o] = rgb[2];
+      a[o] = deep ? image.deep_alpha[q]
+                  : (image.alpha.size() == pixels ? image.alpha[p] : 1.0f);
+      z[o] = deep ? image.deep_depth_m[q] : image.depth_m[p];
+    }
+  }
+  std::string bytes;
+  try {
+    Imf::Header header(w, h);
+    header.setType(Imf::DEEPSCANLINE);
+    header.compression() = Imf::ZIPS_COMPRESSION;
+    header.lineOrder() = Imf::INCREASING_Y;
+    const std::pair<const char*, std::vector<float>*> planes[] = {
+        {"R", &r}, {"G", &g}, {"B", &b}, {"A", &a}, {"Z", &z}};
+    std::vector<std::vector<char*>> pointers;
+    Imf::DeepFrameBuffer frame;
+    frame.insertSampleCountSlice(Imf::Slice(Imf::UINT, reinterpret_cast<char*>(count.data()),
+                                            sizeof(unsigned int), sizeof(unsigned int) * w));
+    for (const auto& [name, values] : planes) {
+      header.channels().insert(name, Imf::Channel(Imf::FLOAT));
+      std::vector<char*>& ptr = pointers.emplace_back(pixels);
+      for (size_t p = 0; p < pixels; ++p) {
+        ptr[p] = reinterpret_cast<char*>(values->data() + first[p]);
+      }
+      frame.insert(name, Imf::DeepSlice(Imf::FLOAT, reinterpret_cast<char*>(ptr.data()),
+                                        sizeof(char*), sizeof(char*) * w, sizeof(float)));
+    }
+    StringOStream stream(&bytes);
+    Imf::DeepScanLineOutputFile file(stream, header);
+    file.setFrameBuffer(frame);
+    file.writePixels(h);
+  } catch (const std::exception& e) {
+    return absl::InternalError(absl::StrCat("OpenEXR failed to encode the deep render: ", e.what()));
   }
   return bytes;
 }

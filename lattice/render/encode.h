@@ -14,6 +14,10 @@ namespace vasl::render {
 /// (world), U (+inf where the hit vossel has no colour) and A (coverage: 1 where the pixel has
 /// a colour); ZIP compression.
 absl::StatusOr<std::string> EncodeExr(const RenderImage& image);
+/// Deep OpenEXR bytes (multi-layer depth, §8): per pixel its surface hits front to back as
+/// samples with float channels R, G, B, A (1 where the surface has colour) and Z (metres along
+/// the ray); a render with one layer gives one sample per hit pixel. ZIPS compression.
+absl::StatusOr<std::string> EncodeDeepExr(const RenderImage& image);
 /// PNG bytes: RGBA 8-bit, sRGB transfer; alpha 0 where the ray hit nothing (RGB black) or a
 /// vossel without colour (RGB neutral grey 128).
 absl::StatusOr<std::string> EncodePng(const RenderImage& image);

@@ -41,6 +41,10 @@ using HddaT = openvdb::math::VolumeHDDA<TreeT, RayT, TreeT::RootNodeType::ChildN
 
 /// Largest raster RenderEquirect allocates (8 floats per pixel: 8.6 GB at this size).
 constexpr int64_t kMaxPixels = int64_t{1} << 28;
+/// A deeper layer starts this many vossels beyond the one in front *(choice)*: surfaces nearer
+/// each other than the lattice resolves are one surface, and the same surface's next vossels
+/// (a wall two vossels thick) are not a layer of their own.
+constexpr double kLayerGapVox = 1.5;
 
 /// What RenderEquirect reads, validated once per render.
 struct Scene {
@@ -68,11 +72,11 @@ struct SurfaceHit {
 bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
                    const Eigen::Vector3d& d_world, const RayT& ray_dda, double scale,
                    const openvdb::Coord& k, int32_t vossel, double entry_range_m,
-                   SurfaceHit* hit) {
+                   double min_range_m, SurfaceHit* hit) {
   const Eigen::Vector3f& n_f = scene.geometry->normal[vossel];
   const double n_norm = n_f.cast<double>().norm();
   if (!(n_norm > 1e-6)) {  // undetermined normal (also NaN): the cell itself is the surface
-    hit->range_m = std::max(entry_range_m, 0.0);
+    hit->range_m = std::max(entry_range_m, min_range_m);
     hit->vossel = vossel;
     hit->normal.setZero();
     return true;
@@ -82,7 +86,7 @@ bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
   if (std::abs(n_dot_d) < 1e-12) return false;  // ray parallel to the plane: no crossing
   const Eigen::Vector3d x_k = scene.geometry->centroid_m[vossel].cast<double>();
   const double range_m = n.dot(x_k - o_world) / n_dot_d;
-  if (!(range_m >= 0.0) || range_m > scene.max_range_m) return false;
+  if (!(range_m >= min_range_m) || range_m > scene.max_range_m) return false;
   // Crossing point in shifted index space; k's cell there is [k, k + 1] per axis.
   const openvdb::Vec3d p = ray_dda(range_m * scale);
   const double half = 0.5 + scene.cell_margin_vox;
@@ -98,7 +102,8 @@ bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
 /// Marches one world ray to its first surface (§8). Returns false for no hit within range.
 /// Sets `*bad_index` to an out-of-range index value met in the grid (the caller reports it).
 bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vector3d& o_world,
-              const Eigen::Vector3d& d_world, SurfaceHit* hit, int32_t* bad_index) {
+              const Eigen::Vector3d& d_world, double min_range_m, SurfaceHit* hit,
+              int32_t* bad_index) {
   const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
   const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
   openvdb::Vec3d dir_idx = scene.xform->baseMap()->applyInverseJacobian(d);
@@ -106,7 +111,8 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
   dir_idx /= scale;
   const openvdb::Vec3d eye_dda = scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
   const double t_max = scene.max_range_m * scale;
-  RayT ray(eye_dda, dir_idx, openvdb::math::Delta<double>::value(), t_max);
+  RayT ray(eye_dda, dir_idx, std::max(openvdb::math::Delta<double>::value(), min_range_m * scale),
+           t_max);
   if (!ray.clip(scene.bbox_dda)) return false;
   // Ray over its clipped span; the HDDA rewrites the ray's times as it descends.
   const RayT ray_dda(eye_dda, dir_idx);
@@ -124,7 +130,7 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
           return false;
         }
         if (CrossesVossel(scene, o_world, d_world, ray_dda, scale, dda.voxel(), vossel,
-                          dda.time() / scale, hit)) {
+                          dda.time() / scale, min_range_m, hit)) {
           return true;
         }
       }
@@ -204,6 +210,10 @@ absl::Status ValidateInputs(const records::VosselGeometry& geometry,
     return absl::InvalidArgumentError(
         "render pose must have a finite position and a unit quaternion");
   }
+  if (request.layers < 1 || request.layers > kMaxLayers) {
+    return absl::InvalidArgumentError(absl::StrCat("layers must lie in [1, ", kMaxLayers,
+                                                   "], got ", request.layers));
+  }
   if (request.projection == Projection::kPinhole) {
     const geometry::PinholeIntrinsics& k = request.pinhole;
     for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
@@ -282,6 +292,14 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   image.normal.assign(3 * pixels, 0.0f);
   image.uncertainty.assign(pixels, 0.0f);
   image.alpha.assign(pixels, 0.0f);
+  const int layers = request.layers;
+  image.layers = layers;
+  if (layers > 1) {
+    image.layer_count.assign(pixels, 0);
+    image.deep_depth_m.assign(pixels * size_t(layers), std::numeric_limits<float>::infinity());
+    image.deep_rgb.assign(3 * pixels * size_t(layers), 0.0f);
+    image.deep_alpha.assign(pixels * size_t(layers), 0.0f);
+  }
   if (geometry.size() == 0) return image;
 
   Scene scene;
@@ -317,7 +335,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const Eigen::Vector3d d_world = request.pose.DirectionToWorld(d_sensor).normalized();
         SurfaceHit hit;
         int32_t bad_value = 0;
-        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, &hit, &bad_value)) {
+        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, 0.0, &hit, &bad_value)) {
           if (bad_value != 0) {
             bad_index.store(bad_value);
             bad.store(true);
@@ -329,6 +347,33 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         image.depth_m[p] = static_cast<float>(hit.range_m);
         for (int c = 0; c < 3; ++c) image.normal[3 * p + c] = static_cast<float>(hit.normal[c]);
         const size_t k = static_cast<size_t>(hit.vossel);
+        if (layers > 1) {  // multi-layer depth (§8): the surfaces behind, one vossel apart or more
+          const size_t L = size_t(layers);
+          auto keep = [&](size_t layer, const SurfaceHit& s) {
+            image.deep_depth_m[p * L + layer] = static_cast<float>(s.range_m);
+            const size_t v = static_cast<size_t>(s.vossel);
+            const bool coloured = scene.rgb != nullptr && scene.rgb->weight[v] > 0.0f;
+            image.deep_alpha[p * L + layer] = coloured ? 1.0f : 0.0f;
+            for (int c = 0; c < 3; ++c) {
+              image.deep_rgb[3 * (p * L + layer) + c] = coloured ? scene.rgb->value[3 * v + c] : 0.0f;
+            }
+          };
+          keep(0, hit);
+          uint8_t count = 1;
+          SurfaceHit behind = hit;
+          for (size_t layer = 1; layer < L; ++layer) {
+            SurfaceHit next;
+            int32_t bad_next = 0;
+            if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world,
+                          behind.range_m + kLayerGapVox * geometry.vossel_size_m, &next, &bad_next)) {
+              break;
+            }
+            keep(layer, next);
+            behind = next;
+            ++count;
+          }
+          image.layer_count[p] = count;
+        }
         if (scene.rgb == nullptr || !(scene.rgb->weight[k] > 0.0f)) {
           // No colour record of positive weight: no colour, which is not black (§8). U is
           // 1/sqrt(Σw) with Σw = 0.

@@ -15,6 +15,9 @@
 
 namespace vasl::render {
 
+/// Most surface layers a deep render keeps per pixel.
+inline constexpr int kMaxLayers = 8;
+
 /// How a render's pixels map to rays.
 enum class Projection {
   kEquirect,  ///< §2.1: W columns span 2π of azimuth, H rows π of elevation; sensor frame x forward, z up
@@ -30,6 +33,7 @@ struct RenderRequest {
   /// Pinhole intrinsics and distortion (width and height are the request's); pinhole only.
   geometry::PinholeIntrinsics pinhole;
   int64_t version = 0;          ///< 0: HEAD
+  int layers = 1;               ///< L: successive surface hits kept per pixel (deep output), 1..kMaxLayers
   std::string profile;          ///< weighting profile (§7); empty: the project's active one
   int32_t profile_revision = 0; ///< 0: the profile's latest revision
   double eta = 0.0;             ///< view term η (§8); 0 uses the fused colour C_k
@@ -54,6 +58,13 @@ struct RenderImage {
   /// not black; its rgb stays 0 and U = +inf).
   std::vector<float> alpha;
   int64_t colourless_pixels = 0;   ///< hit pixels whose vossel has no colour
+  /// Multi-layer depth (§8), when the request asked for layers > 1: per pixel, its successive
+  /// surface hits front to back (the first is the image's own), at most `layers`.
+  int layers = 1;
+  std::vector<uint8_t> layer_count;  ///< hits kept per pixel
+  std::vector<float> deep_depth_m;   ///< layers per pixel; +inf past layer_count
+  std::vector<float> deep_rgb;       ///< 3 per layer and pixel
+  std::vector<float> deep_alpha;     ///< 1 per layer and pixel: 1 where the surface has colour
   int64_t hit_pixels = 0;          ///< pixels whose ray met a vossel within max_range_m
 };
 

@@ -172,3 +172,35 @@ def test_pinhole_renders_alpha_and_render_ids(ingested, client, server, views, t
                           "--project", E2E_PROJECT, "--pose", pose, "--pinhole", "0,100,80,60",
                           "-o", str(out)], capture_output=True, text=True)
     assert bad.returncode == 1 and "INVALID_ARGUMENT" in bad.stderr, bad.stderr
+
+
+def test_deep_render_from_the_cli(ingested, client, server, views, tmp_path):
+    """--layers L writes a deep EXR beside the render: per pixel its successive surfaces, the
+    first of which is the flat render's depth."""
+    v = views["novel-1"]
+    pose = ",".join(str(x) for x in list(v["position"]) + list(v["quaternion"]))
+    out = tmp_path / "deep.exr"
+    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "render",
+                        "--project", E2E_PROJECT, "--pose", pose, "--width", "128", "--height",
+                        "64", "--layers", "3", "-o", str(out)], capture_output=True, text=True)
+    print("\n" + r.stdout)
+    assert r.returncode == 0, r.stderr
+    deep = (tmp_path / "deep-deep.exr").read_bytes()
+    assert deep[:4] == b"\x76\x2f\x31\x01"
+    import OpenEXR
+
+    path = tmp_path / "copy.exr"
+    path.write_bytes(deep)
+    f = OpenEXR.File(str(path), separate_channels=True)
+    part = f.parts[0]
+    assert part.header["type"] == OpenEXR.deepscanline, part.header["type"]
+    z = part.channels["Z"].pixels  # (H, W) array of per-pixel sample arrays
+    flat = client.render(E2E_PROJECT, v, 128, 64, formats=("exr",)).depth_m
+    counts = np.array([[len(z[j][i]) if z[j][i] is not None else 0 for i in range(128)]
+                       for j in range(64)])
+    assert counts.max() <= 3 and counts.max() >= 2
+    firsts = np.array([[z[j][i][0] if counts[j, i] else np.inf for i in range(128)]
+                       for j in range(64)], dtype=np.float32)
+    assert np.array_equal(firsts, flat.astype(np.float32))
+    print(f"deep: {int(counts.sum())} samples, {np.bincount(counts.ravel()).tolist()} pixels with "
+          f"0..3 surfaces")

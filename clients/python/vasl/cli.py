@@ -119,15 +119,21 @@ def _cmd_render(client: Client, args) -> int:
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
     pinhole = _parse_pinhole(args.pinhole)
+    formats = ("exr", "png", "deep") if args.layers > 1 else ("exr", "png")
     r = client.render(args.project, pose, args.width, args.height, version=args.version,
-                      formats=("exr", "png"), eta=args.eta, decode=False, profile=args.profile,
-                      pinhole=pinhole)
+                      formats=formats, eta=args.eta, decode=False, profile=args.profile,
+                      pinhole=pinhole, layers=args.layers)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     png = out[:-4] + ".png"
     with open(out, "wb") as f:
         f.write(r.exr)
     with open(png, "wb") as f:
         f.write(r.png)
+    if r.deep_exr is not None:
+        deep = out[:-4] + "-deep.exr"
+        with open(deep, "wb") as f:
+            f.write(r.deep_exr)
+        print(f"wrote {deep} (deep: up to {args.layers} surfaces per pixel, R,G,B,A,Z)")
     total = r.width_px * r.height_px
     print(f"render {r.render_id}: {'pinhole' if pinhole else 'equirect'} "
           f"{r.width_px}x{r.height_px} from version {r.version}: "
@@ -446,6 +452,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
                         help="a pinhole render (pixels; camera x right, y down, z forward) "
                              "instead of an equirectangular panorama")
+    render.add_argument("--layers", type=int, default=1, metavar="L",
+                        help="also write OUT-deep.exr with up to L successive surfaces per pixel")
     render.add_argument("--profile", default="",
                         help="weighting profile (default: the project's active one)")
     render.add_argument("-o", "--output", required=True, metavar="OUT.exr",

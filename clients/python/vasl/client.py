@@ -31,7 +31,8 @@ MAX_MESSAGE_BYTES = 64 << 20
 _MODALITY_TO_PB = {"rgb": pb.MODALITY_RGB, "ir": pb.MODALITY_IR}
 _MODALITY_NAMES = {pb.MODALITY_LIDAR: "lidar", pb.MODALITY_RGB: "rgb", pb.MODALITY_IR: "ir",
                    pb.MODALITY_RADAR: "radar", pb.MODALITY_DERIVED: "derived"}
-_FORMATS = {"exr": pb.IMAGE_FORMAT_EXR, "png": pb.IMAGE_FORMAT_PNG}
+_FORMATS = {"exr": pb.IMAGE_FORMAT_EXR, "png": pb.IMAGE_FORMAT_PNG,
+            "deep": pb.IMAGE_FORMAT_DEEP_EXR}
 
 
 class VaslError(Exception):
@@ -625,7 +626,8 @@ class Client:
     def render(self, project: str, pose, width_px: int = 2048, height_px: int = 1024, *,
                version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
                max_range_m: float = 0.0, decode: bool = True, profile: str = "",
-               profile_revision: int = 0, pinhole: Optional[dict] = None) -> RenderResult:
+               profile_revision: int = 0, pinhole: Optional[dict] = None,
+               layers: int = 1) -> RenderResult:
         """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
         `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
         `profile` names the weighting profile (default: the project's active one). `pinhole`
@@ -643,7 +645,7 @@ class Client:
                                    width_px=int(width_px), height_px=int(height_px),
                                    version=version, formats=[_FORMATS[f] for f in formats],
                                    eta=eta, max_range_m=max_range_m, profile=profile,
-                                   profile_revision=int(profile_revision))
+                                   profile_revision=int(profile_revision), layers=int(layers))
         if pinhole is not None:
             keys = {"fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"}
             unknown = set(pinhole) - keys
@@ -681,6 +683,8 @@ class Client:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
         if pb.IMAGE_FORMAT_PNG in parts:
             result.png = bytes(parts[pb.IMAGE_FORMAT_PNG])
+        if pb.IMAGE_FORMAT_DEEP_EXR in parts:
+            result.deep_exr = bytes(parts[pb.IMAGE_FORMAT_DEEP_EXR])
         if decode and result.exr is not None:
             ch = decode_exr(result.exr)
             result.rgb = np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)

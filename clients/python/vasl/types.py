@@ -187,6 +187,7 @@ class RenderResult:
     alpha: Optional[np.ndarray] = None  #: (H, W) float32 coverage: 1 where the pixel has a colour
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
+    deep_exr: Optional[bytes] = None  #: the deep EXR (successive surfaces per pixel), if requested
 
     @property
     def hit_mask(self) -> np.ndarray:
