@@ -4,7 +4,6 @@
 #include <cctype>
 #include <chrono>
 #include <cmath>
-#include <cstring>
 #include <map>
 #include <mutex>
 #include <set>
@@ -12,7 +11,6 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
-#include "lattice/ingest/backproject.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/validate.h"
 
@@ -40,20 +38,6 @@ absl::Status ValidateProjectName(const std::string& name) {
   return absl::OkStatus();
 }
 
-// Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
-// format of a LiDAR source.
-std::string PackPoints(const LidarData& lidar) {
-  const size_t n = lidar.xyz_sensor_m.size() / 3;
-  std::string bytes(n * 16, '\0');
-  for (size_t i = 0; i < n; ++i) {
-    const float rec[4] = {lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1],
-                          lidar.xyz_sensor_m[3 * i + 2],
-                          lidar.intensity.empty() ? 1.0f : lidar.intensity[i]};
-    std::memcpy(&bytes[i * 16], rec, 16);
-  }
-  return bytes;
-}
-
 // A flow's stage reports as the caller's progress (may be empty).
 flows::StageFn StageReporter(const ProgressFn& progress) {
   return [&progress](const std::string& stage, double fraction) {
@@ -69,8 +53,7 @@ struct Engine::Impl {
     std::mutex write_mu;  ///< one writer per project
     std::mutex head_mu;   ///< guards `head`
     std::shared_ptr<const store::Snapshot> head;
-    /// Fused values of HEAD under other profiles, by layer, loaded from its tiles (head_mu).
-    std::map<std::string, std::shared_ptr<const records::FusedValues>> head_profile_fused;
+    flows::FusedLayerCache fused_layers;  ///< other profiles' fused values, read from tiles
   };
 
   fs::path data_dir;
@@ -103,7 +86,6 @@ struct Engine::Impl {
         auto snap = p.store->LoadSnapshot(head);
         if (!snap.ok()) return snap.status();
         p.head = *snap;
-        p.head_profile_fused.clear();
       }
       return p.head;
     }
@@ -137,7 +119,6 @@ struct Engine::Impl {
     {
       std::lock_guard<std::mutex> lock(p.head_mu);
       p.head = flow.snapshot;
-      p.head_profile_fused.clear();
     }
     for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
     result.version = flow.version;
@@ -164,39 +145,6 @@ struct Engine::Impl {
       resolved = *active;
     }
     return reweight::LoadProfile(*p.store, resolved, revision);
-  }
-
-  /// Fused values of `snap` under `profile`: the default layer, a layer every tile holds (read
-  /// from the tiles, cached for HEAD), or none (nullptr: the caller fuses on the fly).
-  absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
-      Project& p, const std::shared_ptr<const store::Snapshot>& snap,
-      const fusion::WeightingProfile& profile) {
-    if (profile.name == fusion::kDefaultProfileName) {
-      return std::shared_ptr<const records::FusedValues>(snap, &snap->fused);
-    }
-    const std::string layer = store::FusedLayerName(profile.name, profile.version);
-    const std::vector<std::string> complete = store::CompleteProfileLayers(snap->manifest);
-    if (std::find(complete.begin(), complete.end(), layer) == complete.end()) {
-      return std::shared_ptr<const records::FusedValues>();
-    }
-    if (auto it = snap->profile_fused.find(layer); it != snap->profile_fused.end()) {
-      return std::shared_ptr<const records::FusedValues>(snap, &it->second);
-    }
-    const bool is_head = snap->version == p.store->head_version();
-    if (is_head) {
-      std::lock_guard<std::mutex> lock(p.head_mu);
-      auto it = p.head_profile_fused.find(layer);
-      if (it != p.head_profile_fused.end()) return it->second;
-    }
-    auto loaded = p.store->LoadSnapshot(snap->version, {layer});
-    if (!loaded.ok()) return loaded.status();
-    auto values = std::make_shared<const records::FusedValues>((*loaded)->profile_fused.at(layer));
-    if (is_head) {
-      std::lock_guard<std::mutex> lock(p.head_mu);
-      if (p.head_profile_fused.size() > 4) p.head_profile_fused.clear();  // a small cache
-      p.head_profile_fused[layer] = values;
-    }
-    return values;
   }
 
   ingest::ScanLimits ScanLimits() const {
@@ -306,49 +254,13 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
   stage_done("validate", 0.05);
 
   // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
-  auto next_source = st.NextSourceId();
-  auto batch = st.NextBatchId();
-  if (!next_source.ok()) return next_source.status();
-  if (!batch.ok()) return batch.status();
-  store::ScanInfo info;
-  info.name = scan.scan_name;
-  info.rig = scan.rig;
-  info.captured_utc = scan.captured_utc;
-  info.pose = scan.pose;
-  info.batch = *batch;
-  {
-    auto blob = st.PutBlob(PackPoints(scan.lidar));
-    if (!blob.ok()) return blob.status();
-    store::SourceInfo lidar;
-    lidar.id = (*next_source)++;
-    lidar.name = "lidar";
-    lidar.modality = records::Modality::kLidar;
-    lidar.pose = scan.pose;
-    lidar.blob_sha256 = *blob;
-    lidar.divergence_rad = scan.lidar.divergence_rad;
-    lidar.point_count = int64_t(scan.lidar.xyz_sensor_m.size() / 3);
-    info.sources.push_back(lidar);
-  }
-  for (size_t i = 0; i < scan.panoramas.size(); ++i) {
-    const PanoramaData& pano = scan.panoramas[i];
-    auto blob = st.PutBlob(pano.encoded_image);
-    if (!blob.ok()) return blob.status();
-    store::SourceInfo cam;
-    cam.id = (*next_source)++;
-    cam.name = pano.name;
-    cam.modality = pano.modality;
-    cam.pose = pano.pose;
-    cam.blob_sha256 = *blob;
-    cam.width_px = (*images)[i].width_px;
-    cam.height_px = (*images)[i].height_px;
-    cam.divergence_rad = pano.angular_resolution_rad;
-    info.sources.push_back(cam);
-  }
+  auto info = flows::StoreScanBlobs(st, scan, *images);
+  if (!info.ok()) return info.status();
   stage_done("store blobs", 0.15);
 
   auto head = impl_->Snapshot(p, 0);
   if (!head.ok()) return head.status();
-  auto flow = flows::IngestScan(st, **head, info, scan.lidar, std::move(*images),
+  auto flow = flows::IngestScan(st, **head, *info, scan.lidar, std::move(*images),
                                 impl_->limits.max_image_pixels,
                                 StageReporter(progress));
   if (!flow.ok()) return flow.status();
@@ -365,69 +277,17 @@ absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
   auto found = impl_->Find(project);
   if (!found.ok()) return found.status();
   Impl::Project& p = **found;
-  store::ProjectStore& st = *p.store;
-  if (absl::Status s = ingest::ValidatePose(input.pose, "back-projection"); !s.ok()) return s;
-  if (int64_t(input.image.size()) > impl_->limits.max_image_bytes) {
-    return absl::ResourceExhaustedError(absl::StrCat("image of ", input.image.size(),
-                                                     " bytes exceeds the limit of ",
-                                                     impl_->limits.max_image_bytes));
-  }
-  auto image = ingest::DecodeRgbzImage(input.image, impl_->limits.max_image_pixels);
-  if (!image.ok()) return image.status();
-  if (input.pinhole) {
-    const geometry::PinholeIntrinsics& k = input.intrinsics;
-    for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
-      if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
-    }
-    if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
-      return absl::InvalidArgumentError("pinhole focal lengths must be > 0 pixels");
-    }
-  }
-  if (input.render_id > 0) {
-    if (auto r = st.GetRender(input.render_id); !r.ok()) return r.status();
-  }
   std::lock_guard<std::mutex> writer(p.write_mu);
   auto head = impl_->Snapshot(p, 0);
   if (!head.ok()) return head.status();
-  auto batch = st.NextBatchId();
-  if (!batch.ok()) return batch.status();
-  auto source_id = st.NextSourceId();
-  if (!source_id.ok()) return source_id.status();
-  store::ScanInfo info;
-  info.name = input.name.empty() ? absl::StrCat("backproject-", *batch) : input.name;
-  if (auto exists = st.HasScan(info.name); !exists.ok() || *exists) {
-    return exists.ok() ? absl::AlreadyExistsError(absl::StrCat("project '", project,
-                                                               "' already has a scan or batch '",
-                                                               info.name, "'"))
-                       : exists.status();
-  }
-  info.rig = "derived";
-  info.pose = input.pose;
-  info.batch = *batch;
-  auto blob = st.PutBlob(input.image);
-  if (!blob.ok()) return blob.status();
-  store::SourceInfo src;
-  src.id = *source_id;
-  src.name = "image";
-  src.modality = records::Modality::kDerived;
-  src.pose = input.pose;
-  src.blob_sha256 = *blob;
-  src.width_px = image->width_px;
-  src.height_px = image->height_px;
-  src.camera = flows::DerivedCameraText(input.pinhole, input.intrinsics, input.render_id);
-  info.sources.push_back(src);
-  ingest::DerivedSource derived;
-  derived.pose = input.pose;
-  derived.pinhole = input.pinhole;
-  derived.intrinsics = input.intrinsics;
-  derived.image = std::move(*image);
-  auto flow = flows::BackProject(st, **head, info, std::move(derived), StageReporter(progress));
-  if (!flow.ok()) return flow.status();  // the blob is collected with the next commit
+  auto flow = flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
+                                 impl_->limits.max_image_pixels, StageReporter(progress));
+  if (!flow.ok()) return flow.status();  // a stored image is collected with the next commit
   IngestResult result;
   result.pixels_back_projected = flow->pixels_back_projected;
   result.pixels_outside = flow->pixels_outside;
   IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
-  auto scans = st.ListScans();
+  auto scans = p.store->ListScans();
   if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
   return done;
 }
@@ -499,22 +359,7 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   if (!profile.ok()) return profile.status();
   auto snap = impl_->Snapshot(**p, request.version);
   if (!snap.ok()) return snap.status();
-  auto stored = impl_->StoredFused(**p, *snap, profile->profile);
-  if (!stored.ok()) return stored.status();
-  std::shared_ptr<const records::FusedValues> fused = *stored;
-  if (!fused) {  // no fused tiles under this profile in the version: fuse for this render
-    auto on_the_fly = fusion::Fuse((*snap)->records, (*snap)->geometry.size(),
-                                   (*snap)->geometry.vossel_size_m, profile->profile);
-    if (!on_the_fly.ok()) return on_the_fly.status();
-    fused = std::make_shared<const records::FusedValues>(std::move(*on_the_fly));
-  }
-  auto image = flows::RenderQuery(*(*p)->store, **snap, *fused, profile->profile, request);
-  if (!image.ok()) return image.status();
-  image->fused_on_the_fly = *stored == nullptr;
-  auto id = (*p)->store->RecordRender(flows::RenderRecordOf(request, *image));
-  if (!id.ok()) return id.status();
-  image->render_id = *id;
-  return image;
+  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, request, (*p)->fused_layers);
 }
 
 absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(
@@ -571,7 +416,6 @@ absl::StatusOr<reweight::ReweightResult> Engine::Reweight(const std::string& pro
       next->version = result->version;
       next->manifest = std::move(*manifest);
       p.head = std::move(next);
-      p.head_profile_fused.clear();
     }
   }
   return result;

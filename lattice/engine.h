@@ -79,15 +79,7 @@ struct IngestResult {
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
 };
 
-/// An RGBZ image sent back as derived data (§10).
-struct BackProjectInput {
-  std::string name;             ///< the batch's name (a scan of its own); empty: "backproject-<batch>"
-  geometry::Pose pose;          ///< T_world_camera of the image, in its projection's frame
-  bool pinhole = false;         ///< false: equirectangular
-  geometry::PinholeIntrinsics intrinsics;  ///< pinhole only (size from the image)
-  std::string image;            ///< OpenEXR bytes with channels R, G, B, Z [, N.x, N.y, N.z, U, A]
-  int64_t render_id = 0;        ///< the render it came from (0: none)
-};
+using flows::BackProjectInput;
 
 /// What InspectRecords reports of a version's records.
 struct RecordsInspection {

@@ -1,25 +1,80 @@
 // The back-projection flow (flows.h, VASL-MODEL §10): an image's pixels appended as derived
 // records in a batch of their own. Geometry does not change, so no older source is revisited.
+#include <cmath>
 #include <numeric>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/change.h"
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/backproject.h"
+#include "lattice/ingest/validate.h"
 
 namespace vasl::flows {
 
 absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::Snapshot& head,
-                                       const store::ScanInfo& info, ingest::DerivedSource image,
-                                       const StageFn& stage) {
+                                       const BackProjectInput& input, int64_t max_image_bytes,
+                                       int64_t max_image_pixels, const StageFn& stage) {
   FlowResult result;
   internal::StageClock clock(result, stage);
+  clock.Start("validate", 0.0);
   if (head.version == 0 || head.geometry.size() == 0) {
     return absl::FailedPreconditionError(absl::StrCat(
         "project '", store.name(), "' has no geometry to back-project onto: ingest a scan first"));
   }
-  if (info.sources.size() != 1 || info.sources[0].modality != records::Modality::kDerived) {
-    return absl::InternalError("BackProject: the batch has exactly one derived source");
+  if (absl::Status s = ingest::ValidatePose(input.pose, "back-projection"); !s.ok()) return s;
+  if (int64_t(input.image.size()) > max_image_bytes) {
+    return absl::ResourceExhaustedError(absl::StrCat("image of ", input.image.size(),
+                                                     " bytes exceeds the limit of ", max_image_bytes));
   }
+  absl::StatusOr<ingest::DerivedImage> decoded = ingest::DecodeRgbzImage(input.image, max_image_pixels);
+  if (!decoded.ok()) return decoded.status();
+  if (input.pinhole) {
+    const geometry::PinholeIntrinsics& k = input.intrinsics;
+    for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
+      if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
+    }
+    if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
+      return absl::InvalidArgumentError("pinhole focal lengths must be > 0 pixels");
+    }
+  }
+  if (input.render_id > 0) {
+    if (absl::StatusOr<store::RenderRecord> r = store.GetRender(input.render_id); !r.ok()) {
+      return r.status();
+    }
+  }
+  absl::StatusOr<int32_t> batch = store.NextBatchId();
+  if (!batch.ok()) return batch.status();
+  absl::StatusOr<int32_t> source_id = store.NextSourceId();
+  if (!source_id.ok()) return source_id.status();
+  store::ScanInfo info;
+  info.name = input.name.empty() ? absl::StrCat("backproject-", *batch) : input.name;
+  absl::StatusOr<bool> exists = store.HasScan(info.name);
+  if (!exists.ok()) return exists.status();
+  if (*exists) {
+    return absl::AlreadyExistsError(absl::StrCat("project '", store.name(),
+                                                 "' already has a scan or batch '", info.name, "'"));
+  }
+  info.rig = "derived";
+  info.pose = input.pose;
+  info.batch = *batch;
+  clock.Start("store image", 0.1);
+  absl::StatusOr<std::string> blob = store.PutBlob(input.image);
+  if (!blob.ok()) return blob.status();
+  store::SourceInfo src;
+  src.id = *source_id;
+  src.name = "image";
+  src.modality = records::Modality::kDerived;
+  src.pose = input.pose;
+  src.blob_sha256 = *blob;
+  src.width_px = decoded->width_px;
+  src.height_px = decoded->height_px;
+  src.camera = DerivedCameraText(input.pinhole, input.intrinsics, input.render_id);
+  info.sources.push_back(src);
+  ingest::DerivedSource image;
+  image.pose = input.pose;
+  image.pinhole = input.pinhole;
+  image.intrinsics = input.intrinsics;
+  image.image = std::move(*decoded);
   image.id = info.sources[0].id;
   image.batch = info.batch;
   internal::Change change;

@@ -14,7 +14,9 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <utility>
 #include <vector>
@@ -69,6 +71,13 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);
 
+/// Stores a validated scan's raw inputs as content-addressed blobs (its LiDAR points packed as
+/// little-endian float32 x, y, z, intensity; its encoded images) and returns its catalog
+/// description: sources with fresh ids (LiDAR first, then cameras in order), a fresh batch.
+/// `images` are its decoded panoramas (for their sizes).
+absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const ingest::ScanInput& scan,
+                                               const std::vector<ingest::LinearImage>& images);
+
 /// Incremental ingest of one validated scan whose blobs are stored: `info` carries its
 /// sources (ids, poses, blob hashes, sizes), `lidar` its points, `images` its decoded
 /// panoramas in the order of its camera sources. `head` is the project's HEAD snapshot.
@@ -77,12 +86,26 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
                                       std::vector<ingest::LinearImage> images,
                                       int64_t max_image_pixels, const StageFn& stage = {});
 
-/// Back-projection (§10): a new version whose records gain the derived records of `image` (a
-/// validated, decoded RGBZ image whose blob is stored), as the one derived source of `info` (a
-/// scan of its own, so that `DeleteScan` rolls the batch back). Geometry does not change.
+/// An RGBZ image sent back as derived data (§10).
+struct BackProjectInput {
+  std::string name;             ///< the batch's name (a scan of its own); empty: "backproject-<batch>"
+  geometry::Pose pose;          ///< T_world_camera of the image, in its projection's frame
+  bool pinhole = false;         ///< false: equirectangular
+  geometry::PinholeIntrinsics intrinsics;  ///< pinhole only (size from the image)
+  std::string image;            ///< OpenEXR bytes with channels R, G, B, Z [, N.x, N.y, N.z, U, A]
+  int64_t render_id = 0;        ///< the render it came from (0: none)
+};
+
+/// Back-projection (§10): validates `input` (image channels and size, pose, projection, cited
+/// render, batch name) before storing anything, stores the image as the blob of the batch's
+/// one derived source (a scan of its own, so that DeleteScan rolls the batch back), and makes
+/// a new version whose records gain the image's derived records. Geometry does not change.
+/// INVALID_ARGUMENT / RESOURCE_EXHAUSTED for bad input, NOT_FOUND for an unknown render,
+/// ALREADY_EXISTS for a name in use, FAILED_PRECONDITION for a project without geometry.
+/// @warning The caller serialises it with the project's other writers.
 absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::Snapshot& head,
-                                       const store::ScanInfo& info, ingest::DerivedSource image,
-                                       const StageFn& stage = {});
+                                       const BackProjectInput& input, int64_t max_image_bytes,
+                                       int64_t max_image_pixels, const StageFn& stage = {});
 
 /// A new version without scan `scan_name`: its vossels' sums are recomputed from the other
 /// scans' blobs in the tiles it touched, and the older sources are revisited where the removed
@@ -98,14 +121,30 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
 absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image_pixels,
                                    const StageFn& stage = {});
 
-/// The render query (§8) of `snapshot` whose fused values under `profile` are `fused`: with
-/// η > 0 the records are weighed under `profile` (§7) and scaled by its channel gains; the
-/// sources' origins come from the catalog.
-absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store,
-                                               const store::Snapshot& snapshot,
-                                               const records::FusedValues& fused,
+/// Fused values of one version under other profiles, loaded from its tiles once (thread-safe;
+/// a few layers at most).
+class FusedLayerCache {
+ public:
+  /// The layer's values for `version`, or null when not cached.
+  std::shared_ptr<const records::FusedValues> Find(int64_t version, const std::string& layer);
+  void Put(int64_t version, const std::string& layer, std::shared_ptr<const records::FusedValues> v);
+
+ private:
+  std::mutex mu_;
+  int64_t version_ = -1;
+  std::map<std::string, std::shared_ptr<const records::FusedValues>> layers_;
+};
+
+/// The render query (§8) of `snapshot` under `profile`: the fused values are the version's
+/// layer for the profile when every tile holds it (read once into `cache`), else fused from
+/// the records for this render (the image says so). With η > 0 the records are weighed under
+/// `profile` (§7) and scaled by its channel gains. The render is recorded in the catalog and
+/// gets its id.
+absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
+                                               std::shared_ptr<const store::Snapshot> snapshot,
                                                const fusion::WeightingProfile& profile,
-                                               const render::RenderRequest& request);
+                                               const render::RenderRequest& request,
+                                               FusedLayerCache& cache);
 
 /// What the catalog records of a render (its pose, projection, profile and version).
 store::RenderRecord RenderRecordOf(const render::RenderRequest& request,

@@ -1,6 +1,8 @@
 // The incremental ingest flow (flows.h): a scan's own points merged into the lattice, normals
 // recomputed where a neighbourhood changed, records of its own sources, and older sources
 // revisited only where the new geometry reaches them (change.h).
+#include <cstring>
+
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/change.h"
 #include "lattice/flows/flows.h"
@@ -8,6 +10,66 @@
 #include "lattice/tiles/tile_split.h"
 
 namespace vasl::flows {
+namespace {
+
+// Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
+// format of a LiDAR source.
+std::string PackPoints(const ingest::LidarData& lidar) {
+  const size_t n = lidar.xyz_sensor_m.size() / 3;
+  std::string bytes(n * 16, '\0');
+  for (size_t i = 0; i < n; ++i) {
+    const float rec[4] = {lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1],
+                          lidar.xyz_sensor_m[3 * i + 2],
+                          lidar.intensity.empty() ? 1.0f : lidar.intensity[i]};
+    std::memcpy(&bytes[i * 16], rec, 16);
+  }
+  return bytes;
+}
+
+}  // namespace
+
+absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const ingest::ScanInput& scan,
+                                               const std::vector<ingest::LinearImage>& images) {
+  auto next_source = st.NextSourceId();
+  auto batch = st.NextBatchId();
+  if (!next_source.ok()) return next_source.status();
+  if (!batch.ok()) return batch.status();
+  store::ScanInfo info;
+  info.name = scan.scan_name;
+  info.rig = scan.rig;
+  info.captured_utc = scan.captured_utc;
+  info.pose = scan.pose;
+  info.batch = *batch;
+  {
+    auto blob = st.PutBlob(PackPoints(scan.lidar));
+    if (!blob.ok()) return blob.status();
+    store::SourceInfo lidar;
+    lidar.id = (*next_source)++;
+    lidar.name = "lidar";
+    lidar.modality = records::Modality::kLidar;
+    lidar.pose = scan.pose;
+    lidar.blob_sha256 = *blob;
+    lidar.divergence_rad = scan.lidar.divergence_rad;
+    lidar.point_count = int64_t(scan.lidar.xyz_sensor_m.size() / 3);
+    info.sources.push_back(lidar);
+  }
+  for (size_t i = 0; i < scan.panoramas.size(); ++i) {
+    const ingest::PanoramaData& pano = scan.panoramas[i];
+    auto blob = st.PutBlob(pano.encoded_image);
+    if (!blob.ok()) return blob.status();
+    store::SourceInfo cam;
+    cam.id = (*next_source)++;
+    cam.name = pano.name;
+    cam.modality = pano.modality;
+    cam.pose = pano.pose;
+    cam.blob_sha256 = *blob;
+    cam.width_px = images[i].width_px;
+    cam.height_px = images[i].height_px;
+    cam.divergence_rad = pano.angular_resolution_rad;
+    info.sources.push_back(cam);
+  }
+  return info;
+}
 
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const store::ScanInfo& info, const ingest::LidarData& lidar,

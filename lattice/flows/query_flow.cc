@@ -41,11 +41,68 @@ absl::StatusOr<std::unique_ptr<SourceTable>> Sources(const store::ProjectStore& 
 
 }  // namespace
 
-absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store,
-                                               const store::Snapshot& snapshot,
-                                               const records::FusedValues& fused,
+std::shared_ptr<const records::FusedValues> FusedLayerCache::Find(int64_t version,
+                                                                  const std::string& layer) {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (version != version_) return nullptr;
+  auto it = layers_.find(layer);
+  return it == layers_.end() ? nullptr : it->second;
+}
+
+void FusedLayerCache::Put(int64_t version, const std::string& layer,
+                          std::shared_ptr<const records::FusedValues> values) {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (version != version_ || layers_.size() >= 4) {
+    layers_.clear();
+    version_ = version;
+  }
+  layers_[layer] = std::move(values);
+}
+
+namespace {
+
+/// `snapshot`'s fused values under `profile`: the default layer, a layer every tile holds, or
+/// null when the version has none complete.
+absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
+    const store::ProjectStore& store, const std::shared_ptr<const store::Snapshot>& snap,
+    const fusion::WeightingProfile& profile, FusedLayerCache& cache) {
+  if (profile.name == fusion::kDefaultProfileName) {
+    return std::shared_ptr<const records::FusedValues>(snap, &snap->fused);
+  }
+  const std::string layer = store::FusedLayerName(profile.name, profile.version);
+  const std::vector<std::string> complete = store::CompleteProfileLayers(snap->manifest);
+  if (std::find(complete.begin(), complete.end(), layer) == complete.end()) {
+    return std::shared_ptr<const records::FusedValues>();
+  }
+  if (auto it = snap->profile_fused.find(layer); it != snap->profile_fused.end()) {
+    return std::shared_ptr<const records::FusedValues>(snap, &it->second);
+  }
+  if (auto cached = cache.Find(snap->version, layer)) return cached;
+  auto loaded = store.LoadSnapshot(snap->version, {layer});
+  if (!loaded.ok()) return loaded.status();
+  auto values = std::make_shared<const records::FusedValues>((*loaded)->profile_fused.at(layer));
+  cache.Put(snap->version, layer, values);
+  return values;
+}
+
+}  // namespace
+
+absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
+                                               std::shared_ptr<const store::Snapshot> snap,
                                                const fusion::WeightingProfile& profile,
-                                               const render::RenderRequest& request) {
+                                               const render::RenderRequest& request,
+                                               FusedLayerCache& cache) {
+  absl::StatusOr<std::shared_ptr<const records::FusedValues>> stored =
+      StoredFused(store, snap, profile, cache);
+  if (!stored.ok()) return stored.status();
+  std::shared_ptr<const records::FusedValues> fused = *stored;
+  if (!fused) {  // no fused tiles under this profile in the version: fuse for this render
+    absl::StatusOr<records::FusedValues> on_the_fly = fusion::Fuse(
+        snap->records, snap->geometry.size(), snap->geometry.vossel_size_m, profile);
+    if (!on_the_fly.ok()) return on_the_fly.status();
+    fused = std::make_shared<const records::FusedValues>(std::move(*on_the_fly));
+  }
+  const store::Snapshot& snapshot = *snap;
   render::ViewBlendInputs blend;
   absl::StatusOr<fusion::RecordWeightsResult> weights;
   if (request.eta > 0.0) {  // §8 view term: the records, their §7 weights, the source origins
@@ -63,11 +120,15 @@ absl::StatusOr<render::RenderImage> RenderQuery(const store::ProjectStore& store
     blend.begin = &weights->begin;
   }
   absl::StatusOr<render::RenderImage> image =
-      render::RenderEquirect(snapshot.geometry, fused, request, &blend);
+      render::RenderEquirect(snapshot.geometry, *fused, request, &blend);
   if (!image.ok()) return image.status();
   image->version = snapshot.version;
   image->profile = profile.name;
   image->profile_revision = profile.version;
+  image->fused_on_the_fly = *stored == nullptr;
+  absl::StatusOr<int64_t> id = store.RecordRender(RenderRecordOf(request, *image));
+  if (!id.ok()) return id.status();
+  image->render_id = *id;
   return image;
 }
 
