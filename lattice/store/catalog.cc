@@ -102,6 +102,38 @@ absl::Status Db::Error(std::string_view what) const {
       absl::StrCat(std::string(what), ": catalog ", path_.string(), ": ", sqlite3_errmsg(db_)));
 }
 
+namespace {
+
+// Tables that later schemas added: one definition for a new catalog and for the migration.
+constexpr char kScanLivesTable[] = R"sql(CREATE TABLE scan_lives(
+  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+  from_version INTEGER NOT NULL,
+  to_version INTEGER,
+  PRIMARY KEY (scan_id, from_version));
+)sql";
+constexpr char kProfilesTable[] = R"sql(CREATE TABLE profiles(
+  name TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  body TEXT NOT NULL,
+  created_utc TEXT NOT NULL,
+  PRIMARY KEY (name, revision));
+)sql";
+constexpr char kRendersTable[] = R"sql(CREATE TABLE renders(
+  id INTEGER PRIMARY KEY,
+  version INTEGER NOT NULL,
+  profile TEXT NOT NULL,
+  revision INTEGER NOT NULL,
+  projection TEXT NOT NULL,
+  width_px INTEGER NOT NULL,
+  height_px INTEGER NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  camera TEXT NOT NULL,
+  created_utc TEXT NOT NULL);
+)sql";
+
+}  // namespace
+
 absl::Status CreateSchema(Db& db) {
   return db.Exec(absl::StrCat(R"sql(
 BEGIN;
@@ -172,29 +204,8 @@ CREATE TABLE sources(
   version INTEGER NOT NULL,
   camera TEXT NOT NULL DEFAULT '');
 CREATE INDEX sources_by_scan ON sources(scan_id);
-CREATE TABLE scan_lives(
-  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
-  from_version INTEGER NOT NULL,
-  to_version INTEGER,
-  PRIMARY KEY (scan_id, from_version));
-CREATE TABLE profiles(
-  name TEXT NOT NULL,
-  revision INTEGER NOT NULL,
-  body TEXT NOT NULL,
-  created_utc TEXT NOT NULL,
-  PRIMARY KEY (name, revision));
-CREATE TABLE renders(
-  id INTEGER PRIMARY KEY,
-  version INTEGER NOT NULL,
-  profile TEXT NOT NULL,
-  revision INTEGER NOT NULL,
-  projection TEXT NOT NULL,
-  width_px INTEGER NOT NULL,
-  height_px INTEGER NOT NULL,
-  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
-  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
-  camera TEXT NOT NULL,
-  created_utc TEXT NOT NULL);
+)sql",
+                              kScanLivesTable, kProfilesTable, kRendersTable, R"sql(
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
   kind TEXT NOT NULL,
@@ -211,48 +222,21 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
         absl::StrCat("no migration from catalog schema ", from, " to ", kCatalogSchemaVersion));
   }
   // Each step takes the catalog one schema forward.
-  static const char* const kSteps[] = {
+  const std::string steps[] = {
       // 2 → 3: weighting profiles and the active profile.
-      R"sql(
-CREATE TABLE profiles(
-  name TEXT NOT NULL,
-  revision INTEGER NOT NULL,
-  body TEXT NOT NULL,
-  created_utc TEXT NOT NULL,
-  PRIMARY KEY (name, revision));
-ALTER TABLE project ADD COLUMN active_profile TEXT NOT NULL DEFAULT 'default';
-)sql",
+      absl::StrCat(kProfilesTable,
+                   "ALTER TABLE project ADD COLUMN active_profile TEXT NOT NULL DEFAULT 'default';\n"),
       // 3 → 4: the spans of versions each scan is live in.
-      R"sql(
-CREATE TABLE scan_lives(
-  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
-  from_version INTEGER NOT NULL,
-  to_version INTEGER,
-  PRIMARY KEY (scan_id, from_version));
-INSERT INTO scan_lives(scan_id, from_version, to_version) SELECT id, version, deleted_in FROM scans;
-DROP INDEX IF EXISTS live_scan_names;
-)sql",
+      absl::StrCat(kScanLivesTable,
+                   "INSERT INTO scan_lives(scan_id, from_version, to_version) "
+                   "SELECT id, version, deleted_in FROM scans;\n"
+                   "DROP INDEX IF EXISTS live_scan_names;\n"),
       // 4 → 5: renders, to be cited by what comes back.
-      R"sql(
-CREATE TABLE renders(
-  id INTEGER PRIMARY KEY,
-  version INTEGER NOT NULL,
-  profile TEXT NOT NULL,
-  revision INTEGER NOT NULL,
-  projection TEXT NOT NULL,
-  width_px INTEGER NOT NULL,
-  height_px INTEGER NOT NULL,
-  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
-  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
-  camera TEXT NOT NULL,
-  created_utc TEXT NOT NULL);
-)sql",
+      kRendersTable,
       // 5 → 6: the projection of a derived source.
-      R"sql(
-ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';
-)sql"};
+      "ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';\n"};
   std::string sql = "BEGIN IMMEDIATE;\n";
-  for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += kSteps[v - 2];
+  for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");
   absl::Status s = db.Exec(sql);
   if (!s.ok()) db.Exec("ROLLBACK;").IgnoreError();
