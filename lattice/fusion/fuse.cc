@@ -101,16 +101,7 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
         if (recs.flags[i] & records::kFlagInvalidated) continue;
         const int c = int(FusedChannelOf(Modality(recs.modality[i])));
         const auto g = profile.scan_gain.find(recs.scan[i]);
-        WeightInputs in;
-        in.vis = recs.vis[i];
-        in.cos_inc = recs.cos_inc[i];
-        in.foot_major_m = recs.foot_major_m[i];
-        in.foot_minor_m = recs.foot_minor_m[i];
-        in.conf = &recs.conf[i * records::kConfidenceCount];
-        in.scan = recs.scan[i];
-        in.derived = (recs.flags[i] & records::kFlagDerived) != 0;
-        in.range_m = recs.range_m[i];
-        in.range_min_m = float(range_min[c]);
+        const WeightInputs in = WeightInputsOf(recs, i, float(range_min[c]));
         out.weight[i] = float(RecordWeight(profile, in, target_m,
                                            g == profile.scan_gain.end() ? 1.0 : g->second));
       }

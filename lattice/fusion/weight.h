@@ -4,9 +4,11 @@
 #pragma once
 
 #include <cmath>
+#include <cstddef>
 
 #include "lattice/fusion/profile.h"
 #include "lattice/geometry/footprint.h"
+#include "lattice/records/records.h"
 
 namespace vasl::fusion {
 
@@ -22,6 +24,23 @@ struct WeightInputs {
   float range_m = 0.0f;         ///< r_{k,m}, for the proximity term
   float range_min_m = 0.0f;     ///< r_{k,min} over the vossel's records of the same channel
 };
+
+/// The weight inputs of record `i` of `records` (§6 fields); `range_min_m` is r_{k,min} of its
+/// vossel and channel (used by the proximity term only).
+inline WeightInputs WeightInputsOf(const records::RecordSet& records, size_t i,
+                                   float range_min_m = 0.0f) {
+  WeightInputs in;
+  in.vis = records.vis[i];
+  in.cos_inc = records.cos_inc[i];
+  in.foot_major_m = records.foot_major_m[i];
+  in.foot_minor_m = records.foot_minor_m[i];
+  in.conf = &records.conf[i * records::kConfidenceCount];
+  in.scan = records.scan[i];
+  in.derived = (records.flags[i] & records::kFlagDerived) != 0;
+  in.range_m = records.range_m[i];
+  in.range_min_m = range_min_m;
+  return in;
+}
 
 /// x^e with exact fast paths for the common exponents 0, 1 and 2 (RECORDS-NOTES: the powf calls,
 /// not memory, bound a reweight).

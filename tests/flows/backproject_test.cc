@@ -199,14 +199,8 @@ TEST_F(BackProjectTest, EditChangesExactlyTheVosselsItLandsOnByTheWeights) {
       continue;
     }
     const size_t i = derived_of[int32_t(k)];
-    fusion::WeightInputs w;
-    w.vis = rec.vis[i];
-    w.cos_inc = rec.cos_inc[i];
-    w.foot_major_m = rec.foot_major_m[i];
-    w.foot_minor_m = rec.foot_minor_m[i];
-    w.conf = &rec.conf[i * records::kConfidenceCount];
-    w.scan = rec.scan[i];
-    w.derived = true;
+    const fusion::WeightInputs w = fusion::WeightInputsOf(rec, i);
+    ASSERT_TRUE(w.derived);
     const double wd = fusion::RecordWeight(profile, w, geometry::TargetResolutionM(kH), 1.0);
     const double wb = fb.weight[k];
     for (int c = 0; c < 3; ++c) {
