@@ -837,12 +837,9 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext*
       p.set_message(r.ok() ? "" : std::string(r.status().message()));
     });
     if (!r.ok()) return ToGrpcStatus(r.status());
-    std::string name;
-    int32_t revision = 1;
-    if (!store::ParseFusedLayerName(r->layer, &name, &revision)) name = fusion::kDefaultProfileName;
     response->set_version(r->version);
-    response->set_profile(name);
-    response->set_revision(revision);
+    response->set_profile(r->profile);
+    response->set_revision(r->revision);
     response->set_tile_count(r->tiles);
     response->set_record_count(r->records);
     response->set_vossel_count(r->vossels);
@@ -868,15 +865,12 @@ grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerCont
     const Eigen::Vector3d lo = vec(request->min_m());
     const Eigen::Vector3d hi = request->has_max_m() ? vec(request->max_m()) : lo;
     const int64_t limit = request->limit() == 0 ? 10000 : std::min<int64_t>(request->limit(), 1000000);
-    absl::StatusOr<reweight::NamedProfile> profile =
-        engine_->GetProfile(request->project(), request->profile(), 0);
-    if (!profile.ok()) return ToGrpcStatus(profile.status());
     absl::StatusOr<flows::RecordsQueryResult> r = engine_->QueryRecords(
-        request->project(), request->version(), lo, hi, profile->profile.name, limit);
+        request->project(), request->version(), lo, hi, request->profile(), limit);
     if (!r.ok()) return ToGrpcStatus(r.status());
     response->set_version(request->version());
-    response->set_profile(profile->profile.name);
-    response->set_revision(profile->profile.version);
+    response->set_profile(r->profile);
+    response->set_revision(r->revision);
     response->set_vossel_count(r->vossels);
     response->set_truncated(r->truncated);
     for (const flows::RecordRow& row : r->rows) RecordRowToProto(row, response->add_records());

@@ -178,6 +178,8 @@ struct RecordsQueryResult {
   std::vector<RecordRow> rows;
   int64_t vossels = 0;
   bool truncated = false;
+  std::string profile;   ///< the profile the weights are under
+  int32_t revision = 0;
 };
 absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store,
                                                 const store::Snapshot& snapshot,

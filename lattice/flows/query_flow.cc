@@ -173,10 +173,9 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
   const openvdb::Coord hi(int(std::floor(max_m.x() / h + 0.5)), int(std::floor(max_m.y() / h + 0.5)),
                           int(std::floor(max_m.z() / h + 0.5)));
   RecordsQueryResult out;
+  out.profile = profile.name;
+  out.revision = profile.version;
   if (g.size() == 0 || !g.index_grid) return out;
-  absl::StatusOr<fusion::RecordWeightsResult> weights =
-      fusion::RecordWeights(snapshot.records, g.size(), h, profile);
-  if (!weights.ok()) return weights.status();
   absl::StatusOr<std::unique_ptr<SourceTable>> sources = Sources(store, snapshot.version);
   if (!sources.ok()) return sources.status();
   std::vector<int32_t> vossels;
@@ -197,9 +196,33 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
   }
   std::sort(vossels.begin(), vossels.end());
   out.vossels = int64_t(vossels.size());
-  const records::RecordSet& r = snapshot.records;
+  // The records of the queried vossels only (whole vossels, until the limit is reached), as a
+  // set of their own: a vossel's weights depend on its own records alone (§7), so weighing
+  // this set gives what weighing the whole version would, without a pass over every record.
+  const records::RecordSet& all = snapshot.records;
+  std::vector<size_t> picked;
+  std::vector<int32_t> vossel_of;  // local vossel → vossel index
   for (int32_t k : vossels) {
-    for (size_t i = weights->begin[size_t(k)]; i < weights->begin[size_t(k) + 1]; ++i) {
+    const auto [first, last] = std::equal_range(all.vossel.begin(), all.vossel.end(), k);
+    if (first == last) continue;
+    if (int64_t(picked.size()) >= limit) {
+      out.truncated = true;
+      break;
+    }
+    for (auto it = first; it != last; ++it) picked.push_back(size_t(it - all.vossel.begin()));
+    vossel_of.push_back(k);
+  }
+  records::RecordSet r = all.Select(picked);
+  for (size_t i = 0, local = 0; i < r.size(); ++i) {
+    if (i > 0 && r.vossel[i] != all.vossel[picked[i - 1]]) ++local;
+    r.vossel[i] = int32_t(local);
+  }
+  absl::StatusOr<fusion::RecordWeightsResult> weights =
+      fusion::RecordWeights(r, vossel_of.size(), h, profile);
+  if (!weights.ok()) return weights.status();
+  for (size_t local = 0; local < vossel_of.size(); ++local) {
+    const int32_t k = vossel_of[local];
+    for (size_t i = weights->begin[local]; i < weights->begin[local + 1]; ++i) {
       if (int64_t(out.rows.size()) >= limit) {
         out.truncated = true;
         return out;

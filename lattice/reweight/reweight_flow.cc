@@ -30,6 +30,8 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
   if (!manifest.ok()) return manifest.status();
   ReweightResult out;
   out.layer = store::FusedLayerName(profile.name, profile.version);
+  out.profile = profile.name;
+  out.revision = profile.version;
   out.tiles = int64_t(manifest->tiles.size());
   for (const auto& [key, layers] : manifest->tiles) {
     auto it = layers.find(store::kLayerRecords);

@@ -19,6 +19,8 @@ namespace vasl::reweight {
 struct ReweightResult {
   int64_t version = 0;        ///< the new version (HEAD's when nothing had to change)
   std::string layer;          ///< the fused layer (store::FusedLayerName)
+  std::string profile;        ///< the profile's name and revision
+  int32_t revision = 0;
   int64_t tiles = 0;          ///< tiles fused
   int64_t records = 0;        ///< records read
   int64_t vossels = 0;        ///< vossels fused
