@@ -78,7 +78,7 @@ absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
     return std::shared_ptr<const records::FusedValues>(snap, &it->second);
   }
   if (auto cached = cache.Find(snap->version, layer)) return cached;
-  auto loaded = store.LoadSnapshot(snap->version, {layer});
+  auto loaded = store.LoadSnapshot(snap->version, {layer}, /*with_records=*/false);
   if (!loaded.ok()) return loaded.status();
   auto values = std::make_shared<const records::FusedValues>((*loaded)->profile_fused.at(layer));
   cache.Put(snap->version, layer, values);

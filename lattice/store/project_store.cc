@@ -840,7 +840,7 @@ absl::Status ProjectStore::SetActiveProfile(const std::string& name) {
 }
 
 absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
-    int64_t version, const std::vector<std::string>& profile_layers) const {
+    int64_t version, const std::vector<std::string>& profile_layers, bool with_records) const {
   if (version < 0) {
     return absl::InvalidArgumentError(absl::StrCat("version must be >= 0; got ", version));
   }
@@ -891,12 +891,14 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
         continue;
       }
       tile.geometry = std::move(*geometry);
-      absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
-      if (!recs.ok()) {
-        status[t] = recs.status();
-        continue;
+      if (with_records) {
+        absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
+        if (!recs.ok()) {
+          status[t] = recs.status();
+          continue;
+        }
+        tile.records = std::move(*recs);
       }
-      tile.records = std::move(*recs);
       absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
       if (!fused.ok()) {
         status[t] = fused.status();

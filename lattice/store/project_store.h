@@ -220,10 +220,13 @@ class ProjectStore {
   absl::StatusOr<std::set<tiles::TileKey>> SourceTiles(int32_t source_id) const;
 
   /// Loads version `version` (0: an empty snapshot with this project's vossel size), with the
-  /// fused layers `profile_layers` (FusedLayerName) besides the default's.
+  /// fused layers `profile_layers` (FusedLayerName) besides the default's. Without
+  /// `with_records` the snapshot's records stay empty and no record object is read (a caller
+  /// after one fused layer).
   /// NOT_FOUND when it does not exist or retention removed it, or a layer is missing from a tile.
   absl::StatusOr<std::shared_ptr<const Snapshot>> LoadSnapshot(
-      int64_t version, const std::vector<std::string>& profile_layers = {}) const;
+      int64_t version, const std::vector<std::string>& profile_layers = {},
+      bool with_records = true) const;
   /// The manifest of a kept version.
   absl::StatusOr<Manifest> LoadManifest(int64_t version) const;
 
