@@ -131,8 +131,19 @@ struct Engine::Impl {
     result.blocks_revisited = flow.blocks_revisited;
     result.tiles_changed = flow.tiles_changed;
     result.bytes_written = flow.bytes_written;
+    result.pixels_back_projected = flow.pixels_back_projected;
+    result.pixels_outside = flow.pixels_outside;
     result.seconds = SecondsSince(t0);
     return result;
+  }
+
+  /// Finish for a flow that added a scan (ingest, back-projection): also its catalog id.
+  IngestResult FinishAdded(Project& p, flows::FlowResult flow, Clock::time_point t0,
+                           IngestResult result) {
+    IngestResult done = Finish(p, std::move(flow), t0, std::move(result));
+    auto scans = p.store->ListScans();
+    if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
+    return done;
   }
 
   /// Profile `name` (empty: the project's active one) at `revision` (0: latest).
@@ -264,10 +275,7 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
                                 impl_->limits.max_image_pixels,
                                 StageReporter(progress));
   if (!flow.ok()) return flow.status();
-  IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
-  auto scans = st.ListScans();
-  if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
-  return done;
+  return impl_->FinishAdded(p, std::move(*flow), t0, std::move(result));
 }
 
 absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
@@ -283,13 +291,7 @@ absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
   auto flow = flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
                                  impl_->limits.max_image_pixels, StageReporter(progress));
   if (!flow.ok()) return flow.status();  // a stored image is collected with the next commit
-  IngestResult result;
-  result.pixels_back_projected = flow->pixels_back_projected;
-  result.pixels_outside = flow->pixels_outside;
-  IngestResult done = impl_->Finish(p, std::move(*flow), t0, std::move(result));
-  auto scans = p.store->ListScans();
-  if (scans.ok() && !scans->empty()) done.scan_id = scans->back().id;
-  return done;
+  return impl_->FinishAdded(p, std::move(*flow), t0, IngestResult{});
 }
 
 absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const ProgressFn& progress) {
