@@ -147,3 +147,13 @@ def ingested(client, scene_dir):
 def views(scene_dir):
     with open(os.path.join(scene_dir, "truth", "views.json")) as f:
         return {v["name"]: v for v in json.load(f)["views"]}
+
+
+def run_cli(server, *args, check=True):
+    """Runs `vasl --server ADDRESS ARGS...` and returns the CompletedProcess; with `check`,
+    asserts it exited 0 (showing its output if not)."""
+    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, *args],
+                       capture_output=True, text=True, timeout=600)
+    if check:
+        assert r.returncode == 0, f"vasl {' '.join(args)} exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
+    return r

@@ -5,23 +5,13 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 
-from conftest import VOSSEL_M, manifests
+from conftest import VOSSEL_M, manifests, run_cli
 
 PROJECT = "backproject-e2e"
 POSE = "2.0,2.0,1.5,0,0,0,1"
-
-
-def _vasl(server, *args, check=True):
-    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, *args],
-                       capture_output=True, text=True, timeout=600)
-    if check:
-        assert r.returncode == 0, f"vasl {' '.join(args)} exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
-    return r
 
 
 def test_backproject_a_render_list_and_roll_back(client, server, scene_dir, tmp_path):
@@ -29,11 +19,11 @@ def test_backproject_a_render_list_and_roll_back(client, server, scene_dir, tmp_
     for m in manifests(scene_dir)[:2]:
         client.ingest(PROJECT, m)
     exr = str(tmp_path / "view.exr")
-    out = _vasl(server, "render", "--project", PROJECT, "--pose", POSE, "--width", "512",
+    out = run_cli(server, "render", "--project", PROJECT, "--pose", POSE, "--width", "512",
                 "--height", "256", "-o", exr).stdout
     render_id = int(re.search(r"render (\d+):", out).group(1))
     before = client.render(PROJECT, POSE, 512, 256, formats=("exr",))
-    out = _vasl(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--render",
+    out = run_cli(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--render",
                 str(render_id), "--name", "retouch-1").stdout
     print(out)
     m = re.search(r"as batch retouch-1: version 3, (\d+) pixels -> derived records", out)
@@ -44,24 +34,24 @@ def test_backproject_a_render_list_and_roll_back(client, server, scene_dir, tmp_
     psnr = 10 * np.log10(1.0 / max(mse, 1e-30))
     print(f"render again after back-projection: PSNR {psnr:.1f} dB over {int(both.sum())} pixels")
     assert psnr >= 40.0
-    listed = json.loads(_vasl(server, "batch", "list", "--project", PROJECT, "--json").stdout)
+    listed = json.loads(run_cli(server, "batch", "list", "--project", PROJECT, "--json").stdout)
     assert [b["name"] for b in listed] == ["retouch-1"]
     scans = {s.name: s for s in client.list_scans(PROJECT)}
     assert scans["retouch-1"].sources[0].modality == "derived"
-    dup = _vasl(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--name",
+    dup = run_cli(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--name",
                 "retouch-1", check=False)
     assert dup.returncode == 1 and "ALREADY_EXISTS" in dup.stderr, dup.stderr
     png = str(tmp_path / "view.png")
-    bad = _vasl(server, "backproject", png, "--project", PROJECT, "--pose", POSE, check=False)
+    bad = run_cli(server, "backproject", png, "--project", PROJECT, "--pose", POSE, check=False)
     assert bad.returncode == 1 and "INVALID_ARGUMENT" in bad.stderr, bad.stderr
-    missing = _vasl(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--render",
+    missing = run_cli(server, "backproject", exr, "--project", PROJECT, "--pose", POSE, "--render",
                     "9999", check=False)
     assert missing.returncode == 1 and "NOT_FOUND" in missing.stderr, missing.stderr
     assert client.get_project(PROJECT).head_version == 3, "refused images change nothing"
 
-    out = _vasl(server, "batch", "rollback", "retouch-1", "--project", PROJECT).stdout
+    out = run_cli(server, "batch", "rollback", "retouch-1", "--project", PROJECT).stdout
     print(out)
     assert "rolled back batch retouch-1" in out
     back = client.render(PROJECT, POSE, 512, 256, formats=("exr",))
     assert np.array_equal(back.rgb, before.rgb)
-    assert "no derived batches" in _vasl(server, "batch", "list", "--project", PROJECT).stdout
+    assert "no derived batches" in run_cli(server, "batch", "list", "--project", PROJECT).stdout

@@ -7,21 +7,12 @@ import json
 import os
 import re
 import subprocess
-import sys
 
 import numpy as np
 
-from conftest import VOSSEL_M, manifests
+from conftest import VOSSEL_M, manifests, run_cli
 
 PROJECT = "store-e2e"
-
-
-def _vasl(server, *args, check=True):
-    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, *args],
-                       capture_output=True, text=True, timeout=600)
-    if check:
-        assert r.returncode == 0, f"vasl {' '.join(args)} exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
-    return r
 
 
 def test_versions_rebuild_delete_and_export_from_the_cli(client, server, scene_dir, tmp_path):
@@ -38,7 +29,7 @@ def test_versions_rebuild_delete_and_export_from_the_cli(client, server, scene_d
     pose = {"position": [2.0, 2.0, 1.5], "quaternion": [0, 0, 0, 1]}
     before = client.render(PROJECT, pose, 256, 128, formats=("exr",))
 
-    out = _vasl(server, "rebuild", "--project", PROJECT).stdout
+    out = run_cli(server, "rebuild", "--project", PROJECT).stdout
     print(out)
     assert re.search(r"rebuilt store-e2e: version 4,", out), out
     rebuilt = client.get_project(PROJECT)
@@ -46,20 +37,20 @@ def test_versions_rebuild_delete_and_export_from_the_cli(client, server, scene_d
     after = client.render(PROJECT, pose, 256, 128, formats=("exr",))
     assert np.array_equal(before.rgb, after.rgb) and np.array_equal(before.depth_m, after.depth_m)
 
-    listed = json.loads(_vasl(server, "versions", "--project", PROJECT, "--json").stdout)
+    listed = json.loads(run_cli(server, "versions", "--project", PROJECT, "--json").stdout)
     made_by = [v["made_by"] for v in listed]
     print("versions:", made_by)
     assert made_by == ["ingest scan scan-1", "ingest scan scan-2", "ingest scan scan-3", "rebuild"]
     assert all(v["tile_count"] >= 1 and v["bytes_total"] >= v["bytes_written"] > 0 for v in listed)
 
-    out = _vasl(server, "scan", "delete", "scan-2", "--project", PROJECT).stdout
+    out = run_cli(server, "scan", "delete", "scan-2", "--project", PROJECT).stdout
     print(out)
     assert [s.name for s in client.list_scans(PROJECT)] == ["scan-1", "scan-3"]
-    missing = _vasl(server, "scan", "delete", "scan-2", "--project", PROJECT, check=False)
+    missing = run_cli(server, "scan", "delete", "scan-2", "--project", PROJECT, check=False)
     assert missing.returncode == 1 and "NOT_FOUND" in missing.stderr, missing.stderr
 
     target = str(tmp_path / "site.vdb")
-    out = _vasl(server, "export", "--project", PROJECT, "-o", target).stdout
+    out = run_cli(server, "export", "--project", PROJECT, "-o", target).stdout
     print(out)
     project = client.get_project(PROJECT)
     r = subprocess.run(["vdb_print", target], capture_output=True, text=True)  # a grid a line
@@ -72,6 +63,6 @@ def test_versions_rebuild_delete_and_export_from_the_cli(client, server, scene_d
     assert count and int(count.group(1)) == project.record_count, r.stdout[:2000]
     print(f"export: {os.path.getsize(target) / 1e6:.1f} MB, {int(count.group(1))} records, grids "
           f"{sorted(grids)}")
-    bad = _vasl(server, "export", "--project", PROJECT, "--version", "99", "-o", target,
+    bad = run_cli(server, "export", "--project", PROJECT, "--version", "99", "-o", target,
                 check=False)
     assert bad.returncode == 1 and "NOT_FOUND" in bad.stderr, bad.stderr
