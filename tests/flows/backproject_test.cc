@@ -48,11 +48,7 @@ class BackProjectTest : public ::testing::Test {
     settings.tile_vossels = 32;
     ASSERT_TRUE(engine_->CreateProject("p", settings).ok());
     for (size_t i = 0; i < 2; ++i) {
-      scenes::LidarSettings lidar;
-      lidar.azimuth_steps = 1080;
-      lidar.elevation_steps = 540;
-      lidar.seed = i + 1;
-      auto scan = scenes::MakeScanInput(room_, i, lidar, 512, 2);
+      auto scan = scenes::MakeScanInput(room_, i, scenes::LidarSettings::Small(i + 1), 512, 2);
       ASSERT_TRUE(scan.ok());
       ASSERT_TRUE(engine_->IngestScan("p", *scan).ok());
     }
@@ -226,11 +222,7 @@ TEST_F(BackProjectTest, LaterIngestKeepsDerivedRecordsEqualToARebuild) {
   in.pose = room_.NovelViews()[0];
   in.image = *render::EncodeExr(view);
   ASSERT_TRUE(engine_->BackProject("p", in).ok());  // v3
-  scenes::LidarSettings lidar;
-  lidar.azimuth_steps = 1080;
-  lidar.elevation_steps = 540;
-  lidar.seed = 3;
-  auto scan = scenes::MakeScanInput(room_, 2, lidar, 512, 2);
+  auto scan = scenes::MakeScanInput(room_, 2, scenes::LidarSettings::Small(3), 512, 2);
   ASSERT_TRUE(scan.ok());
   auto r = engine_->IngestScan("p", *scan);  // v4
   ASSERT_TRUE(r.ok()) << r.status();

@@ -31,14 +31,6 @@ fs::path TestRoot(const std::string& name) {
   return root;
 }
 
-scenes::LidarSettings SmallLidar(uint64_t seed) {
-  scenes::LidarSettings lidar;
-  lidar.azimuth_steps = 1080;
-  lidar.elevation_steps = 540;
-  lidar.seed = seed;
-  return lidar;
-}
-
 /// (scan name, source name) of every source id of a project's HEAD, so that two projects whose
 /// ids differ can be compared.
 std::map<int32_t, std::string> SourceNames(const store::ProjectStore& st) {
@@ -189,7 +181,7 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
   CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
   for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, SmallLidar(i + 1), kPanoW, 2);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     Ingest(*engine, "room", *scan);
   }
@@ -214,7 +206,7 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheCorridor) {
   ASSERT_GE(site.Stations().size(), 12u);
   int64_t revisited_last_half = 0, pairs_last_half = 0, blocks_last_half = 0;
   for (size_t i = 0; i < site.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(site, i, SmallLidar(i + 1), kPanoW, 2);
+    auto scan = scenes::MakeScanInput(site, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     auto r = engine->IngestScan("corridor", *scan);
     ASSERT_TRUE(r.ok()) << r.status();
@@ -284,7 +276,7 @@ TEST(IncrementalTest, DeleteEqualsIngestingTheOthers) {
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
   const size_t doomed = 1;  // station 1 lights the region station 0 sees shadowed
   for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, SmallLidar(i + 1), kPanoW, 2);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     Ingest(*engine, "all", *scan);
     if (i != doomed) Ingest(*engine, "others", *scan);
@@ -369,7 +361,7 @@ TEST(IncrementalTest, NewObjectShadowsExactlyTheRecordsBehindIt) {
   CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
   for (size_t i = 0; i < 2; ++i) {
-    auto scan = scenes::MakeScanInput(room, i, SmallLidar(i + 1), kPanoW, 2);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     Ingest(*engine, "room", *scan);
   }

@@ -64,11 +64,7 @@ TEST(NormaliseSceneTest, RecoversPlantedGainsAndBringsFusionCloserToTheTruth) {
       {0.80, 0.95, 0.90}, {1.00, 0.85, 0.95}, {0.90, 1.00, 0.80}, {0.95, 0.90, 1.00}};
   ASSERT_EQ(room.Stations().size(), planted.size());
   for (size_t i = 0; i < planted.size(); ++i) {
-    scenes::LidarSettings lidar;
-    lidar.azimuth_steps = 1080;
-    lidar.elevation_steps = 540;
-    lidar.seed = i + 1;
-    auto scan = scenes::MakeScanInput(room, i, lidar, 512, 2);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), 512, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     ASSERT_EQ(scan->panoramas.size(), 1u);
     scenes::Panorama pano = scenes::RenderPanorama(room, scan->panoramas[0].pose, 512, 256, 2);

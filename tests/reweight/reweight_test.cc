@@ -20,14 +20,6 @@ namespace fs = std::filesystem;
 
 constexpr double kVosselM = 0.05;
 
-scenes::LidarSettings SmallLidar(uint64_t seed) {
-  scenes::LidarSettings lidar;
-  lidar.azimuth_steps = 1080;
-  lidar.elevation_steps = 540;
-  lidar.seed = seed;
-  return lidar;
-}
-
 fusion::WeightingProfile Sharp() {
   fusion::WeightingProfile p;
   p.name = "sharp";
@@ -61,7 +53,7 @@ class ReweightTest : public ::testing::Test {
     ASSERT_TRUE(engine_->CreateProject(name, settings).ok());
   }
   void Ingest(const std::string& project, size_t station) {
-    auto scan = scenes::MakeScanInput(room_, station, SmallLidar(station + 1), 512, 2);
+    auto scan = scenes::MakeScanInput(room_, station, scenes::LidarSettings::Small(station + 1), 512, 2);
     ASSERT_TRUE(scan.ok()) << scan.status();
     auto r = engine_->IngestScan(project, *scan);
     ASSERT_TRUE(r.ok()) << r.status();

@@ -261,6 +261,16 @@ struct LidarSettings {
   double max_range_m = 50.0;     ///< no return beyond this range, metres
   double nadir_blind_rad = 10.0 * M_PI / 180.0;  ///< skipped cone half-angle around −z, rad
   uint64_t seed = 1;             ///< noise seed (results do not depend on thread count)
+
+  /// The 1080×540 grid the store and flow tests scan with (quick, and dense enough for
+  /// h = 5 cm), with noise seed `seed`.
+  static LidarSettings Small(uint64_t seed) {
+    LidarSettings s;
+    s.azimuth_steps = 1080;
+    s.elevation_steps = 540;
+    s.seed = seed;
+    return s;
+  }
 };
 
 /// True when row `j` of the ray grid lies outside the nadir blind cone (its centre's elevation
