@@ -5,7 +5,6 @@
 #include <map>
 #include <memory>
 
-#include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -15,24 +14,21 @@
 #include "lattice/geometry/equirect.h"
 #include "lattice/geometry/footprint.h"
 #include "lattice/geometry/pinhole.h"
+#include "lattice/ingest/image_memory.h"
 #include "lattice/records/record_grid.h"
 
 namespace vasl::ingest {
 
 absl::StatusOr<DerivedImage> DecodeRgbzImage(std::string_view bytes, int64_t max_pixels) {
   using namespace OIIO;
-  Filesystem::IOMemReader reader(const_cast<char*>(bytes.data()), bytes.size());
-  ImageSpec config;
-  Filesystem::IOProxy* proxy = &reader;
-  config.attribute("oiio:ioproxy", TypeDesc::PTR, &proxy);
-  config.attribute("oiio:UnassociatedAlpha", 1);
-  const bool exr = bytes.size() >= 4 && bytes.substr(0, 4) == std::string_view("\x76\x2f\x31\x01", 4);
-  std::unique_ptr<ImageInput> in = ImageInput::open(exr ? "memory.exr" : "memory.tif", &config);
-  if (!in) {
+  absl::StatusOr<internal::MemoryImageInput> opened =
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/true);
+  if (!opened.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(
         "the RGBZ image does not decode (an OpenEXR file with channels R, G, B, Z is expected): ",
-        OIIO::geterror()));
+        opened.status().message()));
   }
+  ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();
   if (spec.width <= 0 || spec.height <= 0) return absl::InvalidArgumentError("the RGBZ image is empty");
   if (int64_t(spec.width) * spec.height > max_pixels) {

@@ -9,6 +9,7 @@
 #include <OpenImageIO/imageio.h>
 
 #include "absl/strings/str_cat.h"
+#include "lattice/ingest/image_memory.h"
 #include "lattice/ingest/sources.h"
 
 namespace vasl::ingest {
@@ -33,8 +34,9 @@ const char* SniffExtension(std::string_view b) {
 
 }  // namespace
 
-absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
-                                        int64_t max_pixels) {
+namespace internal {
+
+absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha) {
   using namespace OIIO;
   const char* ext = SniffExtension(bytes);
   if (ext == nullptr) {
@@ -42,16 +44,30 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
         "image bytes are not PNG, JPEG, EXR or TIFF (unrecognised signature)");
   }
   // OpenImageIO reads these formats from memory through an IOProxy.
-  Filesystem::IOMemReader reader(const_cast<char*>(bytes.data()), bytes.size());
+  MemoryImageInput out;
+  out.reader = std::make_unique<Filesystem::IOMemReader>(const_cast<char*>(bytes.data()), bytes.size());
   ImageSpec config;
   // The attribute holds the proxy pointer itself: pass the address of a pointer.
-  Filesystem::IOProxy* proxy = &reader;
+  Filesystem::IOProxy* proxy = out.reader.get();
   config.attribute("oiio:ioproxy", TypeDesc::PTR, &proxy);
-  std::unique_ptr<ImageInput> in = ImageInput::open(std::string("memory") + ext, &config);
-  if (!in) {
+  if (unassociated_alpha) config.attribute("oiio:UnassociatedAlpha", 1);
+  out.in = ImageInput::open(std::string("memory") + ext, &config);
+  if (!out.in) {
     return absl::InvalidArgumentError(
         absl::StrCat("image bytes do not decode as ", ext + 1, ": ", OIIO::geterror()));
   }
+  return out;
+}
+
+}  // namespace internal
+
+absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
+                                        int64_t max_pixels) {
+  using namespace OIIO;
+  absl::StatusOr<internal::MemoryImageInput> opened =
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/false);
+  if (!opened.ok()) return opened.status();
+  ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();
   if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
     return absl::InvalidArgumentError("decoded image is empty");
