@@ -1,6 +1,5 @@
 // The back-projection flow (flows.h, VASL-MODEL §10): an image's pixels appended as derived
 // records in a batch of their own. Geometry does not change, so no older source is revisited.
-#include <cmath>
 #include <numeric>
 
 #include "absl/strings/str_cat.h"
@@ -29,13 +28,7 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
   absl::StatusOr<ingest::DerivedImage> decoded = ingest::DecodeRgbzImage(input.image, max_image_pixels);
   if (!decoded.ok()) return decoded.status();
   if (input.pinhole) {
-    const geometry::PinholeIntrinsics& k = input.intrinsics;
-    for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
-      if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
-    }
-    if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
-      return absl::InvalidArgumentError("pinhole focal lengths must be > 0 pixels");
-    }
+    if (absl::Status s = geometry::ValidatePinhole(input.intrinsics); !s.ok()) return s;
   }
   if (input.render_id > 0) {
     if (absl::StatusOr<store::RenderRecord> r = store.GetRender(input.render_id); !r.ok()) {

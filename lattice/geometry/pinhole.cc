@@ -1,6 +1,27 @@
 #include "lattice/geometry/pinhole.h"
 
+#include <algorithm>
+#include <cmath>
+
+#include "absl/strings/str_cat.h"
+
 namespace vasl::geometry {
+
+absl::Status ValidatePinhole(const PinholeIntrinsics& k) {
+  for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
+    if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
+  }
+  if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "pinhole focal lengths must be > 0 pixels, got fx ", k.fx_px, ", fy ", k.fy_px));
+  }
+  if (std::max({std::abs(k.k1), std::abs(k.k2), std::abs(k.k3)}) > 10.0 ||
+      std::max(std::abs(k.p1), std::abs(k.p2)) > 1.0) {
+    return absl::InvalidArgumentError(
+        "pinhole distortion out of range (|k1|, |k2|, |k3| <= 10, |p1|, |p2| <= 1)");
+  }
+  return absl::OkStatus();
+}
 namespace {
 
 // Brown–Conrady: normalised undistorted (x, y) to normalised distorted coordinates.

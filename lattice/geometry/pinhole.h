@@ -8,6 +8,8 @@
 
 #include <Eigen/Core>
 
+#include "absl/status/status.h"
+
 namespace vasl::geometry {
 
 /// Intrinsics of a pinhole camera, pixels; distortion coefficients are unitless.
@@ -21,6 +23,11 @@ struct PinholeIntrinsics {
   double k1 = 0.0, k2 = 0.0, k3 = 0.0;  ///< radial distortion
   double p1 = 0.0, p2 = 0.0;            ///< tangential distortion
 };
+
+/// INVALID_ARGUMENT unless the intrinsics are finite, the focal lengths positive and the
+/// distortion moderate (|k1|, |k2|, |k3| ≤ 10, |p1|, |p2| ≤ 1): what renders and
+/// back-projection accept. The image size is not checked (callers take it from elsewhere).
+absl::Status ValidatePinhole(const PinholeIntrinsics& k);
 
 /// §2.2 forward: camera-frame point to continuous pixel coordinates; nullopt behind the camera
 /// (Z ≤ 0). The pixel may fall outside the image; callers test the bounds.
