@@ -141,16 +141,11 @@ store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
   r.width_px = image.width_px;
   r.height_px = image.height_px;
   r.pose = request.pose;
-  if (request.projection == render::Projection::kPinhole) {
-    const geometry::PinholeIntrinsics& k = request.pinhole;
-    r.projection = "pinhole";
-    r.camera = absl::StrFormat("fx %.17g fy %.17g cx %.17g cy %.17g k1 %.17g k2 %.17g k3 %.17g "
-                               "p1 %.17g p2 %.17g", k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1,
-                               k.k2, k.k3, k.p1, k.p2);
-  } else {
-    r.projection = "equirect";
-  }
-  absl::StrAppend(&r.camera, r.camera.empty() ? "" : " ", absl::StrFormat("eta %.17g", request.eta));
+  const bool pinhole = request.projection == render::Projection::kPinhole;
+  r.projection = pinhole ? "pinhole" : "equirect";
+  // The projection as a derived source cites it (DerivedCameraText), then the view term.
+  r.camera = absl::StrCat(DerivedCameraText(pinhole, request.pinhole, 0),
+                          absl::StrFormat(" eta %.17g", request.eta));
   return r;
 }
 
