@@ -7,6 +7,8 @@
 
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/ingest/image_memory.h"
@@ -80,32 +82,57 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
     return absl::ResourceExhaustedError(absl::StrCat("image of ", spec.width, "x", spec.height,
                                                      " pixels exceeds the limit of ", max_pixels));
   }
-  std::vector<float> all(size_t(spec.width) * spec.height * spec.nchannels);
-  if (!in->read_image(0, 0, 0, spec.nchannels, TypeDesc::FLOAT, all.data())) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("image bytes do not decode: ", in->geterror()));
-  }
-  in->close();
   const bool is_float = spec.format.basetype == TypeDesc::FLOAT ||
                         spec.format.basetype == TypeDesc::HALF ||
                         spec.format.basetype == TypeDesc::DOUBLE;
   const std::string color_space = spec.get_string_attribute("oiio:ColorSpace");
   const bool linear_already = is_float || color_space == "Linear" || color_space == "linear";
+  // Integer images are read as their own integers and linearised through a table of every
+  // code (2⁸ or 2¹⁶ entries): the sRGB EOTF once per code instead of once per pixel channel.
+  const bool int8 = !linear_already && (spec.format.basetype == TypeDesc::UINT8 ||
+                                        spec.format.basetype == TypeDesc::INT8);
+  const bool int16 = !linear_already && !int8;
+  const TypeDesc read_as = int8 ? TypeDesc::UINT8 : int16 ? TypeDesc::UINT16 : TypeDesc::FLOAT;
+  const size_t n = size_t(spec.width) * spec.height;
+  const int nc = spec.nchannels;
+  std::vector<unsigned char> all(n * nc * read_as.size());
+  if (!in->read_image(0, 0, 0, nc, read_as, all.data())) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("image bytes do not decode: ", in->geterror()));
+  }
+  in->close();
+  std::vector<float> table;
+  if (!linear_already) {
+    const int codes = int8 ? 256 : 65536;
+    table.resize(size_t(codes));
+    for (int i = 0; i < codes; ++i) table[size_t(i)] = SrgbToLinear(float(i) / float(codes - 1));
+  }
 
   LinearImage out;
   out.width_px = spec.width;
   out.height_px = spec.height;
   out.channels = single_channel ? 1 : 3;
   out.clip_value = is_float ? 0.0f : 1.0f;
-  const size_t n = size_t(spec.width) * spec.height;
   out.pixels.resize(n * out.channels);
-  const int nc = spec.nchannels;
-  for (size_t p = 0; p < n; ++p) {
-    for (int c = 0; c < out.channels; ++c) {
-      const float v = all[p * nc + (nc >= 3 ? c : 0)];  // gray (± alpha) is replicated
-      out.pixels[p * out.channels + c] = linear_already ? v : SrgbToLinear(v);
+  const int oc = out.channels;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t p = r.begin(); p != r.end(); ++p) {
+      for (int c = 0; c < oc; ++c) {
+        const size_t at = p * nc + (nc >= 3 ? c : 0);  // gray (± alpha) is replicated
+        float v;
+        if (int8) {
+          v = table[all[at]];
+        } else if (int16) {
+          uint16_t code;
+          std::memcpy(&code, &all[2 * at], 2);
+          v = table[code];
+        } else {
+          std::memcpy(&v, &all[4 * at], 4);
+        }
+        out.pixels[p * oc + c] = v;
+      }
     }
-  }
+  });
   return out;
 }
 
