@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <initializer_list>
 #include <map>
 
 #include "absl/strings/str_cat.h"
@@ -162,11 +163,21 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
     cap.half_angle_rad += margin_rad + dilation_rad;
     cone.exact.push_back(cap);
   }
+  // A splat lies within its cell grown by σ(r) (surfel or sphere), so a block nearer than no
+  // exact block's far side can only lower depths below ranges its tests never compare them
+  // with: D(p) ≥ r − τ holds with or without a splat at depth ≥ r. Blocks wholly behind every
+  // exact block they overlap are left out of the context (their splats cannot change a test).
+  const double spread_rad = std::max({source.info.divergence_rad, DepthPixelRad(source),
+                                      source.lidar() || source.info.width_px <= 0
+                                          ? 0.0
+                                          : 2.0 * M_PI / double(source.info.width_px)});
   for (const tiles::TileKey& b : all) {
     tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
     cap.half_angle_rad += margin_rad;
+    const double splat_near_m =
+        cap.near_m - grow_m - std::sqrt(3.0) * geometry::SpotSigmaM(cap.far_m, spread_rad);
     for (const tiles::ViewCap& c : cone.exact) {
-      if (tiles::CapsOverlap(cap, c, 0.0)) {
+      if (splat_near_m <= c.far_m + grow_m && tiles::CapsOverlap(cap, c, 0.0)) {
         cone.context.insert(b);
         break;
       }

@@ -19,8 +19,10 @@
 ///          The rules are applied to blocks of 16³ vossels (finer than tiles): the records of m
 ///          recomputed are those on the blocks of 2 (c itself included); a LiDAR's are kept to
 ///          the tiles where it has returns (it records nothing elsewhere). Everything else keeps
-///          its records bit for bit. The recomputation renders D_m from the whole new
-///          geometry, so its records and its new reach raster equal a rebuild's.
+///          its records bit for bit. The recomputation renders D_m from every block whose
+///          splats can fall where the revisited tests read at a depth they compare (blocks wholly
+///          behind those tests are left out: see ConeOf), so its records equal a rebuild's and
+///          its new reach raster bounds a rebuild's from above.
 #pragma once
 
 #include <chrono>
@@ -94,9 +96,10 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
 
 /// Where a revisit of a source must see exactly: the caps (from the source) of the blocks it
 /// recomputes, widened by its angular margin and a camera's dilation, and the blocks whose
-/// splats can fall inside them, at any depth. Splatting the context alone gives the depth
-/// panorama of the whole lattice inside `exact` (and an upper bound elsewhere), so the records
-/// of the revisited blocks are a rebuild's.
+/// splats can fall inside them nearer than the far side of a block they overlap. Splatting the
+/// context alone gives, inside `exact`, every depth a visibility test there compares exactly
+/// (deeper splats cannot change a test D(p) ≥ r − τ with r below them) and an upper bound
+/// elsewhere, so the records of the revisited blocks are a rebuild's.
 struct RevisitCone {
   std::vector<tiles::ViewCap> exact;
   std::set<tiles::TileKey> context;  ///< block keys
