@@ -20,7 +20,7 @@ namespace {
 /// Angular pitch (radians, the larger axis) of a source's depth panorama: the Δ of its
 /// visibility tolerance.
 double DepthPixelRad(const SourceRef& s) {
-  const double pitch = s.lidar()
+  const double pitch = s.returns()
                            ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
                            : ingest::CameraDepthPitchRad(s.info.divergence_rad,
                                                          {s.info.width_px, s.info.height_px});
@@ -33,7 +33,7 @@ double DepthPixelRad(const SourceRef& s) {
 /// divergence for a LiDAR, one pixel for a camera).
 double AngularMarginRad(const SourceRef& s) {
   const double pixel = DepthPixelRad(s);
-  if (s.lidar()) return 2.0 * pixel + s.info.divergence_rad;
+  if (s.returns()) return 2.0 * pixel + s.info.divergence_rad;
   return (2.0 + ingest::CameraSampleRadiusPx() + 1.0) * pixel + s.info.divergence_rad;
 }
 
@@ -156,7 +156,7 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
   // A camera's tests read the dilated panorama: its pixels take the min over a window, so the
   // splats must be exact that much farther out (one pixel more for rounding).
   const double dilation_rad =
-      source.lidar() ? 0.0 : (ingest::CameraSampleRadiusPx() + 1.0) * DepthPixelRad(source);
+      source.returns() ? 0.0 : (ingest::CameraSampleRadiusPx() + 1.0) * DepthPixelRad(source);
   RevisitCone cone;
   for (const tiles::TileKey& b : revisit) {
     tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
@@ -168,7 +168,7 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
   // with: D(p) ≥ r − τ holds with or without a splat at depth ≥ r. Blocks wholly behind every
   // exact block they overlap are left out of the context (their splats cannot change a test).
   const double spread_rad = std::max({source.info.divergence_rad, DepthPixelRad(source),
-                                      source.lidar() || source.info.width_px <= 0
+                                      source.returns() || source.info.width_px <= 0
                                           ? 0.0
                                           : 2.0 * M_PI / double(source.info.width_px)});
   for (const tiles::TileKey& b : all) {
@@ -194,6 +194,11 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
     absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, source.info, source.batch);
     if (!lidar.ok()) return lidar.status();
     return ingest::LidarRecords(geometry, *lidar, only, context);
+  }
+  if (source.point_colour()) {
+    absl::StatusOr<ingest::LidarSource> points = LoadPointColour(store, source.info, source.batch);
+    if (!points.ok()) return points.status();
+    return ingest::PointColourRecords(geometry, *points, only, context);
   }
   if (source.derived()) {  // §10: its pixels land on vossels again; no depth panorama
     absl::StatusOr<ingest::DerivedSource> derived =
@@ -247,7 +252,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     auto it = old.reach.find(src.info.id);
     std::set<tiles::TileKey> blocks_of_src =
         AffectedBlocks(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_blocks, B, h);
-    if (src.lidar() && !blocks_of_src.empty()) {
+    if (src.returns() && !blocks_of_src.empty()) {
       absl::StatusOr<std::set<tiles::TileKey>> returns = store.SourceTiles(src.info.id);
       if (!returns.ok()) return returns.status();
       for (auto b = blocks_of_src.begin(); b != blocks_of_src.end();) {
@@ -341,6 +346,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   for (const ingest::LidarSource& lidar : change.new_sources.lidars) {
     clock.Start(absl::StrCat("records of source ", lidar.id), fraction);
     add_new(ingest::LidarRecords(g, lidar), lidar.id);
+  }
+  for (const ingest::LidarSource& colour : change.new_sources.point_colours) {
+    clock.Start(absl::StrCat("records of source ", colour.colour_id), fraction);
+    add_new(ingest::PointColourRecords(g, colour), colour.colour_id);
   }
   for (const ingest::DerivedSource& d : change.new_sources.derived) {
     clock.Start(absl::StrCat("back-project source ", d.id), fraction);

@@ -60,6 +60,11 @@ struct SourceRef {
   store::SourceInfo info;
   int32_t batch = 0;
   bool lidar() const { return info.modality == records::Modality::kLidar; }
+  /// The colour of a LiDAR's returns (IsPointColour): its records, depth panorama and reach
+  /// are a LiDAR's, its samples colours.
+  bool point_colour() const { return IsPointColour(info); }
+  /// Records made from a LiDAR's returns (intensity or colour): only where it has returns.
+  bool returns() const { return lidar() || point_colour(); }
   /// An image sent back as derived data (§10): no geometry, no depth panorama, no reach.
   bool derived() const { return info.modality == records::Modality::kDerived; }
 };

@@ -66,14 +66,26 @@ absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& sto
 /// DATA_LOSS when the blob is damaged.
 absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
                                               const store::SourceInfo& source, int32_t batch);
+/// A point-colour source's camera text (SourceInfo::camera): "points SHA", SHA the blob of the
+/// scan's LiDAR points the colours belong to (its own blob holds float32 r, g, b per point, in
+/// the same order, linear).
+std::string PointColourCameraText(const std::string& lidar_blob_sha256);
+/// True for a source whose camera text names a LiDAR's points (a point-colour source).
+bool IsPointColour(const store::SourceInfo& source);
+/// The LiDAR points of a stored point-colour source with their colours, as a LidarSource whose
+/// `colour_id` is the source's id. DATA_LOSS when a blob is damaged or the counts disagree.
+absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& store,
+                                                    const store::SourceInfo& source,
+                                                    int32_t batch);
 /// A stored camera whose image is decoded from its blob on demand (`load`).
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);
 
 /// Stores a validated scan's raw inputs as content-addressed blobs (its LiDAR points packed as
-/// little-endian float32 x, y, z, intensity; its encoded images) and returns its catalog
-/// description: sources with fresh ids (LiDAR first, then cameras in order), a fresh batch.
+/// little-endian float32 x, y, z, intensity; per-point colour, when given, as float32 r, g, b;
+/// its encoded images) and returns its catalog description: sources with fresh ids (LiDAR
+/// first, then its point colour when given, then cameras in order), a fresh batch.
 /// `images` are its decoded panoramas (for their sizes).
 absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const ingest::ScanInput& scan,
                                                const std::vector<ingest::LinearImage>& images);

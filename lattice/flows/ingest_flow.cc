@@ -52,6 +52,19 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
     lidar.divergence_rad = scan.lidar.divergence_rad;
     lidar.point_count = int64_t(scan.lidar.xyz_sensor_m.size() / 3);
     info.sources.push_back(lidar);
+    if (!scan.lidar.rgb.empty()) {  // the colour of the returns: a source of its own
+      std::string colours(scan.lidar.rgb.size() * sizeof(float), '\0');
+      std::memcpy(colours.data(), scan.lidar.rgb.data(), colours.size());
+      auto colour_blob = st.PutBlob(colours);
+      if (!colour_blob.ok()) return colour_blob.status();
+      store::SourceInfo colour = lidar;
+      colour.id = (*next_source)++;
+      colour.name = "point-colour";
+      colour.modality = records::Modality::kRgb;
+      colour.blob_sha256 = *colour_blob;
+      colour.camera = PointColourCameraText(lidar.blob_sha256);
+      info.sources.push_back(colour);
+    }
   }
   for (size_t i = 0; i < scan.panoramas.size(); ++i) {
     const ingest::PanoramaData& pano = scan.panoramas[i];
@@ -89,6 +102,12 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       l.xyz_sensor_m = lidar.xyz_sensor_m;
       l.intensity = lidar.intensity;
       change.new_sources.lidars.push_back(std::move(l));
+    } else if (IsPointColour(src)) {
+      ingest::LidarSource c = LidarOf(src, info.batch);
+      c.xyz_sensor_m = lidar.xyz_sensor_m;
+      c.rgb = lidar.rgb;
+      c.colour_id = src.id;
+      change.new_sources.point_colours.push_back(std::move(c));
     } else {
       if (next_image >= images.size()) {
         return absl::InternalError("IngestScan: fewer decoded images than camera sources");
@@ -137,6 +156,9 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   plan.add_scan = info;
   std::set<tiles::TileKey>& returns = plan.source_tiles[change.new_sources.lidars[0].id];
   for (const openvdb::Coord& c : binned->coord) returns.insert(tiles::TileOf(c, T));
+  for (const ingest::LidarSource& c : change.new_sources.point_colours) {
+    plan.source_tiles[c.colour_id] = returns;  // its records lie where the returns do
+  }
 
   absl::StatusOr<store::Snapshot> next =
       internal::Propagate(store, head, std::move(change), internal::SourcesOf(*scans),

@@ -52,6 +52,34 @@ absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
   return out;
 }
 
+std::string PointColourCameraText(const std::string& lidar_blob_sha256) {
+  return "points " + lidar_blob_sha256;
+}
+
+bool IsPointColour(const store::SourceInfo& source) {
+  return source.modality != records::Modality::kLidar && source.camera.rfind("points ", 0) == 0;
+}
+
+absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& store,
+                                                    const store::SourceInfo& s, int32_t batch) {
+  store::SourceInfo points = s;
+  points.blob_sha256 = s.camera.substr(std::strlen("points "));
+  absl::StatusOr<ingest::LidarSource> out = LoadLidar(store, points, batch);
+  if (!out.ok()) return out.status();
+  absl::StatusOr<std::string> bytes = store.ReadBlob(s.blob_sha256);
+  if (!bytes.ok()) return bytes.status();
+  if (bytes->size() != out->point_count() * 12) {
+    return absl::DataLossError(absl::StrCat("colour blob ", s.blob_sha256, " holds ",
+                                            bytes->size() / 12, " colours for ",
+                                            out->point_count(), " points"));
+  }
+  out->rgb.resize(3 * out->point_count());
+  std::memcpy(out->rgb.data(), bytes->data(), bytes->size());
+  out->intensity.clear();
+  out->colour_id = s.id;
+  return out;
+}
+
 std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k,
                               int64_t render_id) {
   std::string s = pinhole ? absl::StrFormat("pinhole %.17g %.17g %.17g %.17g %.17g %.17g %.17g "

@@ -143,17 +143,30 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
   return Concatenate(parts);
 }
 
-RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar,
-                      const DepthPanorama& depth, const std::vector<float>& vis) {
+namespace {
+
+// Records of one LiDAR's returns (§3-§6): per vossel holding returns and V > 0, the mean of
+// `channels` values per return (`values` empty: every return counts as 1), with the LiDAR's
+// footprint; conf[saturation] = 1 − the share of returns with a value ≥ 0.999·clip (clip 0:
+// none). One implementation for intensity records and point-colour records.
+RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lidar,
+                        const DepthPanorama& depth, const std::vector<float>& vis,
+                        const std::vector<float>& values, int channels, float clip,
+                        int32_t source_id, records::Modality modality) {
   const size_t nv = g.size();
   const double h = g.vossel_size_m;
-  // Mean intensity of this LiDAR's returns per vossel (thread-local dense sums).
+  const int C = channels;
+  // Per vossel: Σ value per channel, the return count and the clipped count (thread-local).
   struct Sums {
     std::vector<double> sum;
-    std::vector<int32_t> count;
+    std::vector<int32_t> count, clipped;
   };
-  tbb::enumerable_thread_specific<Sums> local([nv] { return Sums{std::vector<double>(nv, 0.0), std::vector<int32_t>(nv, 0)}; });
+  tbb::enumerable_thread_specific<Sums> local([nv, C] {
+    return Sums{std::vector<double>(nv * size_t(C), 0.0), std::vector<int32_t>(nv, 0),
+                std::vector<int32_t>(nv, 0)};
+  });
   const Eigen::Matrix3d R = lidar.pose.q_world_sensor.toRotationMatrix();
+  const float clip_at = 0.999f * clip;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, lidar.point_count(), 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
     Sums& s = local.local();
     auto acc = g.index_grid->getConstAccessor();
@@ -165,17 +178,24 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
       const openvdb::Coord c(int(kf.x()), int(kf.y()), int(kf.z()));
       int32_t k;
       if (!acc.probeValue(c, k)) continue;
-      s.sum[k] += lidar.intensity.empty() ? 1.0 : double(lidar.intensity[i]);
+      bool clipped = false;
+      for (int ch = 0; ch < C; ++ch) {
+        const float v = values.empty() ? 1.0f : values[i * size_t(C) + size_t(ch)];
+        s.sum[size_t(k) * C + ch] += double(v);
+        clipped |= clip > 0.0f && v >= clip_at;
+      }
       ++s.count[k];
+      s.clipped[k] += clipped ? 1 : 0;
     }
   });
-  std::vector<double> sum(nv, 0.0);
-  std::vector<int32_t> count(nv, 0);
+  std::vector<double> sum(nv * size_t(C), 0.0);
+  std::vector<int32_t> count(nv, 0), clipped(nv, 0);
   for (const Sums& s : local) {
     for (size_t k = 0; k < nv; ++k) {
-      sum[k] += s.sum[k];
       count[k] += s.count[k];
+      clipped[k] += s.clipped[k];
     }
+    for (size_t i = 0; i < sum.size(); ++i) sum[i] += s.sum[i];
   }
   const Eigen::Matrix3d R_sensor_world = R.transpose();
   tbb::enumerable_thread_specific<RecordSet> parts;
@@ -191,12 +211,30 @@ RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar
       const double cos_inc = geometry::CosIncidence(n, x, lidar.pose.o_world);
       const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, lidar.divergence_rad, cos_inc);
       const Eigen::Vector2d uv = geometry::EquirectProject(R_sensor_world * (x - lidar.pose.o_world), depth.size);
-      const float value = float(sum[k] / count[k]);
-      PushRecord(out, int32_t(k), lidar.id, records::Modality::kLidar, &value, 1, range, cos_inc, foot, uv,
-                 vis[k], 1.0f, lidar.batch);
+      float value[records::kValueChannels] = {0, 0, 0};
+      for (int ch = 0; ch < C && ch < records::kValueChannels; ++ch) {
+        value[ch] = float(sum[k * C + ch] / count[k]);
+      }
+      const float conf = 1.0f - float(clipped[k]) / float(count[k]);
+      PushRecord(out, int32_t(k), source_id, modality, value, C, range, cos_inc, foot, uv, vis[k],
+                 conf, lidar.batch);
     }
   });
   return Concatenate(parts);
+}
+
+}  // namespace
+
+RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar,
+                      const DepthPanorama& depth, const std::vector<float>& vis) {
+  return SampleReturns(g, lidar, depth, vis, lidar.intensity, 1, 0.0f, lidar.id,
+                       records::Modality::kLidar);
+}
+
+RecordSet SamplePointColour(const records::VosselGeometry& g, const LidarSource& lidar,
+                            const DepthPanorama& depth, const std::vector<float>& vis) {
+  return SampleReturns(g, lidar, depth, vis, lidar.rgb, 3, 1.0f, lidar.colour_id,
+                       records::Modality::kRgb);
 }
 
 // Pixels around a camera sample within which an occluder may colour it (choice; see
@@ -217,17 +255,35 @@ double CameraDepthPitchRad(double angular_resolution_rad, const geometry::Equire
 
 int CameraSampleRadiusPx() { return kCameraSampleRadiusPx; }
 
-SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
-                           const std::vector<uint8_t>* only, const std::vector<uint8_t>* context) {
+namespace {
+
+// §5 then §3-§6 for the returns of one LiDAR, sampled by `sample`.
+template <typename Sample>
+SourceRecords ReturnRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                            const std::vector<uint8_t>* only, const std::vector<uint8_t>* context,
+                            Sample sample) {
   const double tau = DepthToleranceM(g.vossel_size_m);
   const DepthPanorama depth =
       RenderDepthPanorama(g, lidar.pose, DepthPanoramaSize(LidarDepthPitchRad(lidar.point_count())),
                           lidar.divergence_rad, context);
   SourceRecords out;
-  out.records = SampleLidar(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
+  out.records = sample(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;
+}
+
+}  // namespace
+
+SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                           const std::vector<uint8_t>* only, const std::vector<uint8_t>* context) {
+  return ReturnRecords(g, lidar, only, context, SampleLidar);
+}
+
+SourceRecords PointColourRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                                 const std::vector<uint8_t>* only,
+                                 const std::vector<uint8_t>* context) {
+  return ReturnRecords(g, lidar, only, context, SamplePointColour);
 }
 
 absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
@@ -259,26 +315,6 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;
-}
-
-absl::StatusOr<RecordSet> BuildRecords(const records::VosselGeometry& g, const SourceSet& sources,
-                                       const std::function<void(size_t, size_t)>& on_source) {
-  const size_t total = sources.lidars.size() + sources.cameras.size();
-  size_t done = 0;
-  std::vector<RecordSet> parts;
-  for (const LidarSource& lidar : sources.lidars) {
-    parts.push_back(LidarRecords(g, lidar).records);
-    if (on_source) on_source(++done, total);
-  }
-  for (const CameraSource& cam : sources.cameras) {
-    absl::StatusOr<SourceRecords> r = CameraRecords(g, cam);
-    if (!r.ok()) return r.status();
-    parts.push_back(std::move(r->records));
-    if (on_source) on_source(++done, total);
-  }
-  RecordSet all = Concatenate(parts);
-  all.SortByVossel();
-  return all;
 }
 
 }  // namespace vasl::ingest

@@ -27,6 +27,15 @@ records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const C
 records::RecordSet SampleLidar(const records::VosselGeometry& geometry, const LidarSource& lidar,
                                const DepthPanorama& depth, const std::vector<float>& vis);
 
+/// Records of the colour of one LiDAR's returns (lidar.rgb, source lidar.colour_id, modality
+/// RGB): one per vossel that holds returns of this LiDAR and has V > 0, the sample the mean
+/// colour of those returns, seen from the scanner's origin with the LiDAR's footprint (§3) and
+/// visibility (§5). conf[saturation] = 1 − the share of those returns with a channel at the
+/// clip level (1, the largest code of an integer colour).
+records::RecordSet SamplePointColour(const records::VosselGeometry& geometry,
+                                     const LidarSource& lidar, const DepthPanorama& depth,
+                                     const std::vector<float>& vis);
+
 /// What one source contributes to a version: its records and its reach raster (the depth
 /// panorama its visibility read, coarsened: tiles::ReachFromDepth).
 struct SourceRecords {
@@ -42,6 +51,11 @@ SourceRecords LidarRecords(const records::VosselGeometry& geometry, const LidarS
                            const std::vector<uint8_t>* only = nullptr,
                            const std::vector<uint8_t>* context = nullptr);
 
+/// The same for the colour source of a LiDAR with per-point colour (SamplePointColour).
+SourceRecords PointColourRecords(const records::VosselGeometry& geometry, const LidarSource& lidar,
+                                 const std::vector<uint8_t>* only = nullptr,
+                                 const std::vector<uint8_t>* context = nullptr);
+
 /// The same for one camera; its image is decoded through `load` when `image` is empty (and
 /// freed afterwards). Fails only when the image cannot be loaded.
 absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geometry,
@@ -56,13 +70,5 @@ double LidarDepthPitchRad(size_t point_count);
 double CameraDepthPitchRad(double angular_resolution_rad, const geometry::EquirectSize& image);
 /// Pixels by which a camera's depth panorama is dilated (see DilateDepthPanorama).
 int CameraSampleRadiusPx();
-
-/// Every stage for every source: depth panorama → visibility → records, merged and sorted by
-/// vossel. Cameras with an empty image are decoded through their `load` one at a time.
-/// `on_source(done, total)` reports progress after each source (may be empty). Fails only when
-/// a camera's image cannot be loaded.
-absl::StatusOr<records::RecordSet> BuildRecords(const records::VosselGeometry& geometry,
-                                                const SourceSet& sources,
-                                                const std::function<void(size_t, size_t)>& on_source);
 
 }  // namespace vasl::ingest

@@ -15,6 +15,7 @@ namespace vasl::ingest {
 struct LidarData {
   std::vector<float> xyz_sensor_m;  ///< 3 floats per point, sensor frame, metres
   std::vector<float> intensity;     ///< empty, or one per point (linear, any scale)
+  std::vector<float> rgb;           ///< empty, or 3 per point: the point's colour, linear
   double divergence_rad = 0.3e-3;   ///< full beam divergence θ_div (§3)
 };
 

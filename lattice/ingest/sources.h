@@ -40,6 +40,11 @@ struct LidarSource {
   double divergence_rad = 0.3e-3;     ///< θ_div (§3)
   std::vector<float> xyz_sensor_m;    ///< 3 per point, sensor frame
   std::vector<float> intensity;       ///< 1 per point; empty: every return counts as 1
+  /// Per-point colour (E57 colorRed/Green/Blue), 3 per point, linear; empty: none. Its records
+  /// belong to a source of their own (`colour_id`): the colour of the returns, seen from the
+  /// scanner's origin (PointColourRecords).
+  std::vector<float> rgb;
+  int32_t colour_id = 0;              ///< source id of the colour records; 0: no colour source
   size_t point_count() const { return xyz_sensor_m.size() / 3; }
 };
 
@@ -80,6 +85,7 @@ struct DerivedSource {
 
 struct SourceSet {
   std::vector<LidarSource> lidars;
+  std::vector<LidarSource> point_colours;  ///< LiDARs with `rgb`, as colour sources
   std::vector<CameraSource> cameras;
   std::vector<DerivedSource> derived;
 };

@@ -42,6 +42,13 @@ absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, con
   for (float v : lidar.intensity) {
     if (!std::isfinite(v)) return bad("a LiDAR intensity is NaN or infinite");
   }
+  if (!lidar.rgb.empty() && lidar.rgb.size() != 3 * n) {
+    return bad(absl::StrCat("point colour has ", lidar.rgb.size(), " values for ", n,
+                            " points (3 per point: r, g, b)"));
+  }
+  for (float v : lidar.rgb) {
+    if (!std::isfinite(v) || v < 0.0f) return bad("a point colour is negative, NaN or infinite");
+  }
   if (!(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
     return bad("LiDAR divergence_rad must lie in (0, 0.1] radians");
   }

@@ -195,6 +195,29 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
   fs::remove_all(root);
 }
 
+// Claim (flows.h): the same with coloured scans (per-point colour, a source of its own whose
+// records are recomputed from its LiDAR's blob and its own): incremental equals rebuild.
+TEST(IncrementalTest, IngestOfColouredScansEqualsRebuild) {
+  const fs::path root = TestRoot("coloured");
+  auto engine = OpenEngine(root);
+  CreateProject(*engine, "room");
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  for (size_t i = 0; i < room.Stations().size(); ++i) {
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    scan->lidar.rgb = scenes::GenerateLidar(room, scan->pose, scenes::LidarSettings::Small(i + 1)).rgb;
+    ASSERT_EQ(scan->lidar.rgb.size(), scan->lidar.xyz_sensor_m.size());
+    Ingest(*engine, "room", *scan);
+  }
+  auto rebuilt = engine->Rebuild("room");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  auto st = OpenStore(root, "room");
+  const Diff d = CompareProjects(*st, 4, *st, 5);
+  d.Print("coloured room: incremental v4 vs rebuild v5");
+  ExpectSame(d);
+  fs::remove_all(root);
+}
+
 // Claim (§5, flows.h): the same on a second site, a corridor of 4 rooms with 12 stations over
 // several tiles, where a scan reaches only part of the site: incremental equals rebuild bit for
 // bit, and older sources are recomputed only on the tiles the change can reach.

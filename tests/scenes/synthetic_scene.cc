@@ -380,7 +380,7 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
   const int rows = std::max(0, settings.elevation_steps);
   const int cols = std::max(0, settings.azimuth_steps);
   // Per-row outputs with a per-row RNG stream: the result does not depend on scheduling.
-  std::vector<std::vector<float>> row_xyz(rows), row_int(rows);
+  std::vector<std::vector<float>> row_xyz(rows), row_int(rows), row_rgb(rows);
   tbb::parallel_for(tbb::blocked_range<int>(0, rows), [&](const tbb::blocked_range<int>& r) {
     for (int j = r.begin(); j < r.end(); ++j) {
       if (!LidarRowKept(settings, j)) continue;
@@ -388,6 +388,7 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
       std::normal_distribution<double> noise(0.0, settings.range_noise_m);
       std::vector<float>& xyz = row_xyz[j];
       std::vector<float>& inten = row_int[j];
+      std::vector<float>& rgb = row_rgb[j];
       xyz.reserve(3 * cols);
       inten.reserve(cols);
       for (int i = 0; i < cols; ++i) {
@@ -404,6 +405,7 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
         xyz.push_back(static_cast<float>(p.y()));
         xyz.push_back(static_cast<float>(p.z()));
         inten.push_back(hit.reflectance);
+        rgb.insert(rgb.end(), hit.albedo_linear.data(), hit.albedo_linear.data() + 3);
       }
     }
   });
@@ -415,6 +417,7 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
   for (int j = 0; j < rows; ++j) {
     scan.xyz_sensor_m.insert(scan.xyz_sensor_m.end(), row_xyz[j].begin(), row_xyz[j].end());
     scan.intensity.insert(scan.intensity.end(), row_int[j].begin(), row_int[j].end());
+    scan.rgb.insert(scan.rgb.end(), row_rgb[j].begin(), row_rgb[j].end());
   }
   return scan;
 }

@@ -281,6 +281,7 @@ bool LidarRowKept(const LidarSettings& settings, int j);
 struct LidarScan {
   std::vector<float> xyz_sensor_m;  ///< 3 floats per point, sensor frame, metres
   std::vector<float> intensity;     ///< 1 per point: reflectance in [0.05, 0.95]
+  std::vector<float> rgb;           ///< 3 per point: linear albedo at the hit (a coloured scan)
 };
 
 /// Simulates a LiDAR at T_world_scanner: one return per ray, range = analytic range + noise.
