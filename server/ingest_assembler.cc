@@ -15,8 +15,6 @@
 namespace vasl::server {
 namespace {
 
-constexpr int64_t kBytesPerPoint = 16;
-
 const char* PayloadName(const v1::IngestScanRequest& request) {
   switch (request.payload_case()) {
     case v1::IngestScanRequest::kHeader: return "a ScanHeader";
@@ -36,21 +34,27 @@ float LoadF32Le(const unsigned char* p) {
 
 }  // namespace
 
-void UnpackPointsXyziF32Le(std::string_view bytes, LidarData* lidar) {
-  const size_t n = bytes.size() / kBytesPerPoint;
+void UnpackPointsF32Le(std::string_view bytes, bool colour, LidarData* lidar) {
+  const size_t stride = colour ? 28 : 16;
+  const size_t n = bytes.size() / stride;
   lidar->xyz_sensor_m.resize(3 * n);
   lidar->intensity.resize(n);
+  lidar->rgb.resize(colour ? 3 * n : 0);
   const auto* src = reinterpret_cast<const unsigned char*>(bytes.data());
   float* xyz = lidar->xyz_sensor_m.data();
   float* intensity = lidar->intensity.data();
+  float* rgb = lidar->rgb.data();
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
                     [&](const tbb::blocked_range<size_t>& r) {
                       for (size_t i = r.begin(); i != r.end(); ++i) {
-                        const unsigned char* p = src + i * kBytesPerPoint;
+                        const unsigned char* p = src + i * stride;
                         xyz[3 * i + 0] = LoadF32Le(p);
                         xyz[3 * i + 1] = LoadF32Le(p + 4);
                         xyz[3 * i + 2] = LoadF32Le(p + 8);
                         intensity[i] = LoadF32Le(p + 12);
+                        if (colour) {
+                          for (int c = 0; c < 3; ++c) rgb[3 * i + c] = LoadF32Le(p + 16 + 4 * c);
+                        }
                       }
                     });
 }
@@ -114,11 +118,15 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
         "header.lidar.divergence_rad must be > 0 radians (e.g. 0.0003), got ",
         lidar.divergence_rad()));
   }
-  if (lidar.point_format() != v1::POINT_FORMAT_UNSPECIFIED &&
-      lidar.point_format() != v1::POINT_FORMAT_XYZI_F32LE) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "header.lidar.point_format ", static_cast<int>(lidar.point_format()),
-        " is not supported; use POINT_FORMAT_XYZI_F32LE (16 bytes per point)"));
+  switch (lidar.point_format()) {
+    case v1::POINT_FORMAT_UNSPECIFIED:
+    case v1::POINT_FORMAT_XYZI_F32LE: bytes_per_point_ = 16; break;
+    case v1::POINT_FORMAT_XYZIRGB_F32LE: bytes_per_point_ = 28; break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat(
+          "header.lidar.point_format ", static_cast<int>(lidar.point_format()),
+          " is not supported; use POINT_FORMAT_XYZI_F32LE (16 bytes per point) or "
+          "POINT_FORMAT_XYZIRGB_F32LE (28)"));
   }
   if (lidar.point_count() <= 0) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -186,7 +194,7 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
   scan_.pose = *pose;
   scan_.lidar.divergence_rad = lidar.divergence_rad();
   point_count_ = lidar.point_count();
-  point_bytes_.reserve(static_cast<size_t>(point_count_ * kBytesPerPoint));
+  point_bytes_.reserve(static_cast<size_t>(point_count_ * bytes_per_point_));
   return absl::OkStatus();
 }
 
@@ -197,16 +205,17 @@ absl::Status IngestAssembler::AddPoints(const v1::PointsChunk& chunk) {
         " is a PointsChunk after an ImageChunk; send all points before the images"));
   }
   const int64_t size = static_cast<int64_t>(chunk.data().size());
-  if (size % kBytesPerPoint != 0) {
+  if (size % bytes_per_point_ != 0) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "message ", message_index_, ": a PointsChunk of ", size,
-        " bytes is not a multiple of 16 (float32 x, y, z, intensity per point)"));
+        "message ", message_index_, ": a PointsChunk of ", size, " bytes is not a multiple of ",
+        bytes_per_point_, bytes_per_point_ == 16 ? " (float32 x, y, z, intensity per point)"
+                                                 : " (float32 x, y, z, intensity, r, g, b per point)"));
   }
   const int64_t total = static_cast<int64_t>(point_bytes_.size()) + size;
-  if (total > point_count_ * kBytesPerPoint) {
+  if (total > point_count_ * bytes_per_point_) {
     return absl::InvalidArgumentError(absl::StrCat(
         "the points chunks carry more than header.lidar.point_count = ", point_count_,
-        " points (", total / kBytesPerPoint, " so far)"));
+        " points (", total / bytes_per_point_, " so far)"));
   }
   point_bytes_.append(chunk.data());
   received_bytes_ += size;
@@ -252,7 +261,7 @@ absl::StatusOr<ScanInput> IngestAssembler::Finish() {
         "the ingest stream ended without a ScanHeader; send the header first, then points, "
         "then images");
   }
-  const int64_t received_points = static_cast<int64_t>(point_bytes_.size()) / kBytesPerPoint;
+  const int64_t received_points = static_cast<int64_t>(point_bytes_.size()) / bytes_per_point_;
   if (received_points != point_count_) {
     return absl::InvalidArgumentError(
         absl::StrCat("the stream carried ", received_points,
@@ -266,7 +275,7 @@ absl::StatusOr<ScanInput> IngestAssembler::Finish() {
           " image bytes but its encoded_size_bytes is ", expected_image_bytes_[i]));
     }
   }
-  UnpackPointsXyziF32Le(point_bytes_, &scan_.lidar);
+  UnpackPointsF32Le(point_bytes_, bytes_per_point_ == 28, &scan_.lidar);
   std::string().swap(point_bytes_);
   error_ = absl::FailedPreconditionError("IngestAssembler::Finish was already called");
   return std::move(scan_);

@@ -52,14 +52,16 @@ class IngestAssembler {
   bool images_started_ = false;
   std::string project_;
   int64_t point_count_ = 0;
+  int64_t bytes_per_point_ = 16;             ///< 16 (XYZI) or 28 (XYZIRGB)
   int64_t received_bytes_ = 0;
-  std::string point_bytes_;                  ///< packed float32 LE (x, y, z, intensity)
+  std::string point_bytes_;                  ///< packed float32 LE (x, y, z, intensity[, r, g, b])
   std::vector<int64_t> expected_image_bytes_;  ///< per panorama
   ScanInput scan_;                           ///< header fields; panoramas receive image bytes
 };
 
-/// Unpacks 16-byte little-endian (x, y, z, intensity) float32 records into `lidar`'s arrays
-/// (parallel for large inputs). `bytes.size()` must be a multiple of 16.
-void UnpackPointsXyziF32Le(std::string_view bytes, LidarData* lidar);
+/// Unpacks little-endian float32 point records into `lidar`'s arrays (parallel for large
+/// inputs): 16 bytes (x, y, z, intensity), or with `colour` 28 (x, y, z, intensity, r, g, b).
+/// `bytes.size()` must be a multiple of the record size.
+void UnpackPointsF32Le(std::string_view bytes, bool colour, LidarData* lidar);
 
 }  // namespace vasl::server

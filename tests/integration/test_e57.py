@@ -106,3 +106,34 @@ def test_real_e57_render_from_scanner_reproduces_ranges(server, client, tmp_path
           f"{np.median(np.abs(depth[hit] - rng[hit])) * 1000:.1f} mm")
     assert share_hit > 0.97
     assert share_close > 0.90
+
+    # The scan's per-point colour became a source of its own, and the render shows it: at the
+    # pixels of the points whose depth matches, the rendered colour against the point's own
+    # colour (sRGB-encoded, peak 1) and as CIE76 ΔE.
+    sources = [s for scan in client.list_scans("pump") for s in scan.sources]
+    assert sorted(s.name for s in sources) == ["lidar", "point-colour"]
+    assert cloud.rgb is not None
+    at = hit & close
+    shown = _srgb(render.rgb[v[at], u[at]])
+    truth = _srgb(cloud.rgb[at])
+    psnr = 10 * math.log10(1.0 / float(np.mean((shown - truth) ** 2)))
+    delta_e = np.linalg.norm(_lab(render.rgb[v[at], u[at]]) - _lab(cloud.rgb[at]), axis=1)
+    print(f"pump colour at {int(at.sum())} points: PSNR {psnr:.2f} dB (sRGB), mean ΔE "
+          f"{float(delta_e.mean()):.2f}, median ΔE {float(np.median(delta_e)):.2f}")
+    assert psnr >= 28.0
+
+
+def _srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear -> sRGB-encoded (IEC 61966-2-1), in [0, 1]."""
+    c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
+def _lab(linear: np.ndarray) -> np.ndarray:
+    """Linear sRGB (D65) -> CIE L*a*b*."""
+    m = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+    xyz = np.clip(np.asarray(linear, dtype=np.float64), 0.0, None) @ m.T
+    xyz /= np.array([0.95047, 1.0, 1.08883])
+    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])],
+                    axis=1)

@@ -1,5 +1,5 @@
 /// @file ingest_assembler_test.cc
-/// @brief The IngestScan stream rules (vasl.proto): header first and once, 16-byte points,
+/// @brief The IngestScan stream rules (vasl.proto): header first and once, 16-byte (28 with colour) points,
 ///        image chunks only for declared panoramas, byte totals equal to the header's; limits
 ///        are RESOURCE_EXHAUSTED. A well-formed stream reassembles bit-exactly.
 #include "server/ingest_assembler.h"
@@ -113,6 +113,37 @@ absl::StatusCode FirstError(const std::vector<v1::IngestScanRequest>& stream,
   absl::StatusOr<ScanInput> scan = a.Finish();
   *message = std::string(scan.status().message());
   return scan.status().code();
+}
+
+// Claim: POINT_FORMAT_XYZIRGB_F32LE points (28 bytes: x, y, z, intensity, r, g, b) reassemble
+// bit-exactly with their colour, and a chunk that is not whole 28-byte points is refused.
+TEST(IngestAssemblerTest, ColouredPointsReassembleWithTheirColour) {
+  const std::vector<float> xyzirgb = {1.0f, 2.0f, 3.0f, 0.5f, 0.25f, 0.125f, 1.0f,
+                                      -4.0f, 5.5f, 0.0f, 0.75f, 0.0f, 0.5f, 0.0625f};
+  const std::string pts = PackPoints(xyzirgb);
+  v1::IngestScanRequest header = Header(2, 3);
+  header.mutable_header()->mutable_lidar()->set_point_format(v1::POINT_FORMAT_XYZIRGB_F32LE);
+  IngestAssembler a(EngineLimits{});
+  ASSERT_TRUE(a.Add(header).ok());
+  ASSERT_TRUE(a.Add(Points(pts.substr(0, 28))).ok());
+  ASSERT_TRUE(a.Add(Points(pts.substr(28))).ok());
+  ASSERT_TRUE(a.Add(Image("cam0", "abc")).ok());
+  auto scan = a.Finish();
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  ASSERT_EQ(scan->lidar.xyz_sensor_m.size(), 6u);
+  ASSERT_EQ(scan->lidar.rgb.size(), 6u);
+  for (int i = 0; i < 2; ++i) {
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_EQ(scan->lidar.xyz_sensor_m[3 * i + c], xyzirgb[7 * i + c]);
+      EXPECT_EQ(scan->lidar.rgb[3 * i + c], xyzirgb[7 * i + 4 + c]);
+    }
+    EXPECT_EQ(scan->lidar.intensity[i], xyzirgb[7 * i + 3]);
+  }
+  IngestAssembler b(EngineLimits{});
+  ASSERT_TRUE(b.Add(header).ok());
+  const absl::Status partial = b.Add(Points(pts.substr(0, 16)));
+  EXPECT_EQ(partial.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(partial.message().find("not a multiple of 28"), std::string::npos) << partial;
 }
 
 TEST(IngestAssemblerTest, MalformedStreamsAreInvalidArgument) {

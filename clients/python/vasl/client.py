@@ -156,8 +156,11 @@ def profile_from_pb(p: pb.WeightingProfile) -> dict:
             "created_utc": _iso(p, "create_time")}
 
 
-def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None) -> bytes:
-    """(N, 3) or (N, 4) points [+ (N,) intensity] -> packed little-endian float32 (x, y, z, i)."""
+def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
+                rgb: Optional[np.ndarray] = None) -> bytes:
+    """(N, 3) or (N, 4) points [+ (N,) intensity] [+ (N, 3) linear colour] -> packed
+    little-endian float32 (x, y, z, i), or (x, y, z, i, r, g, b) with colour (28 bytes a point,
+    POINT_FORMAT_XYZIRGB_F32LE)."""
     arr = np.asarray(xyz_m)
     if arr.ndim != 2 or arr.shape[1] not in (3, 4):
         raise ValueError(f"points must be an (N, 3) or (N, 4) array, got shape {arr.shape}")
@@ -165,24 +168,33 @@ def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None) -> by
         raise ValueError("points: the scan has no point")
     if not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"points must be numeric, got dtype {arr.dtype}")
-    packed = np.zeros((arr.shape[0], 4), dtype="<f4")
+    packed = np.zeros((arr.shape[0], 4 if rgb is None else 7), dtype="<f4")
     packed[:, :arr.shape[1]] = arr
     if intensity is not None:
         inten = np.asarray(intensity).ravel()
         if inten.shape[0] != arr.shape[0]:
             raise ValueError(f"intensity has {inten.shape[0]} values for {arr.shape[0]} points")
         packed[:, 3] = inten
+    if rgb is not None:
+        colour = np.asarray(rgb)
+        if colour.shape != (arr.shape[0], 3):
+            raise ValueError(f"rgb must be an (N, 3) array for {arr.shape[0]} points, "
+                             f"got shape {colour.shape}")
+        if not np.all(np.isfinite(colour)) or np.any(colour < 0):
+            raise ValueError("rgb: colours must be finite and >= 0 (linear)")
+        packed[:, 4:] = colour
     return packed.tobytes()
 
 
 def ingest_requests(header: pb.ScanHeader, point_bytes: bytes,
                     images: Sequence[bytes] = (), chunk_bytes: int = CHUNK_BYTES,
                     on_sent: Optional[Callable[[int], None]] = None) -> Iterator[pb.IngestScanRequest]:
-    """The IngestScan stream: header, points chunks (multiples of 16 bytes), image chunks.
-    No validation: a test may send anything this way."""
+    """The IngestScan stream: header, points chunks (whole points: multiples of 16 bytes, or
+    28 for coloured points), image chunks. No validation: a test may send anything this way."""
     yield pb.IngestScanRequest(header=header)
     sent = 0
-    step = max(16, chunk_bytes - chunk_bytes % 16)
+    stride = 28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16
+    step = max(stride, chunk_bytes - chunk_bytes % stride)
     for i in range(0, len(point_bytes), step):
         data = point_bytes[i:i + step]
         yield pb.IngestScanRequest(points=pb.PointsChunk(data=data))
@@ -316,14 +328,15 @@ class Client:
         return self._call("GetIngestProgress", pb.GetIngestProgressRequest(project=project))
 
     def ingest(self, project: str, manifest: Union[str, Manifest, None] = None, *,
-               scan: Optional[str] = None, points=None, intensity=None, pose=None,
+               scan: Optional[str] = None, points=None, intensity=None, rgb=None, pose=None,
                divergence_rad: float = 0.0003, panoramas: Sequence[dict] = (),
                rig: str = "", captured_utc: str = "",
                progress: Optional[Callable[[dict], None]] = None,
                poll_s: float = 0.5) -> IngestResult:
         """Ingests one scan, from a manifest (path or Manifest) or from arrays.
 
-        Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)], `pose`
+        Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
+        (N, 3) linear per-point colour, which becomes a "point-colour" source], `pose`
         (see Pose.parse), `panoramas` as dicts {name, image (bytes or path), pose, modality
         "rgb"|"ir", angular_resolution_rad}. `progress(dict)` is called with keys stage,
         fraction, sent_bytes, total_bytes while uploading and while the server works.
@@ -344,15 +357,17 @@ class Client:
             raise ValueError("points and pose are required (or pass a manifest)")
         if not (divergence_rad > 0 and np.isfinite(divergence_rad)):
             raise ValueError(f"divergence_rad must be > 0, got {divergence_rad}")
-        point_bytes = pack_points(points, intensity)
+        point_bytes = pack_points(points, intensity, rgb)
         header = pb.ScanHeader(project=project, scan=scan, rig=rig,
                                pose=pose_to_pb(Pose.parse(pose)))
         captured = _timestamp(captured_utc, "captured_utc")
         if captured is not None:
             header.capture_time.CopyFrom(captured)
         header.lidar.divergence_rad = divergence_rad
-        header.lidar.point_format = pb.POINT_FORMAT_XYZI_F32LE
-        header.lidar.point_count = len(point_bytes) // 16
+        stride = 16 if rgb is None else 28
+        header.lidar.point_format = (pb.POINT_FORMAT_XYZI_F32LE if rgb is None
+                                     else pb.POINT_FORMAT_XYZIRGB_F32LE)
+        header.lidar.point_count = len(point_bytes) // stride
         images = []
         for i, p in enumerate(panoramas):
             if "name" not in p or "image" not in p or "pose" not in p:
@@ -378,9 +393,10 @@ class Client:
     def ingest_e57_scan(self, project: str, scan: E57Scan, *, divergence_rad: float = 0.0003,
                         rig: str = "", progress: Optional[Callable[[dict], None]] = None
                         ) -> IngestResult:
-        """Ingests one scan read by `read_e57` (LiDAR only: its points, intensity and pose)."""
+        """Ingests one scan read by `read_e57`: its points, intensity, per-point colour (as a
+        "point-colour" source) and pose."""
         return self.ingest(project, scan=scan.scan, points=scan.cloud.xyz_m,
-                           intensity=scan.cloud.intensity, pose=scan.pose,
+                           intensity=scan.cloud.intensity, rgb=scan.cloud.rgb, pose=scan.pose,
                            divergence_rad=divergence_rad, rig=rig, progress=progress)
 
     def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],

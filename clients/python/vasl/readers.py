@@ -15,7 +15,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .types import Pose
+from .types import Pose, srgb_to_linear
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -32,6 +32,7 @@ class PointCloud:
 
     xyz_m: np.ndarray  #: (N, 3) float32, metres
     intensity: Optional[np.ndarray] = None  #: (N,) float32 or None
+    rgb: Optional[np.ndarray] = None  #: (N, 3) float32 linear colour, or None
 
     def __len__(self) -> int:
         return int(self.xyz_m.shape[0])
@@ -214,7 +215,8 @@ class E57Scan:
 def read_e57(path: str) -> List[E57Scan]:
     """Reads every scan of an E57 file with pye57: Cartesian or spherical coordinates (spherical
     ones converted with VASL-MODEL §2.1's axes: azimuth from +x toward +y, elevation up),
-    points flagged invalid dropped, intensity scaled to [0, 1] by ``intensityLimits``.
+    points flagged invalid dropped, intensity scaled to [0, 1] by ``intensityLimits``, colour
+    scaled by ``colorLimits`` and linearised (sRGB), extension fields (normals, ...) skipped.
     ValueError with the file's name for a file that is not readable E57, holds no scan, or a
     scan without valid points."""
     try:
@@ -234,7 +236,8 @@ def read_e57(path: str) -> List[E57Scan]:
         where = f"{path}: scan {i}"
         try:
             header = e57.get_header(i)
-            raw = e57.read_scan_raw(i)
+            # Extension fields (normals, ...) are skipped, never a reason to lose the file.
+            raw = e57.read_scan_raw(i, ignore_unsupported_fields=True)
         except Exception as e:
             raise ValueError(f"{where}: cannot be read: {str(e).splitlines()[0]}") from e
         if "cartesianX" in raw:
@@ -258,12 +261,32 @@ def read_e57(path: str) -> List[E57Scan]:
             lo, hi = _e57_intensity_limits(header, intensity)
             intensity = ((intensity - lo) / (hi - lo) if hi > lo else np.ones_like(intensity))
             intensity = intensity.astype(np.float32)
+        rgb = None
+        if all(f"color{c}" in raw for c in ("Red", "Green", "Blue")):
+            rgb = np.stack([_e57_colour(header, raw[f"color{c}"], c)[keep]
+                            for c in ("Red", "Green", "Blue")], axis=1)
         w, x, y, z = (float(v) for v in header.rotation)
         pose = Pose.make([float(v) for v in header.translation], [x, y, z, w], where=where)
         name = stem if count == 1 else f"{stem}-{i + 1}"
         scans.append(E57Scan(scan=name, pose=pose, cloud=PointCloud(
-            xyz_m=np.ascontiguousarray(xyz[keep], dtype=np.float32), intensity=intensity)))
+            xyz_m=np.ascontiguousarray(xyz[keep], dtype=np.float32), intensity=intensity,
+            rgb=None if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32))))
     return scans
+
+
+def _e57_colour(header, values: np.ndarray, channel: str) -> np.ndarray:
+    """One colour channel scaled to [0, 1] by the file's colorLimits (the data's integer range
+    when it gives none) and linearised: E57 colours are display-referred, taken as sRGB."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = 0.0, 255.0 if v.size == 0 or v.max() <= 255 else 65535.0
+    try:
+        limits = header.node["colorLimits"]
+        lo = float(limits[f"color{channel}Minimum"].value())
+        hi = float(limits[f"color{channel}Maximum"].value())
+    except Exception:
+        pass
+    scaled = (v - lo) / (hi - lo) if hi > lo else np.ones_like(v)
+    return srgb_to_linear(scaled)
 
 
 def _e57_intensity_limits(header, values: np.ndarray) -> Tuple[float, float]:

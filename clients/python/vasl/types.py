@@ -252,3 +252,9 @@ class RecordsQuery:
     vossel_count: int
     truncated: bool
     records: List[dict] = field(default_factory=list)
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """The sRGB EOTF (IEC 61966-2-1): encoded values in [0, 1] -> linear, float32."""
+    c = np.clip(np.asarray(encoded, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
