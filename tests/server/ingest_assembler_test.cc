@@ -1,6 +1,7 @@
 /// @file ingest_assembler_test.cc
-/// @brief The IngestScan stream rules (vasl.proto): header first and once, 16-byte (28 with colour) points,
-///        image chunks only for declared panoramas, byte totals equal to the header's; limits
+/// @brief The IngestScan stream rules (vasl.proto): header first and once, 16-byte points (28
+///        with colour), image chunks only for declared panoramas, byte totals equal to the
+///        header's; limits
 ///        are RESOURCE_EXHAUSTED. A well-formed stream reassembles bit-exactly.
 #include "server/ingest_assembler.h"
 
