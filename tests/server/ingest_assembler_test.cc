@@ -1,8 +1,8 @@
 /// @file ingest_assembler_test.cc
 /// @brief The IngestScan stream rules (vasl.proto): header first and once, 16-byte points (28
 ///        with colour), image chunks only for declared panoramas, byte totals equal to the
-///        header's; limits
-///        are RESOURCE_EXHAUSTED. A well-formed stream reassembles bit-exactly.
+///        header's; limits are RESOURCE_EXHAUSTED. A well-formed stream reassembles
+///        bit-exactly.
 #include "server/ingest_assembler.h"
 
 #include <cmath>
