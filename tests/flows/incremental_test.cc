@@ -173,15 +173,15 @@ std::unique_ptr<store::ProjectStore> OpenStore(const fs::path& root, const std::
   return std::move(*st);
 }
 
-// Claim (§5, flows.h): ingesting the room's 4 scans one at a time gives the same geometry,
-// records and fused values, bit for bit, as a rebuild of the same scans from their blobs.
-TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
-  const fs::path root = TestRoot("room");
+// Ingests the room's 4 scans one at a time (their points coloured with `point_colour`), then
+// rebuilds: the incremental HEAD is v4, the rebuild v5.
+void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what) {
   auto engine = OpenEngine(root);
   CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
   for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2,
+                                      point_colour);
     ASSERT_TRUE(scan.ok()) << scan.status();
     Ingest(*engine, "room", *scan);
   }
@@ -190,32 +190,21 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
   std::printf("  rebuild: v%lld in %.2f s\n", (long long)rebuilt->version, rebuilt->seconds);
   auto st = OpenStore(root, "room");
   const Diff d = CompareProjects(*st, 4, *st, 5);
-  d.Print("room: incremental v4 vs rebuild v5");
+  d.Print(what);
   ExpectSame(d);
   fs::remove_all(root);
+}
+
+// Claim (§5, flows.h): ingesting the room's 4 scans one at a time gives the same geometry,
+// records and fused values, bit for bit, as a rebuild of the same scans from their blobs.
+TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
+  IngestRoomThenRebuild(TestRoot("room"), false, "room: incremental v4 vs rebuild v5");
 }
 
 // Claim (flows.h): the same with coloured scans (per-point colour, a source of its own whose
 // records are recomputed from its LiDAR's blob and its own): incremental equals rebuild.
 TEST(IncrementalTest, IngestOfColouredScansEqualsRebuild) {
-  const fs::path root = TestRoot("coloured");
-  auto engine = OpenEngine(root);
-  CreateProject(*engine, "room");
-  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
-  for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
-    ASSERT_TRUE(scan.ok()) << scan.status();
-    scan->lidar.rgb = scenes::GenerateLidar(room, scan->pose, scenes::LidarSettings::Small(i + 1)).rgb;
-    ASSERT_EQ(scan->lidar.rgb.size(), scan->lidar.xyz_sensor_m.size());
-    Ingest(*engine, "room", *scan);
-  }
-  auto rebuilt = engine->Rebuild("room");
-  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
-  auto st = OpenStore(root, "room");
-  const Diff d = CompareProjects(*st, 4, *st, 5);
-  d.Print("coloured room: incremental v4 vs rebuild v5");
-  ExpectSame(d);
-  fs::remove_all(root);
+  IngestRoomThenRebuild(TestRoot("coloured"), true, "coloured room: incremental v4 vs rebuild v5");
 }
 
 // Claim (§5, flows.h): the same on a second site, a corridor of 4 rooms with 12 stations over

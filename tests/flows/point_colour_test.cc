@@ -23,20 +23,6 @@ namespace fs = std::filesystem;
 constexpr double kVosselM = 0.05;
 constexpr int kViewW = 512, kViewH = 256;
 
-// A station's LiDAR-only scan with per-point colour (the albedo at each return).
-ingest::ScanInput ColouredScan(const scenes::Scene& scene, size_t station) {
-  const geometry::Pose& pose = scene.Stations().at(station);
-  scenes::LidarScan points = scenes::GenerateLidar(scene, pose, scenes::LidarSettings::Small(station + 1));
-  ingest::ScanInput scan;
-  scan.scan_name = "scan-" + std::to_string(station + 1);
-  scan.rig = "coloured-lidar";
-  scan.pose = pose;
-  scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
-  scan.lidar.intensity = std::move(points.intensity);
-  scan.lidar.rgb = std::move(points.rgb);
-  return scan;
-}
-
 class PointColourTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
@@ -51,7 +37,10 @@ class PointColourTest : public ::testing::Test {
     ASSERT_TRUE(engine_->CreateProject("room", settings).ok());
     room_ = new scenes::SyntheticRoom(scenes::SyntheticRoom::Default());
     for (size_t i = 0; i < room_->Stations().size(); ++i) {
-      scans_.push_back(ColouredScan(*room_, i));
+      // LiDAR only, each point coloured with the albedo it hit.
+      auto scan = scenes::MakeScanInput(*room_, i, scenes::LidarSettings::Small(i + 1), 0, 1, true);
+      ASSERT_TRUE(scan.ok()) << scan.status();
+      scans_.push_back(std::move(*scan));
       auto r = engine_->IngestScan("room", scans_.back());
       ASSERT_TRUE(r.ok()) << r.status();
       std::printf("ingest %s: v%lld, %lld vossels, %lld records, %lld sources computed\n",

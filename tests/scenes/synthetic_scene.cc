@@ -562,7 +562,7 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
 
 absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t station,
                                                 const LidarSettings& lidar, int pano_width_px,
-                                                int supersample) {
+                                                int supersample, bool point_colour) {
   const geometry::Pose& pose = scene.Stations().at(station);
   LidarScan points = GenerateLidar(scene, pose, lidar);
   ingest::ScanInput scan;
@@ -571,6 +571,8 @@ absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t stati
   scan.pose = pose;
   scan.lidar.xyz_sensor_m = std::move(points.xyz_sensor_m);
   scan.lidar.intensity = std::move(points.intensity);
+  if (point_colour) scan.lidar.rgb = std::move(points.rgb);
+  if (pano_width_px <= 0) return scan;
   ingest::PanoramaData pano;
   pano.name = "cam0";
   pano.pose = CameraPoseForStation(pose);

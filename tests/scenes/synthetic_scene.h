@@ -319,9 +319,10 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
 /// The scan of station `station` (an index into scene.Stations()) as a rig sends it, ready for
 /// Engine::IngestScan: LiDAR points (seeded with lidar.seed) and the station camera's panorama
 /// (pano_width_px × pano_width_px/2, pixel-integrated, encoded as PNG), named
-/// "scan-<station+1>" with one panorama "cam0".
+/// "scan-<station+1>" with one panorama "cam0" (none when pano_width_px is 0). With
+/// `point_colour` the points carry their albedo as colour (a coloured scan, as E57 files are).
 absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t station,
                                                 const LidarSettings& lidar, int pano_width_px,
-                                                int supersample = 4);
+                                                int supersample = 4, bool point_colour = false);
 
 }  // namespace vasl::scenes
