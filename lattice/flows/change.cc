@@ -163,10 +163,10 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
     cap.half_angle_rad += margin_rad + dilation_rad;
     cone.exact.push_back(cap);
   }
-  // A splat lies within its cell grown by σ(r) (surfel or sphere), so a block nearer than no
-  // exact block's far side can only lower depths below ranges its tests never compare them
-  // with: D(p) ≥ r − τ holds with or without a splat at depth ≥ r. Blocks wholly behind every
-  // exact block they overlap are left out of the context (their splats cannot change a test).
+  // A splat lies within its cell grown by σ(r) (surfel or sphere), and a test D(p) ≥ r − τ
+  // holds with or without a splat at depth ≥ r. So a block whose splats all lie beyond the far
+  // side of every exact block it overlaps cannot change a test there: it is left out of the
+  // context.
   const double spread_rad = std::max({source.info.divergence_rad, DepthPixelRad(source),
                                       source.returns() || source.info.width_px <= 0
                                           ? 0.0
