@@ -146,6 +146,21 @@ struct Engine::Impl {
     return done;
   }
 
+  /// Runs a committing flow (`flow(project)`) under the project's writer lock and publishes
+  /// its snapshot as HEAD; `added`: the flow added a scan (FinishAdded).
+  template <typename Flow>
+  absl::StatusOr<IngestResult> RunFlow(const std::string& project, bool added, Flow flow) {
+    const auto t0 = Clock::now();
+    auto found = Find(project);
+    if (!found.ok()) return found.status();
+    Project& p = **found;
+    std::lock_guard<std::mutex> writer(p.write_mu);
+    absl::StatusOr<flows::FlowResult> done = flow(p);
+    if (!done.ok()) return done.status();
+    return added ? FinishAdded(p, std::move(*done), t0, IngestResult{})
+                 : Finish(p, std::move(*done), t0, IngestResult{});
+  }
+
   /// Profile `name` (empty: the project's active one) at `revision` (0: latest).
   absl::StatusOr<reweight::NamedProfile> Profile(Project& p, const std::string& name,
                                                  int32_t revision) {
@@ -281,44 +296,29 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
 absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
                                                  const BackProjectInput& input,
                                                  const ProgressFn& progress) {
-  const auto t0 = Clock::now();
-  auto found = impl_->Find(project);
-  if (!found.ok()) return found.status();
-  Impl::Project& p = **found;
-  std::lock_guard<std::mutex> writer(p.write_mu);
-  auto head = impl_->Snapshot(p, 0);
-  if (!head.ok()) return head.status();
-  auto flow = flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
-                                 impl_->limits.max_image_pixels, StageReporter(progress));
-  if (!flow.ok()) return flow.status();  // a stored image is collected with the next commit
-  return impl_->FinishAdded(p, std::move(*flow), t0, IngestResult{});
+  // On failure a stored image is collected with the next commit.
+  return impl_->RunFlow(project, true, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
+    auto head = impl_->Snapshot(p, 0);
+    if (!head.ok()) return head.status();
+    return flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
+                              impl_->limits.max_image_pixels, StageReporter(progress));
+  });
 }
 
 absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const ProgressFn& progress) {
-  const auto t0 = Clock::now();
-  auto found = impl_->Find(project);
-  if (!found.ok()) return found.status();
-  Impl::Project& p = **found;
-  std::lock_guard<std::mutex> writer(p.write_mu);
-  auto flow = flows::Rebuild(*p.store, impl_->limits.max_image_pixels,
-                             StageReporter(progress));
-  if (!flow.ok()) return flow.status();
-  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+  return impl_->RunFlow(project, false, [&](Impl::Project& p) {
+    return flows::Rebuild(*p.store, impl_->limits.max_image_pixels, StageReporter(progress));
+  });
 }
 
 absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, const std::string& scan,
                                                 const ProgressFn& progress) {
-  const auto t0 = Clock::now();
-  auto found = impl_->Find(project);
-  if (!found.ok()) return found.status();
-  Impl::Project& p = **found;
-  std::lock_guard<std::mutex> writer(p.write_mu);
-  auto head = impl_->Snapshot(p, 0);
-  if (!head.ok()) return head.status();
-  auto flow = flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
-                                StageReporter(progress));
-  if (!flow.ok()) return flow.status();
-  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+  return impl_->RunFlow(project, false, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
+    auto head = impl_->Snapshot(p, 0);
+    if (!head.ok()) return head.status();
+    return flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
+                             StageReporter(progress));
+  });
 }
 
 absl::StatusOr<std::vector<store::VersionInfo>> Engine::ListVersions(const std::string& project) {
@@ -455,14 +455,9 @@ absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
 
 absl::StatusOr<IngestResult> Engine::Rollback(const std::string& project, int64_t version,
                                               const ProgressFn& progress) {
-  const auto t0 = Clock::now();
-  auto found = impl_->Find(project);
-  if (!found.ok()) return found.status();
-  Impl::Project& p = **found;
-  std::lock_guard<std::mutex> writer(p.write_mu);
-  auto flow = flows::Rollback(*p.store, version, StageReporter(progress));
-  if (!flow.ok()) return flow.status();
-  return impl_->Finish(p, std::move(*flow), t0, IngestResult{});
+  return impl_->RunFlow(project, false, [&](Impl::Project& p) {
+    return flows::Rollback(*p.store, version, StageReporter(progress));
+  });
 }
 
 absl::Status Engine::SetPinned(const std::string& project, int64_t version, bool pinned) {
