@@ -7,7 +7,10 @@
 
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
+#include <ctime>
 #include <fstream>
+#include <iterator>
 #include <memory>
 #include <string>
 #include <thread>
@@ -19,7 +22,9 @@
 #include <grpcpp/server.h>
 #include <grpcpp/server_builder.h>
 
+#include "absl/strings/ascii.h"
 #include "lattice/engine.h"
+#include "server/access.h"
 #include "server/server_options.h"
 #include "server/vasl_service.h"
 #include "server/worker_pool.h"
@@ -35,6 +40,43 @@ std::string NormalizeAddress(const std::string& address) {
 std::string HostOf(const std::string& address) {
   const size_t colon = address.rfind(':');
   return colon == std::string::npos ? address : address.substr(0, colon);
+}
+
+bool IsLoopback(const std::string& host) {
+  return host == "localhost" || host.rfind("127.", 0) == 0 || host == "[::1]" || host == "::1" ||
+         host == "unix" || host.rfind("unix:", 0) == 0;
+}
+
+/// The whole of a small file (a key, a certificate, a token); empty on failure.
+bool ReadSmallFile(const std::filesystem::path& path, std::string* out) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return false;
+  out->assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  return in.good() || in.eof();
+}
+
+std::shared_ptr<grpc::ServerCredentials> Credentials(const vasl::server::ServerOptions& o,
+                                                     std::string* error) {
+  if (o.tls_cert.empty()) return grpc::InsecureServerCredentials();
+  grpc::SslServerCredentialsOptions::PemKeyCertPair pair;
+  if (!ReadSmallFile(o.tls_cert, &pair.cert_chain) || pair.cert_chain.empty()) {
+    *error = "cannot read --tls-cert " + o.tls_cert.string();
+    return nullptr;
+  }
+  if (!ReadSmallFile(o.tls_key, &pair.private_key) || pair.private_key.empty()) {
+    *error = "cannot read --tls-key " + o.tls_key.string();
+    return nullptr;
+  }
+  grpc::SslServerCredentialsOptions ssl(GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE);
+  ssl.pem_key_cert_pairs.push_back(std::move(pair));
+  if (!o.tls_client_ca.empty()) {
+    if (!ReadSmallFile(o.tls_client_ca, &ssl.pem_root_certs) || ssl.pem_root_certs.empty()) {
+      *error = "cannot read --tls-client-ca " + o.tls_client_ca.string();
+      return nullptr;
+    }
+    ssl.client_certificate_request = GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
+  }
+  return grpc::SslServerCredentials(ssl);
 }
 
 bool WritePortFile(const std::filesystem::path& path, int port) {
@@ -81,20 +123,54 @@ int main(int argc, char** argv) {
     return 1;
   }
 
+  const std::string address = NormalizeAddress(options.address);
+  std::unique_ptr<vasl::server::AccessControl> access;
+  if (options.admin_token_file.empty()) {
+    if (!IsLoopback(HostOf(address)) && !options.allow_open_access) {
+      std::fprintf(stderr,
+                   "vasld: refusing to listen on %s without access control: give "
+                   "--admin-token-file (or --allow-open-access to let anyone in)\n",
+                   address.c_str());
+      return 2;
+    }
+    access = vasl::server::AccessControl::Open();
+  } else {
+    std::string text;
+    if (!ReadSmallFile(options.admin_token_file, &text)) {
+      std::fprintf(stderr, "vasld: cannot read --admin-token-file %s\n",
+                   options.admin_token_file.c_str());
+      return 2;
+    }
+    const std::string token(absl::StripAsciiWhitespace(text.substr(0, text.find('\n'))));
+    auto opened = vasl::server::AccessControl::Open(token, options.data_dir / "access.sqlite");
+    if (!opened.ok()) {
+      std::fprintf(stderr, "vasld: --admin-token-file %s: %s\n", options.admin_token_file.c_str(),
+                   std::string(opened.status().message()).c_str());
+      return 2;
+    }
+    access = std::move(*opened);
+  }
+  std::string tls_error;
+  std::shared_ptr<grpc::ServerCredentials> credentials = Credentials(options, &tls_error);
+  if (!credentials) {
+    std::fprintf(stderr, "vasld: %s\n", tls_error.c_str());
+    return 2;
+  }
+
   int workers = options.workers;
   if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
   vasl::server::WorkerPool pool(workers);
   vasl::server::ServiceOptions service_options;
   service_options.staging_dir = options.data_dir;
   service_options.render_chunk_bytes = options.render_chunk_bytes;
+  service_options.access = access.get();
   vasl::server::VaslServiceImpl service(engine->get(), &pool, service_options);
 
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
-  const std::string address = NormalizeAddress(options.address);
+  if (options.reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(address, grpc::InsecureServerCredentials(), &port);
+  builder.AddListeningPort(address, credentials, &port);
   // gRPC sets SO_REUSEPORT by default: a second vasld on a port one already serves would start
   // and the kernel would split connections between them. Off: the second one fails to bind.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
@@ -112,7 +188,10 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
   StderrLogSink("listening on " + bound + " data_dir=" + options.data_dir.string() +
                 " workers=" + std::to_string(workers) +
-                " max_message_bytes=" + std::to_string(options.max_message_bytes));
+                " max_message_bytes=" + std::to_string(options.max_message_bytes) +
+                " access_control=" + (access->enabled() ? "on" : "off") +
+                " tls=" + (options.tls_cert.empty() ? "off"
+                           : options.tls_client_ca.empty() ? "on" : "mutual"));
   if (!options.port_file.empty() && !WritePortFile(options.port_file, port)) {
     StderrLogSink("warning: cannot write --port-file " + options.port_file.string());
   }
@@ -124,6 +203,17 @@ int main(int argc, char** argv) {
   if (grpc::HealthCheckServiceInterface* health = server->GetHealthCheckService()) {
     health->SetServingStatus(false);
   }
+  // A second signal stops at once; so does the end of the grace period with calls still
+  // running. Nothing is lost either way: a commit is atomic, and what was not committed is
+  // collected when its project next opens.
+  const double grace_s = options.shutdown_grace_s;
+  std::thread([signals, grace_s] {
+    struct timespec wait{static_cast<time_t>(grace_s) + 5, 0};
+    const int again = sigtimedwait(&signals, nullptr, &wait);
+    StderrLogSink(again > 0 ? "second signal: stopping now, running calls are abandoned"
+                            : "grace period over with calls still running: stopping now");
+    std::_Exit(again > 0 ? 130 : 1);
+  }).detach();
   // Running RPCs get the grace period; the pool keeps running so that their reactors finish.
   server->Shutdown(std::chrono::system_clock::now() +
                    std::chrono::milliseconds(static_cast<int64_t>(1e3 * options.shutdown_grace_s)));

@@ -48,6 +48,27 @@ Setter EngineInt(int EngineLimits::*field, const std::string& name) {
   };
 }
 
+Setter Path(std::filesystem::path ServerOptions::*field) {
+  return [field](ServerOptions& o, const std::string& v) -> absl::Status {
+    o.*field = v;
+    return absl::OkStatus();
+  };
+}
+
+Setter Bool(bool ServerOptions::*field, const std::string& name) {
+  return [field, name](ServerOptions& o, const std::string& v) -> absl::Status {
+    const std::string x = absl::AsciiStrToLower(v);
+    if (x == "true" || x == "1" || x == "on" || x == "yes") {
+      o.*field = true;
+    } else if (x == "false" || x == "0" || x == "off" || x == "no") {
+      o.*field = false;
+    } else {
+      return BadValue(name, v, "true or false");
+    }
+    return absl::OkStatus();
+  };
+}
+
 const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
   static const auto* flags = new std::map<std::string, std::pair<Setter, std::string>>{
       {"address",
@@ -109,6 +130,22 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
       {"max-render-width",
        {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
         "render width, pixels (default 16384)"}},
+      {"admin-token-file",
+       {Path(&ServerOptions::admin_token_file),
+        "file with the admin bearer token; set: every VaslService RPC needs a token (default: "
+        "none, access control off)"}},
+      {"allow-open-access",
+       {Bool(&ServerOptions::allow_open_access, "allow-open-access"),
+        "allow a non-loopback address without --admin-token-file (default false)"}},
+      {"tls-cert",
+       {Path(&ServerOptions::tls_cert), "PEM certificate chain: TLS with --tls-key (default: none)"}},
+      {"tls-key", {Path(&ServerOptions::tls_key), "PEM private key of --tls-cert"}},
+      {"tls-client-ca",
+       {Path(&ServerOptions::tls_client_ca),
+        "PEM CA bundle: require client certificates it signed (mutual TLS; default: none)"}},
+      {"reflection",
+       {Bool(&ServerOptions::reflection, "reflection"),
+        "serve gRPC server reflection (default true)"}},
       {"max-render-height",
        {EngineInt(&EngineLimits::max_render_height_px, "max-render-height"),
         "render height, pixels (default 8192)"}},
@@ -196,6 +233,12 @@ absl::StatusOr<ServerOptions> ParseServerOptions(const std::vector<std::string>&
     return absl::InvalidArgumentError(absl::StrCat(
         "--render-chunk-bytes=", options.render_chunk_bytes,
         " must be at least 4096 below --max-message-bytes=", options.max_message_bytes));
+  }
+  if (options.tls_cert.empty() != options.tls_key.empty()) {
+    return absl::InvalidArgumentError("--tls-cert and --tls-key go together: give both or neither");
+  }
+  if (!options.tls_client_ca.empty() && options.tls_cert.empty()) {
+    return absl::InvalidArgumentError("--tls-client-ca needs --tls-cert and --tls-key");
   }
   return options;
 }

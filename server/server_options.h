@@ -30,6 +30,20 @@ struct ServerOptions {
   double shutdown_grace_s = 30.0;
   /// Limits enforced by the engine and, for stream sizes, by the ingest assembler.
   EngineLimits engine;
+
+  // Access control and transport security (server/access.h).
+  /// A file holding the admin bearer token (first line, at least 16 characters). Set: every
+  /// RPC of VaslService wants a token; empty: access control is off.
+  std::filesystem::path admin_token_file;
+  /// Listening on a non-loopback address without access control is refused unless this is set.
+  bool allow_open_access = false;
+  /// PEM server certificate chain and private key: TLS when both are set.
+  std::filesystem::path tls_cert;
+  std::filesystem::path tls_key;
+  /// PEM CA bundle: clients must present a certificate it signed (mutual TLS).
+  std::filesystem::path tls_client_ca;
+  /// Serve gRPC server reflection (grpcurl, grpc_cli).
+  bool reflection = true;
 };
 
 /// Usage text listing every flag with its default.

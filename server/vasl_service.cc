@@ -53,6 +53,11 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   BackProjectReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
                      v1::BackProjectResponse* response)
       : service_(service), context_(context), response_(response), start_(Clock::now()) {
+    if (grpc::Status denied = service_->Authorize(context, "", Role::kNone, "BackProject");
+        !denied.ok()) {
+      Finish(denied);
+      return;
+    }
     StartRead(&request_);
   }
 
@@ -78,6 +83,12 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       const v1::BackProjectHeader& h = request_.header();
       has_header_ = true;
       project_ = h.project();
+      if (grpc::Status denied =
+              service_->Authorize(context_, project_, Role::kWrite, "BackProject");
+          !denied.ok()) {
+        return absl::Status(static_cast<absl::StatusCode>(denied.error_code()),
+                            denied.error_message());
+      }
       if (!h.has_pose()) return absl::InvalidArgumentError("header.pose is required");
       absl::StatusOr<geometry::Pose> pose = PoseFromProto(h.pose(), "header.pose");
       if (!pose.ok()) return pose.status();
@@ -173,6 +184,12 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
         response_(response),
         assembler_(service->engine()->limits()),
         start_(Clock::now()) {
+    // Who calls is known before any byte of the scan: a stranger's stream is refused at once.
+    if (grpc::Status denied = service_->Authorize(context, "", Role::kNone, "IngestScan");
+        !denied.ok()) {
+      Finish(denied, false);
+      return;
+    }
     StartRead(&request_);
   }
 
@@ -182,6 +199,14 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       return;
     }
     const bool was_header = !assembler_.has_header();
+    if (was_header && request_.has_header()) {
+      if (grpc::Status denied = service_->Authorize(context_, request_.header().project(),
+                                                    Role::kWrite, "IngestScan");
+          !denied.ok()) {
+        Finish(denied, false);
+        return;
+      }
+    }
     absl::Status status = assembler_.Add(request_);
     if (!status.ok()) {
       Fail(status);
@@ -309,8 +334,13 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   void OnDone() override { delete this; }
 
  protected:
-  /// Queues Run on the pool (call last in the derived constructor).
+  /// Checks the caller's read role, then queues Run on the pool (call last in the derived
+  /// constructor).
   void Start() {
+    if (grpc::Status denied = service_->Authorize(context_, project_, Role::kRead, method_);
+        !denied.ok()) {
+      return Done(denied);
+    }
     const bool queued = service_->pool()->Submit([this] { Run(); });
     if (!queued) Done(Unavailable());
   }
@@ -492,6 +522,8 @@ void StderrLogSink(const std::string& line) {
 VaslServiceImpl::VaslServiceImpl(Engine* engine, WorkerPool* pool, ServiceOptions options)
     : engine_(engine), pool_(pool), options_(std::move(options)) {
   if (!options_.log) options_.log = StderrLogSink;
+  if (!options_.access) open_access_ = AccessControl::Open();
+  access_ = options_.access ? options_.access : open_access_.get();
 }
 
 void VaslServiceImpl::LogRequest(const char* method, const std::string& project,
@@ -546,10 +578,40 @@ ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::stri
   };
 }
 
+absl::StatusOr<Caller> VaslServiceImpl::Authenticate(
+    const grpc::CallbackServerContext* context) const {
+  const auto& metadata = context->client_metadata();
+  auto it = metadata.find("authorization");
+  const std::string header =
+      it == metadata.end() ? std::string() : std::string(it->second.data(), it->second.size());
+  return access_->Authenticate(header);
+}
+
+grpc::Status VaslServiceImpl::Authorize(const grpc::CallbackServerContext* context,
+                                        const std::string& project, Role need,
+                                        const char* method) const {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (need == Role::kNone) return grpc::Status::OK;
+  return ToGrpcStatus(AccessControl::Require(*caller, project, need, method));
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* context,
+                                                const char* method, const std::string& project,
+                                                const grpc::Status& status) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  LogRequest(method, project, status, Clock::now());
+  reactor->Finish(status);
+  return reactor;
+}
+
 grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext* context,
                                                     const char* method,
-                                                    const std::string& project,
+                                                    const std::string& project, Role need,
                                                     std::function<grpc::Status()> body) {
+  if (grpc::Status denied = Authorize(context, project, need, method); !denied.ok()) {
+    return Deny(context, method, project, denied);
+  }
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const Clock::time_point start = Clock::now();
   const bool queued = pool_->Submit([this, context, reactor, method, project, start,
@@ -576,7 +638,12 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerContext* context,
                                                          const v1::CreateProjectRequest* request,
                                                          v1::Project* response) {
-  return RunUnary(context, "CreateProject", request->name(), [this, request, response] {
+  if (grpc::Status denied = Authorize(context, kAllProjects, Role::kWrite, "CreateProject");
+      !denied.ok()) {
+    return Deny(context, "CreateProject", request->name(), denied);
+  }
+  return RunUnary(context, "CreateProject", request->name(), Role::kNone,
+                  [this, request, response] {
     absl::StatusOr<store::ProjectSettings> settings = SettingsFromProto(*request);
     if (!settings.ok()) return ToGrpcStatus(settings.status());
     absl::StatusOr<ProjectInfo> info = engine_->CreateProject(request->name(), *settings);
@@ -589,7 +656,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerCon
 grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContext* context,
                                                       const v1::GetProjectRequest* request,
                                                       v1::Project* response) {
-  return RunUnary(context, "GetProject", request->project(), [this, request, response] {
+  return RunUnary(context, "GetProject", request->project(), Role::kRead,
+                  [this, request, response] {
     absl::StatusOr<ProjectInfo> info = engine_->GetProject(request->project());
     if (!info.ok()) return ToGrpcStatus(info.status());
     ProjectToProto(*info, response);
@@ -600,9 +668,18 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerContext* context,
                                                         const v1::ListProjectsRequest* request,
                                                         v1::ListProjectsResponse* response) {
-  return RunUnary(context, "ListProjects", "", [this, request, response] {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) return Deny(context, "ListProjects", "", ToGrpcStatus(caller.status()));
+  return RunUnary(context, "ListProjects", "", Role::kNone,
+                  [this, request, response, caller = *caller] {
     absl::StatusOr<std::vector<ProjectInfo>> infos = engine_->ListProjects();
     if (!infos.ok()) return ToGrpcStatus(infos.status());
+    // Only the projects the caller may read.
+    infos->erase(std::remove_if(infos->begin(), infos->end(),
+                                [&](const ProjectInfo& p) {
+                                  return caller.RoleOn(p.name) < Role::kRead;
+                                }),
+                 infos->end());
     std::sort(infos->begin(), infos->end(),
               [](const ProjectInfo& a, const ProjectInfo& b) { return a.name < b.name; });
     auto page = Page(*infos, request->page_size(), request->page_token(),
@@ -617,7 +694,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::ListScans(grpc::CallbackServerContext* context,
                                                      const v1::ListScansRequest* request,
                                                      v1::ListScansResponse* response) {
-  return RunUnary(context, "ListScans", request->project(), [this, request, response] {
+  return RunUnary(context, "ListScans", request->project(), Role::kRead, [this, request, response] {
     absl::StatusOr<std::vector<store::ScanInfo>> scans = engine_->ListScans(request->project());
     if (!scans.ok()) return ToGrpcStatus(scans.status());
     auto page = Page(*scans, request->page_size(), request->page_token(),
@@ -637,6 +714,11 @@ grpc::ServerReadReactor<v1::IngestScanRequest>* VaslServiceImpl::IngestScan(
 grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
     grpc::CallbackServerContext* context, const v1::GetIngestProgressRequest* request,
     v1::IngestProgress* response) {
+  if (grpc::Status denied = Authorize(context, request->project(), Role::kRead,
+                                     "GetIngestProgress");
+      !denied.ok()) {
+    return Deny(context, "GetIngestProgress", request->project(), denied);
+  }
   v1::IngestProgress known = GetProgress(request->project());
   if (known.state() != v1::IngestProgress::STATE_IDLE) {
     // A map lookup: answered on the callback thread, so polls never wait behind engine work.
@@ -648,7 +730,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
     return reactor;
   }
   // Unknown so far: the engine tells NOT_FOUND from a project that has not ingested yet.
-  return RunUnary(context, "GetIngestProgress", request->project(), [this, request, response] {
+  return RunUnary(context, "GetIngestProgress", request->project(), Role::kRead,
+                  [this, request, response] {
     v1::IngestProgress progress = GetProgress(request->project());
     if (progress.state() == v1::IngestProgress::STATE_IDLE) {
       absl::StatusOr<ProjectInfo> info = engine_->GetProject(request->project());
@@ -667,7 +750,8 @@ grpc::ServerWriteReactor<v1::RenderResponse>* VaslServiceImpl::Render(
 grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
     grpc::CallbackServerContext* context, const v1::InspectRecordsRequest* request,
     v1::InspectRecordsResponse* response) {
-  return RunUnary(context, "InspectRecords", request->project(), [this, request, response] {
+  return RunUnary(context, "InspectRecords", request->project(), Role::kRead,
+                  [this, request, response] {
     if (request->version() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                           absl::StrCat("version must be >= 0 (0: HEAD), got ",
@@ -691,7 +775,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
 grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
-  return RunUnary(context, "Rebuild", request->project(), [this, request, response] {
+  return RunUnary(context, "Rebuild", request->project(), Role::kWrite, [this, request, response] {
     const ProgressFn progress =
         ProgressReporter("Rebuild", request->project(), "rebuild", Clock::now());
     absl::StatusOr<IngestResult> result = engine_->Rebuild(request->project(), progress);
@@ -702,7 +786,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* 
 grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContext* context,
                                                       const v1::DeleteScanRequest* request,
                                                       v1::ChangeResponse* response) {
-  return RunUnary(context, "DeleteScan", request->project(), [this, request, response] {
+  return RunUnary(context, "DeleteScan", request->project(), Role::kAdmin,
+                  [this, request, response] {
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
     }
@@ -730,7 +815,8 @@ grpc::Status VaslServiceImpl::FinishChange(const std::string& project,
 grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerContext* context,
                                                         const v1::ListVersionsRequest* request,
                                                         v1::ListVersionsResponse* response) {
-  return RunUnary(context, "ListVersions", request->project(), [this, request, response] {
+  return RunUnary(context, "ListVersions", request->project(), Role::kRead,
+                  [this, request, response] {
     absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());
     if (!versions.ok()) return ToGrpcStatus(versions.status());
     auto page = Page(*versions, request->page_size(), request->page_token(),
@@ -750,7 +836,8 @@ grpc::ServerWriteReactor<v1::ExportResponse>* VaslServiceImpl::Export(
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateProfile(grpc::CallbackServerContext* context,
                                                          const v1::CreateProfileRequest* request,
                                                          v1::WeightingProfile* response) {
-  return RunUnary(context, "CreateProfile", request->project(), [this, request, response] {
+  return RunUnary(context, "CreateProfile", request->project(), Role::kWrite,
+                  [this, request, response] {
     if (!request->has_profile()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "profile is required");
     }
@@ -770,7 +857,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProfile(grpc::CallbackServerCon
 grpc::ServerUnaryReactor* VaslServiceImpl::GetProfile(grpc::CallbackServerContext* context,
                                                       const v1::GetProfileRequest* request,
                                                       v1::WeightingProfile* response) {
-  return RunUnary(context, "GetProfile", request->project(), [this, request, response] {
+  return RunUnary(context, "GetProfile", request->project(), Role::kRead,
+                  [this, request, response] {
     absl::StatusOr<reweight::NamedProfile> p =
         engine_->GetProfile(request->project(), request->name(), request->revision());
     if (!p.ok()) return ToGrpcStatus(p.status());
@@ -782,7 +870,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProfile(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerContext* context,
                                                         const v1::ListProfilesRequest* request,
                                                         v1::ListProfilesResponse* response) {
-  return RunUnary(context, "ListProfiles", request->project(), [this, request, response] {
+  return RunUnary(context, "ListProfiles", request->project(), Role::kRead,
+                  [this, request, response] {
     std::string active;
     absl::StatusOr<std::vector<reweight::NamedProfile>> all =
         engine_->ListProfiles(request->project(), &active);
@@ -806,7 +895,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
     grpc::CallbackServerContext* context, const v1::SetActiveProfileRequest* request,
     v1::WeightingProfile* response) {
-  return RunUnary(context, "SetActiveProfile", request->project(), [this, request, response] {
+  return RunUnary(context, "SetActiveProfile", request->project(), Role::kWrite,
+                  [this, request, response] {
     if (request->name().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "name the profile to activate");
     }
@@ -823,7 +913,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
 grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext* context,
                                                     const v1::ReweightRequest* request,
                                                     v1::ReweightResponse* response) {
-  return RunUnary(context, "Reweight", request->project(), [this, request, response] {
+  return RunUnary(context, "Reweight", request->project(), Role::kWrite, [this, request, response] {
     if (request->revision() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
     }
@@ -853,7 +943,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext*
 grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerContext* context,
                                                         const v1::QueryRecordsRequest* request,
                                                         v1::QueryRecordsResponse* response) {
-  return RunUnary(context, "QueryRecords", request->project(), [this, request, response] {
+  return RunUnary(context, "QueryRecords", request->project(), Role::kRead,
+                  [this, request, response] {
     if (!request->has_min_m()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                           "min_m is required: the point, or the box's low corner");
@@ -881,7 +972,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext* context,
                                                      const v1::NormaliseRequest* request,
                                                      v1::NormaliseResponse* response) {
-  return RunUnary(context, "Normalise", request->project(), [this, request, response] {
+  return RunUnary(context, "Normalise", request->project(), Role::kWrite,
+                  [this, request, response] {
     absl::StatusOr<reweight::NormaliseOutcome> r =
         engine_->Normalise(request->project(), request->base_profile(), request->name());
     if (!r.ok()) return ToGrpcStatus(r.status());
@@ -898,7 +990,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
 grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {
-  return RunUnary(context, "Rollback", request->project(), [this, request, response] {
+  return RunUnary(context, "Rollback", request->project(), Role::kAdmin, [this, request, response] {
     const ProgressFn progress =
         ProgressReporter("Rollback", request->project(),
                          absl::StrCat("version=", request->version()), Clock::now());
@@ -913,10 +1005,91 @@ grpc::ServerReadReactor<v1::BackProjectRequest>* VaslServiceImpl::BackProject(
   return new BackProjectReactor(this, context, response);
 }
 
+namespace {
+
+Role RoleFromProto(v1::Role role) {
+  switch (role) {
+    case v1::ROLE_READ: return Role::kRead;
+    case v1::ROLE_WRITE: return Role::kWrite;
+    case v1::ROLE_ADMIN: return Role::kAdmin;
+    default: return Role::kNone;
+  }
+}
+
+void TokenToProto(const TokenInfo& t, v1::AccessToken* out) {
+  out->set_id(t.id);
+  out->set_project(t.project);
+  out->set_role(static_cast<v1::Role>(static_cast<int>(t.role)));
+  out->set_label(t.label);
+  out->set_created_by(t.created_by);
+  TimestampFromIso(t.created_utc, out->mutable_create_time());
+  if (!t.revoked_utc.empty()) TimestampFromIso(t.revoked_utc, out->mutable_revoke_time());
+}
+
+}  // namespace
+
+grpc::ServerUnaryReactor* VaslServiceImpl::CreateToken(grpc::CallbackServerContext* context,
+                                                       const v1::CreateTokenRequest* request,
+                                                       v1::AccessToken* response) {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    return Deny(context, "CreateToken", request->project(), ToGrpcStatus(caller.status()));
+  }
+  return RunUnary(context, "CreateToken", request->project(), Role::kNone,
+                  [this, request, response, caller = *caller] {
+    if (absl::Status s = AccessControl::Require(caller, request->project(), Role::kAdmin,
+                                                "creating a token");
+        !s.ok()) {
+      return ToGrpcStatus(s);
+    }
+    if (request->project() != kAllProjects) {
+      absl::StatusOr<ProjectInfo> info = engine_->GetProject(request->project());
+      if (!info.ok()) return ToGrpcStatus(info.status());
+    }
+    auto made = access_->Create(caller, request->project(), RoleFromProto(request->role()),
+                                request->label());
+    if (!made.ok()) return ToGrpcStatus(made.status());
+    TokenToProto(made->first, response);
+    response->set_token(made->second);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::ListTokens(grpc::CallbackServerContext* context,
+                                                      const v1::ListTokensRequest* request,
+                                                      v1::ListTokensResponse* response) {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    return Deny(context, "ListTokens", request->project(), ToGrpcStatus(caller.status()));
+  }
+  return RunUnary(context, "ListTokens", request->project(), Role::kNone,
+                  [this, request, response, caller = *caller] {
+    auto tokens = access_->List(caller, request->project());
+    if (!tokens.ok()) return ToGrpcStatus(tokens.status());
+    for (const TokenInfo& t : *tokens) TokenToProto(t, response->add_tokens());
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::RevokeToken(grpc::CallbackServerContext* context,
+                                                       const v1::RevokeTokenRequest* request,
+                                                       v1::AccessToken* response) {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) return Deny(context, "RevokeToken", "", ToGrpcStatus(caller.status()));
+  return RunUnary(context, "RevokeToken", "", Role::kNone,
+                  [this, request, response, caller = *caller] {
+    auto revoked = access_->Revoke(caller, request->id());
+    if (!revoked.ok()) return ToGrpcStatus(revoked.status());
+    TokenToProto(*revoked, response);
+    return grpc::Status::OK;
+  });
+}
+
 grpc::ServerUnaryReactor* VaslServiceImpl::PinVersion(grpc::CallbackServerContext* context,
                                                       const v1::PinVersionRequest* request,
                                                       v1::Version* response) {
-  return RunUnary(context, "PinVersion", request->project(), [this, request, response] {
+  return RunUnary(context, "PinVersion", request->project(), Role::kAdmin,
+                  [this, request, response] {
     absl::Status s = engine_->SetPinned(request->project(), request->version(), request->pinned());
     if (!s.ok()) return ToGrpcStatus(s);
     absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());

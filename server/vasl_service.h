@@ -14,10 +14,12 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <memory>
 #include <mutex>
 #include <string>
 
 #include "lattice/engine.h"
+#include "server/access.h"
 #include "server/worker_pool.h"
 #include "vasl/v1/vasl.grpc.pb.h"
 
@@ -34,6 +36,8 @@ struct ServiceOptions {
   /// Where Export stages merged files before streaming them (vasld: its data directory);
   /// empty: the system's temp directory.
   std::filesystem::path staging_dir;
+  /// Who may call what (server/access.h); null: access control off.
+  AccessControl* access = nullptr;
 };
 
 class VaslServiceImpl final : public v1::VaslService::CallbackService {
@@ -98,6 +102,15 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
                                      v1::ChangeResponse* response) override;
   grpc::ServerReadReactor<v1::BackProjectRequest>* BackProject(
       grpc::CallbackServerContext* context, v1::BackProjectResponse* response) override;
+  grpc::ServerUnaryReactor* CreateToken(grpc::CallbackServerContext* context,
+                                        const v1::CreateTokenRequest* request,
+                                        v1::AccessToken* response) override;
+  grpc::ServerUnaryReactor* ListTokens(grpc::CallbackServerContext* context,
+                                       const v1::ListTokensRequest* request,
+                                       v1::ListTokensResponse* response) override;
+  grpc::ServerUnaryReactor* RevokeToken(grpc::CallbackServerContext* context,
+                                        const v1::RevokeTokenRequest* request,
+                                        v1::AccessToken* response) override;
   grpc::ServerUnaryReactor* PinVersion(grpc::CallbackServerContext* context,
                                        const v1::PinVersionRequest* request,
                                        v1::Version* response) override;
@@ -117,17 +130,27 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// One request log line: method, project, code, duration (and the message on error).
   void LogRequest(const char* method, const std::string& project, const grpc::Status& status,
                   std::chrono::steady_clock::time_point start) const;
+  /// The caller of `context` (its `authorization` metadata); UNAUTHENTICATED when access
+  /// control is on and it carries no valid token.
+  absl::StatusOr<Caller> Authenticate(const grpc::CallbackServerContext* context) const;
+  /// Authenticate, then require `need` on `project` (Role::kNone: authentication only).
+  grpc::Status Authorize(const grpc::CallbackServerContext* context, const std::string& project,
+                         Role need, const char* method) const;
   /// Updates the progress board of `project` (thread-safe).
   void UpdateProgress(const std::string& project,
                       const std::function<void(v1::IngestProgress&)>& update);
   v1::IngestProgress GetProgress(const std::string& project);
 
  private:
-  /// Runs `body` (which fills the response and returns a status) on the pool, then logs and
-  /// finishes the unary reactor.
+  /// Checks that the caller holds `need` on `project` (Authorize), then runs `body` (which
+  /// fills the response and returns a status) on the pool, then logs and finishes the unary
+  /// reactor.
   grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
-                                     const std::string& project,
+                                     const std::string& project, Role need,
                                      std::function<grpc::Status()> body);
+  /// Logs and finishes a unary call that was refused before any work.
+  grpc::ServerUnaryReactor* Deny(grpc::CallbackServerContext* context, const char* method,
+                                 const std::string& project, const grpc::Status& status);
   /// Marks a rebuild or deletion finished on the progress board and fills its response.
   grpc::Status FinishChange(const std::string& project, const absl::StatusOr<IngestResult>& result,
                             v1::ChangeResponse* response);
@@ -135,6 +158,8 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   Engine* engine_;
   WorkerPool* pool_;
   ServiceOptions options_;
+  std::unique_ptr<AccessControl> open_access_;  // used when options_.access is null
+  AccessControl* access_ = nullptr;
   std::mutex progress_mutex_;
   std::map<std::string, v1::IngestProgress> progress_;
 };

@@ -412,12 +412,66 @@ def _cmd_pin(client: Client, args) -> int:
     return 0
 
 
+def _cmd_token(client: Client, args) -> int:
+    if args.token_cmd == "create":
+        t = client.create_token(args.project, args.role, args.label)
+        if args.output:
+            fd = os.open(args.output, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write(t["token"] + "\n")
+            print(f"token {t['id']} ({t['role']} on {t['project']}) written to {args.output}")
+        else:
+            print(f"token {t['id']} ({t['role']} on {t['project']}); keep it secret, it is not "
+                  f"shown again:\n{t['token']}")
+        return 0
+    if args.token_cmd == "revoke":
+        t = client.revoke_token(args.id)
+        print(f"token {t['id']} ({t['role']} on {t['project']}) revoked at {t['revoked_utc']}")
+        return 0
+    tokens = client.list_tokens(args.project)
+    if args.json:
+        print(json.dumps(tokens, indent=2))
+        return 0
+    if not tokens:
+        print("no tokens")
+        return 0
+    print(f"{'ID':<13} {'PROJECT':<20} {'ROLE':<6} {'CREATED':<21} {'REVOKED':<21} LABEL")
+    for t in tokens:
+        print(f"{t['id']:<13} {t['project']:<20} {t['role']:<6} {t['created_utc']:<21} "
+              f"{t['revoked_utc'] or '-':<21} {t['label']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vasl", description="Client of the vasld server.")
     parser.add_argument("--server", default=os.environ.get("VASL_SERVER", DEFAULT_SERVER),
                         help="HOST:PORT of vasld (default: $VASL_SERVER or %(default)s)")
     parser.add_argument("--timeout", type=float, default=None, help="RPC deadline, seconds")
+    parser.add_argument("--token-file", default=None,
+                        help="file whose first line is the bearer token (default: $VASL_TOKEN, "
+                             "or the file $VASL_TOKEN_FILE)")
+    parser.add_argument("--tls-ca", default=None,
+                        help="PEM CA of the server's certificate: connect with TLS "
+                             "(default: $VASL_TLS_CA)")
+    parser.add_argument("--tls-cert", default=None,
+                        help="PEM client certificate for mutual TLS (default: $VASL_TLS_CERT)")
+    parser.add_argument("--tls-key", default=None,
+                        help="PEM key of --tls-cert (default: $VASL_TLS_KEY)")
     sub = parser.add_subparsers(dest="cmd", required=True)
+
+    token = sub.add_parser("token", help="access tokens: create, list, revoke")
+    tsub = token.add_subparsers(dest="token_cmd", required=True)
+    tcreate = tsub.add_parser("create", help="a new token; its secret is printed once")
+    tcreate.add_argument("--project", required=True, help="project name, or '*' for every one")
+    tcreate.add_argument("--role", required=True, choices=["read", "write", "admin"])
+    tcreate.add_argument("--label", default="", help="who holds it, what for")
+    tcreate.add_argument("-o", "--output", default=None, metavar="FILE",
+                         help="write the token to FILE (mode 600) instead of printing it")
+    tlist = tsub.add_parser("list", help="list the tokens you administer")
+    tlist.add_argument("--project", default="", help="only this project's tokens")
+    tlist.add_argument("--json", action="store_true")
+    trevoke = tsub.add_parser("revoke", help="revoke a token at once")
+    trevoke.add_argument("id", help="the token's id (see `vasl token list`)")
 
     project = sub.add_parser("project", help="create, list or show projects")
     psub = project.add_subparsers(dest="project_cmd", required=True)
@@ -567,14 +621,21 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
                 "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,
-                "backproject": _cmd_backproject, "batch": _cmd_batch}
+                "backproject": _cmd_backproject, "batch": _cmd_batch, "token": _cmd_token}
     try:
-        with Client(args.server, timeout_s=args.timeout) as client:
+        token = None
+        if args.token_file:
+            with open(args.token_file) as f:
+                token = f.readline().strip()
+        with Client(args.server, timeout_s=args.timeout, token=token, tls_ca=args.tls_ca,
+                    tls_cert=args.tls_cert, tls_key=args.tls_key) as client:
             return handlers[args.cmd](client, args)
     except VaslError as e:
         hint = ""
         if e.code.name == "UNAVAILABLE":
             hint = f" (is vasld running at {args.server}?)"
+        elif e.code.name == "UNAUTHENTICATED":
+            hint = " (give a token: --token-file, $VASL_TOKEN or $VASL_TOKEN_FILE)"
         print(f"vasl: error: {e.code.name}: {e.details}{hint}", file=sys.stderr)
         return 1
     except (ValueError, OSError) as e:

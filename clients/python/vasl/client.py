@@ -225,6 +225,52 @@ def decode_exr(data: bytes) -> Dict[str, np.ndarray]:
         os.unlink(path)
 
 
+def _token_from_env() -> Optional[str]:
+    token = os.environ.get("VASL_TOKEN", "").strip()
+    if token:
+        return token
+    path = os.environ.get("VASL_TOKEN_FILE")
+    if path:
+        with open(path) as f:
+            token = f.readline().strip()
+        if not token:
+            raise ValueError(f"VASL_TOKEN_FILE {path} is empty")
+        return token
+    return None
+
+
+class _BearerToken(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInterceptor,
+                   grpc.StreamUnaryClientInterceptor, grpc.StreamStreamClientInterceptor):
+    """Adds `authorization: Bearer <token>` to every call of the channel."""
+
+    def __init__(self, token: str):
+        self._header = ("authorization", f"Bearer {token}")
+
+    def _details(self, d):
+        metadata = list(d.metadata or []) + [self._header]
+        return d._replace(metadata=metadata) if hasattr(d, "_replace") else _Details(d, metadata)
+
+    def intercept_unary_unary(self, continuation, details, request):
+        return continuation(self._details(details), request)
+
+    def intercept_unary_stream(self, continuation, details, request):
+        return continuation(self._details(details), request)
+
+    def intercept_stream_unary(self, continuation, details, request_iterator):
+        return continuation(self._details(details), request_iterator)
+
+    def intercept_stream_stream(self, continuation, details, request_iterator):
+        return continuation(self._details(details), request_iterator)
+
+
+class _Details(grpc.ClientCallDetails):
+    def __init__(self, d, metadata):
+        self.method, self.timeout, self.credentials = d.method, d.timeout, d.credentials
+        self.wait_for_ready = getattr(d, "wait_for_ready", None)
+        self.compression = getattr(d, "compression", None)
+        self.metadata = metadata
+
+
 class Client:
     """Connection to one vasld. Usable as a context manager.
 
@@ -233,7 +279,13 @@ class Client:
     """
 
     def __init__(self, server: str = DEFAULT_SERVER, *, timeout_s: Optional[float] = None,
-                 chunk_bytes: int = CHUNK_BYTES):
+                 chunk_bytes: int = CHUNK_BYTES, token: Optional[str] = None,
+                 tls_ca: Optional[str] = None, tls_cert: Optional[str] = None,
+                 tls_key: Optional[str] = None):
+        """`token`: the bearer token of a server with access control; default $VASL_TOKEN, or
+        the first line of the file $VASL_TOKEN_FILE. `tls_ca`: PEM file of the CA that signed
+        the server's certificate (TLS; default $VASL_TLS_CA); `tls_cert`/`tls_key`: this
+        client's certificate and key for mutual TLS (default $VASL_TLS_CERT/$VASL_TLS_KEY)."""
         if not server or ":" not in server:
             raise ValueError(f"server must be HOST:PORT, got {server!r}")
         if chunk_bytes < 16:
@@ -241,15 +293,28 @@ class Client:
         self.server = server
         self.timeout_s = timeout_s
         self.chunk_bytes = chunk_bytes
-        self.channel = grpc.insecure_channel(server, options=[
-            ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
-            ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
-        ])
+        options = [("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+                   ("grpc.max_send_message_length", MAX_MESSAGE_BYTES)]
+        tls_ca = tls_ca if tls_ca is not None else os.environ.get("VASL_TLS_CA")
+        tls_cert = tls_cert if tls_cert is not None else os.environ.get("VASL_TLS_CERT")
+        tls_key = tls_key if tls_key is not None else os.environ.get("VASL_TLS_KEY")
+        if bool(tls_cert) != bool(tls_key):
+            raise ValueError("a client certificate needs its key: give both tls_cert and tls_key")
+        if tls_ca or tls_cert:
+            read = lambda path: open(path, "rb").read() if path else None  # noqa: E731
+            creds = grpc.ssl_channel_credentials(read(tls_ca), read(tls_key), read(tls_cert))
+            channel = grpc.secure_channel(server, creds, options=options)
+        else:
+            channel = grpc.insecure_channel(server, options=options)
+        token = token if token is not None else _token_from_env()
+        self.channel = (grpc.intercept_channel(channel, _BearerToken(token)) if token
+                        else channel)
+        self._raw_channel = channel
         #: The raw generated stub (vasl.v1.VaslService), for callers that need every field.
         self.stub = pb_grpc.VaslServiceStub(self.channel)
 
     def close(self) -> None:
-        self.channel.close()
+        self._raw_channel.close()
 
     def __enter__(self) -> "Client":
         return self
@@ -547,6 +612,34 @@ class Client:
                 "pixels_back_projected": r.pixels_back_projected,
                 "pixels_outside": r.pixels_outside, "record_count": r.record_count,
                 "seconds": r.seconds}
+
+    # -- access control ------------------------------------------------------------------
+    _ROLES = {"read": pb.ROLE_READ, "write": pb.ROLE_WRITE, "admin": pb.ROLE_ADMIN}
+
+    @staticmethod
+    def _token_dict(t: pb.AccessToken) -> dict:
+        names = {v: k for k, v in Client._ROLES.items()}
+        return {"id": t.id, "project": t.project, "role": names.get(t.role, "none"),
+                "label": t.label, "created_by": t.created_by,
+                "created_utc": _iso(t, "create_time"), "revoked_utc": _iso(t, "revoke_time")}
+
+    def create_token(self, project: str, role: str, label: str = "") -> dict:
+        """A new bearer token with `role` ("read", "write", "admin") on `project` ("*": every
+        project). The dict's "token" is the secret, shown this once."""
+        if role not in self._ROLES:
+            raise ValueError(f"role must be one of {sorted(self._ROLES)}, got {role!r}")
+        self._check_name(project)
+        t = self._call("CreateToken", pb.CreateTokenRequest(project=project, role=self._ROLES[role],
+                                                            label=label))
+        return dict(self._token_dict(t), token=t.token)
+
+    def list_tokens(self, project: str = "") -> List[dict]:
+        r = self._call("ListTokens", pb.ListTokensRequest(project=project))
+        return [self._token_dict(t) for t in r.tokens]
+
+    def revoke_token(self, token_id: str) -> dict:
+        self._check_name(token_id, "token id")
+        return self._token_dict(self._call("RevokeToken", pb.RevokeTokenRequest(id=token_id)))
 
     def pin_version(self, project: str, version: int, pinned: bool = True) -> Version:
         """Pins (or unpins) a kept version: pinned versions survive retention."""
