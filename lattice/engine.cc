@@ -23,21 +23,6 @@ double SecondsSince(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
 
-absl::Status ValidateProjectName(const std::string& name) {
-  const bool ok_len = !name.empty() && name.size() <= 63;
-  bool ok_chars = ok_len && (std::isalnum(static_cast<unsigned char>(name[0])) != 0);
-  for (char c : name) {
-    ok_chars = ok_chars && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' ||
-                            c == '_' || c == '-');
-  }
-  if (!ok_chars || name == "." || name == "..") {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "project name '", name,
-        "' is invalid: use 1-63 characters of a-z, 0-9, '.', '_', '-', starting with a letter or digit"));
-  }
-  return absl::OkStatus();
-}
-
 // A flow's stage reports as the caller's progress (may be empty).
 flows::StageFn StageReporter(const ProgressFn& progress) {
   return [&progress](const std::string& stage, double fraction) {
@@ -62,7 +47,7 @@ struct Engine::Impl {
   std::map<std::string, std::shared_ptr<Project>> projects;
 
   absl::StatusOr<std::shared_ptr<Project>> Find(const std::string& name) {
-    if (absl::Status s = ValidateProjectName(name); !s.ok()) return s;
+    if (absl::Status s = store::ValidateProjectName(name); !s.ok()) return s;
     std::lock_guard<std::mutex> lock(mu);
     auto it = projects.find(name);
     if (it != projects.end()) return it->second;
@@ -156,9 +141,17 @@ struct Engine::Impl {
     Project& p = **found;
     std::lock_guard<std::mutex> writer(p.write_mu);
     absl::StatusOr<flows::FlowResult> done = flow(p);
-    if (!done.ok()) return done.status();
+    if (!done.ok()) return CollectAfterFailure(p, done.status());
     return added ? FinishAdded(p, std::move(*done), t0, IngestResult{})
                  : Finish(p, std::move(*done), t0, IngestResult{});
+  }
+
+  /// A failed change may have stored blobs or objects that no version names (a rejected scan's
+  /// images): they go now, not at the next commit, so that repeating a bad request cannot fill
+  /// the disk. Call with the writer lock held. Returns `failure`.
+  static absl::Status CollectAfterFailure(Project& p, absl::Status failure) {
+    (void)p.store->CollectGarbage();  // best effort: the next commit or open collects again
+    return failure;
   }
 
   /// Profile `name` (empty: the project's active one) at `revision` (0: latest).
@@ -200,7 +193,7 @@ const EngineLimits& Engine::limits() const { return impl_->limits; }
 
 absl::StatusOr<ProjectInfo> Engine::CreateProject(const std::string& name,
                                                   const store::ProjectSettings& settings) {
-  if (absl::Status s = ValidateProjectName(name); !s.ok()) return s;
+  if (absl::Status s = store::ValidateProjectName(name); !s.ok()) return s;
   if (!(settings.vossel_size_m >= 1e-3 && settings.vossel_size_m <= 10.0)) {
     return absl::InvalidArgumentError("vossel_size_m must lie in [0.001, 10] metres");
   }
@@ -239,9 +232,15 @@ absl::StatusOr<std::vector<ProjectInfo>> Engine::ListProjects() {
   std::sort(names.begin(), names.end());
   std::vector<ProjectInfo> out;
   for (const std::string& name : names) {
-    if (!ValidateProjectName(name).ok()) continue;  // not one of ours
+    if (!store::ValidateProjectName(name).ok()) continue;  // not one of ours
     auto info = GetProject(name);
-    if (!info.ok()) return info.status();
+    if (!info.ok()) {  // a damaged project is reported, and does not hide the others
+      ProjectInfo damaged;
+      damaged.name = name;
+      damaged.problem = std::string(info.status().message());
+      out.push_back(std::move(damaged));
+      continue;
+    }
     out.push_back(std::move(*info));
   }
   return out;
@@ -281,22 +280,22 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
 
   // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
   auto info = flows::StoreScanBlobs(st, scan, *images);
-  if (!info.ok()) return info.status();
+  if (!info.ok()) return Impl::CollectAfterFailure(p, info.status());
   stage_done("store blobs", 0.15);
 
   auto head = impl_->Snapshot(p, 0);
-  if (!head.ok()) return head.status();
+  if (!head.ok()) return Impl::CollectAfterFailure(p, head.status());
   auto flow = flows::IngestScan(st, **head, *info, scan.lidar, std::move(*images),
                                 impl_->limits.max_image_pixels,
                                 StageReporter(progress));
-  if (!flow.ok()) return flow.status();
+  if (!flow.ok()) return Impl::CollectAfterFailure(p, flow.status());
   return impl_->FinishAdded(p, std::move(*flow), t0, std::move(result));
 }
 
 absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
                                                  const BackProjectInput& input,
                                                  const ProgressFn& progress) {
-  // On failure a stored image is collected with the next commit.
+  // On failure a stored image is collected at once (RunFlow).
   return impl_->RunFlow(project, true, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
@@ -368,6 +367,7 @@ absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(
     const std::string& project, const fusion::WeightingProfile& profile) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();
+  if (auto s = ingest::ValidateText("the profile name", profile.name, 128); !s.ok()) return s;
   return reweight::CreateProfile(*(*p)->store, profile);
 }
 

@@ -51,6 +51,9 @@ struct ProjectInfo {
   int64_t vossel_count = 0;
   int64_t record_count = 0;
   std::string created_utc;
+  /// Set (ListProjects only) when the project cannot be opened: what is wrong with it. The
+  /// other fields are then empty; the other projects are listed as usual.
+  std::string problem;
 };
 
 using ingest::LidarData;

@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "google/protobuf/util/time_util.h"
+#include "lattice/ingest/validate.h"
 
 namespace vasl::server {
 
@@ -95,6 +96,7 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
   out->set_vossel_count(info.vossel_count);
   out->set_record_count(info.record_count);
   TimestampFromIso(info.created_utc, out->mutable_create_time());
+  out->set_problem(info.problem);
 }
 
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
@@ -140,6 +142,10 @@ absl::StatusOr<store::ProjectSettings> SettingsFromProto(const v1::CreateProject
         absl::StrCat("keep_versions must be >= 0, got ", request.keep_versions()));
   }
   if (request.keep_versions() > 0) settings.keep_versions = request.keep_versions();
+  if (absl::Status s = ingest::ValidateText("description", request.description(), 4096, true);
+      !s.ok()) {
+    return s;
+  }
   settings.description = request.description();
   return settings;
 }

@@ -182,7 +182,6 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.pose = *pano_pose;
     data.modality = *modality;
     data.angular_resolution_rad = pano.angular_resolution_rad();
-    data.encoded_image.reserve(static_cast<size_t>(pano.encoded_size_bytes()));
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());
   }
@@ -194,7 +193,8 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
   scan_.pose = *pose;
   scan_.lidar.divergence_rad = lidar.divergence_rad();
   point_count_ = lidar.point_count();
-  point_bytes_.reserve(static_cast<size_t>(point_count_ * bytes_per_point_));
+  // Nothing is reserved for what the header declares: memory follows the bytes that arrive
+  // (the service also bounds the bytes all streams hold, --max-inflight-ingest-bytes).
   return absl::OkStatus();
 }
 

@@ -26,6 +26,7 @@
 #include "lattice/engine.h"
 #include "server/access.h"
 #include "server/server_options.h"
+#include "server/status_util.h"
 #include "server/vasl_service.h"
 #include "server/worker_pool.h"
 
@@ -107,6 +108,11 @@ int main(int argc, char** argv) {
     return 2;
   }
   vasl::server::ServerOptions options = *parsed;
+  {
+    std::error_code ec;
+    const std::filesystem::path absolute = std::filesystem::absolute(options.data_dir, ec);
+    if (!ec) options.data_dir = absolute;  // so that every path the store reports is absolute
+  }
 
   // Block the shutdown signals in every thread (threads inherit the mask); main waits for them.
   sigset_t signals;
@@ -157,13 +163,24 @@ int main(int argc, char** argv) {
     return 2;
   }
 
+  {
+    // Clients never see the server's paths, nor the text of internal errors (status_util.h).
+    std::error_code ec;
+    std::vector<std::string> hidden = {options.data_dir.string()};
+    const std::filesystem::path canonical = std::filesystem::weakly_canonical(options.data_dir, ec);
+    if (!ec) hidden.push_back(canonical.string());
+    vasl::server::RedactStatuses(std::move(hidden), StderrLogSink);
+  }
+
   int workers = options.workers;
   if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
-  vasl::server::WorkerPool pool(workers);
+  vasl::server::WorkerPool pool(workers, static_cast<size_t>(options.max_queued_calls));
   vasl::server::ServiceOptions service_options;
   service_options.staging_dir = options.data_dir;
   service_options.render_chunk_bytes = options.render_chunk_bytes;
   service_options.access = access.get();
+  service_options.max_calls_per_client = static_cast<int>(options.max_calls_per_client);
+  service_options.max_inflight_ingest_bytes = options.max_inflight_ingest_bytes;
   vasl::server::VaslServiceImpl service(engine->get(), &pool, service_options);
 
   grpc::EnableDefaultHealthCheckService(true);

@@ -28,6 +28,12 @@ struct ServerOptions {
   int workers = 0;
   /// On SIGINT/SIGTERM, running RPCs get this long to finish before they are cancelled, s.
   double shutdown_grace_s = 30.0;
+  /// Calls that may wait for a worker; more get RESOURCE_EXHAUSTED.
+  int64_t max_queued_calls = 256;
+  /// Calls one client address may have running at once.
+  int64_t max_calls_per_client = 64;
+  /// Bytes of incoming scans all upload streams may hold at once.
+  int64_t max_inflight_ingest_bytes = 4ll << 30;
   /// Limits enforced by the engine and, for stream sizes, by the ingest assembler.
   EngineLimits engine;
 

@@ -2,7 +2,44 @@
 /// @brief absl::Status -> grpc::Status (ARCHITECTURE.md, "Errors and limits").
 #include "server/status_util.h"
 
+#include <algorithm>
+#include <atomic>
+#include <memory>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
+
 namespace vasl::server {
+namespace {
+
+struct Redaction {
+  std::vector<std::string> hidden_paths;
+  std::function<void(const std::string&)> log;
+};
+
+std::shared_ptr<const Redaction>& CurrentRedaction() {
+  static std::shared_ptr<const Redaction> current;
+  return current;
+}
+
+std::atomic<uint64_t> error_reference{0};
+
+}  // namespace
+
+void RedactStatuses(std::vector<std::string> hidden_paths,
+                    std::function<void(const std::string&)> log) {
+  auto r = std::make_shared<Redaction>();
+  for (std::string& p : hidden_paths) {
+    while (p.size() > 1 && p.back() == '/') p.pop_back();
+    if (p.size() > 1 && p[0] == '/') r->hidden_paths.push_back(std::move(p));  // absolute only
+  }
+  // Longest first, so that a path inside another is not half replaced.
+  std::sort(r->hidden_paths.begin(), r->hidden_paths.end(),
+            [](const std::string& a, const std::string& b) { return a.size() > b.size(); });
+  r->log = std::move(log);
+  CurrentRedaction() = std::move(r);
+}
 
 grpc::StatusCode ToGrpcCode(absl::StatusCode code) {
   switch (code) {
@@ -29,7 +66,25 @@ grpc::StatusCode ToGrpcCode(absl::StatusCode code) {
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
-  return grpc::Status(ToGrpcCode(status.code()), std::string(status.message()));
+  const grpc::StatusCode code = ToGrpcCode(status.code());
+  std::string message(status.message());
+  const std::shared_ptr<const Redaction> r = CurrentRedaction();
+  if (!r) return grpc::Status(code, message);
+  const bool internal = code == grpc::StatusCode::INTERNAL || code == grpc::StatusCode::UNKNOWN ||
+                        absl::StrContains(message, "catalog statement") ||
+                        absl::StrContains(message, "cannot prepare");
+  if (internal) {
+    const uint64_t ref = error_reference.fetch_add(1) + 1;
+    if (r->log) {
+      r->log(absl::StrCat("error reference E", ref, ": ", GrpcCodeName(code), ": ", message));
+    }
+    return grpc::Status(code, absl::StrCat("the server failed on this request (reference E", ref,
+                                           " in its log)"));
+  }
+  for (const std::string& path : r->hidden_paths) {
+    message = absl::StrReplaceAll(message, {{path, "<data-dir>"}});
+  }
+  return grpc::Status(code, message);
 }
 
 const char* GrpcCodeName(grpc::StatusCode code) {

@@ -32,8 +32,30 @@ double SecondsSince(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
-grpc::Status Unavailable() {
-  return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is shutting down; retry later");
+/// Client text as it may appear in a log line: printable ASCII, with quotes, backslashes,
+/// control and non-ASCII bytes escaped (no forged lines), and at most `max` bytes of it.
+std::string Printable(absl::string_view text, size_t max = 160) {
+  std::string out;
+  for (size_t i = 0; i < text.size() && i < max; ++i) {
+    const unsigned char c = static_cast<unsigned char>(text[i]);
+    if (c == '"' || c == '\\') {
+      out += '\\';
+      out += static_cast<char>(c);
+    } else if (c < 0x20 || c >= 0x7f) {
+      absl::StrAppendFormat(&out, "\\x%02x", c);
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  if (text.size() > max) absl::StrAppend(&out, "...(", text.size() - max, " more bytes)");
+  return out;
+}
+
+/// The peer's address without its port ("ipv4:127.0.0.1:5312" -> "ipv4:127.0.0.1").
+std::string PeerHost(const std::string& peer) {
+  if (peer.rfind("ipv4:", 0) != 0 && peer.rfind("ipv6:", 0) != 0) return peer;
+  const size_t colon = peer.rfind(':');
+  return colon == std::string::npos || colon < 5 ? peer : peer.substr(0, colon);
 }
 
 /// DEADLINE_EXCEEDED or CANCELLED if the client gave up before the work starts.
@@ -58,6 +80,11 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       Finish(denied);
       return;
     }
+    if (absl::Status busy = service_->AcquireSlot(context, &client_); !busy.ok()) {
+      Finish(ToGrpcStatus(busy));
+      return;
+    }
+    has_slot_ = true;
     StartRead(&request_);
   }
 
@@ -74,7 +101,11 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
     StartRead(&request_);
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    service_->HoldIngestBytes(-held_bytes_);
+    if (has_slot_) service_->ReleaseSlot(client_);
+    delete this;
+  }
 
  private:
   absl::Status Add() {
@@ -116,6 +147,11 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       return absl::InvalidArgumentError(absl::StrCat(
           "more image bytes than header.image_size_bytes (", expected_, ")"));
     }
+    if (absl::Status s = service_->HoldIngestBytes(int64_t(request_.image_chunk().size()));
+        !s.ok()) {
+      return s;
+    }
+    held_bytes_ += int64_t(request_.image_chunk().size());
     input_.image.append(request_.image_chunk());
     return absl::OkStatus();
   }
@@ -134,7 +170,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
           "the stream ended after ", input_.image.size(), " of ", expected_, " image bytes"))));
       return;
     }
-    if (!service_->pool()->Submit([this] { Run(); })) Finish(Unavailable());
+    if (absl::Status s = service_->pool()->Submit([this] { Run(); }); !s.ok()) {
+      Finish(ToGrpcStatus(s));
+    }
   }
 
   void Run() {
@@ -169,6 +207,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   std::string project_;
   bool has_header_ = false;
   int64_t expected_ = 0;
+  int64_t held_bytes_ = 0;  // counted by HoldIngestBytes
+  std::string client_;
+  bool has_slot_ = false;
   Clock::time_point start_;
 };
 
@@ -190,6 +231,11 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       Finish(denied, false);
       return;
     }
+    if (absl::Status busy = service_->AcquireSlot(context, &client_); !busy.ok()) {
+      Finish(ToGrpcStatus(busy), false);
+      return;
+    }
+    has_slot_ = true;
     StartRead(&request_);
   }
 
@@ -208,6 +254,10 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       }
     }
     absl::Status status = assembler_.Add(request_);
+    if (status.ok()) {
+      status = service_->HoldIngestBytes(assembler_.received_bytes() - held_bytes_);
+      if (status.ok()) held_bytes_ = assembler_.received_bytes();
+    }
     if (!status.ok()) {
       Fail(status);
       return;
@@ -233,7 +283,11 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     StartRead(&request_);
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    service_->HoldIngestBytes(-held_bytes_);
+    if (has_slot_) service_->ReleaseSlot(client_);
+    delete this;
+  }
 
  private:
   void EndOfStream() {
@@ -247,8 +301,8 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       return;
     }
     auto input = std::make_shared<ScanInput>(std::move(*scan));
-    const bool queued = service_->pool()->Submit([this, input] { Run(*input); });
-    if (!queued) Finish(Unavailable(), true);
+    absl::Status queued = service_->pool()->Submit([this, input] { Run(*input); });
+    if (!queued.ok()) Finish(ToGrpcStatus(queued), true);
   }
 
   void Run(const ScanInput& scan) {
@@ -308,6 +362,9 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
   v1::IngestScanRequest request_;
   Clock::time_point start_;
   int reads_since_progress_ = 0;
+  int64_t held_bytes_ = 0;  // counted by HoldIngestBytes
+  std::string client_;
+  bool has_slot_ = false;
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -331,7 +388,10 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
     WriteNext();
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    if (has_slot_) service_->ReleaseSlot(client_);
+    delete this;
+  }
 
  protected:
   /// Checks the caller's read role, then queues Run on the pool (call last in the derived
@@ -341,8 +401,13 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
         !denied.ok()) {
       return Done(denied);
     }
-    const bool queued = service_->pool()->Submit([this] { Run(); });
-    if (!queued) Done(Unavailable());
+    if (absl::Status busy = service_->AcquireSlot(context_, &client_); !busy.ok()) {
+      return Done(ToGrpcStatus(busy));
+    }
+    has_slot_ = true;
+    if (absl::Status s = service_->pool()->Submit([this] { Run(); }); !s.ok()) {
+      Done(ToGrpcStatus(s));
+    }
   }
   /// Fills `first_` and `payloads_` (tag, bytes), or returns an error.
   virtual grpc::Status Prepare() = 0;
@@ -389,6 +454,8 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   Response chunk_;
   size_t index_ = 0;
   size_t offset_ = 0;
+  std::string client_;
+  bool has_slot_ = false;
 };
 
 // Render: renders and encodes, then streams the metadata and each format's bytes.
@@ -530,18 +597,72 @@ void VaslServiceImpl::LogRequest(const char* method, const std::string& project,
                                  const grpc::Status& status, Clock::time_point start) const {
   const double ms = 1e3 * SecondsSince(start);
   std::string line = absl::StrFormat("%s project=%s code=%s ms=%.1f", method,
-                                     project.empty() ? "-" : project,
+                                     project.empty() ? "-" : Printable(project),
                                      GrpcCodeName(status.error_code()), ms);
-  if (!status.ok()) absl::StrAppend(&line, " message=\"", status.error_message(), "\"");
+  if (!status.ok()) {
+    absl::StrAppend(&line, " message=\"", Printable(status.error_message(), 400), "\"");
+  }
   options_.log(line);
 }
 
 void VaslServiceImpl::UpdateProgress(const std::string& project,
                                      const std::function<void(v1::IngestProgress&)>& update) {
+  constexpr size_t kMaxBoard = 1024;  // projects whose last change is remembered
   std::lock_guard<std::mutex> lock(progress_mutex_);
-  v1::IngestProgress& p = progress_[project];
-  update(p);
-  p.set_project(project);
+  auto [it, added] = progress_.try_emplace(project);
+  if (added) {
+    progress_order_.push_back(project);
+    // Forget the oldest finished entries beyond the bound (a running one is kept).
+    for (size_t n = progress_order_.size(); progress_.size() > kMaxBoard && n > 0; --n) {
+      const std::string oldest = progress_order_.front();
+      progress_order_.pop_front();
+      auto old = progress_.find(oldest);
+      const auto state = old->second.state();
+      if (oldest != project && state != v1::IngestProgress::STATE_RECEIVING &&
+          state != v1::IngestProgress::STATE_PROCESSING) {
+        progress_.erase(old);
+      } else {
+        progress_order_.push_back(oldest);
+      }
+    }
+  }
+  update(it->second);
+  it->second.set_project(project);
+}
+
+absl::Status VaslServiceImpl::AcquireSlot(const grpc::CallbackServerContext* context,
+                                          std::string* client) {
+  *client = PeerHost(context->peer());
+  if (options_.max_calls_per_client <= 0) return absl::OkStatus();
+  std::lock_guard<std::mutex> lock(slots_mutex_);
+  int& used = slots_[*client];
+  if (used >= options_.max_calls_per_client) {
+    if (used == 0) slots_.erase(*client);
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "this client already has ", options_.max_calls_per_client,
+        " calls running (limit --max-calls-per-client); wait for one to finish"));
+  }
+  ++used;
+  return absl::OkStatus();
+}
+
+void VaslServiceImpl::ReleaseSlot(const std::string& client) {
+  if (options_.max_calls_per_client <= 0) return;
+  std::lock_guard<std::mutex> lock(slots_mutex_);
+  auto it = slots_.find(client);
+  if (it != slots_.end() && --it->second <= 0) slots_.erase(it);
+}
+
+absl::Status VaslServiceImpl::HoldIngestBytes(int64_t delta) {
+  const int64_t limit = options_.max_inflight_ingest_bytes;
+  const int64_t now = inflight_ingest_bytes_.fetch_add(delta) + delta;
+  if (delta > 0 && limit > 0 && now > limit) {
+    inflight_ingest_bytes_.fetch_sub(delta);
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "the server already holds ", now - delta, " bytes of incoming scans (limit "
+        "--max-inflight-ingest-bytes=", limit, "); retry when other uploads have finished"));
+  }
+  return absl::OkStatus();
 }
 
 v1::IngestProgress VaslServiceImpl::GetProgress(const std::string& project) {
@@ -572,8 +693,9 @@ ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::stri
     });
     if (step.stage != state->last_stage) {
       state->last_stage = step.stage;
-      options_.log(absl::StrFormat("%s progress project=%s %s stage=%s fraction=%.2f elapsed_s=%.1f",
-                                   method, project, what, step.stage, step.fraction, elapsed));
+      options_.log(absl::StrFormat(
+          "%s progress project=%s %s stage=%s fraction=%.2f elapsed_s=%.1f", method,
+          Printable(project), Printable(what), step.stage, step.fraction, elapsed));
     }
   };
 }
@@ -612,10 +734,14 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
   if (grpc::Status denied = Authorize(context, project, need, method); !denied.ok()) {
     return Deny(context, method, project, denied);
   }
+  std::string client;
+  if (absl::Status busy = AcquireSlot(context, &client); !busy.ok()) {
+    return Deny(context, method, project, ToGrpcStatus(busy));
+  }
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const Clock::time_point start = Clock::now();
-  const bool queued = pool_->Submit([this, context, reactor, method, project, start,
-                                     body = std::move(body)] {
+  const absl::Status queued = pool_->Submit([this, context, reactor, method, project, start,
+                                             client, body = std::move(body)] {
     grpc::Status status;
     try {
       if (!ClientGone(context, &status)) status = body();
@@ -626,11 +752,13 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
       status = grpc::Status(grpc::StatusCode::INTERNAL, "unexpected error in the server");
     }
     LogRequest(method, project, status, start);
+    ReleaseSlot(client);
     reactor->Finish(status);
   });
-  if (!queued) {
-    LogRequest(method, project, Unavailable(), start);
-    reactor->Finish(Unavailable());
+  if (!queued.ok()) {
+    LogRequest(method, project, ToGrpcStatus(queued), start);
+    ReleaseSlot(client);
+    reactor->Finish(ToGrpcStatus(queued));
   }
   return reactor;
 }

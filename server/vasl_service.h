@@ -10,7 +10,9 @@
 /// @warning Thread-safe. The Engine and WorkerPool must outlive the service.
 #pragma once
 
+#include <atomic>
 #include <chrono>
+#include <deque>
 #include <filesystem>
 #include <functional>
 #include <map>
@@ -38,6 +40,11 @@ struct ServiceOptions {
   std::filesystem::path staging_dir;
   /// Who may call what (server/access.h); null: access control off.
   AccessControl* access = nullptr;
+  /// Calls one client (one peer address) may have running at once; 0: no bound.
+  int max_calls_per_client = 0;
+  /// Bytes of incoming scans and images all ingest and back-projection streams may hold at
+  /// once (received, not yet committed); 0: no bound.
+  int64_t max_inflight_ingest_bytes = 0;
 };
 
 class VaslServiceImpl final : public v1::VaslService::CallbackService {
@@ -136,6 +143,14 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// Authenticate, then require `need` on `project` (Role::kNone: authentication only).
   grpc::Status Authorize(const grpc::CallbackServerContext* context, const std::string& project,
                          Role need, const char* method) const;
+  /// Takes one of the caller's concurrent-call slots (ServiceOptions::max_calls_per_client);
+  /// RESOURCE_EXHAUSTED naming the limit when it has none left. Release with ReleaseSlot.
+  absl::Status AcquireSlot(const grpc::CallbackServerContext* context, std::string* client);
+  void ReleaseSlot(const std::string& client);
+  /// Counts `delta` bytes more (or fewer) held by incoming streams; RESOURCE_EXHAUSTED naming
+  /// the limit when more would exceed ServiceOptions::max_inflight_ingest_bytes (then nothing
+  /// is counted).
+  absl::Status HoldIngestBytes(int64_t delta);
   /// Updates the progress board of `project` (thread-safe).
   void UpdateProgress(const std::string& project,
                       const std::function<void(v1::IngestProgress&)>& update);
@@ -162,6 +177,10 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   AccessControl* access_ = nullptr;
   std::mutex progress_mutex_;
   std::map<std::string, v1::IngestProgress> progress_;
+  std::deque<std::string> progress_order_;  // oldest first, for the board's bound
+  std::mutex slots_mutex_;
+  std::map<std::string, int> slots_;  // running calls per peer address
+  std::atomic<int64_t> inflight_ingest_bytes_{0};
 };
 
 }  // namespace vasl::server

@@ -6,9 +6,11 @@
 #include <cstdio>
 #include <exception>
 
+#include "absl/strings/str_cat.h"
+
 namespace vasl::server {
 
-WorkerPool::WorkerPool(int threads) {
+WorkerPool::WorkerPool(int threads, size_t max_queued) : max_queued_(max_queued) {
   threads = std::max(1, threads);
   threads_.reserve(threads);
   for (int i = 0; i < threads; ++i) threads_.emplace_back([this] { Loop(); });
@@ -16,14 +18,20 @@ WorkerPool::WorkerPool(int threads) {
 
 WorkerPool::~WorkerPool() { Stop(); }
 
-bool WorkerPool::Submit(std::function<void()> task) {
+absl::Status WorkerPool::Submit(std::function<void()> task) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (stopping_) return false;
+    if (stopping_) return absl::UnavailableError("the server is shutting down; retry later");
+    if (max_queued_ > 0 && tasks_.size() >= max_queued_) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat("the server is busy: ", tasks_.size(),
+                       " calls already wait for a worker (limit --max-queued-calls=", max_queued_,
+                       "); retry later"));
+    }
     tasks_.push_back(std::move(task));
   }
   cv_.notify_one();
-  return true;
+  return absl::OkStatus();
 }
 
 void WorkerPool::Stop() {

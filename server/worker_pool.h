@@ -11,19 +11,22 @@
 #include <thread>
 #include <vector>
 
+#include "absl/status/status.h"
+
 namespace vasl::server {
 
 class WorkerPool {
  public:
-  /// Starts `threads` workers (at least 1).
-  explicit WorkerPool(int threads);
+  /// Starts `threads` workers (at least 1); at most `max_queued` tasks wait (0: no bound).
+  explicit WorkerPool(int threads, size_t max_queued = 0);
   /// Stops (draining queued tasks) and joins.
   ~WorkerPool();
   WorkerPool(const WorkerPool&) = delete;
   WorkerPool& operator=(const WorkerPool&) = delete;
 
-  /// Queues `task`; returns false (and does not run it) after Stop.
-  bool Submit(std::function<void()> task);
+  /// Queues `task`. Does not run it and says why: RESOURCE_EXHAUSTED when `max_queued` tasks
+  /// already wait, UNAVAILABLE after Stop.
+  absl::Status Submit(std::function<void()> task);
   /// Runs every queued task, then joins the workers. Idempotent.
   void Stop();
   int size() const { return static_cast<int>(threads_.size()); }
@@ -35,6 +38,7 @@ class WorkerPool {
   std::condition_variable cv_;
   std::deque<std::function<void()>> tasks_;
   bool stopping_ = false;
+  size_t max_queued_ = 0;
   std::vector<std::thread> threads_;
 };
 

@@ -16,13 +16,27 @@ absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what) {
   return absl::OkStatus();
 }
 
+absl::Status ValidateText(const std::string& what, const std::string& text, size_t max_bytes,
+                          bool may_be_empty) {
+  if ((text.empty() && !may_be_empty) || text.size() > max_bytes) {
+    return absl::InvalidArgumentError(absl::StrCat(what, " must have ", may_be_empty ? 0 : 1,
+                                                   "-", max_bytes, " bytes, got ", text.size()));
+  }
+  for (unsigned char c : text) {
+    if (c < 0x20 || c == 0x7f) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(what, " has a control character (byte ", int(c), "); use printable text"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits) {
   const auto bad = [&scan](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("scan '", scan.scan_name, "': ", what));
   };
-  if (scan.scan_name.empty() || scan.scan_name.size() > 128) {
-    return absl::InvalidArgumentError("scan id must be 1-128 characters");
-  }
+  if (absl::Status s = ValidateText("the scan id", scan.scan_name, 128); !s.ok()) return s;
+  if (absl::Status s = ValidateText("the rig name", scan.rig, 128, true); !s.ok()) return s;
   if (absl::Status s = ValidatePose(scan.pose, "scan '" + scan.scan_name + "'"); !s.ok()) return s;
   const LidarData& lidar = scan.lidar;
   if (lidar.xyz_sensor_m.size() % 3 != 0) return bad("LiDAR xyz array length is not a multiple of 3");
@@ -60,6 +74,7 @@ absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, con
   std::set<std::string> names;
   std::vector<LinearImage> images;
   for (const PanoramaData& pano : scan.panoramas) {
+    if (absl::Status s = ValidateText("a panorama name", pano.name, 128); !s.ok()) return s;
     const std::string what = absl::StrCat("panorama '", pano.name, "'");
     if (pano.name.empty() || !names.insert(pano.name).second) {
       return bad("panorama names must be non-empty and unique within the scan");

@@ -30,6 +30,12 @@ absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what);
 /// modalities, sizes, 2:1 equirect images) and decodes its panoramas, which it returns in
 /// order. INVALID_ARGUMENT for bad input, RESOURCE_EXHAUSTED above `limits`, each message
 /// naming the scan and the field.
+/// OK when `text` (a name or label a client chose) has 1..max_bytes bytes (0..max_bytes with
+/// `may_be_empty`) and no control character (so that it cannot forge a log line or a listing);
+/// INVALID_ARGUMENT naming `what` otherwise.
+absl::Status ValidateText(const std::string& what, const std::string& text, size_t max_bytes,
+                          bool may_be_empty = false);
+
 absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits);
 
 }  // namespace vasl::ingest

@@ -40,19 +40,6 @@ constexpr char kBlobsDir[] = "blobs";
 constexpr char kObjectsDir[] = "objects";
 constexpr char kTmpPrefix[] = ".tmp-";
 
-absl::Status ValidateProjectName(const std::string& name) {
-  bool ok = !name.empty() && name.size() <= 63 && absl::ascii_isalnum(name[0]);
-  for (char c : name) {
-    ok = ok && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' || c == '_' ||
-                c == '-');
-  }
-  if (!ok) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "invalid project name \"", name,
-        "\": use 1-63 characters of [a-z0-9._-], starting with a letter or digit"));
-  }
-  return absl::OkStatus();
-}
 
 /// Parses a non-negative version number written as decimal digits (HEAD, versions/<n>).
 std::optional<int64_t> ParseVersion(std::string_view raw) {
@@ -109,6 +96,20 @@ struct WrittenTile {
 };
 
 }  // namespace
+
+absl::Status ValidateProjectName(const std::string& name) {
+  bool ok = !name.empty() && name.size() <= 63 && absl::ascii_isalnum(name[0]);
+  for (char c : name) {
+    ok = ok && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' || c == '_' ||
+                c == '-');
+  }
+  if (!ok) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "invalid project name \"", name,
+        "\": use 1-63 characters of [a-z0-9._-], starting with a letter or digit"));
+  }
+  return absl::OkStatus();
+}
 
 struct ProjectStore::Impl {
   fs::path dir;

@@ -37,6 +37,10 @@
 
 namespace vasl::store {
 
+/// OK for a valid project name: 1-63 characters of [a-z0-9._-], starting with a letter or
+/// digit (so never "." or ".."); INVALID_ARGUMENT saying so otherwise.
+absl::Status ValidateProjectName(const std::string& name);
+
 /// Settings fixed when a project is created.
 struct ProjectSettings {
   double vossel_size_m = 0.02;  ///< vossel edge h, metres (§1)

@@ -43,6 +43,9 @@ def _cmd_project(client: Client, args) -> int:
         return 0
     print(f"{'NAME':<24} {'VOSSEL_M':>8} {'VERSION':>7} {'SCANS':>5} {'VOSSELS':>10} {'RECORDS':>11}")
     for p in projects:
+        if p.problem:
+            print(f"{p.name:<24} DAMAGED: {p.problem}")
+            continue
         print(f"{p.name:<24} {p.vossel_size_m:>8g} {p.head_version:>7} {p.scan_count:>5} "
               f"{p.vossel_count:>10} {p.record_count:>11}")
     return 0

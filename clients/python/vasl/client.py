@@ -95,7 +95,7 @@ def _timestamp(iso: str, what: str):
 
 def _project(p: pb.Project) -> Project:
     return Project(p.name, p.description, p.vossel_size_m, p.head_version, p.scan_count,
-                   p.vossel_count, p.record_count, _iso(p, "create_time"))
+                   p.vossel_count, p.record_count, _iso(p, "create_time"), p.problem)
 
 
 _PROFILE_NUMBERS = ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad",

@@ -73,6 +73,8 @@ class Project:
     vossel_count: int
     record_count: int
     created_utc: str
+    #: Set when the server cannot open the project (damaged): what is wrong with it.
+    problem: str = ""
 
 
 @dataclass
