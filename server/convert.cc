@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "google/protobuf/util/time_util.h"
 #include "lattice/ingest/validate.h"
+#include "server/status_util.h"
 
 namespace vasl::server {
 
@@ -96,7 +97,7 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
   out->set_vossel_count(info.vossel_count);
   out->set_record_count(info.record_count);
   TimestampFromIso(info.created_utc, out->mutable_create_time());
-  out->set_problem(info.problem);
+  out->set_problem(RedactPaths(info.problem));
 }
 
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {

@@ -81,10 +81,16 @@ grpc::Status ToGrpcStatus(const absl::Status& status) {
     return grpc::Status(code, absl::StrCat("the server failed on this request (reference E", ref,
                                            " in its log)"));
   }
+  return grpc::Status(code, RedactPaths(std::move(message)));
+}
+
+std::string RedactPaths(std::string text) {
+  const std::shared_ptr<const Redaction> r = CurrentRedaction();
+  if (!r) return text;
   for (const std::string& path : r->hidden_paths) {
-    message = absl::StrReplaceAll(message, {{path, "<data-dir>"}});
+    text = absl::StrReplaceAll(text, {{path, "<data-dir>"}});
   }
-  return grpc::Status(code, message);
+  return text;
 }
 
 const char* GrpcCodeName(grpc::StatusCode code) {

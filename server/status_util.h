@@ -23,6 +23,8 @@ namespace vasl::server {
 grpc::StatusCode ToGrpcCode(absl::StatusCode code);
 /// absl::Status -> grpc::Status with the same message (redacted, see RedactStatuses).
 grpc::Status ToGrpcStatus(const absl::Status& status);
+/// `text` with the hidden paths replaced (for messages sent as data, e.g. Project.problem).
+std::string RedactPaths(std::string text);
 /// Server-wide, once at start-up: paths to hide from clients (each shown as `<data-dir>`), and
 /// where the full text of an internal error goes. Until called, messages pass unchanged.
 void RedactStatuses(std::vector<std::string> hidden_paths,

@@ -236,3 +236,24 @@ def test_server_still_serves_after_every_case(server, client, before):
     r = client.render(P, [2.0, 2.0, 1.5], 64, 32, formats=("exr",))
     assert r.hit_pixels > 0
     assert _project_state(server.data_dir) == before
+
+
+def test_a_damaged_project_is_reported_and_the_others_listed(server, client, ingested):
+    broken = os.path.join(server.data_dir, "broken-site")
+    os.makedirs(broken)
+    try:
+        with open(os.path.join(broken, "catalog.sqlite"), "wb") as f:
+            f.write(b"this is not an SQLite database" * 100)
+        projects = {p.name: p for p in client.list_projects()}
+        print(f"\nListProjects with a damaged project: {sorted(projects)}; broken-site: "
+              f"{projects['broken-site'].problem}")
+        assert projects["broken-site"].problem, "the damaged project is not reported as such"
+        assert E2E_PROJECT in projects and not projects[E2E_PROJECT].problem
+        assert projects[E2E_PROJECT].scan_count == len(ingested)
+        assert server.data_dir not in projects["broken-site"].problem
+        with pytest.raises(grpc.RpcError) as e:
+            client.stub.GetProject(pb.GetProjectRequest(project="broken-site"), timeout=30)
+        assert server.data_dir not in (e.value.details() or "")
+    finally:
+        import shutil
+        shutil.rmtree(broken)
