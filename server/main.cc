@@ -172,6 +172,16 @@ int main(int argc, char** argv) {
     vasl::server::RedactStatuses(std::move(hidden), StderrLogSink);
   }
 
+  {
+    // Export staging files of an earlier vasld that was killed mid-export (ExportStagingPath).
+    std::error_code ec;
+    for (const auto& entry : std::filesystem::directory_iterator(options.data_dir, ec)) {
+      if (entry.path().filename().string().rfind(".tmp-export-", 0) == 0) {
+        std::filesystem::remove(entry.path(), ec);
+      }
+    }
+  }
+
   int workers = options.workers;
   if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
   vasl::server::WorkerPool pool(workers, static_cast<size_t>(options.max_queued_calls));

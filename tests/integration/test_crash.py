@@ -7,47 +7,20 @@ from __future__ import annotations
 import os
 import random
 import signal
-import sqlite3
-import subprocess
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from conftest import VASLD, VOSSEL_M, _require, _wait_serving, manifests
+from conftest import VASLD, VOSSEL_M, _require, manifests
+from crash_util import referenced as _referenced, start_vasld
 
 PROJECT = "crash"
 
 
 def _start(base: str, data_dir: str, n: int):
-    port_file = os.path.join(base, f"port-{n}")
-    log_path = os.path.join(base, f"vasld-{n}.log")
-    log = open(log_path, "w")
-    proc = subprocess.Popen([_require(VASLD), "--address", "127.0.0.1:0", "--data-dir", data_dir,
-                             "--port-file", port_file], stdout=log, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 60
-    while not os.path.exists(port_file) and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    with open(port_file) as f:
-        address = f"127.0.0.1:{int(f.read().strip())}"
-    _wait_serving(address, proc, log_path)
-    return proc, address, log
-
-
-def _referenced(project_dir: str):
-    """Objects and blobs the kept versions of the catalog reference (read-only)."""
-    db = sqlite3.connect(f"file:{os.path.join(project_dir, 'catalog.sqlite')}?mode=ro", uri=True)
-    try:
-        objects = {r[0] for r in db.execute(
-            "SELECT object FROM manifest UNION SELECT object FROM reach")}
-        blobs = {r[0] for r in db.execute(
-            "SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scans sc ON src.scan_id = sc.id "
-            "WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 AND sc.version <= v.version "
-            "AND (sc.deleted_in IS NULL OR sc.deleted_in > v.version))")}
-    finally:
-        db.close()
-    return objects, blobs
+    return start_vasld(_require(VASLD), base, data_dir, n)
 
 
 def test_kill_during_ingests_loses_nothing_committed(scene_dir, tmp_path):
