@@ -9,30 +9,8 @@ import sqlite3
 import subprocess
 import time
 
-import grpc
 import pytest
-
-
-def _wait_serving(address: str, proc: subprocess.Popen, log_path: str, timeout_s: float = 60.0):
-    from grpc_health.v1 import health_pb2, health_pb2_grpc
-
-    deadline = time.monotonic() + timeout_s
-    with grpc.insecure_channel(address) as channel:
-        stub = health_pb2_grpc.HealthStub(channel)
-        while time.monotonic() < deadline:
-            if proc.poll() is not None:
-                break
-            try:
-                r = stub.Check(health_pb2.HealthCheckRequest(service=""), timeout=2)
-                if r.status == health_pb2.HealthCheckResponse.SERVING:
-                    return
-            except grpc.RpcError:
-                pass
-            time.sleep(0.2)
-    with open(log_path, errors="replace") as f:
-        log = f.read()
-    pytest.fail(f"vasld at {address} did not become SERVING (exit {proc.poll()}):\n{log}",
-                pytrace=False)
+from conftest import _wait_serving  # tests/integration's, or the soak's re-export of it
 
 
 def start_vasld(vasld: str, base: str, data_dir: str, n: int, extra_args=()):
