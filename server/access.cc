@@ -13,6 +13,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/strip.h"
 #include "absl/strings/str_cat.h"
+#include "lattice/ingest/validate.h"
 
 namespace vasl::server {
 namespace {
@@ -223,11 +224,8 @@ absl::StatusOr<std::pair<TokenInfo, std::string>> AccessControl::Create(
   if (role != Role::kRead && role != Role::kWrite && role != Role::kAdmin) {
     return absl::InvalidArgumentError("role must be read, write or admin");
   }
-  if (label.size() > kMaxLabel) {
-    return absl::InvalidArgumentError(absl::StrCat("label is longer than ", kMaxLabel, " bytes"));
-  }
-  for (unsigned char c : label) {
-    if (c < 0x20 || c == 0x7f) return absl::InvalidArgumentError("label has a control character");
+  if (absl::Status s = ingest::ValidateText("the label", label, kMaxLabel, true); !s.ok()) {
+    return s;
   }
   absl::StatusOr<std::string> id = RandomHex(kIdHex / 2);
   absl::StatusOr<std::string> secret = RandomHex(kSecretBytes);

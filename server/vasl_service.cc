@@ -75,11 +75,12 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   BackProjectReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
                      v1::BackProjectResponse* response)
       : service_(service), context_(context), response_(response), start_(Clock::now()) {
-    if (grpc::Status denied = service_->Authorize(context, "", Role::kNone, "BackProject");
-        !denied.ok()) {
-      Finish(denied);
+    absl::StatusOr<Caller> caller = service_->Authorize(context, "", Role::kNone, "BackProject");
+    if (!caller.ok()) {
+      Finish(ToGrpcStatus(caller.status()));
       return;
     }
+    caller_ = std::move(*caller);
     if (absl::Status busy = service_->AcquireSlot(context, &client_); !busy.ok()) {
       Finish(ToGrpcStatus(busy));
       return;
@@ -114,11 +115,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       const v1::BackProjectHeader& h = request_.header();
       has_header_ = true;
       project_ = h.project();
-      if (grpc::Status denied =
-              service_->Authorize(context_, project_, Role::kWrite, "BackProject");
-          !denied.ok()) {
-        return absl::Status(static_cast<absl::StatusCode>(denied.error_code()),
-                            denied.error_message());
+      if (absl::Status s = AccessControl::Require(caller_, project_, Role::kWrite, "BackProject");
+          !s.ok()) {
+        return s;
       }
       if (!h.has_pose()) return absl::InvalidArgumentError("header.pose is required");
       absl::StatusOr<geometry::Pose> pose = PoseFromProto(h.pose(), "header.pose");
@@ -208,6 +207,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   bool has_header_ = false;
   int64_t expected_ = 0;
   int64_t held_bytes_ = 0;  // counted by HoldIngestBytes
+  Caller caller_;           // authenticated when the stream opened
   std::string client_;
   bool has_slot_ = false;
   Clock::time_point start_;
@@ -226,11 +226,12 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
         assembler_(service->engine()->limits()),
         start_(Clock::now()) {
     // Who calls is known before any byte of the scan: a stranger's stream is refused at once.
-    if (grpc::Status denied = service_->Authorize(context, "", Role::kNone, "IngestScan");
-        !denied.ok()) {
-      Finish(denied, false);
+    absl::StatusOr<Caller> caller = service_->Authorize(context, "", Role::kNone, "IngestScan");
+    if (!caller.ok()) {
+      Finish(ToGrpcStatus(caller.status()), false);
       return;
     }
+    caller_ = std::move(*caller);
     if (absl::Status busy = service_->AcquireSlot(context, &client_); !busy.ok()) {
       Finish(ToGrpcStatus(busy), false);
       return;
@@ -246,10 +247,10 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     }
     const bool was_header = !assembler_.has_header();
     if (was_header && request_.has_header()) {
-      if (grpc::Status denied = service_->Authorize(context_, request_.header().project(),
-                                                    Role::kWrite, "IngestScan");
+      if (absl::Status denied = AccessControl::Require(caller_, request_.header().project(),
+                                                       Role::kWrite, "IngestScan");
           !denied.ok()) {
-        Finish(denied, false);
+        Finish(ToGrpcStatus(denied), false);
         return;
       }
     }
@@ -363,6 +364,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
   Clock::time_point start_;
   int reads_since_progress_ = 0;
   int64_t held_bytes_ = 0;  // counted by HoldIngestBytes
+  Caller caller_;           // authenticated when the stream opened
   std::string client_;
   bool has_slot_ = false;
 };
@@ -397,9 +399,10 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   /// Checks the caller's read role, then queues Run on the pool (call last in the derived
   /// constructor).
   void Start() {
-    if (grpc::Status denied = service_->Authorize(context_, project_, Role::kRead, method_);
-        !denied.ok()) {
-      return Done(denied);
+    if (absl::StatusOr<Caller> caller =
+            service_->Authorize(context_, project_, Role::kRead, method_);
+        !caller.ok()) {
+      return Done(ToGrpcStatus(caller.status()));
     }
     if (absl::Status busy = service_->AcquireSlot(context_, &client_); !busy.ok()) {
       return Done(ToGrpcStatus(busy));
@@ -709,13 +712,13 @@ absl::StatusOr<Caller> VaslServiceImpl::Authenticate(
   return access_->Authenticate(header);
 }
 
-grpc::Status VaslServiceImpl::Authorize(const grpc::CallbackServerContext* context,
-                                        const std::string& project, Role need,
-                                        const char* method) const {
+absl::StatusOr<Caller> VaslServiceImpl::Authorize(const grpc::CallbackServerContext* context,
+                                                  const std::string& project, Role need,
+                                                  const char* method) const {
   absl::StatusOr<Caller> caller = Authenticate(context);
-  if (!caller.ok()) return ToGrpcStatus(caller.status());
-  if (need == Role::kNone) return grpc::Status::OK;
-  return ToGrpcStatus(AccessControl::Require(*caller, project, need, method));
+  if (!caller.ok() || need == Role::kNone) return caller;
+  if (absl::Status s = AccessControl::Require(*caller, project, need, method); !s.ok()) return s;
+  return caller;
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* context,
@@ -727,13 +730,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* con
   return reactor;
 }
 
-grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext* context,
-                                                    const char* method,
-                                                    const std::string& project, Role need,
-                                                    std::function<grpc::Status()> body) {
-  if (grpc::Status denied = Authorize(context, project, need, method); !denied.ok()) {
-    return Deny(context, method, project, denied);
-  }
+grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(
+    grpc::CallbackServerContext* context, const char* method, const std::string& project,
+    Role need, std::function<grpc::Status(const Caller&)> body) {
+  absl::StatusOr<Caller> caller = Authorize(context, project, need, method);
+  if (!caller.ok()) return Deny(context, method, project, ToGrpcStatus(caller.status()));
   std::string client;
   if (absl::Status busy = AcquireSlot(context, &client); !busy.ok()) {
     return Deny(context, method, project, ToGrpcStatus(busy));
@@ -741,10 +742,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const Clock::time_point start = Clock::now();
   const absl::Status queued = pool_->Submit([this, context, reactor, method, project, start,
-                                             client, body = std::move(body)] {
+                                             client, caller = std::move(*caller),
+                                             body = std::move(body)] {
     grpc::Status status;
     try {
-      if (!ClientGone(context, &status)) status = body();
+      if (!ClientGone(context, &status)) status = body(caller);
     } catch (const std::exception& e) {  // a bug or exhausted memory: answer, do not hang or die
       status = grpc::Status(grpc::StatusCode::INTERNAL,
                             std::string("unexpected error in the server: ") + e.what());
@@ -766,12 +768,14 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(grpc::CallbackServerContext*
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerContext* context,
                                                          const v1::CreateProjectRequest* request,
                                                          v1::Project* response) {
-  if (grpc::Status denied = Authorize(context, kAllProjects, Role::kWrite, "CreateProject");
-      !denied.ok()) {
-    return Deny(context, "CreateProject", request->name(), denied);
-  }
+  // Authorised on every project ("*"), logged under the new project's name.
   return RunUnary(context, "CreateProject", request->name(), Role::kNone,
-                  [this, request, response] {
+                  [this, request, response](const Caller& caller) {
+    if (absl::Status s = AccessControl::Require(caller, kAllProjects, Role::kWrite,
+                                                "CreateProject");
+        !s.ok()) {
+      return ToGrpcStatus(s);
+    }
     absl::StatusOr<store::ProjectSettings> settings = SettingsFromProto(*request);
     if (!settings.ok()) return ToGrpcStatus(settings.status());
     absl::StatusOr<ProjectInfo> info = engine_->CreateProject(request->name(), *settings);
@@ -796,10 +800,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerContext* context,
                                                         const v1::ListProjectsRequest* request,
                                                         v1::ListProjectsResponse* response) {
-  absl::StatusOr<Caller> caller = Authenticate(context);
-  if (!caller.ok()) return Deny(context, "ListProjects", "", ToGrpcStatus(caller.status()));
   return RunUnary(context, "ListProjects", "", Role::kNone,
-                  [this, request, response, caller = *caller] {
+                  [this, request, response](const Caller& caller) {
     absl::StatusOr<std::vector<ProjectInfo>> infos = engine_->ListProjects();
     if (!infos.ok()) return ToGrpcStatus(infos.status());
     // Only the projects the caller may read.
@@ -842,10 +844,10 @@ grpc::ServerReadReactor<v1::IngestScanRequest>* VaslServiceImpl::IngestScan(
 grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
     grpc::CallbackServerContext* context, const v1::GetIngestProgressRequest* request,
     v1::IngestProgress* response) {
-  if (grpc::Status denied = Authorize(context, request->project(), Role::kRead,
-                                     "GetIngestProgress");
-      !denied.ok()) {
-    return Deny(context, "GetIngestProgress", request->project(), denied);
+  if (absl::StatusOr<Caller> caller =
+          Authorize(context, request->project(), Role::kRead, "GetIngestProgress");
+      !caller.ok()) {
+    return Deny(context, "GetIngestProgress", request->project(), ToGrpcStatus(caller.status()));
   }
   v1::IngestProgress known = GetProgress(request->project());
   if (known.state() != v1::IngestProgress::STATE_IDLE) {
@@ -1159,12 +1161,8 @@ void TokenToProto(const TokenInfo& t, v1::AccessToken* out) {
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateToken(grpc::CallbackServerContext* context,
                                                        const v1::CreateTokenRequest* request,
                                                        v1::AccessToken* response) {
-  absl::StatusOr<Caller> caller = Authenticate(context);
-  if (!caller.ok()) {
-    return Deny(context, "CreateToken", request->project(), ToGrpcStatus(caller.status()));
-  }
   return RunUnary(context, "CreateToken", request->project(), Role::kNone,
-                  [this, request, response, caller = *caller] {
+                  [this, request, response](const Caller& caller) {
     if (absl::Status s = AccessControl::Require(caller, request->project(), Role::kAdmin,
                                                 "creating a token");
         !s.ok()) {
@@ -1186,12 +1184,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateToken(grpc::CallbackServerConte
 grpc::ServerUnaryReactor* VaslServiceImpl::ListTokens(grpc::CallbackServerContext* context,
                                                       const v1::ListTokensRequest* request,
                                                       v1::ListTokensResponse* response) {
-  absl::StatusOr<Caller> caller = Authenticate(context);
-  if (!caller.ok()) {
-    return Deny(context, "ListTokens", request->project(), ToGrpcStatus(caller.status()));
-  }
   return RunUnary(context, "ListTokens", request->project(), Role::kNone,
-                  [this, request, response, caller = *caller] {
+                  [this, request, response](const Caller& caller) {
     auto tokens = access_->List(caller, request->project());
     if (!tokens.ok()) return ToGrpcStatus(tokens.status());
     for (const TokenInfo& t : *tokens) TokenToProto(t, response->add_tokens());
@@ -1202,10 +1196,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListTokens(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::RevokeToken(grpc::CallbackServerContext* context,
                                                        const v1::RevokeTokenRequest* request,
                                                        v1::AccessToken* response) {
-  absl::StatusOr<Caller> caller = Authenticate(context);
-  if (!caller.ok()) return Deny(context, "RevokeToken", "", ToGrpcStatus(caller.status()));
   return RunUnary(context, "RevokeToken", "", Role::kNone,
-                  [this, request, response, caller = *caller] {
+                  [this, request, response](const Caller& caller) {
     auto revoked = access_->Revoke(caller, request->id());
     if (!revoked.ok()) return ToGrpcStatus(revoked.status());
     TokenToProto(*revoked, response);

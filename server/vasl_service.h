@@ -140,9 +140,11 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// The caller of `context` (its `authorization` metadata); UNAUTHENTICATED when access
   /// control is on and it carries no valid token.
   absl::StatusOr<Caller> Authenticate(const grpc::CallbackServerContext* context) const;
-  /// Authenticate, then require `need` on `project` (Role::kNone: authentication only).
-  grpc::Status Authorize(const grpc::CallbackServerContext* context, const std::string& project,
-                         Role need, const char* method) const;
+  /// Authenticate, then require `need` on `project` (Role::kNone: authentication only);
+  /// the caller, or UNAUTHENTICATED / PERMISSION_DENIED.
+  absl::StatusOr<Caller> Authorize(const grpc::CallbackServerContext* context,
+                                   const std::string& project, Role need,
+                                   const char* method) const;
   /// Takes one of the caller's concurrent-call slots (ServiceOptions::max_calls_per_client);
   /// RESOURCE_EXHAUSTED naming the limit when it has none left. Release with ReleaseSlot.
   absl::Status AcquireSlot(const grpc::CallbackServerContext* context, std::string* client);
@@ -158,11 +160,18 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
 
  private:
   /// Checks that the caller holds `need` on `project` (Authorize), then runs `body` (which
-  /// fills the response and returns a status) on the pool, then logs and finishes the unary
-  /// reactor.
+  /// fills the response and returns a status) on the pool with the caller, then logs and
+  /// finishes the unary reactor.
   grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
                                      const std::string& project, Role need,
-                                     std::function<grpc::Status()> body);
+                                     std::function<grpc::Status(const Caller&)> body);
+  /// The same, for a body that does not need to know the caller.
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
+                                     const std::string& project, Role need,
+                                     std::function<grpc::Status()> body) {
+    return RunUnary(context, method, project, need,
+                    [body = std::move(body)](const Caller&) { return body(); });
+  }
   /// Logs and finishes a unary call that was refused before any work.
   grpc::ServerUnaryReactor* Deny(grpc::CallbackServerContext* context, const char* method,
                                  const std::string& project, const grpc::Status& status);
