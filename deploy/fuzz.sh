@@ -5,6 +5,8 @@
 # streams from vasl_fuzz_seeds). Prints per target the executions, exec/s, coverage and
 # "no crash"; exits 1 if any target crashed, leaked, timed out or ran out of memory, naming the
 # reproducer (build-fuzz/fuzz/artifacts/TARGET/...), whose log is build-fuzz/fuzz/logs/TARGET.log.
+# Before fuzzing, each target runs once over tests/fuzz/regressions/TARGET: the inputs that
+# crashed it before and were fixed (copy a new reproducer there with its fix).
 #
 #   deploy/fuzz.sh [SECONDS_PER_TARGET]
 #   VASL_FUZZ_TARGETS="fuzz_image_decode" deploy/fuzz.sh 30   # a subset
@@ -105,6 +107,21 @@ failed=0
 for t in "${TARGETS[@]}"; do
   corpus=$WORK/corpus/$t artifacts=$WORK/artifacts/$t log=$WORK/logs/$t.log
   mkdir -p "$corpus" "$artifacts" "$WORK/logs"
+  # Every input that once crashed a harness (tests/fuzz/regressions/TARGET) runs first, once.
+  regressions=tests/fuzz/regressions/$t
+  if [ -d "$regressions" ] && [ -n "$(ls -A "$regressions")" ]; then
+    rc=0
+    "$BUILD/tests/fuzz/$t" -rss_limit_mb=2048 -malloc_limit_mb="$MALLOC_LIMIT_MB" -timeout=10 \
+      "$regressions"/* > "$WORK/logs/$t.regressions.log" 2>&1 || rc=$?
+    if [ "$rc" -ne 0 ]; then
+      failed=1
+      echo "fuzz: $t: FAILED (exit $rc) on a regression input of $regressions:"
+      grep -E "^(==[0-9]+==ERROR|SUMMARY)|Running: " "$WORK/logs/$t.regressions.log" | tail -n 3 \
+        | sed 's/^/fuzz:   /' || true
+      continue
+    fi
+    echo "fuzz: $t: $(ls "$regressions" | wc -l) regression inputs pass"
+  fi
   echo "fuzz: $t for ${SECONDS_PER_TARGET} s (corpus $corpus, log $log)"
   rc=0
   nice -n 10 "$BUILD/tests/fuzz/$t" -max_total_time="$SECONDS_PER_TARGET" -rss_limit_mb=2048 \

@@ -22,8 +22,9 @@ namespace vasl::ingest {
 absl::StatusOr<DerivedImage> DecodeRgbzImage(std::string_view bytes, int64_t max_pixels) {
   using namespace OIIO;
   absl::StatusOr<internal::MemoryImageInput> opened =
-      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/true);
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/true, max_pixels);
   if (!opened.ok()) {
+    if (absl::IsResourceExhausted(opened.status())) return opened.status();
     return absl::InvalidArgumentError(absl::StrCat(
         "the RGBZ image does not decode (an OpenEXR file with channels R, G, B, Z is expected): ",
         opened.status().message()));

@@ -38,12 +38,16 @@ const char* SniffExtension(std::string_view b) {
 
 namespace internal {
 
-absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha) {
+absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha,
+                                                   int64_t max_pixels) {
   using namespace OIIO;
   const char* ext = SniffExtension(bytes);
   if (ext == nullptr) {
     return absl::InvalidArgumentError(
         "image bytes are not PNG, JPEG, EXR or TIFF (unrecognised signature)");
+  }
+  if (std::string_view(ext) == ".exr") {
+    if (absl::Status header = CheckExrHeaders(bytes, max_pixels); !header.ok()) return header;
   }
   // OpenImageIO reads these formats from memory through an IOProxy.
   MemoryImageInput out;
@@ -67,7 +71,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
                                         int64_t max_pixels) {
   using namespace OIIO;
   absl::StatusOr<internal::MemoryImageInput> opened =
-      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/false);
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/false, max_pixels);
   if (!opened.ok()) return opened.status();
   ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();

@@ -3,6 +3,7 @@
 ///        format picked from the bytes' signature (DecodeImage, DecodeRgbzImage).
 #pragma once
 
+#include <cstdint>
 #include <memory>
 #include <string_view>
 
@@ -21,7 +22,18 @@ struct MemoryImageInput {
 
 /// Opens PNG, JPEG, EXR or TIFF bytes. With `unassociated_alpha` colour is read as stored,
 /// not premultiplied by an alpha channel. INVALID_ARGUMENT for an unrecognised signature or
-/// bytes that do not open.
-absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha);
+/// bytes that do not open; EXR headers pass CheckExrHeaders first.
+absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha,
+                                                   int64_t max_pixels);
+
+/// Walks every header of OpenEXR `bytes` (magic number already matched) before OpenEXR parses
+/// them, reading each attribute as OpenEXR 3.1 will: each must consume exactly the size it
+/// declares (OpenEXR allocates an unknown type's claimed size, and reads a channel list up to
+/// its empty name whatever the size says), the data window must be non-empty and within
+/// `max_pixels` (RESOURCE_EXHAUSTED), tiles no larger than the image, and the chunk offsets the
+/// headers imply (every part, every MIP/RIP level) must fit in the bytes that follow. Every
+/// allocation a header can cause is then bounded by the bytes sent. INVALID_ARGUMENT names the
+/// first fault.
+absl::Status CheckExrHeaders(std::string_view bytes, int64_t max_pixels);
 
 }  // namespace vasl::ingest::internal

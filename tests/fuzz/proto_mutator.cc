@@ -60,7 +60,8 @@ int64_t MutateInt(int64_t value, std::minstd_rand& rng) {
       std::numeric_limits<int64_t>::min(), std::numeric_limits<int64_t>::max() / 16,
       std::numeric_limits<int64_t>::max() / 28 + 1};
   switch (rng() % 6) {
-    case 0: return value + static_cast<int64_t>(rng() % 33) - 16;
+    case 0:  // a small step, wrapping as the wire would rather than overflowing
+      return static_cast<int64_t>(static_cast<uint64_t>(value) + (rng() % 33) - 16);
     case 1: return static_cast<int64_t>(static_cast<uint64_t>(value) * 2);
     case 2: return value / 2;
     case 3: return static_cast<int64_t>(0 - static_cast<uint64_t>(value));

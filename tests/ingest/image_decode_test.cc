@@ -3,6 +3,7 @@
 // 8192×4096 panorama of ../shared/data, whose stated pixel pitch must equal §2.1's 2π/W.
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <regex>
@@ -12,6 +13,7 @@
 #include <gtest/gtest.h>
 
 #include "lattice/geometry/equirect.h"
+#include "lattice/ingest/image_memory.h"
 #include "lattice/ingest/sources.h"
 
 namespace vasl::ingest {
@@ -47,6 +49,12 @@ std::string Encode(const std::string& ext, OIIO::TypeDesc type, int w, int h, in
   std::string bytes = ReadFile(path);
   std::filesystem::remove(path);
   return bytes;
+}
+
+int32_t ReadInt32At(const std::string& bytes, size_t at) {
+  int32_t v;
+  std::memcpy(&v, bytes.data() + at, 4);
+  return v;
 }
 
 float SrgbToLinear(float c) { return c <= 0.04045f ? c / 12.92f : std::pow((c + 0.055f) / 1.055f, 2.4f); }
@@ -136,6 +144,120 @@ TEST(ImageDecodeTest, RefusesImagesWithTooManyChannels) {
   EXPECT_NE(many.status().message().find("40 channels"), std::string::npos) << many.status();
   auto four = DecodeImage(Encode(".exr", OIIO::TypeDesc::HALF, 8, 4, 4), false, 1 << 20);
   EXPECT_TRUE(four.ok()) << four.status();
+}
+
+// Claim (issue "Reliability"): an EXR header cannot make OpenEXR allocate more than the bytes
+// sent. The fuzzer's 16-byte reproducer (an opaque attribute claiming 2 GiB) is refused before
+// OpenEXR reads it, as is a data window beyond the pixel limit; every truncation of a real
+// header is an error, never a crash; real single- and multi-part files pass the walk unchanged.
+TEST(ImageDecodeTest, ExrHeadersAreWalkedBeforeOpenExrAllocates) {
+  const std::string oom("v/1\x01\x02\0\0\0a\0x\0\xf0\xff\xff\x7f", 16);
+  auto refused = DecodeImage(oom, false, 1 << 20);
+  ASSERT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_NE(refused.status().message().find("claims 2147483632 bytes"), std::string::npos)
+      << refused.status();
+  std::printf("2 GiB attribute: %s\n", std::string(refused.status().message()).c_str());
+
+  const std::string exr = Encode(".exr", OIIO::TypeDesc::HALF, 64, 32);
+  ASSERT_TRUE(internal::CheckExrHeaders(exr, 1 << 20).ok());
+  // The data window is a box2i after the name "dataWindow" and type "box2i" and size 16.
+  const std::string key("dataWindow\0box2i\0", 17);
+  const size_t window = exr.find(key);
+  ASSERT_NE(window, std::string::npos);
+  std::string huge = exr;
+  const int32_t big = 1 << 30;
+  std::memcpy(&huge[window + key.size() + 4 + 8], &big, 4);  // xMax
+  auto too_big = DecodeImage(huge, false, 1 << 20);
+  EXPECT_EQ(too_big.status().code(), absl::StatusCode::kResourceExhausted) << too_big.status();
+  std::string inverted = exr;
+  const int32_t negative = -5;
+  std::memcpy(&inverted[window + key.size() + 4 + 8], &negative, 4);
+  EXPECT_EQ(DecodeImage(inverted, false, 1 << 20).status().code(), absl::StatusCode::kInvalidArgument);
+
+  // Every cut inside the header (up to the end of its attribute list) is refused cleanly.
+  const size_t header_end = exr.find(std::string("\0", 1), window + key.size() + 4 + 16);
+  int refused_cuts = 0;
+  for (size_t cut = 0; cut < std::min(header_end, exr.size()); ++cut) {
+    auto part = DecodeImage(exr.substr(0, cut), false, 1 << 20);
+    EXPECT_FALSE(part.ok()) << "cut at " << cut;
+    refused_cuts += !part.ok();
+  }
+  std::printf("header cuts refused: %d of %zu\n", refused_cuts, std::min(header_end, exr.size()));
+
+  // A channel list whose size disagrees with its entries would put OpenEXR out of step with the
+  // bytes (it reads entries up to an empty name): refused, as the fuzzer's second find showed.
+  const std::string chlist("channels\0chlist\0", 16);
+  const size_t channels = exr.find(chlist);
+  ASSERT_NE(channels, std::string::npos);
+  std::string desynced = exr;
+  const int32_t declared = ReadInt32At(exr, channels + chlist.size()) + 16;
+  std::memcpy(&desynced[channels + chlist.size()], &declared, 4);
+  auto out_of_step = DecodeImage(desynced, false, 1 << 20);
+  EXPECT_EQ(out_of_step.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(out_of_step.status().message().find("does not fill exactly"), std::string::npos)
+      << out_of_step.status();
+
+  // A tiled file with MIP levels passes the walk (its offset table counts every level's tiles).
+  const std::filesystem::path tiled_path = std::filesystem::temp_directory_path() /
+                                           ("vasl-tiled-" + std::to_string(::getpid()) + ".exr");
+  {
+    auto out = OIIO::ImageOutput::create(tiled_path.string());
+    OIIO::ImageSpec spec(37, 19, 3, OIIO::TypeDesc::HALF);
+    spec.tile_width = spec.tile_height = 8;
+    spec.attribute("textureformat", "Plain Texture");  // OpenImageIO then writes MIP levels
+    ASSERT_TRUE(out && out->open(tiled_path.string(), spec, OIIO::ImageOutput::Create));
+    std::vector<float> level(37 * 19 * 3, 0.5f);
+    ASSERT_TRUE(out->write_image(OIIO::TypeDesc::FLOAT, level.data()));
+    for (int w = 18, h = 9; w >= 1 && h >= 1; w /= 2, h /= 2) {
+      OIIO::ImageSpec mip(w, h, 3, OIIO::TypeDesc::HALF);
+      mip.tile_width = mip.tile_height = 8;
+      ASSERT_TRUE(out->open(tiled_path.string(), mip, OIIO::ImageOutput::AppendMIPLevel))
+          << out->geterror();
+      ASSERT_TRUE(out->write_image(OIIO::TypeDesc::FLOAT, level.data()));
+    }
+    out->close();
+  }
+  const std::string tiled = ReadFile(tiled_path);
+  std::filesystem::remove(tiled_path);
+  EXPECT_TRUE(internal::CheckExrHeaders(tiled, 1 << 20).ok())
+      << internal::CheckExrHeaders(tiled, 1 << 20);
+  auto tiled_image = DecodeImage(tiled, false, 1 << 20);
+  ASSERT_TRUE(tiled_image.ok()) << tiled_image.status();
+  EXPECT_EQ(tiled_image->width_px, 37);
+  // Cut after its headers, its offsets no longer fit: refused before OpenEXR sizes the table.
+  // 37×19 in 8×8 tiles with MIP levels rounded down has 15 + 6 + 2 + 1 + 1 + 1 = 26 tiles.
+  std::string first_offset_fault;
+  for (size_t cut = 0; cut < tiled.size() && first_offset_fault.empty(); ++cut) {
+    const absl::Status s = internal::CheckExrHeaders(tiled.substr(0, cut), 1 << 20);
+    EXPECT_FALSE(s.ok()) << "cut at " << cut;
+    if (s.message().find("chunks") != std::string::npos) first_offset_fault = std::string(s.message());
+  }
+  EXPECT_NE(first_offset_fault.find("imply 26 chunks"), std::string::npos) << first_offset_fault;
+
+  // A two-part file (two subimages) passes the walk and its first part decodes.
+  const std::filesystem::path path = std::filesystem::temp_directory_path() /
+                                     ("vasl-multipart-" + std::to_string(::getpid()) + ".exr");
+  {
+    auto out = OIIO::ImageOutput::create(path.string());
+    ASSERT_TRUE(out && out->supports("multiimage"));
+    OIIO::ImageSpec specs[2] = {OIIO::ImageSpec(16, 8, 3, OIIO::TypeDesc::HALF),
+                                OIIO::ImageSpec(16, 8, 1, OIIO::TypeDesc::FLOAT)};
+    specs[0].attribute("name", "colour");
+    specs[1].attribute("name", "weight");
+    ASSERT_TRUE(out->open(path.string(), 2, specs)) << out->geterror();
+    std::vector<float> a(16 * 8 * 3, 0.25f), b(16 * 8, 2.0f);
+    ASSERT_TRUE(out->write_image(OIIO::TypeDesc::FLOAT, a.data()));
+    ASSERT_TRUE(out->open(path.string(), specs[1], OIIO::ImageOutput::AppendSubimage));
+    ASSERT_TRUE(out->write_image(OIIO::TypeDesc::FLOAT, b.data()));
+    out->close();
+  }
+  const std::string multipart = ReadFile(path);
+  std::filesystem::remove(path);
+  EXPECT_TRUE(internal::CheckExrHeaders(multipart, 1 << 20).ok());
+  auto first = DecodeImage(multipart, false, 1 << 20);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->width_px, 16);
+  EXPECT_FLOAT_EQ(first->pixels[5], 0.25f);
 }
 
 }  // namespace
