@@ -118,6 +118,7 @@ struct Engine::Impl {
     result.bytes_written = flow.bytes_written;
     result.pixels_back_projected = flow.pixels_back_projected;
     result.pixels_outside = flow.pixels_outside;
+    result.pixels_invalid = flow.pixels_invalid;
     result.seconds = SecondsSince(t0);
     return result;
   }

@@ -78,6 +78,7 @@ struct IngestResult {
   int64_t bytes_written = 0;      ///< bytes the commit wrote
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
+  int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
   double seconds = 0.0;         ///< wall time of the whole flow
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
 };

@@ -189,6 +189,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
     response_->set_pixels_outside(r->pixels_outside);
     response_->set_record_count(r->record_count);
     response_->set_seconds(r->seconds);
+    response_->set_pixels_invalid(r->pixels_invalid);
     ChangeStatsToProto(*r, response_->mutable_change());
     Finish(grpc::Status::OK);
   }

@@ -85,6 +85,11 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
                           /*max_image_pixels=*/0, plan, result, clock);
   if (!next.ok()) return next.status();
   if (result.pixels_back_projected == 0) {
+    if (result.pixels_invalid > 0 && result.pixels_outside == 0) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "no pixel of the image has a usable colour: all ", result.pixels_invalid,
+          " pixels with a depth have R, G or B NaN or infinite"));
+    }
     return absl::InvalidArgumentError(absl::StrCat(
         "no pixel of the image lands on the project's geometry (", result.pixels_outside,
         " pixels with a depth fall outside every vossel): check the pose and the projection"));

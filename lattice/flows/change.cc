@@ -360,6 +360,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     ++result.sources_computed;
     result.pixels_back_projected += stats.pixels_used;
     result.pixels_outside += stats.pixels_outside;
+    result.pixels_invalid += stats.pixels_invalid;
   }
   for (ingest::CameraSource& cam : change.new_sources.cameras) {
     clock.Start(absl::StrCat("records of source ", cam.id), fraction);

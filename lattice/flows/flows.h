@@ -46,6 +46,7 @@ struct FlowResult {
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
+  int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
 };
 
 /// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality) as

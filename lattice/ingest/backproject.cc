@@ -92,7 +92,7 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
   // Pass 1, parallel: each pixel's vossel (−1: none).
   std::vector<int32_t> vossel_of(n, -1);
   std::vector<Eigen::Vector3d> dir(n);
-  std::vector<int64_t> empty(size_t(H), 0), outside(size_t(H), 0);
+  std::vector<int64_t> empty(size_t(H), 0), outside(size_t(H), 0), invalid(size_t(H), 0);
   tbb::parallel_for(tbb::blocked_range<int>(0, H), [&](const tbb::blocked_range<int>& rows) {
     auto acc = g.index_grid->getConstAccessor();
     for (int j = rows.begin(); j != rows.end(); ++j) {
@@ -101,6 +101,13 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
         const double z = im.depth_m[p];
         if (!std::isfinite(z) || z <= 0.0 || (!im.alpha.empty() && !(im.alpha[p] > 0.0f))) {
           ++empty[size_t(j)];
+          continue;
+        }
+        // A colour that is not a number cannot be averaged into a record (it would make the
+        // record, and every fused value over it, NaN): the pixel is left out and counted.
+        if (!std::isfinite(im.rgb[3 * p]) || !std::isfinite(im.rgb[3 * p + 1]) ||
+            !std::isfinite(im.rgb[3 * p + 2])) {
+          ++invalid[size_t(j)];
           continue;
         }
         const Eigen::Vector3d d_cam = src.pinhole
@@ -184,6 +191,7 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
     for (int j = 0; j < H; ++j) {
       stats->pixels_empty += empty[size_t(j)];
       stats->pixels_outside += outside[size_t(j)];
+      stats->pixels_invalid += invalid[size_t(j)];
     }
   }
   return out;

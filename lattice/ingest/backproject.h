@@ -23,6 +23,7 @@ struct BackProjectStats {
   int64_t pixels_used = 0;     ///< finite Z, covered, landing in a vossel of the lattice
   int64_t pixels_outside = 0;  ///< finite Z whose point lies in no vossel (no geometry there)
   int64_t pixels_empty = 0;    ///< no surface (Z not finite) or not covered (A = 0)
+  int64_t pixels_invalid = 0;  ///< a surface (finite Z, covered) whose R, G or B is NaN or ±inf
 };
 
 /// §10: for each pixel with finite Z (and A > 0 when the image has A), x = o + Z·d with d the

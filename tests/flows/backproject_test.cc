@@ -213,6 +213,59 @@ TEST_F(BackProjectTest, EditChangesExactlyTheVosselsItLandsOnByTheWeights) {
   EXPECT_EQ(changed_outside, 0);
 }
 
+// Claim (§10, bad input): pixels whose colour is NaN or infinite (a compositor's divide by zero)
+// are left out and counted, not averaged into NaN records: every derived record and every fused
+// value stays finite, pixels_invalid counts exactly the poisoned surface pixels, and an image
+// whose every surface pixel is poisoned is refused (INVALID_ARGUMENT) and commits nothing.
+TEST_F(BackProjectTest, NonFiniteColoursAreLeftOutAndCounted) {
+  RenderImage img = Render();
+  const float kPoison[] = {std::numeric_limits<float>::quiet_NaN(),
+                           std::numeric_limits<float>::infinity(),
+                           -std::numeric_limits<float>::infinity()};
+  int64_t poisoned = 0, surface = 0;
+  RenderImage edited = img;
+  for (size_t p = 0; p < edited.alpha.size(); ++p) {
+    const bool lands = std::isfinite(edited.depth_m[p]) && edited.depth_m[p] > 0.0f &&
+                       edited.alpha[p] > 0.0f;
+    surface += lands;
+    if (p % 7 != 0) continue;
+    edited.rgb[3 * p + p % 3] = kPoison[(p / 7) % 3];  // one channel, one of three poisons
+    poisoned += lands;
+  }
+  BackProjectInput in;
+  in.pose = room_.NovelViews()[0];
+  in.image = *render::EncodeExr(edited);
+  auto r = engine_->BackProject("p", in);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->pixels_invalid, poisoned);
+  EXPECT_EQ(r->pixels_back_projected + r->pixels_outside + r->pixels_invalid, surface);
+  auto st = *store::ProjectStore::Open(root_ / "p");
+  auto after = *st->LoadSnapshot(r->version);
+  int64_t derived = 0, non_finite = 0;
+  for (size_t i = 0; i < after->records.size(); ++i) {
+    if (after->records.modality[i] != int8_t(records::Modality::kDerived)) continue;
+    ++derived;
+    for (int c = 0; c < 3; ++c) non_finite += !std::isfinite(after->records.value[3 * i + c]);
+  }
+  for (float v : after->fused.by_modality.at(records::Modality::kRgb).value) non_finite += !std::isfinite(v);
+  std::printf("%lld of %lld surface pixels poisoned: pixels_invalid %lld, %lld back-projected, "
+              "%lld derived records, %lld non-finite values\n",
+              (long long)poisoned, (long long)surface, (long long)r->pixels_invalid,
+              (long long)r->pixels_back_projected, (long long)derived, (long long)non_finite);
+  EXPECT_GT(derived, 1000);
+  EXPECT_EQ(non_finite, 0);
+
+  RenderImage all_bad = img;
+  for (float& v : all_bad.rgb) v = std::numeric_limits<float>::quiet_NaN();
+  in.image = *render::EncodeExr(all_bad);
+  auto refused = engine_->BackProject("p", in);
+  ASSERT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_NE(refused.status().message().find("NaN or infinite"), std::string::npos) << refused.status();
+  auto versions = engine_->ListVersions("p");
+  ASSERT_TRUE(versions.ok());
+  EXPECT_EQ(versions->back().version, r->version);  // the refusal committed nothing
+}
+
 // Claim (§10 with §5): a scan ingested after a back-projection changes geometry where the batch's
 // pixels land; the derived source is revisited on the changed blocks, and the result equals a
 // rebuild (which re-derives the batch from its stored image) tile object for tile object.

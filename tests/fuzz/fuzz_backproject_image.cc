@@ -81,7 +81,8 @@ void BackProjectAndCheck(const DerivedSource& source, const std::vector<uint8_t>
   vasl::ingest::BackProjectStats stats;
   const vasl::records::RecordSet records = vasl::ingest::BackProjectRecords(g, source, only, &stats);
   const int64_t n = int64_t{im.width_px} * im.height_px;
-  VASL_FUZZ_CHECK(stats.pixels_used + stats.pixels_outside + stats.pixels_empty == n,
+  VASL_FUZZ_CHECK(stats.pixels_used + stats.pixels_outside + stats.pixels_empty +
+                      stats.pixels_invalid == n,
                   "used ", stats.pixels_used, " + outside ", stats.pixels_outside, " + empty ",
                   stats.pixels_empty, " != ", n, " pixels");
   VASL_FUZZ_CHECK(int64_t(records.size()) <= stats.pixels_used && records.size() <= g.size(),
@@ -95,6 +96,10 @@ void BackProjectAndCheck(const DerivedSource& source, const std::vector<uint8_t>
                     "record ", q, " has range ", records.range_m[q]);
     VASL_FUZZ_CHECK(records.cos_inc[q] >= 0.0f && records.cos_inc[q] <= 1.0f, "record ", q,
                     " has cos_inc ", records.cos_inc[q]);
+    for (int c = 0; c < 3; ++c) {
+      VASL_FUZZ_CHECK(std::isfinite(records.value[3 * q + c]), "record ", q, " has value ",
+                      records.value[3 * q + c], " in channel ", c);
+    }
     const float u = records.uv_px[2 * q], w = records.uv_px[2 * q + 1];
     VASL_FUZZ_CHECK(u >= 0.0f && u <= float(im.width_px) && w >= 0.0f && w <= float(im.height_px),
                     "record ", q, " has uv ", u, ",", w);

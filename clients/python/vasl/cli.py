@@ -386,6 +386,9 @@ def _cmd_backproject(client: Client, args) -> int:
     print(f"back-projected {args.image} as batch {r['name']}: version {r['version']}, "
           f"{r['pixels_back_projected']} pixels -> derived records, {r['pixels_outside']} "
           f"pixels outside the lattice, {r['record_count']} records, {r['seconds']:.2f} s")
+    if r["pixels_invalid"]:
+        print(f"warning: {r['pixels_invalid']} pixels with a depth have a NaN or infinite colour "
+              "and were left out", file=sys.stderr)
     return 0
 
 

@@ -610,7 +610,8 @@ class Client:
             raise _wrap("BackProject", e) from None
         return {"name": r.name, "version": r.version,
                 "pixels_back_projected": r.pixels_back_projected,
-                "pixels_outside": r.pixels_outside, "record_count": r.record_count,
+                "pixels_outside": r.pixels_outside, "pixels_invalid": r.pixels_invalid,
+                "record_count": r.record_count,
                 "seconds": r.seconds}
 
     # -- access control ------------------------------------------------------------------
