@@ -20,6 +20,7 @@
 #include "lattice/render/encode.h"
 #include "server/convert.h"
 #include "server/paging.h"
+#include "server/request_check.h"
 #include "server/ingest_assembler.h"
 #include "server/status_util.h"
 
@@ -110,6 +111,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
 
  private:
   absl::Status Add() {
+    if (absl::Status bad = CheckRequestStrings(request_); !bad.ok()) return bad;
     if (request_.has_header()) {
       if (has_header_) return absl::InvalidArgumentError("a back-projection stream has one header");
       const v1::BackProjectHeader& h = request_.header();
@@ -187,9 +189,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
     response_->set_version(r->version);
     response_->set_pixels_back_projected(r->pixels_back_projected);
     response_->set_pixels_outside(r->pixels_outside);
+    response_->set_pixels_invalid(r->pixels_invalid);
     response_->set_record_count(r->record_count);
     response_->set_seconds(r->seconds);
-    response_->set_pixels_invalid(r->pixels_invalid);
     ChangeStatsToProto(*r, response_->mutable_change());
     Finish(grpc::Status::OK);
   }
@@ -244,6 +246,10 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
   void OnReadDone(bool ok) override {
     if (!ok) {
       EndOfStream();
+      return;
+    }
+    if (absl::Status bad = CheckRequestStrings(request_); !bad.ok()) {
+      Finish(ToGrpcStatus(bad), assembler_.has_header());
       return;
     }
     const bool was_header = !assembler_.has_header();
@@ -397,9 +403,10 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   }
 
  protected:
-  /// Checks the caller's read role, then queues Run on the pool (call last in the derived
-  /// constructor).
-  void Start() {
+  /// Checks the request's text fields and the caller's read role, then queues Run on the pool
+  /// (call last in the derived constructor).
+  void Start(const google::protobuf::Message& request) {
+    if (absl::Status bad = CheckRequestStrings(request); !bad.ok()) return Done(ToGrpcStatus(bad));
     if (absl::StatusOr<Caller> caller =
             service_->Authorize(context_, project_, Role::kRead, method_);
         !caller.ok()) {
@@ -468,7 +475,7 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
   RenderReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
                 const v1::RenderRequest* request)
       : ChunkStreamReactor(service, context, "Render", request->project()), request_(*request) {
-    Start();
+    Start(request_);
   }
 
  private:
@@ -528,7 +535,7 @@ class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
   ExportReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
                 const v1::ExportRequest* request)
       : ChunkStreamReactor(service, context, "Export", request->project()), request_(*request) {
-    Start();
+    Start(request_);
   }
 
  private:
@@ -732,8 +739,12 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* con
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(
-    grpc::CallbackServerContext* context, const char* method, const std::string& project,
-    Role need, std::function<grpc::Status(const Caller&)> body) {
+    grpc::CallbackServerContext* context, const google::protobuf::Message& request,
+    const char* method, const std::string& project, Role need,
+    std::function<grpc::Status(const Caller&)> body) {
+  if (absl::Status bad = CheckRequestStrings(request); !bad.ok()) {
+    return Deny(context, method, "", ToGrpcStatus(bad));
+  }
   absl::StatusOr<Caller> caller = Authorize(context, project, need, method);
   if (!caller.ok()) return Deny(context, method, project, ToGrpcStatus(caller.status()));
   std::string client;
@@ -770,7 +781,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerCon
                                                          const v1::CreateProjectRequest* request,
                                                          v1::Project* response) {
   // Authorised on every project ("*"), logged under the new project's name.
-  return RunUnary(context, "CreateProject", request->name(), Role::kNone,
+  return RunUnary(context, *request, "CreateProject", request->name(), Role::kNone,
                   [this, request, response](const Caller& caller) {
     if (absl::Status s = AccessControl::Require(caller, kAllProjects, Role::kWrite,
                                                 "CreateProject");
@@ -789,7 +800,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerCon
 grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContext* context,
                                                       const v1::GetProjectRequest* request,
                                                       v1::Project* response) {
-  return RunUnary(context, "GetProject", request->project(), Role::kRead,
+  return RunUnary(context, *request, "GetProject", request->project(), Role::kRead,
                   [this, request, response] {
     absl::StatusOr<ProjectInfo> info = engine_->GetProject(request->project());
     if (!info.ok()) return ToGrpcStatus(info.status());
@@ -801,7 +812,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProject(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerContext* context,
                                                         const v1::ListProjectsRequest* request,
                                                         v1::ListProjectsResponse* response) {
-  return RunUnary(context, "ListProjects", "", Role::kNone,
+  return RunUnary(context, *request, "ListProjects", "", Role::kNone,
                   [this, request, response](const Caller& caller) {
     absl::StatusOr<std::vector<ProjectInfo>> infos = engine_->ListProjects();
     if (!infos.ok()) return ToGrpcStatus(infos.status());
@@ -825,7 +836,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListProjects(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::ListScans(grpc::CallbackServerContext* context,
                                                      const v1::ListScansRequest* request,
                                                      v1::ListScansResponse* response) {
-  return RunUnary(context, "ListScans", request->project(), Role::kRead, [this, request, response] {
+  return RunUnary(context, *request, "ListScans", request->project(), Role::kRead, [this, request, response] {
     absl::StatusOr<std::vector<store::ScanInfo>> scans = engine_->ListScans(request->project());
     if (!scans.ok()) return ToGrpcStatus(scans.status());
     auto page = Page(*scans, request->page_size(), request->page_token(),
@@ -845,6 +856,9 @@ grpc::ServerReadReactor<v1::IngestScanRequest>* VaslServiceImpl::IngestScan(
 grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
     grpc::CallbackServerContext* context, const v1::GetIngestProgressRequest* request,
     v1::IngestProgress* response) {
+  if (absl::Status bad = CheckRequestStrings(*request); !bad.ok()) {
+    return Deny(context, "GetIngestProgress", "", ToGrpcStatus(bad));
+  }
   if (absl::StatusOr<Caller> caller =
           Authorize(context, request->project(), Role::kRead, "GetIngestProgress");
       !caller.ok()) {
@@ -861,7 +875,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
     return reactor;
   }
   // Unknown so far: the engine tells NOT_FOUND from a project that has not ingested yet.
-  return RunUnary(context, "GetIngestProgress", request->project(), Role::kRead,
+  return RunUnary(context, *request, "GetIngestProgress", request->project(), Role::kRead,
                   [this, request, response] {
     v1::IngestProgress progress = GetProgress(request->project());
     if (progress.state() == v1::IngestProgress::STATE_IDLE) {
@@ -881,7 +895,7 @@ grpc::ServerWriteReactor<v1::RenderResponse>* VaslServiceImpl::Render(
 grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
     grpc::CallbackServerContext* context, const v1::InspectRecordsRequest* request,
     v1::InspectRecordsResponse* response) {
-  return RunUnary(context, "InspectRecords", request->project(), Role::kRead,
+  return RunUnary(context, *request, "InspectRecords", request->project(), Role::kRead,
                   [this, request, response] {
     if (request->version() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -906,7 +920,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
 grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
-  return RunUnary(context, "Rebuild", request->project(), Role::kWrite, [this, request, response] {
+  return RunUnary(context, *request, "Rebuild", request->project(), Role::kWrite, [this, request, response] {
     const ProgressFn progress =
         ProgressReporter("Rebuild", request->project(), "rebuild", Clock::now());
     absl::StatusOr<IngestResult> result = engine_->Rebuild(request->project(), progress);
@@ -917,7 +931,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* 
 grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContext* context,
                                                       const v1::DeleteScanRequest* request,
                                                       v1::ChangeResponse* response) {
-  return RunUnary(context, "DeleteScan", request->project(), Role::kAdmin,
+  return RunUnary(context, *request, "DeleteScan", request->project(), Role::kAdmin,
                   [this, request, response] {
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
@@ -946,7 +960,7 @@ grpc::Status VaslServiceImpl::FinishChange(const std::string& project,
 grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerContext* context,
                                                         const v1::ListVersionsRequest* request,
                                                         v1::ListVersionsResponse* response) {
-  return RunUnary(context, "ListVersions", request->project(), Role::kRead,
+  return RunUnary(context, *request, "ListVersions", request->project(), Role::kRead,
                   [this, request, response] {
     absl::StatusOr<std::vector<store::VersionInfo>> versions = engine_->ListVersions(request->project());
     if (!versions.ok()) return ToGrpcStatus(versions.status());
@@ -967,7 +981,7 @@ grpc::ServerWriteReactor<v1::ExportResponse>* VaslServiceImpl::Export(
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateProfile(grpc::CallbackServerContext* context,
                                                          const v1::CreateProfileRequest* request,
                                                          v1::WeightingProfile* response) {
-  return RunUnary(context, "CreateProfile", request->project(), Role::kWrite,
+  return RunUnary(context, *request, "CreateProfile", request->project(), Role::kWrite,
                   [this, request, response] {
     if (!request->has_profile()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "profile is required");
@@ -988,7 +1002,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProfile(grpc::CallbackServerCon
 grpc::ServerUnaryReactor* VaslServiceImpl::GetProfile(grpc::CallbackServerContext* context,
                                                       const v1::GetProfileRequest* request,
                                                       v1::WeightingProfile* response) {
-  return RunUnary(context, "GetProfile", request->project(), Role::kRead,
+  return RunUnary(context, *request, "GetProfile", request->project(), Role::kRead,
                   [this, request, response] {
     absl::StatusOr<reweight::NamedProfile> p =
         engine_->GetProfile(request->project(), request->name(), request->revision());
@@ -1001,7 +1015,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetProfile(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerContext* context,
                                                         const v1::ListProfilesRequest* request,
                                                         v1::ListProfilesResponse* response) {
-  return RunUnary(context, "ListProfiles", request->project(), Role::kRead,
+  return RunUnary(context, *request, "ListProfiles", request->project(), Role::kRead,
                   [this, request, response] {
     std::string active;
     absl::StatusOr<std::vector<reweight::NamedProfile>> all =
@@ -1026,7 +1040,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListProfiles(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
     grpc::CallbackServerContext* context, const v1::SetActiveProfileRequest* request,
     v1::WeightingProfile* response) {
-  return RunUnary(context, "SetActiveProfile", request->project(), Role::kWrite,
+  return RunUnary(context, *request, "SetActiveProfile", request->project(), Role::kWrite,
                   [this, request, response] {
     if (request->name().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "name the profile to activate");
@@ -1044,7 +1058,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
 grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext* context,
                                                     const v1::ReweightRequest* request,
                                                     v1::ReweightResponse* response) {
-  return RunUnary(context, "Reweight", request->project(), Role::kWrite, [this, request, response] {
+  return RunUnary(context, *request, "Reweight", request->project(), Role::kWrite, [this, request, response] {
     if (request->revision() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
     }
@@ -1074,7 +1088,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext*
 grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerContext* context,
                                                         const v1::QueryRecordsRequest* request,
                                                         v1::QueryRecordsResponse* response) {
-  return RunUnary(context, "QueryRecords", request->project(), Role::kRead,
+  return RunUnary(context, *request, "QueryRecords", request->project(), Role::kRead,
                   [this, request, response] {
     if (!request->has_min_m()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -1103,7 +1117,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext* context,
                                                      const v1::NormaliseRequest* request,
                                                      v1::NormaliseResponse* response) {
-  return RunUnary(context, "Normalise", request->project(), Role::kWrite,
+  return RunUnary(context, *request, "Normalise", request->project(), Role::kWrite,
                   [this, request, response] {
     absl::StatusOr<reweight::NormaliseOutcome> r =
         engine_->Normalise(request->project(), request->base_profile(), request->name());
@@ -1121,7 +1135,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
 grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {
-  return RunUnary(context, "Rollback", request->project(), Role::kAdmin, [this, request, response] {
+  return RunUnary(context, *request, "Rollback", request->project(), Role::kAdmin, [this, request, response] {
     const ProgressFn progress =
         ProgressReporter("Rollback", request->project(),
                          absl::StrCat("version=", request->version()), Clock::now());
@@ -1162,7 +1176,7 @@ void TokenToProto(const TokenInfo& t, v1::AccessToken* out) {
 grpc::ServerUnaryReactor* VaslServiceImpl::CreateToken(grpc::CallbackServerContext* context,
                                                        const v1::CreateTokenRequest* request,
                                                        v1::AccessToken* response) {
-  return RunUnary(context, "CreateToken", request->project(), Role::kNone,
+  return RunUnary(context, *request, "CreateToken", request->project(), Role::kNone,
                   [this, request, response](const Caller& caller) {
     if (absl::Status s = AccessControl::Require(caller, request->project(), Role::kAdmin,
                                                 "creating a token");
@@ -1185,7 +1199,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateToken(grpc::CallbackServerConte
 grpc::ServerUnaryReactor* VaslServiceImpl::ListTokens(grpc::CallbackServerContext* context,
                                                       const v1::ListTokensRequest* request,
                                                       v1::ListTokensResponse* response) {
-  return RunUnary(context, "ListTokens", request->project(), Role::kNone,
+  return RunUnary(context, *request, "ListTokens", request->project(), Role::kNone,
                   [this, request, response](const Caller& caller) {
     auto tokens = access_->List(caller, request->project());
     if (!tokens.ok()) return ToGrpcStatus(tokens.status());
@@ -1197,7 +1211,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListTokens(grpc::CallbackServerContex
 grpc::ServerUnaryReactor* VaslServiceImpl::RevokeToken(grpc::CallbackServerContext* context,
                                                        const v1::RevokeTokenRequest* request,
                                                        v1::AccessToken* response) {
-  return RunUnary(context, "RevokeToken", "", Role::kNone,
+  return RunUnary(context, *request, "RevokeToken", "", Role::kNone,
                   [this, request, response](const Caller& caller) {
     auto revoked = access_->Revoke(caller, request->id());
     if (!revoked.ok()) return ToGrpcStatus(revoked.status());
@@ -1209,7 +1223,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RevokeToken(grpc::CallbackServerConte
 grpc::ServerUnaryReactor* VaslServiceImpl::PinVersion(grpc::CallbackServerContext* context,
                                                       const v1::PinVersionRequest* request,
                                                       v1::Version* response) {
-  return RunUnary(context, "PinVersion", request->project(), Role::kAdmin,
+  return RunUnary(context, *request, "PinVersion", request->project(), Role::kAdmin,
                   [this, request, response] {
     absl::Status s = engine_->SetPinned(request->project(), request->version(), request->pinned());
     if (!s.ok()) return ToGrpcStatus(s);

@@ -159,17 +159,19 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   v1::IngestProgress GetProgress(const std::string& project);
 
  private:
-  /// Checks that the caller holds `need` on `project` (Authorize), then runs `body` (which
-  /// fills the response and returns a status) on the pool with the caller, then logs and
-  /// finishes the unary reactor.
-  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
+  /// Checks the request's text fields (CheckRequestStrings), then that the caller holds `need`
+  /// on `project` (Authorize), then runs `body` (which fills the response and returns a
+  /// status) on the pool with the caller, then logs and finishes the unary reactor.
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
+                                     const google::protobuf::Message& request, const char* method,
                                      const std::string& project, Role need,
                                      std::function<grpc::Status(const Caller&)> body);
   /// The same, for a body that does not need to know the caller.
-  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method,
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
+                                     const google::protobuf::Message& request, const char* method,
                                      const std::string& project, Role need,
                                      std::function<grpc::Status()> body) {
-    return RunUnary(context, method, project, need,
+    return RunUnary(context, request, method, project, need,
                     [body = std::move(body)](const Caller&) { return body(); });
   }
   /// Logs and finishes a unary call that was refused before any work.

@@ -17,6 +17,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/match.h"
+#include "absl/strings/escaping.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 #include <tbb/blocked_range.h>
@@ -104,9 +105,11 @@ absl::Status ValidateProjectName(const std::string& name) {
                 c == '-');
   }
   if (!ok) {
+    // Echoed escaped and cut to 64 bytes: the name is the client's, and may be anything.
     return absl::InvalidArgumentError(absl::StrCat(
-        "invalid project name \"", name,
-        "\": use 1-63 characters of [a-z0-9._-], starting with a letter or digit"));
+        "invalid project name \"", absl::CHexEscape(name.substr(0, 64)),
+        name.size() > 64 ? "...\" (" : "\" (", name.size(),
+        " bytes): use 1-63 characters of [a-z0-9._-], starting with a letter or digit"));
   }
   return absl::OkStatus();
 }

@@ -176,6 +176,24 @@ CASES = [
         project=P, version=10**6), timeout=60)), {MISSING}),
     ("inspect negative version", _unary("InspectRecords", pb.InspectRecordsRequest(
         project=P, version=-1)), {BAD}),
+    # Text fields: every string of every request is bounded and printable before any handler
+    # reads it (server/request_check.h), and a refusal never echoes it.
+    ("delete newline in scan name", _unary("DeleteScan", pb.DeleteScanRequest(
+        project=P, scan="a\nb")), {BAD}),
+    ("delete oversized scan name", _unary("DeleteScan", pb.DeleteScanRequest(
+        project=P, scan="s" * 100000)), {BAD}),
+    ("get NUL in project", _unary("GetProject", pb.GetProjectRequest(project="a\x00b")), {BAD}),
+    ("get oversized project", _unary("GetProject", pb.GetProjectRequest(project="p" * 100000)),
+     {BAD}),
+    ("render oversized profile", _render(profile="p" * 5000), {BAD}),
+    ("reweight escape sequence in profile", _unary("Reweight", pb.ReweightRequest(
+        project=P, profile="\x1b]0;owned\x07")), {BAD}),
+    ("list projects oversized page token", _unary("ListProjects", pb.ListProjectsRequest(
+        page_token="t" * 5000)), {BAD}),
+    ("revoke escape sequence in token id", _unary("RevokeToken", pb.RevokeTokenRequest(
+        id="\x1b[2J")), {BAD}),
+    ("backproject newline in batch name", _backproject(pb.BackProjectHeader(
+        project=P, name="a\nb", pose=_pose(), image_size_bytes=4), b"abcd"), {BAD}),
     # BackProject
     ("backproject no pose", _backproject(pb.BackProjectHeader(project=P, image_size_bytes=4),
                                          b"abcd"), {BAD}),
@@ -224,6 +242,9 @@ def test_bad_input_case(server, client, before, name, call, codes):
     print(f"\n{name}: {code.name}: {details[:200]}")
     assert code in codes, f"{name}: {code.name}: {details}"
     assert details, "the message must say what is wrong"
+    assert len(details) < 2048, f"the message is {len(details)} bytes: it echoes the input"
+    assert not any(ord(c) < 0x20 or ord(c) == 0x7f for c in details), \
+        f"the message carries a control character: {details!r}"
     assert server.data_dir not in details, f"the message shows a server path: {details}"
     assert _project_state(server.data_dir) == before, f"{name} changed the project's files"
 
@@ -231,7 +252,7 @@ def test_bad_input_case(server, client, before, name, call, codes):
 def test_server_still_serves_after_every_case(server, client, before):
     print(f"\n{len(CASES)} bad-input cases over IngestScan, CreateProject, GetProject, Render, "
           f"CreateProfile, Reweight, SetActiveProfile, QueryRecords, DeleteScan, Rollback, "
-          f"PinVersion, Export, InspectRecords and BackProject")
+          f"PinVersion, Export, InspectRecords, ListProjects, RevokeToken and BackProject")
     assert client.health() == "SERVING"
     r = client.render(P, [2.0, 2.0, 1.5], 64, 32, formats=("exr",))
     assert r.hit_pixels > 0
