@@ -187,6 +187,7 @@ int main(int argc, char** argv) {
   vasl::server::WorkerPool pool(workers, static_cast<size_t>(options.max_queued_calls));
   vasl::server::ServiceOptions service_options;
   service_options.staging_dir = options.data_dir;
+  service_options.min_free_disk_bytes = options.min_free_disk_bytes;
   service_options.render_chunk_bytes = options.render_chunk_bytes;
   service_options.access = access.get();
   service_options.max_calls_per_client = static_cast<int>(options.max_calls_per_client);

@@ -121,6 +121,10 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
       {"max-inflight-ingest-bytes",
        {Int64(&ServerOptions::max_inflight_ingest_bytes, "max-inflight-ingest-bytes", 1),
         "bytes of incoming scans all uploads may hold at once (default 4294967296)"}},
+      {"min-free-disk-bytes",
+       {Int64(&ServerOptions::min_free_disk_bytes, "min-free-disk-bytes", 0),
+        "calls that write project data are refused while the data directory has fewer free "
+        "bytes (default 1073741824; 0: no floor)"}},
       {"render-chunk-bytes",
        {Int64(&ServerOptions::render_chunk_bytes, "render-chunk-bytes", 1),
         "payload size of streamed render chunks (default 1048576)"}},

@@ -34,6 +34,9 @@ struct ServerOptions {
   int64_t max_calls_per_client = 64;
   /// Bytes of incoming scans all upload streams may hold at once.
   int64_t max_inflight_ingest_bytes = 4ll << 30;
+  /// Calls that write project data are refused while the data directory's file system has
+  /// fewer free bytes than this; 0: no floor.
+  int64_t min_free_disk_bytes = 1ll << 30;
   /// Limits enforced by the engine and, for stream sizes, by the ingest assembler.
   EngineLimits engine;
 

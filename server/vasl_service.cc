@@ -121,6 +121,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
           !s.ok()) {
         return s;
       }
+      if (absl::Status full = service_->CheckDiskFloor(); !full.ok()) return full;
       if (!h.has_pose()) return absl::InvalidArgumentError("header.pose is required");
       absl::StatusOr<geometry::Pose> pose = PoseFromProto(h.pose(), "header.pose");
       if (!pose.ok()) return pose.status();
@@ -258,6 +259,10 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
                                                        Role::kWrite, "IngestScan");
           !denied.ok()) {
         Finish(ToGrpcStatus(denied), false);
+        return;
+      }
+      if (absl::Status full = service_->CheckDiskFloor(); !full.ok()) {
+        Finish(ToGrpcStatus(full), false);
         return;
       }
     }
@@ -664,6 +669,17 @@ void VaslServiceImpl::ReleaseSlot(const std::string& client) {
   if (it != slots_.end() && --it->second <= 0) slots_.erase(it);
 }
 
+absl::Status VaslServiceImpl::CheckDiskFloor() const {
+  const int64_t floor = options_.min_free_disk_bytes;
+  if (floor <= 0) return absl::OkStatus();
+  std::error_code ec;
+  const std::filesystem::space_info space = std::filesystem::space(options_.staging_dir, ec);
+  if (ec || int64_t(space.available) >= floor) return absl::OkStatus();  // unknown: let it try
+  return absl::ResourceExhaustedError(absl::StrCat(
+      "the server's data disk has ", space.available >> 20, " MiB free, below the floor of ",
+      floor >> 20, " MiB (--min-free-disk-bytes): nothing was written; retry once space is freed"));
+}
+
 absl::Status VaslServiceImpl::HoldIngestBytes(int64_t delta) {
   const int64_t limit = options_.max_inflight_ingest_bytes;
   const int64_t now = inflight_ingest_bytes_.fetch_add(delta) + delta;
@@ -747,6 +763,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(
   }
   absl::StatusOr<Caller> caller = Authorize(context, project, need, method);
   if (!caller.ok()) return Deny(context, method, project, ToGrpcStatus(caller.status()));
+  if (need == Role::kWrite) {
+    if (absl::Status full = CheckDiskFloor(); !full.ok()) {
+      return Deny(context, method, project, ToGrpcStatus(full));
+    }
+  }
   std::string client;
   if (absl::Status busy = AcquireSlot(context, &client); !busy.ok()) {
     return Deny(context, method, project, ToGrpcStatus(busy));
@@ -788,6 +809,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::CreateProject(grpc::CallbackServerCon
         !s.ok()) {
       return ToGrpcStatus(s);
     }
+    if (absl::Status full = CheckDiskFloor(); !full.ok()) return ToGrpcStatus(full);
     absl::StatusOr<store::ProjectSettings> settings = SettingsFromProto(*request);
     if (!settings.ok()) return ToGrpcStatus(settings.status());
     absl::StatusOr<ProjectInfo> info = engine_->CreateProject(request->name(), *settings);

@@ -45,6 +45,9 @@ struct ServiceOptions {
   /// Bytes of incoming scans and images all ingest and back-projection streams may hold at
   /// once (received, not yet committed); 0: no bound.
   int64_t max_inflight_ingest_bytes = 0;
+  /// Calls that write project data (ingest, back-projection, write-role RPCs, CreateProject)
+  /// are refused while staging_dir's file system has fewer free bytes; 0: no floor.
+  int64_t min_free_disk_bytes = 0;
 };
 
 class VaslServiceImpl final : public v1::VaslService::CallbackService {
@@ -152,6 +155,10 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// Counts `delta` bytes more (or fewer) held by incoming streams; RESOURCE_EXHAUSTED naming
   /// the limit when more would exceed ServiceOptions::max_inflight_ingest_bytes (then nothing
   /// is counted).
+  /// RESOURCE_EXHAUSTED while the data directory's file system has fewer free bytes than
+  /// ServiceOptions::min_free_disk_bytes: a write refused before it starts, nothing written
+  /// (an ingest that runs the disk full mid-commit fails too, but only after the upload).
+  absl::Status CheckDiskFloor() const;
   absl::Status HoldIngestBytes(int64_t delta);
   /// Updates the progress board of `project` (thread-safe).
   void UpdateProgress(const std::string& project,
