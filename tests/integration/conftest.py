@@ -46,6 +46,21 @@ class Server:
             return f.read()
 
 
+def _port_file_address(port_file: str, proc: subprocess.Popen, log_path: str,
+                       timeout_s: float = 60.0) -> str:
+    """Waits for vasld to write its port file and returns its loopback address; fails the test
+    with vasld's log when it exits or the wait times out first."""
+    deadline = time.monotonic() + timeout_s
+    while not os.path.exists(port_file) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not os.path.exists(port_file):
+        with open(log_path, errors="replace") as f:
+            pytest.fail(f"vasld wrote no port file (exit {proc.poll()}):\n{f.read()}",
+                        pytrace=False)
+    with open(port_file) as f:
+        return f"127.0.0.1:{int(f.read().strip())}"
+
+
 def _wait_serving(address: str, proc: subprocess.Popen, log_path: str, timeout_s: float = 60.0):
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
@@ -90,16 +105,7 @@ def server(tmp_path_factory):
                              "--port-file", port_file],
                             stdout=log, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 60
-        while not os.path.exists(port_file) and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        if not os.path.exists(port_file):
-            with open(log_path, errors="replace") as f:
-                pytest.fail(f"vasld wrote no port file (exit {proc.poll()}):\n{f.read()}",
-                            pytrace=False)
-        with open(port_file) as f:
-            port = int(f.read().strip())
-        address = f"127.0.0.1:{port}"
+        address = _port_file_address(port_file, proc, log_path)
         _wait_serving(address, proc, log_path)
         yield Server(proc, address, data_dir, log_path)
     finally:

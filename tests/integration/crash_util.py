@@ -10,7 +10,7 @@ import subprocess
 import time
 
 import pytest
-from conftest import _wait_serving  # tests/integration's, or the soak's re-export of it
+from conftest import _port_file_address, _wait_serving  # tests/integration's, or the soak's
 
 
 def start_vasld(vasld: str, base: str, data_dir: str, n: int, extra_args=()):
@@ -38,15 +38,7 @@ def start_vasld(vasld: str, base: str, data_dir: str, n: int, extra_args=()):
             if e.errno not in (errno.ETXTBSY, errno.ENOENT) or attempt == 19:
                 raise
             time.sleep(3)
-    deadline = time.monotonic() + 60
-    while not os.path.exists(port_file) and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    if not os.path.exists(port_file):
-        with open(log_path, errors="replace") as f:
-            pytest.fail(f"vasld wrote no port file (exit {proc.poll()}):\n{f.read()}",
-                        pytrace=False)
-    with open(port_file) as f:
-        address = f"127.0.0.1:{int(f.read().strip())}"
+    address = _port_file_address(port_file, proc, log_path)
     _wait_serving(address, proc, log_path)
     return proc, address, log
 

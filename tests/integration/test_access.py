@@ -8,12 +8,11 @@ import os
 import signal
 import sqlite3
 import subprocess
-import time
 
 import grpc
 import pytest
 
-from conftest import VASLD, _require
+from conftest import VASLD, _port_file_address, _require
 
 ADMIN_TOKEN = "vasl-admin-test-token-0123456789"
 PROJECT = "acl"
@@ -60,13 +59,8 @@ class Vasld:
             [_require(VASLD), "--address", "127.0.0.1:0", "--data-dir", self.data_dir,
              "--port-file", port_file, "--admin-token-file", token_file, *extra],
             stdout=self._log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 60
-        while not os.path.exists(port_file) and self.proc.poll() is None:
-            assert time.monotonic() < deadline, "vasld wrote no port file"
-            time.sleep(0.05)
+        self.address = _port_file_address(port_file, self.proc, self.log_path)
         assert self.proc.poll() is None, self.log()
-        with open(port_file) as f:
-            self.address = f"127.0.0.1:{int(f.read().strip())}"
         self.credentials = credentials
 
     def channel(self, token: str | None = None, credentials="default"):
