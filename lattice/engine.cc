@@ -1,4 +1,5 @@
 #include "lattice/engine.h"
+#include "lattice/operations.h"
 
 #include <algorithm>
 #include <cctype>
@@ -133,14 +134,20 @@ struct Engine::Impl {
   }
 
   /// Runs a committing flow (`flow(project)`) under the project's writer lock and publishes
-  /// its snapshot as HEAD; `added`: the flow added a scan (FinishAdded).
+  /// its snapshot as HEAD; `added`: the flow added a scan (FinishAdded); `op`: the request it
+  /// runs under (Replay first, then recorded by the commit).
   template <typename Flow>
-  absl::StatusOr<IngestResult> RunFlow(const std::string& project, bool added, Flow flow) {
+  absl::StatusOr<IngestResult> RunFlow(const std::string& project, bool added,
+                                       const store::OperationRecord& op, Flow flow) {
     const auto t0 = Clock::now();
     auto found = Find(project);
     if (!found.ok()) return found.status();
     Project& p = **found;
     std::lock_guard<std::mutex> writer(p.write_mu);
+    absl::StatusOr<std::optional<IngestResult>> replayed = ReplayOperation(*p.store, op);
+    if (!replayed.ok()) return replayed.status();
+    if (*replayed) return std::move(**replayed);
+    store::OperationScope scope(*p.store, op);
     absl::StatusOr<flows::FlowResult> done = flow(p);
     if (!done.ok()) return CollectAfterFailure(p, done.status());
     return added ? FinishAdded(p, std::move(*done), t0, IngestResult{})
@@ -271,6 +278,11 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
 
   std::lock_guard<std::mutex> writer(p.write_mu);
   store::ProjectStore& st = *p.store;
+  const store::OperationRecord op{scan.request_id, "ingest", scan.scan_name};
+  absl::StatusOr<std::optional<IngestResult>> replayed = ReplayOperation(st, op);
+  if (!replayed.ok()) return replayed.status();
+  if (*replayed) return std::move(**replayed);
+  store::OperationScope scope(st, op);
   auto exists = st.HasScan(scan.scan_name);
   if (!exists.ok()) return exists.status();
   if (*exists) {
@@ -297,7 +309,8 @@ absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
                                                  const BackProjectInput& input,
                                                  const ProgressFn& progress) {
   // On failure a stored image is collected at once (RunFlow).
-  return impl_->RunFlow(project, true, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
+  const store::OperationRecord op{input.request_id, "back-project", input.name};
+  return impl_->RunFlow(project, true, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
     return flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
@@ -305,20 +318,38 @@ absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
   });
 }
 
-absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const ProgressFn& progress) {
-  return impl_->RunFlow(project, false, [&](Impl::Project& p) {
+absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const ProgressFn& progress,
+                                             const std::string& request_id) {
+  const store::OperationRecord op{request_id, "rebuild", ""};
+  return impl_->RunFlow(project, false, op, [&](Impl::Project& p) {
     return flows::Rebuild(*p.store, impl_->limits.max_image_pixels, StageReporter(progress));
   });
 }
 
 absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, const std::string& scan,
-                                                const ProgressFn& progress) {
-  return impl_->RunFlow(project, false, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
+                                                const ProgressFn& progress,
+                                                const std::string& request_id) {
+  const store::OperationRecord op{request_id, "delete", scan};
+  return impl_->RunFlow(project, false, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
     return flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
                              StageReporter(progress));
   });
+}
+
+absl::StatusOr<std::optional<store::OperationRecord>> Engine::FindOperation(
+    const std::string& project, const store::OperationRecord& asked) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return FindCommitted(*(*p)->store, asked);
+}
+
+absl::Status Engine::SetOperationAnswer(const std::string& project, const std::string& request_id,
+                                        const std::string& answer) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  return (*p)->store->SetOperationAnswer(request_id, answer);
 }
 
 absl::StatusOr<std::vector<store::VersionInfo>> Engine::ListVersions(const std::string& project) {
@@ -456,7 +487,7 @@ absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
 
 absl::StatusOr<IngestResult> Engine::Rollback(const std::string& project, int64_t version,
                                               const ProgressFn& progress) {
-  return impl_->RunFlow(project, false, [&](Impl::Project& p) {
+  return impl_->RunFlow(project, false, store::OperationRecord{}, [&](Impl::Project& p) {
     return flows::Rollback(*p.store, version, StageReporter(progress));
   });
 }

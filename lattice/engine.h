@@ -15,6 +15,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -81,6 +82,10 @@ struct IngestResult {
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
   double seconds = 0.0;         ///< wall time of the whole flow
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
+  /// A retry: the change had already committed under its request id, and was not done again.
+  /// Only `version`, `scan_id` and `answer` are then set.
+  bool replayed = false;
+  std::string answer;           ///< replayed: the answer recorded (SetOperationAnswer), may be empty
 };
 
 using flows::BackProjectInput;
@@ -124,13 +129,27 @@ class Engine {
 
   /// Recomputes the whole project from its raw blobs as a new version (the oracle the
   /// incremental flows agree with). FAILED_PRECONDITION for a project without scans.
-  absl::StatusOr<IngestResult> Rebuild(const std::string& project, const ProgressFn& progress = {});
+  absl::StatusOr<IngestResult> Rebuild(const std::string& project, const ProgressFn& progress = {},
+                                       const std::string& request_id = "");
 
   /// A new version without scan `scan`: its records and geometry leave, the tiles it touched
   /// are recomputed from the other scans' blobs; its blobs go when retention drops the last
   /// version that has it. NOT_FOUND for an unknown scan.
   absl::StatusOr<IngestResult> DeleteScan(const std::string& project, const std::string& scan,
-                                          const ProgressFn& progress = {});
+                                          const ProgressFn& progress = {},
+                                          const std::string& request_id = "");
+
+  /// Changes under a request id (ScanInput::request_id, BackProjectInput::request_id and the
+  /// `request_id` of Rebuild and DeleteScan): one that committed is recorded with its version
+  /// in the same transaction, and a retry under the same id gets IngestResult::replayed
+  /// instead of a second change (FAILED_PRECONDITION when the id named another change;
+  /// INVALID_ARGUMENT for a malformed id). FindOperation: the change committed under
+  /// `asked.request_id`, or nullopt (with `asked.kind` set, FAILED_PRECONDITION when the id was
+  /// used for another change); SetOperationAnswer keeps the caller's answer (any bytes) with it.
+  absl::StatusOr<std::optional<store::OperationRecord>> FindOperation(
+      const std::string& project, const store::OperationRecord& asked);
+  absl::Status SetOperationAnswer(const std::string& project, const std::string& request_id,
+                                  const std::string& answer);
 
   /// Versions still kept, oldest first, with what made each and the bytes it wrote.
   absl::StatusOr<std::vector<store::VersionInfo>> ListVersions(const std::string& project);

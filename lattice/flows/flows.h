@@ -107,6 +107,7 @@ struct BackProjectInput {
   geometry::PinholeIntrinsics intrinsics;  ///< pinhole only (size from the image)
   std::string image;            ///< OpenEXR bytes with channels R, G, B, Z [, N.x, N.y, N.z, U, A]
   int64_t render_id = 0;        ///< the render it came from (0: none)
+  std::string request_id;       ///< the client's request id (ScanInput::request_id)
 };
 
 /// Back-projection (§10): validates `input` (image channels and size, pose, projection, cited

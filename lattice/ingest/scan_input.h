@@ -36,6 +36,9 @@ struct ScanInput {
   geometry::Pose pose;              ///< T_world_scanner of the LiDAR
   LidarData lidar;
   std::vector<PanoramaData> panoramas;
+  /// The client's request id (empty: none): a retry under the id of a committed ingest is
+  /// answered with that ingest's version instead of being ingested again.
+  std::string request_id;
 };
 
 /// Progress of a long operation: stage name and fraction of the whole in [0, 1].

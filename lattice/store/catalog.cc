@@ -132,6 +132,18 @@ constexpr char kRendersTable[] = R"sql(CREATE TABLE renders(
   created_utc TEXT NOT NULL);
 )sql";
 
+// A change a client asked for under its request id, with the version it committed (written in
+// that version's transaction) and the answer the caller recorded afterwards (hex, may be empty).
+constexpr char kOperationsTable[] = R"sql(CREATE TABLE operations(
+  request_id TEXT PRIMARY KEY,
+  kind TEXT NOT NULL,
+  subject TEXT NOT NULL,
+  version INTEGER NOT NULL,
+  scan_id INTEGER NOT NULL DEFAULT 0,
+  answer_hex TEXT NOT NULL DEFAULT '',
+  created_utc TEXT NOT NULL);
+)sql";
+
 }  // namespace
 
 absl::Status CreateSchema(Db& db) {
@@ -205,7 +217,8 @@ CREATE TABLE sources(
   camera TEXT NOT NULL DEFAULT '');
 CREATE INDEX sources_by_scan ON sources(scan_id);
 )sql",
-                              kScanLivesTable, kProfilesTable, kRendersTable, R"sql(
+                              kScanLivesTable, kProfilesTable, kRendersTable, kOperationsTable,
+                              R"sql(
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
   kind TEXT NOT NULL,
@@ -234,7 +247,9 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       // 4 → 5: renders, to be cited by what comes back.
       kRendersTable,
       // 5 → 6: the projection of a derived source.
-      "ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';\n"};
+      "ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';\n",
+      // 6 → 7: changes asked for under a request id.
+      kOperationsTable};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");
@@ -254,6 +269,7 @@ absl::Status DropRowsNewerThan(Db& db, int64_t head) {
                           "DELETE FROM sources WHERE version > ?1",
                           "DELETE FROM scans WHERE version > ?1",
                           "DELETE FROM batches WHERE version > ?1",
+                          "DELETE FROM operations WHERE version > ?1",
                           "DELETE FROM versions WHERE version > ?1"}) {
     absl::StatusOr<Stmt> stmt = db.Prepare(sql);
     absl::Status s = stmt.ok() ? stmt->Bind(1, head).Run() : stmt.status();

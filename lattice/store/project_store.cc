@@ -98,6 +98,18 @@ struct WrittenTile {
 
 }  // namespace
 
+absl::Status ValidateRequestId(const std::string& id) {
+  bool ok = !id.empty() && id.size() <= 128;
+  for (char c : id) ok = ok && (absl::ascii_isalnum(c) || c == '.' || c == '_' || c == ':' || c == '-');
+  if (!ok) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "invalid request id \"", absl::CHexEscape(id.substr(0, 64)),
+        id.size() > 64 ? "...\" (" : "\" (", id.size(),
+        " bytes): use 1-128 characters of [A-Za-z0-9._:-], e.g. a UUID"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status ValidateProjectName(const std::string& name) {
   bool ok = !name.empty() && name.size() <= 63 && absl::ascii_isalnum(name[0]);
   for (char c : name) {
@@ -128,6 +140,8 @@ struct ProjectStore::Impl {
 
   CommitStage fault_stage = CommitStage::kNone;
   bool fault_crash = false;
+
+  std::optional<OperationRecord> operation;  ///< BeginOperation's, recorded by the next Commit
 
   explicit Impl(Db d) : db(std::move(d)) {}
 
@@ -1192,6 +1206,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
           "(SELECT id FROM scans WHERE name = ?1)",
           [&](Stmt& st) { st.Bind(1, plan.delete_scan).Bind(2, version); });
     }
+    int64_t added_scan_id = 0;
     if (plan.add_scan) {
       const ScanInfo& scan = *plan.add_scan;
       run("INSERT INTO scans(name, rig, captured_utc, qx, qy, qz, qw, ox_m, oy_m, oz_m, "
@@ -1209,6 +1224,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
         if (!row.ok()) s = row.status();
         else if (*row) scan_id = st->Int(0);
       }
+      added_scan_id = scan_id;
       run("INSERT INTO scan_lives(scan_id, from_version) VALUES (?1, ?2)",
           [&](Stmt& st) { st.Bind(1, scan_id).Bind(2, version); });
       for (const SourceInfo& src : scan.sources) {
@@ -1239,6 +1255,15 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
           "VALUES (?1, 'ingest', ?2, ?3, ?4)",
           [&](Stmt& st) {
             st.Bind(1, int64_t{scan.batch}).Bind(2, scan_id).Bind(3, version).Bind(4, now);
+          });
+    }
+    if (im.operation) {
+      const OperationRecord& op = *im.operation;
+      run("INSERT INTO operations(request_id, kind, subject, version, scan_id, created_utc) "
+          "VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+          [&](Stmt& st) {
+            st.Bind(1, op.request_id).Bind(2, op.kind).Bind(3, op.subject).Bind(4, version);
+            st.Bind(5, added_scan_id).Bind(6, now);
           });
     }
     if (s.ok()) s = im.db.Exec("COMMIT;");
@@ -1290,6 +1315,45 @@ absl::StatusOr<std::vector<records::AttributeInfo>> ProjectStore::InspectRecords
   }
   return absl::FailedPreconditionError(
       absl::StrCat("version ", version, " of project ", impl_->name, " holds no records"));
+}
+
+void ProjectStore::BeginOperation(const OperationRecord& op) {
+  std::lock_guard<std::mutex> lock(impl_->commit_mu);
+  impl_->operation = op;
+}
+
+void ProjectStore::EndOperation() {
+  std::lock_guard<std::mutex> lock(impl_->commit_mu);
+  impl_->operation.reset();
+}
+
+absl::StatusOr<std::optional<OperationRecord>> ProjectStore::FindOperation(
+    const std::string& request_id) const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT kind, subject, version, scan_id, answer_hex, created_utc FROM operations "
+      "WHERE request_id = ?1");
+  if (!st.ok()) return st.status();
+  st->Bind(1, request_id);
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<OperationRecord>();
+  OperationRecord op;
+  op.request_id = request_id;
+  op.kind = st->Text(0);
+  op.subject = st->Text(1);
+  op.version = st->Int(2);
+  op.scan_id = st->Int(3);
+  op.answer = absl::HexStringToBytes(st->Text(4));
+  op.created_utc = st->Text(5);
+  return std::optional<OperationRecord>(std::move(op));
+}
+
+absl::Status ProjectStore::SetOperationAnswer(const std::string& request_id,
+                                              const std::string& answer) {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  return RunSql(impl_->db, "UPDATE operations SET answer_hex = ?2 WHERE request_id = ?1",
+                [&](Stmt& st) { st.Bind(1, request_id).Bind(2, absl::BytesToHexString(answer)); });
 }
 
 void ProjectStore::InjectCommitFailureForTesting(CommitStage stage, bool simulate_crash) {

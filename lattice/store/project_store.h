@@ -41,6 +41,10 @@ namespace vasl::store {
 /// digit (so never "." or ".."); INVALID_ARGUMENT saying so otherwise.
 absl::Status ValidateProjectName(const std::string& name);
 
+/// OK for a valid request id (OperationRecord): 1-128 characters of [A-Za-z0-9._:-] (a UUID
+/// fits); INVALID_ARGUMENT saying so otherwise.
+absl::Status ValidateRequestId(const std::string& id);
+
 /// Settings fixed when a project is created.
 struct ProjectSettings {
   double vossel_size_m = 0.02;  ///< vossel edge h, metres (§1)
@@ -132,6 +136,19 @@ struct VersionInfo {
   int64_t bytes_total = 0;    ///< bytes of every object its manifest references
   std::string made_by;        ///< "ingest scan S", "rebuild", "delete scan S", ...
   bool pinned = false;
+  std::string created_utc;
+};
+
+/// A change a client asked for under its own request id: recorded with the version it
+/// committed, in that version's transaction, so that a retry of a call whose answer was lost
+/// (deadline, dropped connection, restart) finds the version instead of doing the work again.
+struct OperationRecord {
+  std::string request_id;
+  std::string kind;      ///< "ingest", "back-project", "rebuild", "delete"
+  std::string subject;   ///< the scan or batch it names ("" for a rebuild)
+  int64_t version = 0;   ///< the version it committed
+  int64_t scan_id = 0;   ///< the scan it added (ingest, back-projection), else 0
+  std::string answer;    ///< the caller's answer, opaque to the store (SetOperationAnswer)
   std::string created_utc;
 };
 
@@ -277,6 +294,16 @@ class ProjectStore {
   absl::StatusOr<std::vector<records::AttributeInfo>> InspectRecords(int64_t version) const;
 
   /// Points of Commit after which a test can inject a failure.
+  /// The change the writer runs now under a client's request id: the next Commit records it
+  /// (OperationRecord) with its version. Call with the writer lock held; EndOperation after the
+  /// flow, whatever its outcome (OperationScope does both).
+  void BeginOperation(const OperationRecord& op);
+  void EndOperation();
+  /// The committed change recorded under `request_id`, or nullopt.
+  absl::StatusOr<std::optional<OperationRecord>> FindOperation(const std::string& request_id) const;
+  /// Keeps the caller's answer (any bytes) with a committed operation.
+  absl::Status SetOperationAnswer(const std::string& request_id, const std::string& answer);
+
   enum class CommitStage {
     kNone,          ///< no injected failure
     kAfterObjects,  ///< tile objects written and fsynced
@@ -291,6 +318,20 @@ class ProjectStore {
   struct Impl;
   explicit ProjectStore(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
+};
+
+/// BeginOperation for the life of the scope (nothing with an empty request id).
+class OperationScope {
+ public:
+  OperationScope(ProjectStore& store, const OperationRecord& op) : store_(store) {
+    if (!op.request_id.empty()) store_.BeginOperation(op);
+  }
+  ~OperationScope() { store_.EndOperation(); }
+  OperationScope(const OperationScope&) = delete;
+  OperationScope& operator=(const OperationScope&) = delete;
+
+ private:
+  ProjectStore& store_;
 };
 
 }  // namespace vasl::store

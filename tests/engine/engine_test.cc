@@ -216,6 +216,72 @@ TEST_F(EngineTest, BadInputLeavesProjectUnchanged) {
   EXPECT_EQ(after->record_count, before->record_count);
 }
 
+// Claim (ARCHITECTURE "Errors and limits"): a change sent under a request id is done once. A
+// retry gets the committed version back (replayed) without a new version; the id cannot name
+// another change; the record outlives the engine; without an id a duplicate scan is refused.
+TEST_F(EngineTest, RetryUnderARequestIdIsAnsweredFromItsCommit) {
+  const std::filesystem::path dir = *dir_ / ".." / (dir_->filename().string() + "-retry");
+  std::filesystem::remove_all(dir);
+  auto opened = Engine::Open(dir);  // a data directory of its own: the room stays alone
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  Engine* engine = opened->get();
+  store::ProjectSettings settings;
+  settings.vossel_size_m = kVosselM;
+  ASSERT_TRUE(engine->CreateProject("retry", settings).ok());
+  scenes::LidarSettings lidar;
+  lidar.azimuth_steps = 360;
+  lidar.elevation_steps = 180;
+  auto scan = scenes::MakeScanInput(*room_, 0, lidar, 256);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  scan->request_id = "3f2a9c1e-ingest-1";
+  auto first = engine->IngestScan("retry", *scan);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_FALSE(first->replayed);
+  ASSERT_TRUE(engine->SetOperationAnswer("retry", scan->request_id, std::string("ans\0wer", 7)).ok());
+
+  auto again = engine->IngestScan("retry", *scan);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_TRUE(again->replayed);
+  EXPECT_EQ(again->version, first->version);
+  EXPECT_EQ(again->scan_id, first->scan_id);
+  EXPECT_EQ(again->answer, std::string("ans\0wer", 7));
+  EXPECT_EQ(engine->GetProject("retry")->head_version, first->version) << "no second version";
+
+  ScanInput other = *scan;
+  other.scan_name = "another-scan";
+  auto reused = engine->IngestScan("retry", other);
+  EXPECT_EQ(reused.status().code(), absl::StatusCode::kFailedPrecondition) << reused.status();
+  std::printf("reused id: %s\n", std::string(reused.status().message()).c_str());
+  other.request_id = "not an id!";
+  EXPECT_EQ(engine->IngestScan("retry", other).status().code(), absl::StatusCode::kInvalidArgument);
+  ScanInput no_id = *scan;
+  no_id.request_id.clear();
+  EXPECT_EQ(engine->IngestScan("retry", no_id).status().code(), absl::StatusCode::kAlreadyExists);
+
+  auto deleted = engine->DeleteScan("retry", scan->scan_name, {}, "delete-1");
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  auto deleted_again = engine->DeleteScan("retry", scan->scan_name, {}, "delete-1");
+  ASSERT_TRUE(deleted_again.ok()) << deleted_again.status();
+  EXPECT_TRUE(deleted_again->replayed);
+  EXPECT_EQ(deleted_again->version, deleted->version);
+  EXPECT_EQ(engine->GetProject("retry")->head_version, deleted->version);
+
+  auto reopened = Engine::Open(dir);
+  ASSERT_TRUE(reopened.ok());
+  auto found = (*reopened)->FindOperation("retry", {"3f2a9c1e-ingest-1", "", ""});
+  ASSERT_TRUE(found.ok() && found->has_value()) << found.status();
+  EXPECT_EQ((*found)->kind, "ingest");
+  EXPECT_EQ((*found)->subject, scan->scan_name);
+  EXPECT_EQ((*found)->version, first->version);
+  EXPECT_EQ((*found)->answer, std::string("ans\0wer", 7));
+  auto unknown = (*reopened)->FindOperation("retry", {"never-sent", "", ""});
+  ASSERT_TRUE(unknown.ok());
+  EXPECT_FALSE(unknown->has_value());
+  opened->reset();
+  reopened->reset();
+  std::filesystem::remove_all(dir);
+}
+
 // Claim (ARCHITECTURE "Storage"): the project persists; a new engine on the same data dir sees
 // the same HEAD, scans and records, and renders from them.
 TEST_F(EngineTest, ReopenedStoreServesTheSameProject) {

@@ -386,6 +386,7 @@ TEST(ProjectStoreTest, OpenRecoversFromCrashedCommit) {
     ASSERT_TRUE(
         CommitScan(**store, MakeSnapshot(9, 700, 0.02, SourceIds(first), first.batch), first).ok());
     const ScanInfo crashed = MakeScan(**store, "crashed", 1.0);
+    (*store)->BeginOperation({"retry-me", "ingest", "crashed"});  // recorded with its version
     (*store)->InjectCommitFailureForTesting(ProjectStore::CommitStage::kAfterCatalog,
                                             /*simulate_crash=*/true);
     EXPECT_FALSE(CommitScan(**store,
@@ -393,6 +394,8 @@ TEST(ProjectStoreTest, OpenRecoversFromCrashedCommit) {
                             crashed)
                      .ok());
     EXPECT_TRUE(*(*store)->HasScan("crashed")) << "the simulated crash must leave its rows";
+    EXPECT_TRUE((*(*store)->FindOperation("retry-me")).has_value());
+    (*store)->EndOperation();
   }
   // More debris: a half-written staging file, an object nothing references, a partial blob.
   std::ofstream(dir / "objects" / ".tmp-deadbeef") << "partial";
@@ -408,6 +411,8 @@ TEST(ProjectStoreTest, OpenRecoversFromCrashedCommit) {
   EXPECT_EQ(FilesIn(dir / "objects"), ReferencedObjects(**store));
   EXPECT_FALSE(fs::exists(dir / "blobs" / ".tmp-abc-123"));
   EXPECT_EQ((*store)->HeadInfo()->version, 1);
+  // A change that did not reach HEAD is not committed: its request id is free for the retry.
+  EXPECT_FALSE((*(*store)->FindOperation("retry-me")).has_value());
   const ScanInfo retry = MakeScan(**store, "crashed", 1.0);
   EXPECT_EQ(retry.sources[0].id, 3);
   absl::StatusOr<int64_t> v = CommitScan(**store, 
@@ -597,6 +602,7 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
     char* err = nullptr;
     const int rc = sqlite3_exec(db,
         "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; DROP TABLE renders; "
+        "DROP TABLE operations; "
         "ALTER TABLE sources DROP COLUMN camera; "
         "ALTER TABLE project DROP COLUMN active_profile; "
         "CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL; "

@@ -1,0 +1,26 @@
+/// @file operations.h
+/// @brief Changes asked for under a client's request id (engine.h FindOperation): a retry of a
+///        change that committed is answered from the catalog instead of being done again.
+#pragma once
+
+#include <optional>
+
+#include "absl/status/statusor.h"
+#include "lattice/engine.h"
+#include "lattice/store/project_store.h"
+
+namespace vasl {
+
+/// The change committed under `asked.request_id` in `store`, or nullopt when the id is new.
+/// With `asked.kind` set, FAILED_PRECONDITION when the id was used for another change (kind or
+/// subject differ). INVALID_ARGUMENT for a malformed id.
+absl::StatusOr<std::optional<store::OperationRecord>> FindCommitted(
+    const store::ProjectStore& store, const store::OperationRecord& asked);
+
+/// With a request id (`op.request_id` non-empty): the change committed under it as a replayed
+/// IngestResult (FindCommitted), or nullopt when it must run (its commit then records it).
+/// Call with the writer lock held.
+absl::StatusOr<std::optional<IngestResult>> ReplayOperation(const store::ProjectStore& store,
+                                                            const store::OperationRecord& op);
+
+}  // namespace vasl
