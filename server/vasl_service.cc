@@ -99,12 +99,19 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       Finish(ToGrpcStatus(s));
       return;
     }
+    if (committed_) {  // a retry of a back-projection that committed: answered now
+      *response_ = committed_->back_project();
+      response_->set_request_id(committed_->request_id());
+      response_->set_replayed(true);
+      Finish(grpc::Status::OK);
+      return;
+    }
     request_.Clear();
     StartRead(&request_);
   }
 
   void OnDone() override {
-    service_->HoldIngestBytes(-held_bytes_);
+    service_->HoldIngestBytes(-held_bytes_).IgnoreError();  // giving back cannot fail
     if (has_slot_) service_->ReleaseSlot(client_);
     delete this;
   }
@@ -122,6 +129,12 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
         return s;
       }
       if (absl::Status full = service_->CheckDiskFloor(); !full.ok()) return full;
+      if (absl::Status s = service_->StartOperation(project_, h.request_id(), "back-project",
+                                                    h.name(), &committed_);
+          !s.ok() || committed_) {
+        return s;
+      }
+      request_id_ = input_.request_id = h.request_id();
       if (!h.has_pose()) return absl::InvalidArgumentError("header.pose is required");
       absl::StatusOr<geometry::Pose> pose = PoseFromProto(h.pose(), "header.pose");
       if (!pose.ok()) return pose.status();
@@ -179,10 +192,21 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
 
   void Run() {
     const ProgressFn progress = service_->ProgressReporter(
-        "BackProject", project_, "name=" + input_.name, start_);
+        "BackProject", project_, "name=" + input_.name, start_, request_id_);
     absl::StatusOr<IngestResult> r = service_->engine()->BackProject(project_, input_, progress);
     if (!r.ok()) {
       Finish(ToGrpcStatus(r.status()));
+      return;
+    }
+    response_->set_request_id(request_id_);
+    if (r->replayed) {  // it committed while this copy was uploading
+      *response_ = OperationFromRecord(project_, {request_id_, "back-project", input_.name,
+                                                  r->version, r->scan_id, r->answer})
+                       .back_project();
+      response_->set_request_id(request_id_);
+      response_->set_replayed(true);
+      replayed_ = true;
+      Finish(grpc::Status::OK);
       return;
     }
     auto scans = service_->engine()->ListScans(project_);
@@ -198,6 +222,12 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   }
 
   void Finish(const grpc::Status& status) {
+    if (!request_id_.empty()) {
+      v1::Operation done;
+      done.set_version(response_->version());
+      *done.mutable_back_project() = *response_;
+      service_->EndOperation(project_, request_id_, status, done, !replayed_);
+    }
     service_->LogRequest("BackProject", project_, status, start_);
     grpc::ServerReadReactor<v1::BackProjectRequest>::Finish(status);
   }
@@ -215,6 +245,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   std::string client_;
   bool has_slot_ = false;
   Clock::time_point start_;
+  std::string request_id_;                  // set once StartOperation marked it running
+  std::optional<v1::Operation> committed_;  // a retry of a committed back-projection
+  bool replayed_ = false;                   // answered from a commit under request_id_
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -265,6 +298,22 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
         Finish(ToGrpcStatus(full), false);
         return;
       }
+      const v1::ScanHeader& h = request_.header();
+      std::optional<v1::Operation> committed;
+      if (absl::Status s = service_->StartOperation(h.project(), h.request_id(), "ingest",
+                                                    h.scan(), &committed);
+          !s.ok()) {
+        Finish(ToGrpcStatus(s), false);
+        return;
+      }
+      if (committed) {  // a retry of an ingest that committed: answered now, nothing re-sent
+        *response_ = committed->ingest();
+        response_->set_request_id(h.request_id());
+        response_->set_replayed(true);
+        Finish(grpc::Status::OK, false);
+        return;
+      }
+      request_id_ = h.request_id();
     }
     absl::Status status = assembler_.Add(request_);
     if (status.ok()) {
@@ -297,7 +346,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
   }
 
   void OnDone() override {
-    service_->HoldIngestBytes(-held_bytes_);
+    service_->HoldIngestBytes(-held_bytes_).IgnoreError();  // giving back cannot fail
     if (has_slot_) service_->ReleaseSlot(client_);
     delete this;
   }
@@ -314,6 +363,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       return;
     }
     auto input = std::make_shared<ScanInput>(std::move(*scan));
+    input->request_id = request_id_;
     absl::Status queued = service_->pool()->Submit([this, input] { Run(*input); });
     if (!queued.ok()) Finish(ToGrpcStatus(queued), true);
   }
@@ -327,12 +377,23 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       p.set_received_bytes(received);
       p.set_elapsed_s(SecondsSince(start_));
     });
-    const ProgressFn progress =
-        service_->ProgressReporter("IngestScan", project, "scan=" + scan.scan_name, start_);
+    const ProgressFn progress = service_->ProgressReporter(
+        "IngestScan", project, "scan=" + scan.scan_name, start_, request_id_);
     absl::StatusOr<IngestResult> result =
         service_->engine()->IngestScan(project, scan, progress);
     if (!result.ok()) {
       Fail(result.status());
+      return;
+    }
+    response_->set_request_id(request_id_);
+    if (result->replayed) {  // it committed while this copy was uploading
+      *response_ = OperationFromRecord(project, {request_id_, "ingest", scan.scan_name,
+                                                 result->version, result->scan_id,
+                                                 result->answer}).ingest();
+      response_->set_request_id(request_id_);
+      response_->set_replayed(true);
+      replayed_ = true;
+      Finish(grpc::Status::OK, true);
       return;
     }
     response_->set_scan_id(result->scan_id);
@@ -364,6 +425,12 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
         p.set_elapsed_s(elapsed);
       });
     }
+    if (!request_id_.empty()) {
+      v1::Operation done;
+      done.set_version(response_->version());
+      *done.mutable_ingest() = *response_;
+      service_->EndOperation(project, request_id_, status, done, !replayed_);
+    }
     service_->LogRequest("IngestScan", project, status, start_);
     grpc::ServerReadReactor<v1::IngestScanRequest>::Finish(status);
   }
@@ -379,6 +446,8 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
   Caller caller_;           // authenticated when the stream opened
   std::string client_;
   bool has_slot_ = false;
+  std::string request_id_;  // set once StartOperation marked this ingest running
+  bool replayed_ = false;   // answered from an ingest that committed under request_id_
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -703,15 +772,17 @@ v1::IngestProgress VaslServiceImpl::GetProgress(const std::string& project) {
 }
 
 ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::string& project,
-                                             const std::string& what, Clock::time_point start) {
+                                             const std::string& what, Clock::time_point start,
+                                             const std::string& request_id) {
   struct State {
     std::mutex mu;  // the engine may report from several threads
     std::string last_stage;
   };
   auto state = std::make_shared<State>();
-  return [this, method, project, what, start, state](const Progress& step) {
+  return [this, method, project, what, start, state, request_id](const Progress& step) {
     const double elapsed = SecondsSince(start);
     std::lock_guard<std::mutex> lock(state->mu);
+    if (!request_id.empty()) operations_.Progress(project, request_id, step.stage, step.fraction);
     UpdateProgress(project, [&](v1::IngestProgress& p) {
       p.set_state(v1::IngestProgress::STATE_PROCESSING);
       p.set_stage(step.stage);
@@ -725,6 +796,42 @@ ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::stri
           Printable(project), Printable(what), step.stage, step.fraction, elapsed));
     }
   };
+}
+
+absl::Status VaslServiceImpl::StartOperation(const std::string& project,
+                                             const std::string& request_id,
+                                             const std::string& kind, const std::string& subject,
+                                             std::optional<v1::Operation>* committed) {
+  committed->reset();
+  if (request_id.empty()) return absl::OkStatus();
+  absl::StatusOr<std::optional<store::OperationRecord>> done =
+      engine_->FindOperation(project, store::OperationRecord{request_id, kind, subject});
+  if (!done.ok()) return done.status();
+  if (*done) {
+    *committed = OperationFromRecord(project, **done);
+    return absl::OkStatus();
+  }
+  return operations_.Begin(project, request_id, kind, subject);
+}
+
+void VaslServiceImpl::EndOperation(const std::string& project, const std::string& request_id,
+                                   const grpc::Status& status, const v1::Operation& done,
+                                   bool record) {
+  if (request_id.empty()) return;
+  if (!status.ok()) {
+    operations_.Fail(project, request_id, status);
+    return;
+  }
+  if (record) {
+    // Best effort: the version is committed and recorded already; without the answer a retry
+    // still learns it (OperationFromRecord).
+    if (absl::Status s = engine_->SetOperationAnswer(project, request_id, done.SerializeAsString());
+        !s.ok()) {
+      options_.log(absl::StrCat("operation ", request_id, ": its answer was not recorded: ",
+                                Printable(s.message())));
+    }
+  }
+  operations_.Succeed(project, request_id, done);
 }
 
 absl::StatusOr<Caller> VaslServiceImpl::Authenticate(
@@ -909,6 +1016,31 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetIngestProgress(
   });
 }
 
+grpc::ServerUnaryReactor* VaslServiceImpl::GetOperation(grpc::CallbackServerContext* context,
+                                                        const v1::GetOperationRequest* request,
+                                                        v1::Operation* response) {
+  return RunUnary(context, *request, "GetOperation", request->project(), Role::kRead,
+                  [this, request, response] {
+    const std::string& id = request->request_id();
+    if (absl::Status bad = store::ValidateRequestId(id); !bad.ok()) return ToGrpcStatus(bad);
+    if (std::optional<v1::Operation> seen = operations_.Get(request->project(), id)) {
+      *response = std::move(*seen);
+      return grpc::Status::OK;
+    }
+    absl::StatusOr<std::optional<store::OperationRecord>> done =
+        engine_->FindOperation(request->project(), store::OperationRecord{id, "", ""});
+    if (!done.ok()) return ToGrpcStatus(done.status());
+    if (!*done) {
+      return grpc::Status(grpc::StatusCode::NOT_FOUND,
+                          absl::StrCat("project ", request->project(), " has no operation \"", id,
+                                       "\": nothing committed under that id, and none running or "
+                                       "failed since the server started; send the change again"));
+    }
+    *response = OperationFromRecord(request->project(), **done);
+    return grpc::Status::OK;
+  });
+}
+
 grpc::ServerWriteReactor<v1::RenderResponse>* VaslServiceImpl::Render(
     grpc::CallbackServerContext* context, const v1::RenderRequest* request) {
   return new RenderReactor(this, context, request);
@@ -943,10 +1075,10 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* 
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
   return RunUnary(context, *request, "Rebuild", request->project(), Role::kWrite, [this, request, response] {
-    const ProgressFn progress =
-        ProgressReporter("Rebuild", request->project(), "rebuild", Clock::now());
-    absl::StatusOr<IngestResult> result = engine_->Rebuild(request->project(), progress);
-    return FinishChange(request->project(), result, response);
+    return RunChange(request->project(), request->request_id(), "rebuild", "", response,
+                     [&](const ProgressFn& progress) {
+                       return engine_->Rebuild(request->project(), progress, request->request_id());
+                     });
   });
 }
 
@@ -958,12 +1090,47 @@ grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContex
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
     }
-    const ProgressFn progress = ProgressReporter("DeleteScan", request->project(),
-                                                 "scan=" + request->scan(), Clock::now());
-    absl::StatusOr<IngestResult> result =
-        engine_->DeleteScan(request->project(), request->scan(), progress);
-    return FinishChange(request->project(), result, response);
+    return RunChange(request->project(), request->request_id(), "delete", request->scan(),
+                     response, [&](const ProgressFn& progress) {
+                       return engine_->DeleteScan(request->project(), request->scan(), progress,
+                                                  request->request_id());
+                     });
   });
+}
+
+grpc::Status VaslServiceImpl::RunChange(
+    const std::string& project, const std::string& request_id, const std::string& kind,
+    const std::string& subject, v1::ChangeResponse* response,
+    const std::function<absl::StatusOr<IngestResult>(const ProgressFn&)>& change) {
+  std::optional<v1::Operation> committed;
+  if (absl::Status s = StartOperation(project, request_id, kind, subject, &committed); !s.ok()) {
+    return ToGrpcStatus(s);
+  }
+  if (committed) {
+    *response = committed->change();
+    response->set_request_id(request_id);
+    response->set_replayed(true);
+    return grpc::Status::OK;
+  }
+  const std::string what = subject.empty() ? kind : absl::StrCat(kind, "=", subject);
+  const ProgressFn progress = ProgressReporter(kind == "rebuild" ? "Rebuild" : "DeleteScan",
+                                               project, what, Clock::now(), request_id);
+  const absl::StatusOr<IngestResult> result = change(progress);
+  grpc::Status status = FinishChange(project, result, response);
+  response->set_request_id(request_id);
+  const bool replayed = result.ok() && result->replayed;
+  if (replayed) {
+    *response = OperationFromRecord(project, {request_id, kind, subject, result->version,
+                                              result->scan_id, result->answer})
+                    .change();
+    response->set_request_id(request_id);
+    response->set_replayed(true);
+  }
+  v1::Operation done;
+  done.set_version(response->version());
+  *done.mutable_change() = *response;
+  EndOperation(project, request_id, status, done, !replayed);
+  return status;
 }
 
 grpc::Status VaslServiceImpl::FinishChange(const std::string& project,

@@ -22,6 +22,7 @@
 
 #include "lattice/engine.h"
 #include "server/access.h"
+#include "server/operations.h"
 #include "server/worker_pool.h"
 #include "vasl/v1/vasl.grpc.pb.h"
 
@@ -71,6 +72,9 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* GetIngestProgress(grpc::CallbackServerContext* context,
                                               const v1::GetIngestProgressRequest* request,
                                               v1::IngestProgress* response) override;
+  grpc::ServerUnaryReactor* GetOperation(grpc::CallbackServerContext* context,
+                                         const v1::GetOperationRequest* request,
+                                         v1::Operation* response) override;
   grpc::ServerWriteReactor<v1::RenderResponse>* Render(
       grpc::CallbackServerContext* context, const v1::RenderRequest* request) override;
   grpc::ServerUnaryReactor* InspectRecords(grpc::CallbackServerContext* context,
@@ -130,8 +134,22 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   // Used by the reactors (vasl_service.cc).
   /// A progress callback for a long engine call: it updates the progress board of `project`
   /// (GetIngestProgress) and logs one line per stage ("<method> progress project=… <what> …").
+  /// With a `request_id`, the operation's stage follows too (GetOperation).
   ProgressFn ProgressReporter(const char* method, const std::string& project,
-                              const std::string& what, std::chrono::steady_clock::time_point start);
+                              const std::string& what, std::chrono::steady_clock::time_point start,
+                              const std::string& request_id = "");
+  /// Before a change sent under `request_id` runs (nothing for an empty id): OK with
+  /// `*committed` set when it committed before (the call answers from it, replayed), else OK
+  /// having marked it running (end it with EndOperation); ABORTED while it runs,
+  /// INVALID_ARGUMENT for a malformed id, FAILED_PRECONDITION when the id named another change.
+  absl::Status StartOperation(const std::string& project, const std::string& request_id,
+                              const std::string& kind, const std::string& subject,
+                              std::optional<v1::Operation>* committed);
+  /// After a change StartOperation marked running: on success `done` (version and answer set)
+  /// is kept in memory and, with `record`, as the answer in the project's catalog; else the
+  /// failure is kept in memory.
+  void EndOperation(const std::string& project, const std::string& request_id,
+                    const grpc::Status& status, const v1::Operation& done, bool record);
   /// Where Export stages its files (the data directory's .tmp-export-*).
   std::filesystem::path ExportStagingPath() const;
   Engine* engine() const { return engine_; }
@@ -184,6 +202,12 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// Logs and finishes a unary call that was refused before any work.
   grpc::ServerUnaryReactor* Deny(grpc::CallbackServerContext* context, const char* method,
                                  const std::string& project, const grpc::Status& status);
+  /// A rebuild or deletion (`change`) under `request_id` (StartOperation, EndOperation): answered
+  /// from its commit when it committed before, else run with a progress reporter.
+  grpc::Status RunChange(const std::string& project, const std::string& request_id,
+                         const std::string& kind, const std::string& subject,
+                         v1::ChangeResponse* response,
+                         const std::function<absl::StatusOr<IngestResult>(const ProgressFn&)>& change);
   /// Marks a rebuild or deletion finished on the progress board and fills its response.
   grpc::Status FinishChange(const std::string& project, const absl::StatusOr<IngestResult>& result,
                             v1::ChangeResponse* response);
@@ -199,6 +223,7 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   std::mutex slots_mutex_;
   std::map<std::string, int> slots_;  // running calls per peer address
   std::atomic<int64_t> inflight_ingest_bytes_{0};
+  OperationTracker operations_;
 };
 
 }  // namespace vasl::server
