@@ -92,10 +92,14 @@ def _cmd_ingest(client: Client, args) -> int:
             for scan in read_e57(path):
                 jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest_e57_scan(
                     args.project, s, divergence_rad=args.divergence_rad,
-                    rig=f"e57:{os.path.basename(p)}", progress=bar)))
+                    rig=f"e57:{os.path.basename(p)}", progress=bar,
+                    request_id=args.request_id)))
         else:
             m = read_manifest(path)
-            jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar)))
+            jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar,
+                                                                request_id=args.request_id)))
+    if args.request_id and len(jobs) != 1:
+        raise ValueError(f"--request-id names one change, but {len(jobs)} scans were given")
     existing = set()
     if args.skip_existing:
         existing = {s.name for s in client.list_scans(args.project)}
@@ -109,11 +113,35 @@ def _cmd_ingest(client: Client, args) -> int:
         finally:
             if bar:
                 bar.done()
+        if r.replayed:
+            print(f"{r.scan}: already committed in version {r.version} under request "
+                  f"{r.request_id}; not ingested again")
+            continue
         stages = ", ".join(f"{k} {v:.2f}s" for k, v in r.stages.items())
         print(f"{r.scan}: version {r.version}, {r.point_count} points, {r.new_vossels} new vossels,"
               f" {r.vossel_count} vossels, {r.record_count} records, {r.total_seconds:.1f} s"
               + (f" ({stages})" if stages else ""))
     return 0
+
+
+def _cmd_operation(client: Client, args) -> int:
+    op = (client.wait_operation(args.project, args.request_id) if args.wait
+          else client.get_operation(args.project, args.request_id))
+    if args.json:
+        def plain(v):
+            return v.__dict__ if hasattr(v, "__dict__") else v
+        print(json.dumps({k: plain(v) for k, v in op.items()}, indent=2, default=plain))
+        return 0
+    what = f"{op['kind']} {op['subject']}".strip()
+    if op["state"] == "running":
+        print(f"{args.request_id}: {what} running, stage {op['stage']} "
+              f"({op['fraction'] * 100:.0f}%), {op['elapsed_s']:.1f} s")
+    elif op["state"] == "succeeded":
+        print(f"{args.request_id}: {what} committed in version {op['version']}")
+    else:
+        print(f"{args.request_id}: {what} failed: {op['error_message']} (nothing was stored; "
+              f"send it again)")
+    return 0 if op["state"] != "failed" else 1
 
 
 def _cmd_render(client: Client, args) -> int:
@@ -500,6 +528,16 @@ def build_parser() -> argparse.ArgumentParser:
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")
     ingest.add_argument("--quiet", action="store_true", help="no progress display")
+    ingest.add_argument("--request-id", metavar="ID",
+                        help="send the (one) scan under this id, e.g. to retry an ingest whose "
+                             "answer was lost: a committed one is not ingested twice "
+                             "(default: a fresh UUID per scan)")
+
+    operation = sub.add_parser("operation", help="what became of a change sent under a request id")
+    operation.add_argument("--project", required=True)
+    operation.add_argument("--request-id", required=True, metavar="ID")
+    operation.add_argument("--wait", action="store_true", help="wait while it runs")
+    operation.add_argument("--json", action="store_true")
 
     render = sub.add_parser("render", help="render an equirectangular panorama to EXR + PNG")
     render.add_argument("--project", required=True)
@@ -627,7 +665,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
                 "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,
-                "backproject": _cmd_backproject, "batch": _cmd_batch, "token": _cmd_token}
+                "backproject": _cmd_backproject, "batch": _cmd_batch, "token": _cmd_token,
+                "operation": _cmd_operation}
     try:
         token = None
         if args.token_file:

@@ -9,6 +9,7 @@ import os
 import tempfile
 import threading
 import time
+import uuid
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Union
 
 import grpc
@@ -52,7 +53,38 @@ def _change_stats(c) -> ChangeStats:
 
 def _change(r) -> ChangeResult:
     return ChangeResult(r.version, r.vossel_count, r.record_count, r.seconds,
-                        {s.stage: s.seconds for s in r.stages}, _change_stats(r.change))
+                        {s.stage: s.seconds for s in r.stages}, _change_stats(r.change),
+                        r.request_id, r.replayed)
+
+
+def _ingest_result(r) -> IngestResult:
+    return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
+                        r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
+                        {s.stage: s.seconds for s in r.stages}, _change_stats(r.change),
+                        r.request_id, r.replayed)
+
+
+def _back_project_result(r) -> dict:
+    return {"name": r.name, "version": r.version,
+            "pixels_back_projected": r.pixels_back_projected,
+            "pixels_outside": r.pixels_outside, "pixels_invalid": r.pixels_invalid,
+            "record_count": r.record_count, "seconds": r.seconds,
+            "request_id": r.request_id, "replayed": r.replayed}
+
+
+def new_request_id() -> str:
+    """A fresh request id for a change (a UUID): send a retry under the same one."""
+    return uuid.uuid4().hex
+
+
+# Codes after which a change may have committed without its answer reaching the client: the
+# client asks GetOperation before it sends the change again.
+_ANSWER_LOST = (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE,
+                grpc.StatusCode.ABORTED)
+_CODES = {c.value[0]: c for c in grpc.StatusCode}
+# How a change that stored nothing may have failed for want of its upload (the stream was cut):
+# sent again.
+_UPLOAD_CUT = _ANSWER_LOST + (grpc.StatusCode.CANCELLED,)
 
 
 def _wrap(method: str, err: grpc.RpcError) -> VaslError:
@@ -397,8 +429,15 @@ class Client:
                divergence_rad: float = 0.0003, panoramas: Sequence[dict] = (),
                rig: str = "", captured_utc: str = "",
                progress: Optional[Callable[[dict], None]] = None,
-               poll_s: float = 0.5) -> IngestResult:
+               poll_s: float = 0.5, request_id: Optional[str] = None,
+               retries: int = 2) -> IngestResult:
         """Ingests one scan, from a manifest (path or Manifest) or from arrays.
+
+        Every ingest is sent under a request id (`request_id`, or a fresh UUID): when a call
+        ends without an answer (deadline, lost connection, server restart) the client asks
+        the server what became of it (GetOperation), waits while it runs, and sends it again
+        (at most `retries` times) only when it did not commit, so a scan is never ingested
+        twice and never lost silently.
 
         Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
         (N, 3) linear per-point colour, which becomes a "point-colour" source], `pose`
@@ -452,21 +491,66 @@ class Client:
                                  encoded_size_bytes=len(image))
             images.append(bytes(image))
         total = len(point_bytes) + sum(len(b) for b in images)
+        header.request_id = request_id or new_request_id()
         return self.ingest_stream(header, point_bytes, images, total_bytes=total,
-                                  progress=progress, poll_s=poll_s)
+                                  progress=progress, poll_s=poll_s, retries=retries)
 
     def ingest_e57_scan(self, project: str, scan: E57Scan, *, divergence_rad: float = 0.0003,
-                        rig: str = "", progress: Optional[Callable[[dict], None]] = None
-                        ) -> IngestResult:
+                        rig: str = "", progress: Optional[Callable[[dict], None]] = None,
+                        request_id: Optional[str] = None) -> IngestResult:
         """Ingests one scan read by `read_e57`: its points, intensity, per-point colour (as a
         "point-colour" source) and pose."""
         return self.ingest(project, scan=scan.scan, points=scan.cloud.xyz_m,
                            intensity=scan.cloud.intensity, rgb=scan.cloud.rgb, pose=scan.pose,
-                           divergence_rad=divergence_rad, rig=rig, progress=progress)
+                           divergence_rad=divergence_rad, rig=rig, progress=progress,
+                           request_id=request_id)
 
     def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],
-                      *, total_bytes: int = 0, progress=None, poll_s: float = 0.5) -> IngestResult:
-        """Sends a prepared header and payloads (no client-side validation)."""
+                      *, total_bytes: int = 0, progress=None, poll_s: float = 0.5,
+                      retries: int = 0) -> IngestResult:
+        """Sends a prepared header and payloads (no client-side validation); with
+        `header.request_id` set, a call whose answer is lost is resolved as in `ingest`."""
+        return self._with_retries(
+            header.project, header.request_id, retries, "IngestScan", "ingest",
+            lambda: self._ingest_once(header, point_bytes, images, total_bytes, progress, poll_s))
+
+    def _with_retries(self, project: str, request_id: str, retries: int, method: str, answer: str,
+                      send: Callable[[], object]):
+        """Runs `send` (a change under `request_id`); when its answer is lost, asks the
+        server: a committed change is answered from GetOperation, a failed or unknown one is
+        sent again (at most `retries` times)."""
+        attempt = 0
+        while True:
+            try:
+                return send()
+            except VaslError as e:
+                if not request_id or e.code not in _ANSWER_LOST:
+                    raise
+                try:
+                    op = self.wait_operation(project, request_id, missing_ok=True)
+                except VaslError as asked:
+                    if asked.code != grpc.StatusCode.UNAVAILABLE:
+                        raise
+                    # The server is down: its answer is unknown. The caller resolves it later
+                    # (get_operation, `vasl operation`) or retries under the same id.
+                    raise e from None
+                if op is not None and op["state"] == "succeeded" and op.get(answer) is not None:
+                    result = op[answer]
+                    if isinstance(result, dict):
+                        result["replayed"] = True
+                    else:
+                        result.replayed = True
+                    return result
+                code = _CODES.get(op["error_code"]) if op is not None else None
+                if op is not None and op["state"] == "failed" and code not in _UPLOAD_CUT:
+                    # It ran and failed for a reason of its own: sending it again would too.
+                    raise VaslError(code or grpc.StatusCode.UNKNOWN, op["error_message"],
+                                    method) from None
+                if attempt >= retries:
+                    raise
+                attempt += 1
+
+    def _ingest_once(self, header, point_bytes, images, total_bytes, progress, poll_s):
         state = {"sent": 0}
 
         def on_sent(n):
@@ -498,9 +582,61 @@ class Client:
             r = future.result()
         except grpc.RpcError as e:
             raise _wrap("IngestScan", e) from None
-        return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
-                            r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
-                            {s.stage: s.seconds for s in r.stages}, _change_stats(r.change))
+        return _ingest_result(r)
+
+    _OPERATION_STATES = {pb.Operation.STATE_RUNNING: "running",
+                         pb.Operation.STATE_SUCCEEDED: "succeeded",
+                         pb.Operation.STATE_FAILED: "failed"}
+
+    def get_operation(self, project: str, request_id: str) -> dict:
+        """What became of a change sent under `request_id`: a dict with state ("running",
+        "succeeded", "failed"), kind, subject, stage, fraction, elapsed_s, version,
+        error_code/error_message (failed) and its answer under "ingest" (IngestResult),
+        "back_project" (dict) or "change" (ChangeResult). VaslError NOT_FOUND for an id the
+        project does not know."""
+        self._check_name(project)
+        op = self._call("GetOperation", pb.GetOperationRequest(project=project,
+                                                               request_id=request_id))
+        out = {"project": op.project, "request_id": op.request_id, "kind": op.kind,
+               "subject": op.subject, "state": self._OPERATION_STATES.get(op.state, "unknown"),
+               "stage": op.stage, "fraction": op.fraction, "elapsed_s": op.elapsed_s,
+               "version": op.version, "error_code": op.error_code,
+               "error_message": op.error_message}
+        which = op.WhichOneof("answer")
+        if which == "ingest":
+            out["ingest"] = _ingest_result(op.ingest)
+        elif which == "back_project":
+            out["back_project"] = _back_project_result(op.back_project)
+        elif which == "change":
+            out["change"] = _change(op.change)
+        return out
+
+    def wait_operation(self, project: str, request_id: str, *, timeout_s: float = 3600.0,
+                       poll_s: float = 0.5, missing_ok: bool = False,
+                       unavailable_s: float = 5.0) -> Optional[dict]:
+        """get_operation until the change is no longer running (at most `timeout_s`; then
+        the last state). With `missing_ok`, None for an id the project does not know.
+        VaslError UNAVAILABLE when the server cannot be reached for `unavailable_s`."""
+        deadline = time.monotonic() + timeout_s
+        unreachable_since = None
+        while True:
+            try:
+                op = self.get_operation(project, request_id)
+                unreachable_since = None
+            except VaslError as e:
+                if missing_ok and e.code == grpc.StatusCode.NOT_FOUND:
+                    return None
+                if e.code != grpc.StatusCode.UNAVAILABLE:
+                    raise
+                now = time.monotonic()
+                unreachable_since = unreachable_since or now
+                if now - unreachable_since > unavailable_s or now > deadline:
+                    raise
+                time.sleep(poll_s)
+                continue
+            if op["state"] != "running" or time.monotonic() > deadline:
+                return op
+            time.sleep(poll_s)
 
     def _poll_progress(self, project: str, future, progress, poll_s: float = 0.5) -> None:
         """Reports the server's progress of a long call in `project` until `future` is done."""
@@ -518,18 +654,26 @@ class Client:
                 progress({"stage": p.stage, "fraction": p.fraction})
 
     # -- store: rebuild, deletion, versions, export ------------------------------------------
-    def rebuild(self, project: str) -> ChangeResult:
-        """Recomputes the whole project from its raw blobs as a new version."""
+    def rebuild(self, project: str, *, request_id: Optional[str] = None,
+                retries: int = 1) -> ChangeResult:
+        """Recomputes the whole project from its raw blobs as a new version (under a request
+        id, resolved as in `ingest` when the answer is lost)."""
         self._check_name(project)
-        return _change(self._call("Rebuild", pb.RebuildRequest(project=project)))
+        rid = request_id or new_request_id()
+        return self._with_retries(project, rid, retries, "Rebuild", "change", lambda: _change(
+            self._call("Rebuild", pb.RebuildRequest(project=project, request_id=rid))))
 
-    def delete_scan(self, project: str, scan: str) -> ChangeResult:
+    def delete_scan(self, project: str, scan: str, *, request_id: Optional[str] = None,
+                    retries: int = 1) -> ChangeResult:
         """A new version without `scan` (its blobs go when retention drops the last version
-        that has it)."""
+        that has it); under a request id as `rebuild`."""
         self._check_name(project)
         if not scan:
             raise ValueError("scan must be a non-empty scan id")
-        return _change(self._call("DeleteScan", pb.DeleteScanRequest(project=project, scan=scan)))
+        rid = request_id or new_request_id()
+        return self._with_retries(project, rid, retries, "DeleteScan", "change", lambda: _change(
+            self._call("DeleteScan", pb.DeleteScanRequest(project=project, scan=scan,
+                                                          request_id=rid))))
 
     def list_versions(self, project: str, *, page_size: int = 0) -> List[Version]:
         self._check_name(project)
@@ -583,7 +727,8 @@ class Client:
         return _change(self._call("Rollback", pb.RollbackRequest(project=project, version=version)))
 
     def back_project(self, project: str, image: Union[bytes, str], pose, *, name: str = "",
-                     pinhole: Optional[dict] = None, render_id: int = 0) -> dict:
+                     pinhole: Optional[dict] = None, render_id: int = 0,
+                     request_id: Optional[str] = None, retries: int = 1) -> dict:
         """Sends an RGBZ image (OpenEXR bytes or a path; channels R, G, B, Z and optionally
         N.x, N.y, N.z, U, A) back as derived data (VASL-MODEL §10): its pixels become derived
         records in a new batch `name`. `pose` is the image's camera pose; `pinhole` as for
@@ -595,7 +740,8 @@ class Client:
         if not image:
             raise ValueError("the image is empty")
         header = pb.BackProjectHeader(project=project, name=name, pose=pose_to_pb(Pose.parse(pose)),
-                                      render_id=int(render_id), image_size_bytes=len(image))
+                                      render_id=int(render_id), image_size_bytes=len(image),
+                                      request_id=request_id or new_request_id())
         if pinhole is not None:
             header.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
 
@@ -604,15 +750,15 @@ class Client:
             for at in range(0, len(image), self.chunk_bytes):
                 yield pb.BackProjectRequest(image_chunk=image[at:at + self.chunk_bytes])
 
-        try:
-            r = self.stub.BackProject(requests(), timeout=self.timeout_s)
-        except grpc.RpcError as e:
-            raise _wrap("BackProject", e) from None
-        return {"name": r.name, "version": r.version,
-                "pixels_back_projected": r.pixels_back_projected,
-                "pixels_outside": r.pixels_outside, "pixels_invalid": r.pixels_invalid,
-                "record_count": r.record_count,
-                "seconds": r.seconds}
+        def send():
+            try:
+                return _back_project_result(self.stub.BackProject(requests(),
+                                                                  timeout=self.timeout_s))
+            except grpc.RpcError as e:
+                raise _wrap("BackProject", e) from None
+
+        return self._with_retries(project, header.request_id, retries, "BackProject",
+                                  "back_project", send)
 
     # -- access control ------------------------------------------------------------------
     _ROLES = {"read": pb.ROLE_READ, "write": pb.ROLE_WRITE, "admin": pb.ROLE_ADMIN}

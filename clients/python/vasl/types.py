@@ -128,6 +128,8 @@ class IngestResult:
     total_seconds: float
     stages: Dict[str, float] = field(default_factory=dict)  #: stage -> seconds, in order
     change: ChangeStats = field(default_factory=ChangeStats)
+    request_id: str = ""  #: the id the ingest was sent under (retries under it are answered once)
+    replayed: bool = False  #: the ingest had committed before; this answers a retry
 
 
 @dataclass
@@ -140,6 +142,8 @@ class ChangeResult:
     seconds: float
     stages: Dict[str, float] = field(default_factory=dict)
     change: ChangeStats = field(default_factory=ChangeStats)
+    request_id: str = ""
+    replayed: bool = False
 
 
 @dataclass
