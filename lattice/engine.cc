@@ -135,11 +135,11 @@ struct Engine::Impl {
 
   /// Runs a committing flow (`flow(project)`) under the project's writer lock and publishes
   /// its snapshot as HEAD; `added`: the flow added a scan (FinishAdded); `op`: the request it
-  /// runs under (Replay first, then recorded by the commit).
+  /// runs under (Replay first, then recorded by the commit); `t0`: when the caller's work began.
   template <typename Flow>
   absl::StatusOr<IngestResult> RunFlow(const std::string& project, bool added,
-                                       const store::OperationRecord& op, Flow flow) {
-    const auto t0 = Clock::now();
+                                       const store::OperationRecord& op, Flow flow,
+                                       Clock::time_point t0 = Clock::now()) {
     auto found = Find(project);
     if (!found.ok()) return found.status();
     Project& p = **found;
@@ -263,46 +263,41 @@ absl::StatusOr<std::vector<store::ScanInfo>> Engine::ListScans(const std::string
 absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,
                                                 const ProgressFn& progress) {
   const auto t0 = Clock::now();
-  IngestResult result;
+  std::vector<std::pair<std::string, double>> stages;  // before the flow's own
   auto stage_clock = Clock::now();
   const auto stage_done = [&](const char* stage, double fraction) {
-    result.stage_seconds.emplace_back(stage, SecondsSince(stage_clock));
+    stages.emplace_back(stage, SecondsSince(stage_clock));
     stage_clock = Clock::now();
     if (progress) progress({stage, fraction});
   };
-  auto found = impl_->Find(project);
-  if (!found.ok()) return found.status();
-  Impl::Project& p = **found;
+  // An unknown project is named before any image is decoded; decoding runs outside the lock.
+  if (auto found = impl_->Find(project); !found.ok()) return found.status();
   auto images = ingest::ValidateScan(scan, impl_->ScanLimits());
   if (!images.ok()) return images.status();
 
-  std::lock_guard<std::mutex> writer(p.write_mu);
-  store::ProjectStore& st = *p.store;
   const store::OperationRecord op{scan.request_id, "ingest", scan.scan_name};
-  absl::StatusOr<std::optional<IngestResult>> replayed = ReplayOperation(st, op);
-  if (!replayed.ok()) return replayed.status();
-  if (*replayed) return std::move(**replayed);
-  store::OperationScope scope(st, op);
-  auto exists = st.HasScan(scan.scan_name);
-  if (!exists.ok()) return exists.status();
-  if (*exists) {
-    return absl::AlreadyExistsError(absl::StrCat("project '", project, "' already has a scan '",
-                                                 scan.scan_name, "'"));
-  }
-  stage_done("validate", 0.05);
+  return impl_->RunFlow(project, true, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
+    store::ProjectStore& st = *p.store;
+    auto exists = st.HasScan(scan.scan_name);
+    if (!exists.ok()) return exists.status();
+    if (*exists) {
+      return absl::AlreadyExistsError(absl::StrCat("project '", project, "' already has a scan '",
+                                                   scan.scan_name, "'"));
+    }
+    stage_done("validate", 0.05);
 
-  // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
-  auto info = flows::StoreScanBlobs(st, scan, *images);
-  if (!info.ok()) return Impl::CollectAfterFailure(p, info.status());
-  stage_done("store blobs", 0.15);
+    // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
+    auto info = flows::StoreScanBlobs(st, scan, *images);
+    if (!info.ok()) return info.status();
+    stage_done("store blobs", 0.15);
 
-  auto head = impl_->Snapshot(p, 0);
-  if (!head.ok()) return Impl::CollectAfterFailure(p, head.status());
-  auto flow = flows::IngestScan(st, **head, *info, scan.lidar, std::move(*images),
-                                impl_->limits.max_image_pixels,
-                                StageReporter(progress));
-  if (!flow.ok()) return Impl::CollectAfterFailure(p, flow.status());
-  return impl_->FinishAdded(p, std::move(*flow), t0, std::move(result));
+    auto head = impl_->Snapshot(p, 0);
+    if (!head.ok()) return head.status();
+    auto flow = flows::IngestScan(st, **head, *info, scan.lidar, std::move(*images),
+                                  impl_->limits.max_image_pixels, StageReporter(progress));
+    if (flow.ok()) flow->stage_seconds.insert(flow->stage_seconds.begin(), stages.begin(), stages.end());
+    return flow;
+  }, t0);
 }
 
 absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
