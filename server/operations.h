@@ -56,4 +56,25 @@ class OperationTracker {
 /// recorded one (a serialized Operation), else what the record itself holds.
 v1::Operation OperationFromRecord(const std::string& project, const store::OperationRecord& rec);
 
+/// The call's response kept as an Operation's answer (`slot`: its mutable accessor, e.g.
+/// &v1::Operation::mutable_ingest), with its version.
+template <typename Response>
+v1::Operation OperationWithAnswer(const Response& response, Response* (v1::Operation::*slot)()) {
+  v1::Operation op;
+  op.set_version(response.version());
+  *(op.*slot)() = response;
+  return op;
+}
+
+/// The answer to a retry of a change that committed: `committed`'s answer (`answer`: its
+/// accessor, e.g. &v1::Operation::ingest), marked replayed under its request id.
+template <typename Response>
+Response ReplayedAnswer(const v1::Operation& committed,
+                        const Response& (v1::Operation::*answer)() const) {
+  Response response = (committed.*answer)();
+  response.set_request_id(committed.request_id());
+  response.set_replayed(true);
+  return response;
+}
+
 }  // namespace vasl::server

@@ -100,9 +100,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       return;
     }
     if (committed_) {  // a retry of a back-projection that committed: answered now
-      *response_ = committed_->back_project();
-      response_->set_request_id(committed_->request_id());
-      response_->set_replayed(true);
+      *response_ = ReplayedAnswer(*committed_, &v1::Operation::back_project);
       Finish(grpc::Status::OK);
       return;
     }
@@ -200,11 +198,10 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
     }
     response_->set_request_id(request_id_);
     if (r->replayed) {  // it committed while this copy was uploading
-      *response_ = OperationFromRecord(project_, {request_id_, "back-project", input_.name,
-                                                  r->version, r->scan_id, r->answer})
-                       .back_project();
-      response_->set_request_id(request_id_);
-      response_->set_replayed(true);
+      *response_ = ReplayedAnswer(
+          OperationFromRecord(project_, {request_id_, "back-project", input_.name, r->version,
+                                         r->scan_id, r->answer}),
+          &v1::Operation::back_project);
       replayed_ = true;
       Finish(grpc::Status::OK);
       return;
@@ -223,10 +220,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
 
   void Finish(const grpc::Status& status) {
     if (!request_id_.empty()) {
-      v1::Operation done;
-      done.set_version(response_->version());
-      *done.mutable_back_project() = *response_;
-      service_->EndOperation(project_, request_id_, status, done, !replayed_);
+      service_->EndOperation(project_, request_id_, status,
+                             OperationWithAnswer(*response_, &v1::Operation::mutable_back_project),
+                             !replayed_);
     }
     service_->LogRequest("BackProject", project_, status, start_);
     grpc::ServerReadReactor<v1::BackProjectRequest>::Finish(status);
@@ -307,9 +303,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
         return;
       }
       if (committed) {  // a retry of an ingest that committed: answered now, nothing re-sent
-        *response_ = committed->ingest();
-        response_->set_request_id(h.request_id());
-        response_->set_replayed(true);
+        *response_ = ReplayedAnswer(*committed, &v1::Operation::ingest);
         Finish(grpc::Status::OK, false);
         return;
       }
@@ -387,11 +381,10 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     }
     response_->set_request_id(request_id_);
     if (result->replayed) {  // it committed while this copy was uploading
-      *response_ = OperationFromRecord(project, {request_id_, "ingest", scan.scan_name,
-                                                 result->version, result->scan_id,
-                                                 result->answer}).ingest();
-      response_->set_request_id(request_id_);
-      response_->set_replayed(true);
+      *response_ = ReplayedAnswer(
+          OperationFromRecord(project, {request_id_, "ingest", scan.scan_name, result->version,
+                                        result->scan_id, result->answer}),
+          &v1::Operation::ingest);
       replayed_ = true;
       Finish(grpc::Status::OK, true);
       return;
@@ -426,10 +419,9 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       });
     }
     if (!request_id_.empty()) {
-      v1::Operation done;
-      done.set_version(response_->version());
-      *done.mutable_ingest() = *response_;
-      service_->EndOperation(project, request_id_, status, done, !replayed_);
+      service_->EndOperation(project, request_id_, status,
+                             OperationWithAnswer(*response_, &v1::Operation::mutable_ingest),
+                             !replayed_);
     }
     service_->LogRequest("IngestScan", project, status, start_);
     grpc::ServerReadReactor<v1::IngestScanRequest>::Finish(status);
@@ -1023,13 +1015,20 @@ grpc::ServerUnaryReactor* VaslServiceImpl::GetOperation(grpc::CallbackServerCont
                   [this, request, response] {
     const std::string& id = request->request_id();
     if (absl::Status bad = store::ValidateRequestId(id); !bad.ok()) return ToGrpcStatus(bad);
-    if (std::optional<v1::Operation> seen = operations_.Get(request->project(), id)) {
+    // Memory first (running changes are only there); a failure seen there yields to a commit
+    // in the catalog, which is the record of what happened.
+    std::optional<v1::Operation> seen = operations_.Get(request->project(), id);
+    if (seen && seen->state() != v1::Operation::STATE_FAILED) {
       *response = std::move(*seen);
       return grpc::Status::OK;
     }
     absl::StatusOr<std::optional<store::OperationRecord>> done =
         engine_->FindOperation(request->project(), store::OperationRecord{id, "", ""});
     if (!done.ok()) return ToGrpcStatus(done.status());
+    if (!*done && seen) {
+      *response = std::move(*seen);
+      return grpc::Status::OK;
+    }
     if (!*done) {
       return grpc::Status(grpc::StatusCode::NOT_FOUND,
                           absl::StrCat("project ", request->project(), " has no operation \"", id,
@@ -1107,9 +1106,7 @@ grpc::Status VaslServiceImpl::RunChange(
     return ToGrpcStatus(s);
   }
   if (committed) {
-    *response = committed->change();
-    response->set_request_id(request_id);
-    response->set_replayed(true);
+    *response = ReplayedAnswer(*committed, &v1::Operation::change);
     return grpc::Status::OK;
   }
   const std::string what = subject.empty() ? kind : absl::StrCat(kind, "=", subject);
@@ -1120,16 +1117,13 @@ grpc::Status VaslServiceImpl::RunChange(
   response->set_request_id(request_id);
   const bool replayed = result.ok() && result->replayed;
   if (replayed) {
-    *response = OperationFromRecord(project, {request_id, kind, subject, result->version,
-                                              result->scan_id, result->answer})
-                    .change();
-    response->set_request_id(request_id);
-    response->set_replayed(true);
+    *response = ReplayedAnswer(OperationFromRecord(project, {request_id, kind, subject,
+                                                             result->version, result->scan_id,
+                                                             result->answer}),
+                               &v1::Operation::change);
   }
-  v1::Operation done;
-  done.set_version(response->version());
-  *done.mutable_change() = *response;
-  EndOperation(project, request_id, status, done, !replayed);
+  EndOperation(project, request_id, status,
+               OperationWithAnswer(*response, &v1::Operation::mutable_change), !replayed);
   return status;
 }
 
