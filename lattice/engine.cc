@@ -27,7 +27,7 @@ double SecondsSince(Clock::time_point t0) {
 // A flow's stage reports as the caller's progress (may be empty).
 flows::StageFn StageReporter(const ProgressFn& progress) {
   return [&progress](const std::string& stage, double fraction) {
-    if (progress) progress({stage, fraction});
+    return progress ? progress({stage, fraction}) : absl::OkStatus();
   };
 }
 
@@ -268,7 +268,7 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
   const auto stage_done = [&](const char* stage, double fraction) {
     stages.emplace_back(stage, SecondsSince(stage_clock));
     stage_clock = Clock::now();
-    if (progress) progress({stage, fraction});
+    return progress ? progress({stage, fraction}) : absl::OkStatus();
   };
   // An unknown project is named before any image is decoded; decoding runs outside the lock.
   if (auto found = impl_->Find(project); !found.ok()) return found.status();
@@ -284,12 +284,12 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
       return absl::AlreadyExistsError(absl::StrCat("project '", project, "' already has a scan '",
                                                    scan.scan_name, "'"));
     }
-    stage_done("validate", 0.05);
+    if (absl::Status stop = stage_done("validate", 0.05); !stop.ok()) return stop;
 
     // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
     auto info = flows::StoreScanBlobs(st, scan, *images);
     if (!info.ok()) return info.status();
-    stage_done("store blobs", 0.15);
+    if (absl::Status stop = stage_done("store blobs", 0.15); !stop.ok()) return stop;
 
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
@@ -425,17 +425,25 @@ absl::Status Engine::SetActiveProfile(const std::string& project, const std::str
 absl::StatusOr<reweight::ReweightResult> Engine::Reweight(const std::string& project,
                                                           const std::string& name,
                                                           int32_t revision,
-                                                          const ProgressFn& progress) {
+                                                          const ProgressFn& progress,
+                                                          const std::string& request_id) {
   auto found = impl_->Find(project);
   if (!found.ok()) return found.status();
   Impl::Project& p = **found;
   auto profile = impl_->Profile(p, name, revision);
   if (!profile.ok()) return profile.status();
+  const store::OperationRecord op{request_id, "reweight", ReweightSubject(name, revision)};
   std::lock_guard<std::mutex> writer(p.write_mu);
+  absl::StatusOr<std::optional<reweight::ReweightResult>> replayed = ReplayReweight(*p.store, op);
+  if (!replayed.ok()) return replayed.status();
+  if (*replayed) return std::move(**replayed);
+  store::OperationScope scope(*p.store, op);
   auto result = reweight::Reweight(*p.store, profile->profile, [&](int64_t done, int64_t total) {
-    if (progress) progress({absl::StrCat("fused tile ", done, " of ", total), double(done) / total});
+    return progress ? progress({absl::StrCat("fused tile ", done, " of ", total),
+                                double(done) / double(total)})
+                    : absl::OkStatus();
   });
-  if (!result.ok()) return result.status();
+  if (!result.ok()) return Impl::CollectAfterFailure(p, result.status());
   if (!result->unchanged) {  // HEAD keeps its arrays; only its manifest gained a layer
     std::lock_guard<std::mutex> lock(p.head_mu);
     if (p.head) {

@@ -174,10 +174,13 @@ class Engine {
   absl::Status SetActiveProfile(const std::string& project, const std::string& name);
 
   /// The reweight flow (§7): a new version whose tiles hold fused values under profile `name`
-  /// at `revision` (0: latest; empty: active), from the stored records alone.
+  /// at `revision` (0: latest; empty: active), from the stored records alone. Under a request
+  /// id as the other changes (its subject "NAME@REVISION"); a reweight that changed nothing
+  /// (ReweightResult::unchanged) commits nothing and records no id.
   absl::StatusOr<reweight::ReweightResult> Reweight(const std::string& project,
                                                     const std::string& name, int32_t revision,
-                                                    const ProgressFn& progress = {});
+                                                    const ProgressFn& progress = {},
+                                                    const std::string& request_id = "");
 
   /// Multi-scan radiometric normalisation (§7) of HEAD's RGB records weighed under profile
   /// `base` (empty: active): the gains become a new revision of profile `name` (empty: base's

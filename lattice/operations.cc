@@ -34,4 +34,21 @@ absl::StatusOr<std::optional<IngestResult>> ReplayOperation(const store::Project
   return std::optional<IngestResult>(std::move(replayed));
 }
 
+absl::StatusOr<std::optional<reweight::ReweightResult>> ReplayReweight(
+    const store::ProjectStore& store, const store::OperationRecord& op) {
+  absl::StatusOr<std::optional<IngestResult>> done = ReplayOperation(store, op);
+  if (!done.ok()) return done.status();
+  if (!*done) return std::optional<reweight::ReweightResult>();
+  reweight::ReweightResult replayed;
+  replayed.version = (*done)->version;
+  replayed.replayed = true;
+  replayed.answer = std::move((*done)->answer);
+  return std::optional<reweight::ReweightResult>(std::move(replayed));
+}
+
+std::string ReweightSubject(const std::string& profile, int32_t revision) {
+  return absl::StrCat(profile.empty() ? "active" : profile, "@",
+                      revision == 0 ? std::string("latest") : absl::StrCat(revision));
+}
+
 }  // namespace vasl

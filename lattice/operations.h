@@ -4,6 +4,7 @@
 #pragma once
 
 #include <optional>
+#include <string>
 
 #include "absl/status/statusor.h"
 #include "lattice/engine.h"
@@ -17,10 +18,19 @@ namespace vasl {
 absl::StatusOr<std::optional<store::OperationRecord>> FindCommitted(
     const store::ProjectStore& store, const store::OperationRecord& asked);
 
+/// The subject a reweight is recorded under: the profile as asked, "NAME@REVISION", "active"
+/// for the project's active profile and "latest" for revision 0.
+std::string ReweightSubject(const std::string& profile, int32_t revision);
+
 /// With a request id (`op.request_id` non-empty): the change committed under it as a replayed
 /// IngestResult (FindCommitted), or nullopt when it must run (its commit then records it).
 /// Call with the writer lock held.
 absl::StatusOr<std::optional<IngestResult>> ReplayOperation(const store::ProjectStore& store,
                                                             const store::OperationRecord& op);
+
+/// ReplayOperation for a reweight: the one committed under `op.request_id` as a replayed
+/// ReweightResult (its version and recorded answer), or nullopt when it must run.
+absl::StatusOr<std::optional<reweight::ReweightResult>> ReplayReweight(
+    const store::ProjectStore& store, const store::OperationRecord& op);
 
 }  // namespace vasl

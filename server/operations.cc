@@ -110,6 +110,8 @@ v1::Operation OperationFromRecord(const std::string& project, const store::Opera
     } else if (rec.kind == "back-project") {
       op.mutable_back_project()->set_name(rec.subject);
       op.mutable_back_project()->set_version(rec.version);
+    } else if (rec.kind == "reweight") {
+      op.mutable_reweight()->set_version(rec.version);
     } else {
       op.mutable_change()->set_version(rec.version);
     }

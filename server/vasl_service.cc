@@ -17,6 +17,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "lattice/operations.h"
 #include "lattice/render/encode.h"
 #include "server/convert.h"
 #include "server/paging.h"
@@ -59,7 +60,7 @@ std::string PeerHost(const std::string& peer) {
   return colon == std::string::npos || colon < 5 ? peer : peer.substr(0, colon);
 }
 
-/// DEADLINE_EXCEEDED or CANCELLED if the client gave up before the work starts.
+/// DEADLINE_EXCEEDED if the client's deadline passed before the work starts.
 bool ClientGone(grpc::CallbackServerContext* context, grpc::Status* status) {
   if (context->deadline() < std::chrono::system_clock::now()) {
     *status = grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
@@ -68,6 +69,23 @@ bool ClientGone(grpc::CallbackServerContext* context, grpc::Status* status) {
   }
   return false;
 }
+
+}  // namespace
+
+absl::Status StillWanted(grpc::CallbackServerContext* context) {
+  if (context == nullptr) return absl::OkStatus();
+  if (context->deadline() < std::chrono::system_clock::now()) {
+    return absl::DeadlineExceededError(
+        "the deadline passed while the work ran: it was stopped and nothing was committed");
+  }
+  if (context->IsCancelled()) {
+    return absl::CancelledError(
+        "the client cancelled the call: its work was stopped and nothing was committed");
+  }
+  return absl::OkStatus();
+}
+
+namespace {
 
 // ---------------------------------------------------------------------------------------------
 // BackProject: a header, then the image's bytes; the engine runs on the pool.
@@ -190,7 +208,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
 
   void Run() {
     const ProgressFn progress = service_->ProgressReporter(
-        "BackProject", project_, "name=" + input_.name, start_, request_id_);
+        context_, "BackProject", project_, "name=" + input_.name, start_, request_id_);
     absl::StatusOr<IngestResult> r = service_->engine()->BackProject(project_, input_, progress);
     if (!r.ok()) {
       Finish(ToGrpcStatus(r.status()));
@@ -372,7 +390,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
       p.set_elapsed_s(SecondsSince(start_));
     });
     const ProgressFn progress = service_->ProgressReporter(
-        "IngestScan", project, "scan=" + scan.scan_name, start_, request_id_);
+        context_, "IngestScan", project, "scan=" + scan.scan_name, start_, request_id_);
     absl::StatusOr<IngestResult> result =
         service_->engine()->IngestScan(project, scan, progress);
     if (!result.ok()) {
@@ -448,6 +466,9 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
 // chunks, each write started from the previous write's completion.
 template <typename Response>
 class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
+ protected:
+  grpc::CallbackServerContext* context() const { return context_; }
+
  public:
   ChunkStreamReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
                      const char* method, std::string project)
@@ -555,6 +576,7 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "project is empty");
     }
     const Clock::time_point render_start = Clock::now();
+    request->interrupt = [context = this->context()] { return StillWanted(context); };
     absl::StatusOr<RenderImage> image = service_->engine()->Render(request_.project(), *request);
     if (!image.ok()) return ToGrpcStatus(image.status());
     const double render_seconds = SecondsSince(render_start);
@@ -763,7 +785,8 @@ v1::IngestProgress VaslServiceImpl::GetProgress(const std::string& project) {
   return idle;
 }
 
-ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::string& project,
+ProgressFn VaslServiceImpl::ProgressReporter(grpc::CallbackServerContext* context,
+                                             const char* method, const std::string& project,
                                              const std::string& what, Clock::time_point start,
                                              const std::string& request_id) {
   struct State {
@@ -771,7 +794,8 @@ ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::stri
     std::string last_stage;
   };
   auto state = std::make_shared<State>();
-  return [this, method, project, what, start, state, request_id](const Progress& step) {
+  return [this, context, method, project, what, start, state,
+          request_id](const Progress& step) {
     const double elapsed = SecondsSince(start);
     std::lock_guard<std::mutex> lock(state->mu);
     if (!request_id.empty()) operations_.Progress(project, request_id, step.stage, step.fraction);
@@ -787,6 +811,7 @@ ProgressFn VaslServiceImpl::ProgressReporter(const char* method, const std::stri
           "%s progress project=%s %s stage=%s fraction=%.2f elapsed_s=%.1f", method,
           Printable(project), Printable(what), step.stage, step.fraction, elapsed));
     }
+    return StillWanted(context);
   };
 }
 
@@ -1073,8 +1098,9 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
 grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
-  return RunUnary(context, *request, "Rebuild", request->project(), Role::kWrite, [this, request, response] {
-    return RunChange(request->project(), request->request_id(), "rebuild", "", response,
+  return RunUnary(context, *request, "Rebuild", request->project(), Role::kWrite,
+                  [this, context, request, response] {
+    return RunChange(context, request->project(), request->request_id(), "rebuild", "", response,
                      [&](const ProgressFn& progress) {
                        return engine_->Rebuild(request->project(), progress, request->request_id());
                      });
@@ -1085,11 +1111,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContex
                                                       const v1::DeleteScanRequest* request,
                                                       v1::ChangeResponse* response) {
   return RunUnary(context, *request, "DeleteScan", request->project(), Role::kAdmin,
-                  [this, request, response] {
+                  [this, context, request, response] {
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
     }
-    return RunChange(request->project(), request->request_id(), "delete", request->scan(),
+    return RunChange(context, request->project(), request->request_id(), "delete", request->scan(),
                      response, [&](const ProgressFn& progress) {
                        return engine_->DeleteScan(request->project(), request->scan(), progress,
                                                   request->request_id());
@@ -1098,7 +1124,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContex
 }
 
 grpc::Status VaslServiceImpl::RunChange(
-    const std::string& project, const std::string& request_id, const std::string& kind,
+    grpc::CallbackServerContext* context, const std::string& project, const std::string& request_id, const std::string& kind,
     const std::string& subject, v1::ChangeResponse* response,
     const std::function<absl::StatusOr<IngestResult>(const ProgressFn&)>& change) {
   std::optional<v1::Operation> committed;
@@ -1110,8 +1136,9 @@ grpc::Status VaslServiceImpl::RunChange(
     return grpc::Status::OK;
   }
   const std::string what = subject.empty() ? kind : absl::StrCat(kind, "=", subject);
-  const ProgressFn progress = ProgressReporter(kind == "rebuild" ? "Rebuild" : "DeleteScan",
-                                               project, what, Clock::now(), request_id);
+  const ProgressFn progress =
+      ProgressReporter(context, kind == "rebuild" ? "Rebuild" : "DeleteScan", project, what,
+                       Clock::now(), request_id);
   const absl::StatusOr<IngestResult> result = change(progress);
   grpc::Status status = FinishChange(project, result, response);
   response->set_request_id(request_id);
@@ -1241,30 +1268,56 @@ grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
 grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext* context,
                                                     const v1::ReweightRequest* request,
                                                     v1::ReweightResponse* response) {
-  return RunUnary(context, *request, "Reweight", request->project(), Role::kWrite, [this, request, response] {
+  return RunUnary(context, *request, "Reweight", request->project(), Role::kWrite,
+                  [this, context, request, response] {
     if (request->revision() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
     }
-    const ProgressFn progress = ProgressReporter("Reweight", request->project(),
-                                                 "profile=" + request->profile(), Clock::now());
-    absl::StatusOr<reweight::ReweightResult> r =
-        engine_->Reweight(request->project(), request->profile(), request->revision(), progress);
-    UpdateProgress(request->project(), [&](v1::IngestProgress& p) {
+    const std::string& project = request->project();
+    const std::string& request_id = request->request_id();
+    const std::string subject = ReweightSubject(request->profile(), request->revision());
+    std::optional<v1::Operation> committed;
+    if (absl::Status s = StartOperation(project, request_id, "reweight", subject, &committed);
+        !s.ok()) {
+      return ToGrpcStatus(s);
+    }
+    if (committed) {
+      *response = ReplayedAnswer(*committed, &v1::Operation::reweight);
+      return grpc::Status::OK;
+    }
+    const ProgressFn progress = ProgressReporter(context, "Reweight", project,
+                                                 "profile=" + request->profile(), Clock::now(),
+                                                 request_id);
+    absl::StatusOr<reweight::ReweightResult> r = engine_->Reweight(
+        project, request->profile(), request->revision(), progress, request_id);
+    UpdateProgress(project, [&](v1::IngestProgress& p) {
       p.set_state(r.ok() ? v1::IngestProgress::STATE_SUCCEEDED : v1::IngestProgress::STATE_FAILED);
       p.set_fraction(r.ok() ? 1.0 : p.fraction());
       p.set_message(r.ok() ? "" : std::string(r.status().message()));
     });
-    if (!r.ok()) return ToGrpcStatus(r.status());
-    response->set_version(r->version);
-    response->set_profile(r->profile);
-    response->set_revision(r->revision);
-    response->set_tile_count(r->tiles);
-    response->set_record_count(r->records);
-    response->set_vossel_count(r->vossels);
-    response->set_bytes_written(r->bytes_written);
-    response->set_unchanged(r->unchanged);
-    response->set_seconds(r->seconds);
-    return grpc::Status::OK;
+    const bool replayed = r.ok() && r->replayed;
+    if (replayed) {  // it committed while this call waited for the writer lock
+      *response = ReplayedAnswer(
+          OperationFromRecord(project, {request_id, "reweight", subject, r->version, 0, r->answer}),
+          &v1::Operation::reweight);
+    } else if (r.ok()) {
+      response->set_version(r->version);
+      response->set_profile(r->profile);
+      response->set_revision(r->revision);
+      response->set_tile_count(r->tiles);
+      response->set_record_count(r->records);
+      response->set_vossel_count(r->vossels);
+      response->set_bytes_written(r->bytes_written);
+      response->set_unchanged(r->unchanged);
+      response->set_seconds(r->seconds);
+      response->set_request_id(request_id);
+    }
+    const grpc::Status status = r.ok() ? grpc::Status::OK : ToGrpcStatus(r.status());
+    // An unchanged reweight committed nothing, so it has no operation row to answer from.
+    EndOperation(project, request_id, status,
+                 OperationWithAnswer(*response, &v1::Operation::mutable_reweight),
+                 status.ok() && !replayed && !r->unchanged);
+    return status;
   });
 }
 
@@ -1318,9 +1371,10 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
 grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {
-  return RunUnary(context, *request, "Rollback", request->project(), Role::kAdmin, [this, request, response] {
+  return RunUnary(context, *request, "Rollback", request->project(), Role::kAdmin,
+                  [this, context, request, response] {
     const ProgressFn progress =
-        ProgressReporter("Rollback", request->project(),
+        ProgressReporter(context, "Rollback", request->project(),
                          absl::StrCat("version=", request->version()), Clock::now());
     absl::StatusOr<IngestResult> result =
         engine_->Rollback(request->project(), request->version(), progress);

@@ -51,6 +51,13 @@ struct ServiceOptions {
   int64_t min_free_disk_bytes = 0;
 };
 
+/// OK while the caller of `context` still waits for its work (nullptr: always); CANCELLED
+/// once it cancelled the call or went away, DEADLINE_EXCEEDED once its deadline passed. The
+/// engine's long work asks it between stages and rows (ProgressFn, RenderRequest::interrupt),
+/// so a call nobody waits for stops and frees its memory. Callable from any thread until the
+/// call is finished.
+absl::Status StillWanted(grpc::CallbackServerContext* context);
+
 class VaslServiceImpl final : public v1::VaslService::CallbackService {
  public:
   VaslServiceImpl(Engine* engine, WorkerPool* pool, ServiceOptions options = {});
@@ -135,7 +142,10 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   /// A progress callback for a long engine call: it updates the progress board of `project`
   /// (GetIngestProgress) and logs one line per stage ("<method> progress project=… <what> …").
   /// With a `request_id`, the operation's stage follows too (GetOperation).
-  ProgressFn ProgressReporter(const char* method, const std::string& project,
+  /// Its answer stops the work once the call is cancelled or its deadline passes (StillWanted;
+  /// no check without a `context`).
+  ProgressFn ProgressReporter(grpc::CallbackServerContext* context, const char* method,
+                              const std::string& project,
                               const std::string& what, std::chrono::steady_clock::time_point start,
                               const std::string& request_id = "");
   /// Before a change sent under `request_id` runs (nothing for an empty id): OK with
@@ -204,7 +214,8 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
                                  const std::string& project, const grpc::Status& status);
   /// A rebuild or deletion (`change`) under `request_id` (StartOperation, EndOperation): answered
   /// from its commit when it committed before, else run with a progress reporter.
-  grpc::Status RunChange(const std::string& project, const std::string& request_id,
+  grpc::Status RunChange(grpc::CallbackServerContext* context, const std::string& project,
+                         const std::string& request_id,
                          const std::string& kind, const std::string& subject,
                          v1::ChangeResponse* response,
                          const std::function<absl::StatusOr<IngestResult>(const ProgressFn&)>& change);

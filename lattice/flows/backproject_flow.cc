@@ -15,7 +15,7 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
                                        int64_t max_image_pixels, const StageFn& stage) {
   FlowResult result;
   internal::StageClock clock(result, stage);
-  clock.Start("validate", 0.0);
+  if (absl::Status stop = clock.Start("validate", 0.0); !stop.ok()) return stop;
   if (head.version == 0 || head.geometry.size() == 0) {
     return absl::FailedPreconditionError(absl::StrCat(
         "project '", store.name(), "' has no geometry to back-project onto: ingest a scan first"));
@@ -50,7 +50,7 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
   info.rig = "derived";
   info.pose = input.pose;
   info.batch = *batch;
-  clock.Start("store image", 0.1);
+  if (absl::Status stop = clock.Start("store image", 0.1); !stop.ok()) return stop;
   absl::StatusOr<std::string> blob = store.PutBlob(input.image);
   if (!blob.ok()) return blob.status();
   store::SourceInfo src;

@@ -39,11 +39,11 @@ double AngularMarginRad(const SourceRef& s) {
 
 }  // namespace
 
-void StageClock::Start(const std::string& name, double fraction) {
+absl::Status StageClock::Start(const std::string& name, double fraction) {
   Finish();
   running_ = name;
   t0_ = Clock::now();
-  if (stage_) stage_(name, fraction);
+  return stage_ ? stage_(name, fraction) : absl::OkStatus();
 }
 
 void StageClock::Finish() {
@@ -232,7 +232,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   };
 
   // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
-  clock.Start("find changes", 0.45);
+  if (absl::Status stop = clock.Start("find changes", 0.45); !stop.ok()) return stop;
   const std::vector<ChangedBlock> blocks = ChangedBlocks(old.geometry, g, change.old_to_new, T);
   for (const ChangedBlock& b : blocks) plan.geometry_tiles.insert(b.tile);
 
@@ -295,9 +295,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     if (it == revisit.end()) continue;
     std::set<tiles::TileKey> tiles_of_src;
     for (const tiles::TileKey& b : it->second) tiles_of_src.insert(tile_of_block(b));
-    clock.Start(absl::StrCat("revisit source ", src.info.id, " on ", it->second.size(),
-                             " blocks of ", tiles_of_src.size(), " tiles"),
-                fraction);
+    const std::string stage = absl::StrCat("revisit source ", src.info.id, " on ",
+                                           it->second.size(), " blocks of ",
+                                           tiles_of_src.size(), " tiles");
+    if (absl::Status stop = clock.Start(stage, fraction); !stop.ok()) return stop;
     fraction += span;
     // The revisited blocks, and the cone of blocks whose splats can fall where their
     // visibility tests (and a camera's dilation) read: the depth panorama splats that cone only.
@@ -344,15 +345,24 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     ++result.sources_computed;
   };
   for (const ingest::LidarSource& lidar : change.new_sources.lidars) {
-    clock.Start(absl::StrCat("records of source ", lidar.id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("records of source ", lidar.id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     add_new(ingest::LidarRecords(g, lidar), lidar.id);
   }
   for (const ingest::LidarSource& colour : change.new_sources.point_colours) {
-    clock.Start(absl::StrCat("records of source ", colour.colour_id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("records of source ", colour.colour_id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     add_new(ingest::PointColourRecords(g, colour), colour.colour_id);
   }
   for (const ingest::DerivedSource& d : change.new_sources.derived) {
-    clock.Start(absl::StrCat("back-project source ", d.id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("back-project source ", d.id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     ingest::BackProjectStats stats;
     records::RecordSet recs = ingest::BackProjectRecords(g, d, nullptr, &stats);
     for (int32_t v : recs.vossel) record_tiles.insert(tile_of[size_t(v)]);
@@ -363,7 +373,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     result.pixels_invalid += stats.pixels_invalid;
   }
   for (ingest::CameraSource& cam : change.new_sources.cameras) {
-    clock.Start(absl::StrCat("records of source ", cam.id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("records of source ", cam.id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(g, cam);
     if (!r.ok()) return r.status();
     cam.image = {};  // free the decoded image as soon as it is sampled
@@ -373,7 +386,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
 
   // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records
   //    keep their fused values.
-  clock.Start("fuse", 0.85);
+  if (absl::Status stop = clock.Start("fuse", 0.85); !stop.ok()) return stop;
   if (absl::Status s = FuseAll(store, old.manifest, next); !s.ok()) return s;
   plan.record_tiles = std::move(record_tiles);
   return next;
@@ -398,7 +411,7 @@ absl::Status FuseAll(const store::ProjectStore& store, const store::Manifest& he
 
 absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
                         const store::CommitPlan& plan, FlowResult& result, StageClock& clock) {
-  clock.Start("commit", 0.9);
+  if (absl::Status stop = clock.Start("commit", 0.9); !stop.ok()) return stop;
   absl::StatusOr<int64_t> version = store.Commit(next, plan);
   if (!version.ok()) return version.status();
   next.version = *version;

@@ -42,8 +42,9 @@ namespace vasl::flows::internal {
 class StageClock {
  public:
   StageClock(FlowResult& result, const StageFn& stage) : result_(result), stage_(stage) {}
-  /// Closes the running stage (if any) and starts `name` at `fraction` of the flow.
-  void Start(const std::string& name, double fraction);
+  /// Closes the running stage (if any) and starts `name` at `fraction` of the flow; the
+  /// caller's answer (StageFn): a flow returns at once with a status that is not OK.
+  [[nodiscard]] absl::Status Start(const std::string& name, double fraction);
   /// Closes the running stage.
   void Finish();
 

@@ -44,7 +44,7 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
 
   // §1: the vossels outside the emptied tiles as they were; those inside rebuilt from zero by
   // every remaining LiDAR with returns there, in source-id order.
-  clock.Start("voxelise", 0.1);
+  if (absl::Status stop = clock.Start("voxelise", 0.1); !stop.ok()) return stop;
   const records::VosselGeometry& old = head.geometry;
   records::VosselGeometry& g = change.geometry;
   g.vossel_size_m = h;
@@ -67,7 +67,10 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
     if (std::none_of(t->begin(), t->end(), [&](const tiles::TileKey& k) { return emptied.count(k) > 0; })) {
       continue;
     }
-    clock.Start(absl::StrCat("re-voxelise source ", src.info.id), 0.2);
+    if (absl::Status stop = clock.Start(absl::StrCat("re-voxelise source ", src.info.id), 0.2);
+        !stop.ok()) {
+      return stop;
+    }
     absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
     if (!lidar.ok()) return lidar.status();
     absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(*lidar, h);
@@ -93,7 +96,7 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
     }
   }
   // Normals of every vossel whose neighbourhood reaches into an emptied tile.
-  clock.Start("normals", 0.35);
+  if (absl::Status stop = clock.Start("normals", 0.35); !stop.ok()) return stop;
   std::vector<uint8_t> renormal(g.size(), 0);
   for (size_t v = 0; v < g.size(); ++v) {
     const openvdb::Coord c = g.coord[v];

@@ -30,8 +30,9 @@
 
 namespace vasl::flows {
 
-/// Called as each stage of a flow starts: its name and the fraction of the flow done.
-using StageFn = std::function<void(const std::string& stage, double fraction)>;
+/// Called as each stage of a flow starts: its name and the fraction of the flow done. A status
+/// other than OK stops the flow there with that status (ingest::ProgressFn), before its commit.
+using StageFn = std::function<absl::Status(const std::string& stage, double fraction)>;
 
 /// What a flow committed and what it cost.
 struct FlowResult {

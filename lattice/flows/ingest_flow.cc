@@ -122,7 +122,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   }
 
   // §1: bin the scan's own returns and merge them (exact sums), then derive.
-  clock.Start("voxelise", 0.2);
+  if (absl::Status stop = clock.Start("voxelise", 0.2); !stop.ok()) return stop;
   absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(change.new_sources.lidars[0], h);
   if (!binned.ok()) return binned.status();
   change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
@@ -131,7 +131,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   change.old_to_new = merged.old_to_new;
 
   // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.
-  clock.Start("normals", 0.35);
+  if (absl::Status stop = clock.Start("normals", 0.35); !stop.ok()) return stop;
   std::vector<uint8_t> renormal(change.geometry.size(), 0);
   {
     auto acc = change.geometry.index_grid->getConstAccessor();

@@ -101,6 +101,9 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
         snap->records, snap->geometry.size(), snap->geometry.vossel_size_m, profile);
     if (!on_the_fly.ok()) return on_the_fly.status();
     fused = std::make_shared<const records::FusedValues>(std::move(*on_the_fly));
+    if (request.interrupt) {  // fusing may have taken long: is the render still wanted?
+      if (absl::Status s = request.interrupt(); !s.ok()) return s;
+    }
   }
   const store::Snapshot& snapshot = *snap;
   render::ViewBlendInputs blend;

@@ -29,14 +29,17 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   double fraction = 0.05;
   for (const internal::SourceRef& src : sources) {
     if (!src.lidar()) continue;
-    clock.Start(absl::StrCat("voxelise source ", src.info.id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("voxelise source ", src.info.id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src.info, src.batch);
     if (!lidar.ok()) return lidar.status();
     absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(*lidar, h);
     if (!binned.ok()) return binned.status();
     ingest::MergeBinned(next.geometry, *binned);
   }
-  clock.Start("normals", 0.3);
+  if (absl::Status stop = clock.Start("normals", 0.3); !stop.ok()) return stop;
   ingest::DeriveCentroidAndCovariance(next.geometry);
   ingest::ComputeNormals(next.geometry);
 
@@ -44,7 +47,10 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   const double span = 0.5 / double(sources.size());
   fraction = 0.35;
   for (const internal::SourceRef& src : sources) {
-    clock.Start(absl::StrCat("records of source ", src.info.id), fraction);
+    if (absl::Status stop = clock.Start(absl::StrCat("records of source ", src.info.id), fraction);
+        !stop.ok()) {
+      return stop;
+    }
     fraction += span;
     absl::StatusOr<ingest::SourceRecords> recs =
         internal::StoredSourceRecords(store, src, next.geometry, max_image_pixels);
@@ -54,7 +60,7 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
     ++result.sources_computed;
   }
   next.records.SortByVossel();
-  clock.Start("fuse", 0.85);
+  if (absl::Status stop = clock.Start("fuse", 0.85); !stop.ok()) return stop;
   store::Manifest head_manifest;  // the profiles whose layers HEAD keeps stay kept
   if (store.head_version() > 0) {
     absl::StatusOr<store::Manifest> m = store.LoadManifest(store.head_version());

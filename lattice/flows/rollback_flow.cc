@@ -9,7 +9,7 @@ absl::StatusOr<FlowResult> Rollback(store::ProjectStore& store, int64_t version,
                                     const StageFn& stage) {
   FlowResult result;
   internal::StageClock clock(result, stage);
-  clock.Start("load version", 0.0);
+  if (absl::Status stop = clock.Start("load version", 0.0); !stop.ok()) return stop;
   if (version <= 0 || version >= store.head_version()) {
     return absl::InvalidArgumentError(absl::StrCat("roll back to a version in [1, ",
                                                    store.head_version() - 1, "]; got ", version));

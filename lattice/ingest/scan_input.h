@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
@@ -46,6 +47,10 @@ struct Progress {
   std::string stage;
   double fraction = 0.0;
 };
-using ProgressFn = std::function<void(const Progress&)>;
+/// Told as each stage of a long operation starts; its answer says whether the caller still
+/// wants the work. OK goes on; any other status (CANCELLED when the caller went away,
+/// DEADLINE_EXCEEDED when its deadline passed) stops the work there, before its commit, and
+/// the operation fails with that status: nothing of it is kept and its memory is freed.
+using ProgressFn = std::function<absl::Status(const Progress&)>;
 
 }  // namespace vasl::ingest

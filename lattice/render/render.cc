@@ -17,6 +17,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <mutex>
 #include <string>
 
 #include <openvdb/math/DDA.h>
@@ -310,11 +311,23 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   intrinsics.height_px = height;
   std::atomic<bool> bad{false};
   std::atomic<int32_t> bad_index{0};
+  std::atomic<bool> interrupted{false};
+  std::mutex interrupt_mu;
+  absl::Status interrupt;  // the first answer of request.interrupt that stopped the render
   tbb::parallel_for(tbb::blocked_range<int>(0, height), [&](const tbb::blocked_range<int>& rows) {
     AccessorT acc(*scene.tree);
     HddaT hdda;
     int64_t hits = 0, colourless = 0;
     for (int j = rows.begin(); j != rows.end(); ++j) {
+      if (interrupted.load(std::memory_order_relaxed)) break;
+      if (request.interrupt) {
+        if (absl::Status s = request.interrupt(); !s.ok()) {
+          std::lock_guard<std::mutex> lock(interrupt_mu);
+          if (interrupt.ok()) interrupt = std::move(s);
+          interrupted = true;
+          break;
+        }
+      }
       for (int i = 0; i < width; ++i) {
         // The projection's inverse (§2.1 or §2.2) at the pixel centre, rotated into the world.
         const Eigen::Vector3d d_sensor =
@@ -380,6 +393,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
     hit_pixels.fetch_add(hits);
     colourless_pixels.fetch_add(colourless);
   });
+  if (interrupted.load()) return interrupt;
   if (bad.load()) {
     return absl::InvalidArgumentError(
         absl::StrCat("the index grid holds vossel index ", bad_index.load(),

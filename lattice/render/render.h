@@ -5,6 +5,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -38,6 +39,9 @@ struct RenderRequest {
   int32_t profile_revision = 0; ///< 0: the profile's latest revision
   double eta = 0.0;             ///< view term η (§8); 0 uses the fused colour C_k
   double max_range_m = 1000.0;  ///< rays stop here
+  /// Asked before each row is marched, from several threads (may be empty): a status other
+  /// than OK stops the render with that status (the caller cancelled, or its deadline passed).
+  std::function<absl::Status()> interrupt;
 };
 
 /// A rendered equirectangular RGBZ + normal + uncertainty image (§8), row-major, row 0 up.

@@ -54,11 +54,14 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
   std::vector<absl::Status> status(todo.size());
   store::ObjectStore& objects = store.writable_objects();
   std::atomic<int64_t> done{0};
+  std::atomic<bool> stopped{false};
+  absl::Status stop;  // the caller's answer that stopped the reweight (under progress_mu)
   std::mutex progress_mu;
   const double h = store.settings().vossel_size_m;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, todo.size(), 1),
                     [&](const tbb::blocked_range<size_t>& r) {
     for (size_t t = r.begin(); t != r.end(); ++t) {
+      if (stopped.load(std::memory_order_relaxed)) return;
       const auto& layers = *todo[t].second;
       auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
         auto it = layers.find(layer);
@@ -92,10 +95,14 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
       const int64_t n = ++done;
       if (progress) {
         std::lock_guard<std::mutex> lock(progress_mu);
-        progress(n, int64_t(todo.size()));
+        if (absl::Status s = progress(n, int64_t(todo.size())); !s.ok() && stop.ok()) {
+          stop = std::move(s);
+          stopped = true;
+        }
       }
     }
   });
+  if (!stop.ok()) return stop;  // the objects written are garbage for the next collection
   for (const absl::Status& s : status) {
     if (!s.ok()) return s;  // the objects written are garbage for the next collection
   }

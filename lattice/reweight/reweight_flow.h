@@ -27,10 +27,15 @@ struct ReweightResult {
   int64_t bytes_written = 0;  ///< bytes of the fused objects written
   bool unchanged = false;     ///< HEAD already held the layer on every tile: no new version
   double seconds = 0.0;
+  /// A retry (Engine::Reweight's request id): the reweight had committed `version` under the
+  /// id and was not done again; `answer` is what the caller recorded with it (may be empty).
+  bool replayed = false;
+  std::string answer;
 };
 
-/// Called after each tile: tiles done, tiles in all.
-using TileProgressFn = std::function<void(int64_t done, int64_t total)>;
+/// Called after each tile: tiles done, tiles in all. A status other than OK stops the reweight
+/// with that status before its commit (the tiles in flight finish; no other tile starts).
+using TileProgressFn = std::function<absl::Status(int64_t done, int64_t total)>;
 
 /// Reweights HEAD under `profile`: for every tile, reads its records object, fuses them (§7,
 /// fusion::Fuse) and writes the tile's fused layer for the profile; then commits a version

@@ -1,8 +1,8 @@
 """Changes sent under a request id are done once (issue "Reliability and security": long-running
 operations, idempotent retries). A retry of a committed ingest is answered from its commit with
-no new version, also after the server is killed and restarted; a call cancelled while the
-server works leaves the change running to its commit, and GetOperation tells the client what
-became of it; an id cannot name a second change."""
+no new version, also after the server is killed and restarted; a call cancelled (or whose
+deadline passes) while the server works stops the change before its commit, and
+GetOperation tells the client what became of it; an id cannot name a second change."""
 from __future__ import annotations
 
 import os
@@ -73,8 +73,8 @@ def test_retries_under_a_request_id_are_answered_from_the_commit(tmp_path, scene
             print(f"retry: version {again.version} replayed, "
                   f"{len(client.list_versions('ops'))} version(s) kept")
 
-            # A call cancelled while the server works: the change goes on to its commit and
-            # GetOperation says so; the retry is answered from it.
+            # A call cancelled while the server works: the change stops at its next stage,
+            # commits nothing, and GetOperation says so; a retry under the id runs it whole.
             header, points, images = _header_and_payload(scans[1], "ops", "scan-2-cut")
             future = client.stub.IngestScan.future(
                 ingest_requests(header, points, images, client.chunk_bytes), timeout=120)
@@ -93,14 +93,49 @@ def test_retries_under_a_request_id_are_answered_from_the_commit(tmp_path, scene
             assert op["state"] == "running", stages
             future.cancel()
             done = client.wait_operation("ops", "scan-2-cut", timeout_s=120, poll_s=0.1)
-            assert done["state"] == "succeeded", done
-            assert done["version"] == first.version + 1
-            assert [s.name for s in client.list_scans("ops")] == [first.scan, header.scan]
+            assert done["state"] == "failed", done
+            assert done["error_code"] == grpc.StatusCode.CANCELLED.value[0], done
+            assert "cancelled" in done["error_message"], done
+            assert [v.version for v in client.list_versions("ops")] == [first.version]
+            assert [s.name for s in client.list_scans("ops")] == [first.scan]
             retried = client.ingest("ops", scans[1], request_id="scan-2-cut")
-            assert retried.replayed and retried.version == done["version"]
-            assert retried.record_count == done["ingest"].record_count > first.record_count
-            print(f"cancelled at stage {op['stage']!r}: committed version {done['version']}, "
-                  f"{done['ingest'].record_count} records; retry replayed")
+            assert not retried.replayed and retried.version == first.version + 1
+            assert retried.record_count > first.record_count
+            print(f"cancelled at stage {op['stage']!r}: stopped ({done['error_message']}); "
+                  f"the retry committed version {retried.version}, "
+                  f"{retried.record_count} records")
+
+            # A deadline that passes while the server works stops the change the same way;
+            # the client resolves the lost answer through GetOperation and sends it again.
+            short = Client(address, timeout_s=0.2)
+            try:
+                t0 = time.monotonic()
+                with pytest.raises(VaslError) as e:
+                    short.ingest("ops", scans[2], request_id="scan-3-late", retries=0)
+                assert e.value.code == grpc.StatusCode.DEADLINE_EXCEEDED, e.value.details
+            finally:
+                short.close()
+            late = client.wait_operation("ops", "scan-3-late", timeout_s=120, poll_s=0.1,
+                                         missing_ok=True)
+            if late is not None:  # the header arrived: the server stopped the work (while
+                # it ran: DEADLINE_EXCEEDED; while the bytes still came: the cut stream)
+                assert late["state"] == "failed", late
+                assert late["error_code"] in (grpc.StatusCode.DEADLINE_EXCEEDED.value[0],
+                                              grpc.StatusCode.CANCELLED.value[0]), late
+            assert client.list_versions("ops")[-1].version == retried.version
+            print(f"deadline of 0.2 s: DEADLINE_EXCEEDED after {time.monotonic() - t0:.2f} s, "
+                  f"operation {late['state'] + ': ' + late['error_message'] if late else 'never started'}, "
+                  "no version made")
+
+            # A reweight under a request id is done once too.
+            client.create_profile("ops", {"name": "far", "proximity_m": 4.0})
+            rw = client.reweight("ops", "far", request_id="reweight-far-1")
+            assert not rw.replayed and rw.version == retried.version + 1
+            rw_again = client.reweight("ops", "far", request_id="reweight-far-1")
+            assert rw_again.replayed and rw_again.version == rw.version
+            op = client.get_operation("ops", "reweight-far-1")
+            assert op["kind"] == "reweight" and op["subject"] == "far@latest"
+            assert op["reweight"].tile_count == rw.tile_count
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=60)

@@ -96,7 +96,10 @@ TEST(ReweightIsolationTest, ReweightsFromRecordsAloneTileByTile) {
   auto made = CreateProfile(**st, p);
   ASSERT_TRUE(made.ok()) << made.status();
   int64_t calls = 0;
-  auto r = Reweight(**st, made->profile, [&](int64_t, int64_t) { ++calls; });
+  auto r = Reweight(**st, made->profile, [&](int64_t, int64_t) {
+    ++calls;
+    return absl::OkStatus();
+  });
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->version, 2);
   EXPECT_EQ(r->records, int64_t(snap.records.size()));

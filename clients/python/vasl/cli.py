@@ -332,10 +332,15 @@ def _cmd_profile(client: Client, args) -> int:
 def _cmd_reweight(client: Client, args) -> int:
     bar = _ProgressLine(f"reweight {args.project}") if not args.quiet else None
     try:
-        r = client.reweight(args.project, args.profile or "", args.revision, progress=bar)
+        r = client.reweight(args.project, args.profile or "", args.revision, progress=bar,
+                            request_id=args.request_id)
     finally:
         if bar:
             bar.done()
+    if r.replayed:
+        print(f"{args.project}: version {r.version} was made under request id {r.request_id}; "
+              "not done again")
+        return 0
     if r.unchanged:
         print(f"{args.project}: version {r.version} already holds fused tiles under "
               f"{r.profile} revision {r.revision}")
@@ -607,6 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
     reweight.add_argument("--profile", default="", help="default: the active profile")
     reweight.add_argument("--revision", type=int, default=0, help="0: the latest")
     reweight.add_argument("--quiet", action="store_true", help="no progress display")
+    reweight.add_argument("--request-id", metavar="ID",
+                          help="id of this change (default: a fresh UUID); a retry under the "
+                               "same id is answered from the reweight that committed")
 
     normalise = sub.add_parser("normalise", help="solve per-scan colour gains into a profile")
     normalise.add_argument("--project", required=True)

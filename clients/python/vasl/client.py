@@ -57,6 +57,12 @@ def _change(r) -> ChangeResult:
                         r.request_id, r.replayed)
 
 
+def _reweight_result(r) -> ReweightResult:
+    return ReweightResult(r.version, r.profile, r.revision, r.tile_count, r.record_count,
+                          r.vossel_count, r.bytes_written, r.unchanged, r.seconds, r.request_id,
+                          r.replayed)
+
+
 def _ingest_result(r) -> IngestResult:
     return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
                         r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
@@ -592,7 +598,7 @@ class Client:
         """What became of a change sent under `request_id`: a dict with state ("running",
         "succeeded", "failed"), kind, subject, stage, fraction, elapsed_s, version,
         error_code/error_message (failed) and its answer under "ingest" (IngestResult),
-        "back_project" (dict) or "change" (ChangeResult). VaslError NOT_FOUND for an id the
+        "back_project" (dict), "change" (ChangeResult) or "reweight" (ReweightResult). VaslError NOT_FOUND for an id the
         project does not know."""
         self._check_name(project)
         op = self._call("GetOperation", pb.GetOperationRequest(project=project,
@@ -609,6 +615,8 @@ class Client:
             out["back_project"] = _back_project_result(op.back_project)
         elif which == "change":
             out["change"] = _change(op.change)
+        elif which == "reweight":
+            out["reweight"] = _reweight_result(op.reweight)
         return out
 
     def wait_operation(self, project: str, request_id: str, *, timeout_s: float = 3600.0,
@@ -828,21 +836,27 @@ class Client:
             project=project, name=name)))
 
     def reweight(self, project: str, profile: str = "", revision: int = 0, *,
-                 progress: Optional[Callable[[dict], None]] = None) -> ReweightResult:
+                 progress: Optional[Callable[[dict], None]] = None,
+                 request_id: Optional[str] = None, retries: int = 1) -> ReweightResult:
         """A new version whose tiles hold fused values under `profile` (default: the active
-        one), from the stored records alone. `progress` gets {"stage", "fraction"} dicts."""
+        one), from the stored records alone. `progress` gets {"stage", "fraction"} dicts.
+        Under a request id, resolved as in `ingest` when the answer is lost."""
         self._check_name(project)
         if revision < 0:
             raise ValueError("revision must be >= 0 (0: the latest)")
-        request = pb.ReweightRequest(project=project, profile=profile, revision=revision)
-        future = self.stub.Reweight.future(request, timeout=self.timeout_s)
-        self._poll_progress(project, future, progress)
-        try:
-            r = future.result()
-        except grpc.RpcError as e:
-            raise _wrap("Reweight", e) from None
-        return ReweightResult(r.version, r.profile, r.revision, r.tile_count, r.record_count,
-                              r.vossel_count, r.bytes_written, r.unchanged, r.seconds)
+        rid = request_id or new_request_id()
+        request = pb.ReweightRequest(project=project, profile=profile, revision=revision,
+                                     request_id=rid)
+
+        def send() -> ReweightResult:
+            future = self.stub.Reweight.future(request, timeout=self.timeout_s)
+            self._poll_progress(project, future, progress)
+            try:
+                return _reweight_result(future.result())
+            except grpc.RpcError as e:
+                raise _wrap("Reweight", e) from None
+
+        return self._with_retries(project, rid, retries, "Reweight", "reweight", send)
 
     def normalise(self, project: str, base_profile: str = "", name: str = "") -> NormaliseResult:
         """Solves per-source per-channel gains on HEAD's RGB records (weighed under

@@ -234,6 +234,8 @@ class ReweightResult:
     bytes_written: int
     unchanged: bool  #: HEAD already held the profile's fused tiles: no new version
     seconds: float
+    request_id: str = ""
+    replayed: bool = False  #: a retry answered from the reweight that committed under its id
 
 
 @dataclass
