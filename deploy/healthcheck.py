@@ -10,8 +10,9 @@ becomes 127.0.0.1) and, when `tls-cert` is set, speaks TLS:
     tls-cert file if there is one, else the tls-cert file itself: fine for a self-signed
     certificate or a file holding the chain up to its root);
   - the name checked is --server-name (default $VASL_HEALTH_SERVER_NAME, else localhost);
-  - with `tls-client-ca` set (mutual TLS) the probe presents --cert / --key (default
-    $VASL_HEALTH_CERT / $VASL_HEALTH_KEY, else client.crt / client.key beside the tls-cert file).
+  - the health service needs no client certificate, also under mutual TLS; the probe presents
+    --cert / --key (default $VASL_HEALTH_CERT / $VASL_HEALTH_KEY) when given, else client.crt /
+    client.key beside the tls-cert file when both are there.
 Needs only grpcio and grpcio-health-checking.
 """
 from __future__ import annotations
@@ -80,10 +81,13 @@ def main(argv=None) -> int:
             here = os.path.dirname(cert)
             ca = args.ca or next((p for p in (os.path.join(here, "ca.crt"), cert)
                                   if os.path.isfile(p)), cert)
+            # Health answers without a client certificate, also under mutual TLS; one that is
+            # named, or lies beside tls-cert, is presented (and must then verify).
             client_cert = client_key = None
-            if conf.get("tls-client-ca"):
-                client_cert = read(args.cert or os.path.join(here, "client.crt"))
-                client_key = read(args.key or os.path.join(here, "client.key"))
+            cert_path = args.cert or os.path.join(here, "client.crt")
+            key_path = args.key or os.path.join(here, "client.key")
+            if args.cert or args.key or (os.path.isfile(cert_path) and os.path.isfile(key_path)):
+                client_cert, client_key = read(cert_path), read(key_path)
             creds = grpc.ssl_channel_credentials(read(ca), client_key, client_cert)
             channel = grpc.secure_channel(target, creds, options=[
                 ("grpc.ssl_target_name_override", args.server_name)])

@@ -75,7 +75,9 @@ std::shared_ptr<grpc::ServerCredentials> Credentials(const vasl::server::ServerO
       *error = "cannot read --tls-client-ca " + o.tls_client_ca.string();
       return nullptr;
     }
-    ssl.client_certificate_request = GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
+    // A certificate a client presents must verify; one without may connect, so that health
+    // probes stay open, and the service refuses its calls (require_client_certificate).
+    ssl.client_certificate_request = GRPC_SSL_REQUEST_CLIENT_CERTIFICATE_AND_VERIFY;
   }
   return grpc::SslServerCredentials(ssl);
 }
@@ -185,7 +187,12 @@ int main(int argc, char** argv) {
   int workers = options.workers;
   if (workers <= 0) workers = std::max(2u, std::thread::hardware_concurrency());
   vasl::server::WorkerPool pool(workers, static_cast<size_t>(options.max_queued_calls));
+  // Changes run on a pool of their own: a long ingest or rebuild never holds up a render.
+  vasl::server::WorkerPool change_pool(static_cast<int>(options.change_workers),
+                                       static_cast<size_t>(options.max_queued_calls));
   vasl::server::ServiceOptions service_options;
+  service_options.change_pool = &change_pool;
+  service_options.require_client_certificate = !options.tls_client_ca.empty();
   service_options.staging_dir = options.data_dir;
   service_options.min_free_disk_bytes = options.min_free_disk_bytes;
   service_options.render_chunk_bytes = options.render_chunk_bytes;
@@ -216,6 +223,7 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
   StderrLogSink("listening on " + bound + " data_dir=" + options.data_dir.string() +
                 " workers=" + std::to_string(workers) +
+                " change_workers=" + std::to_string(options.change_workers) +
                 " max_message_bytes=" + std::to_string(options.max_message_bytes) +
                 " access_control=" + (access->enabled() ? "on" : "off") +
                 " tls=" + (options.tls_cert.empty() ? "off"
@@ -246,6 +254,7 @@ int main(int argc, char** argv) {
   server->Shutdown(std::chrono::system_clock::now() +
                    std::chrono::milliseconds(static_cast<int64_t>(1e3 * options.shutdown_grace_s)));
   server->Wait();
+  change_pool.Stop();
   pool.Stop();
   if (!options.port_file.empty()) {
     std::error_code ec;

@@ -98,7 +98,12 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
           o.workers = x;
           return absl::OkStatus();
         },
-        "threads running engine calls; 0 = hardware threads, at least 2 (default 0)"}},
+        "threads running renders, queries and reads; 0 = hardware threads, at least 2 "
+        "(default 0)"}},
+      {"change-workers",
+       {Int64(&ServerOptions::change_workers, "change-workers", 1),
+        "threads running changes (ingest, rebuild, reweight, ...), apart from the reads "
+        "(default 2)"}},
       {"shutdown-grace-s",
        {[](ServerOptions& o, const std::string& v) {
           double x = 0;

@@ -24,8 +24,13 @@ struct ServerOptions {
   int64_t max_message_bytes = 8ll << 20;
   /// Size of the RenderChunk payloads the server streams, bytes.
   int64_t render_chunk_bytes = 1ll << 20;
-  /// Worker threads for engine calls; 0: the number of hardware threads (at least 2).
+  /// Worker threads for renders, queries and other reads; 0: the number of hardware threads
+  /// (at least 2).
   int workers = 0;
+  /// Worker threads for changes (ingest, back-projection, rebuild, deletion, reweight,
+  /// rollback, normalisation): changes of different projects run side by side up to this many;
+  /// they never take a reader's thread.
+  int64_t change_workers = 2;
   /// On SIGINT/SIGTERM, running RPCs get this long to finish before they are cancelled, s.
   double shutdown_grace_s = 30.0;
   /// Calls that may wait for a worker; more get RESOURCE_EXHAUSTED.

@@ -201,7 +201,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
           "the stream ended after ", input_.image.size(), " of ", expected_, " image bytes"))));
       return;
     }
-    if (absl::Status s = service_->pool()->Submit([this] { Run(); }); !s.ok()) {
+    if (absl::Status s = service_->change_pool()->Submit([this] { Run(); }); !s.ok()) {
       Finish(ToGrpcStatus(s));
     }
   }
@@ -376,7 +376,7 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     }
     auto input = std::make_shared<ScanInput>(std::move(*scan));
     input->request_id = request_id_;
-    absl::Status queued = service_->pool()->Submit([this, input] { Run(*input); });
+    absl::Status queued = service_->change_pool()->Submit([this, input] { Run(*input); });
     if (!queued.ok()) Finish(ToGrpcStatus(queued), true);
   }
 
@@ -853,6 +853,14 @@ void VaslServiceImpl::EndOperation(const std::string& project, const std::string
 
 absl::StatusOr<Caller> VaslServiceImpl::Authenticate(
     const grpc::CallbackServerContext* context) const {
+  if (options_.require_client_certificate) {
+    const std::shared_ptr<const grpc::AuthContext> auth = context->auth_context();
+    if (auth == nullptr || !auth->IsPeerAuthenticated()) {
+      return absl::UnauthenticatedError(
+          "this server uses mutual TLS: present a client certificate signed by its client CA "
+          "(only the health service answers without one)");
+    }
+  }
   const auto& metadata = context->client_metadata();
   auto it = metadata.find("authorization");
   const std::string header =
@@ -878,8 +886,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* con
   return reactor;
 }
 
-grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(
-    grpc::CallbackServerContext* context, const google::protobuf::Message& request,
+grpc::ServerUnaryReactor* VaslServiceImpl::RunOn(
+    WorkerPool* lane, grpc::CallbackServerContext* context, const google::protobuf::Message& request,
     const char* method, const std::string& project, Role need,
     std::function<grpc::Status(const Caller&)> body) {
   if (absl::Status bad = CheckRequestStrings(request); !bad.ok()) {
@@ -898,7 +906,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunUnary(
   }
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const Clock::time_point start = Clock::now();
-  const absl::Status queued = pool_->Submit([this, context, reactor, method, project, start,
+  const absl::Status queued = lane->Submit([this, context, reactor, method, project, start,
                                              client, caller = std::move(*caller),
                                              body = std::move(body)] {
     grpc::Status status;
@@ -1098,7 +1106,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::InspectRecords(
 grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* context,
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
-  return RunUnary(context, *request, "Rebuild", request->project(), Role::kWrite,
+  return RunChangeUnary(context, *request, "Rebuild", request->project(), Role::kWrite,
                   [this, context, request, response] {
     return RunChange(context, request->project(), request->request_id(), "rebuild", "", response,
                      [&](const ProgressFn& progress) {
@@ -1110,7 +1118,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* 
 grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContext* context,
                                                       const v1::DeleteScanRequest* request,
                                                       v1::ChangeResponse* response) {
-  return RunUnary(context, *request, "DeleteScan", request->project(), Role::kAdmin,
+  return RunChangeUnary(context, *request, "DeleteScan", request->project(), Role::kAdmin,
                   [this, context, request, response] {
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
@@ -1268,7 +1276,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::SetActiveProfile(
 grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext* context,
                                                     const v1::ReweightRequest* request,
                                                     v1::ReweightResponse* response) {
-  return RunUnary(context, *request, "Reweight", request->project(), Role::kWrite,
+  return RunChangeUnary(context, *request, "Reweight", request->project(), Role::kWrite,
                   [this, context, request, response] {
     if (request->revision() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
@@ -1353,7 +1361,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::QueryRecords(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext* context,
                                                      const v1::NormaliseRequest* request,
                                                      v1::NormaliseResponse* response) {
-  return RunUnary(context, *request, "Normalise", request->project(), Role::kWrite,
+  return RunChangeUnary(context, *request, "Normalise", request->project(), Role::kWrite,
                   [this, request, response] {
     absl::StatusOr<reweight::NormaliseOutcome> r =
         engine_->Normalise(request->project(), request->base_profile(), request->name());
@@ -1371,7 +1379,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
 grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {
-  return RunUnary(context, *request, "Rollback", request->project(), Role::kAdmin,
+  return RunChangeUnary(context, *request, "Rollback", request->project(), Role::kAdmin,
                   [this, context, request, response] {
     const ProgressFn progress =
         ProgressReporter(context, "Rollback", request->project(),

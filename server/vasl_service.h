@@ -49,6 +49,14 @@ struct ServiceOptions {
   /// Calls that write project data (ingest, back-projection, write-role RPCs, CreateProject)
   /// are refused while staging_dir's file system has fewer free bytes; 0: no floor.
   int64_t min_free_disk_bytes = 0;
+  /// Runs the calls that change a project (ingest, back-projection, rebuild, deletion,
+  /// reweight, rollback, normalisation), so that however long they take they never hold up
+  /// renders and reads, which the service's own pool runs; null: that pool runs everything.
+  WorkerPool* change_pool = nullptr;
+  /// Mutual TLS is on (vasld --tls-client-ca): every call of this service must come with a
+  /// verified client certificate (UNAUTHENTICATED without). The transport only verifies a
+  /// certificate a client presents, so that health checks (and reflection) stay open.
+  bool require_client_certificate = false;
 };
 
 /// OK while the caller of `context` still waits for its work (nullptr: always); CANCELLED
@@ -164,6 +172,7 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   std::filesystem::path ExportStagingPath() const;
   Engine* engine() const { return engine_; }
   WorkerPool* pool() const { return pool_; }
+  WorkerPool* change_pool() const { return options_.change_pool ? options_.change_pool : pool_; }
   const ServiceOptions& options() const { return options_; }
   /// One request log line: method, project, code, duration (and the message on error).
   void LogRequest(const char* method, const std::string& project, const grpc::Status& status,
@@ -196,18 +205,32 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
  private:
   /// Checks the request's text fields (CheckRequestStrings), then that the caller holds `need`
   /// on `project` (Authorize), then runs `body` (which fills the response and returns a
-  /// status) on the pool with the caller, then logs and finishes the unary reactor.
+  /// status) on `lane` with the caller, then logs and finishes the unary reactor.
+  grpc::ServerUnaryReactor* RunOn(WorkerPool* lane, grpc::CallbackServerContext* context,
+                                  const google::protobuf::Message& request, const char* method,
+                                  const std::string& project, Role need,
+                                  std::function<grpc::Status(const Caller&)> body);
+  /// RunOn the pool (reads and quick calls), with or without the caller.
   grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
                                      const google::protobuf::Message& request, const char* method,
                                      const std::string& project, Role need,
-                                     std::function<grpc::Status(const Caller&)> body);
-  /// The same, for a body that does not need to know the caller.
+                                     std::function<grpc::Status(const Caller&)> body) {
+    return RunOn(pool_, context, request, method, project, need, std::move(body));
+  }
   grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
                                      const google::protobuf::Message& request, const char* method,
                                      const std::string& project, Role need,
                                      std::function<grpc::Status()> body) {
-    return RunUnary(context, request, method, project, need,
-                    [body = std::move(body)](const Caller&) { return body(); });
+    return RunOn(pool_, context, request, method, project, need,
+                 [body = std::move(body)](const Caller&) { return body(); });
+  }
+  /// RunOn the change pool: a call that makes a new version of a project.
+  grpc::ServerUnaryReactor* RunChangeUnary(grpc::CallbackServerContext* context,
+                                           const google::protobuf::Message& request,
+                                           const char* method, const std::string& project,
+                                           Role need, std::function<grpc::Status()> body) {
+    return RunOn(change_pool(), context, request, method, project, need,
+                 [body = std::move(body)](const Caller&) { return body(); });
   }
   /// Logs and finishes a unary call that was refused before any work.
   grpc::ServerUnaryReactor* Deny(grpc::CallbackServerContext* context, const char* method,

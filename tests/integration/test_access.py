@@ -249,11 +249,32 @@ def test_tls_refuses_plaintext_and_clients_without_a_certificate(mtls):
     with Client(mtls.address, token=ADMIN_TOKEN, timeout_s=5, tls_ca=mtls.certs["ca.crt"]) as c:
         with pytest.raises(VaslError) as e:  # TLS, but no client certificate
             c.list_projects()
-        assert e.value.code == grpc.StatusCode.UNAVAILABLE
+        assert e.value.code == grpc.StatusCode.UNAUTHENTICATED
+        assert "client certificate" in e.value.details
+        print(f"\nmutual TLS, no client certificate: {e.value.details}")
+        assert c.health() == "SERVING"  # health stays open for probes
     with Client(mtls.address, token=ADMIN_TOKEN, timeout_s=5, **mtls.client_tls) as c:
         assert PROJECT in [p.name for p in c.list_projects()]
         assert c.health() == "SERVING"
     assert "tls=mutual" in mtls.log() and "access_control=on" in mtls.log()
+
+
+def test_health_probe_needs_no_client_certificate_under_mutual_tls(mtls, tmp_path):
+    # The deploy probe beside a server certificate with no client key: SERVING.
+    import shutil
+    import subprocess
+    import sys
+
+    for name in ("ca.crt", "server.crt"):
+        shutil.copy(mtls.certs[name], tmp_path / name)
+    conf = tmp_path / "vasld.conf"
+    conf.write_text(f"address = {mtls.address}\ntls-cert = {tmp_path / 'server.crt'}\n"
+                    f"tls-client-ca = {tmp_path / 'ca.crt'}\n")
+    probe = os.path.join(os.path.dirname(__file__), "..", "..", "deploy", "healthcheck.py")
+    r = subprocess.run([sys.executable, probe, "--config", str(conf)], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "SERVING" in r.stdout
 
 
 def test_health_is_open_and_tokens_are_scoped(plain, tmp_path):

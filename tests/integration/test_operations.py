@@ -158,3 +158,49 @@ def test_retries_under_a_request_id_are_answered_from_the_commit(tmp_path, scene
         proc.terminate()
         proc.wait(timeout=60)
         log.close()
+
+
+def test_renders_are_not_held_up_by_a_running_change(tmp_path, scene_dir):
+    """Changes run on a pool of their own (--change-workers): with one read worker and one
+    change worker, renders asked while a rebuild runs are answered before it ends, and a second
+    change waits its turn instead of taking the readers' thread."""
+    import concurrent.futures
+
+    data = str(tmp_path / "data")
+    os.makedirs(data)
+    scans = manifests(scene_dir)
+    proc, address, log = start_vasld(VASLD, str(tmp_path), data, 0,
+                                     ("--workers", "1", "--change-workers", "1"))
+    try:
+        with Client(address, timeout_s=300) as client:
+            client.create_project("busy", vossel_size_m=VOSSEL_M)
+            for m in scans:
+                client.ingest("busy", m)
+            pose = Pose.parse(read_manifest(scans[0]).pose)
+            with concurrent.futures.ThreadPoolExecutor(2) as pool:
+                rebuild = pool.submit(client.rebuild, "busy", request_id="busy-rebuild")
+                deadline = time.monotonic() + 60
+                while time.monotonic() < deadline:
+                    try:
+                        if client.get_operation("busy", "busy-rebuild")["state"] == "running":
+                            break
+                    except VaslError:
+                        pass
+                    time.sleep(0.01)
+                seconds = []
+                for _ in range(5):
+                    t0 = time.monotonic()
+                    r = client.render("busy", pose, 64, 32, formats=("exr",))
+                    seconds.append(time.monotonic() - t0)
+                    assert r.rgb.shape == (32, 64, 3)
+                still = client.get_operation("busy", "busy-rebuild")
+                assert still["state"] == "running", (
+                    f"the renders waited for the rebuild: {still['state']}")
+                rebuilt = rebuild.result(timeout=300)
+            assert not rebuilt.replayed
+            print(f"5 renders of 64x32 during a rebuild ({rebuilt.seconds:.2f} s): "
+                  f"{max(seconds) * 1e3:.0f} ms the slowest; the rebuild still ran after them")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=60)
+        log.close()
