@@ -270,7 +270,8 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
     stage_clock = Clock::now();
     return progress ? progress({stage, fraction}) : absl::OkStatus();
   };
-  // An unknown project is named before any image is decoded; decoding runs outside the lock.
+  // An unknown project is named before any image is read; the panoramas' headers are read
+  // here, their pixels one at a time as the flow samples each camera.
   if (auto found = impl_->Find(project); !found.ok()) return found.status();
   auto images = ingest::ValidateScan(scan, impl_->ScanLimits());
   if (!images.ok()) return images.status();
@@ -293,8 +294,8 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
 
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
-    auto flow = flows::IngestScan(st, **head, *info, scan.lidar, std::move(*images),
-                                  impl_->limits.max_image_pixels, StageReporter(progress));
+    auto flow = flows::IngestScan(st, **head, *info, scan, impl_->limits.max_image_pixels,
+                                  StageReporter(progress));
     if (flow.ok()) flow->stage_seconds.insert(flow->stage_seconds.begin(), stages.begin(), stages.end());
     return flow;
   }, t0);

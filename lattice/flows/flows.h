@@ -88,16 +88,16 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store,
 /// little-endian float32 x, y, z, intensity; per-point colour, when given, as float32 r, g, b;
 /// its encoded images) and returns its catalog description: sources with fresh ids (LiDAR
 /// first, then its point colour when given, then cameras in order), a fresh batch.
-/// `images` are its decoded panoramas (for their sizes).
+/// `images` are its panoramas' headers (for their sizes, ingest::ValidateScan).
 absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const ingest::ScanInput& scan,
-                                               const std::vector<ingest::LinearImage>& images);
+                                               const std::vector<ingest::ImageHeader>& images);
 
-/// Incremental ingest of one validated scan whose blobs are stored: `info` carries its
-/// sources (ids, poses, blob hashes, sizes), `lidar` its points, `images` its decoded
-/// panoramas in the order of its camera sources. `head` is the project's HEAD snapshot.
+/// Incremental ingest of one validated scan (`scan`) whose blobs are stored: `info` carries
+/// its sources (ids, poses, blob hashes, sizes). Each panorama is decoded as its camera's
+/// records are made and freed after, so an ingest holds one decoded panorama at a time.
+/// `head` is the project's HEAD snapshot.
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
-                                      const store::ScanInfo& info, const ingest::LidarData& lidar,
-                                      std::vector<ingest::LinearImage> images,
+                                      const store::ScanInfo& info, const ingest::ScanInput& scan,
                                       int64_t max_image_pixels, const StageFn& stage = {});
 
 /// An RGBZ image sent back as derived data (§10).

@@ -6,6 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/change.h"
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/validate.h"
 #include "lattice/ingest/voxelise.h"
 #include "lattice/tiles/tile_split.h"
 
@@ -29,7 +30,7 @@ std::string PackPoints(const ingest::LidarData& lidar) {
 }  // namespace
 
 absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const ingest::ScanInput& scan,
-                                               const std::vector<ingest::LinearImage>& images) {
+                                               const std::vector<ingest::ImageHeader>& images) {
   auto next_source = st.NextSourceId();
   auto batch = st.NextBatchId();
   if (!next_source.ok()) return next_source.status();
@@ -85,9 +86,9 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
 }
 
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
-                                      const store::ScanInfo& info, const ingest::LidarData& lidar,
-                                      std::vector<ingest::LinearImage> images,
+                                      const store::ScanInfo& info, const ingest::ScanInput& scan,
                                       int64_t max_image_pixels, const StageFn& stage) {
+  const ingest::LidarData& lidar = scan.lidar;
   FlowResult result;
   internal::StageClock clock(result, stage);
   const double h = store.settings().vossel_size_m;
@@ -109,11 +110,13 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       c.colour_id = src.id;
       change.new_sources.point_colours.push_back(std::move(c));
     } else {
-      if (next_image >= images.size()) {
-        return absl::InternalError("IngestScan: fewer decoded images than camera sources");
+      if (next_image >= scan.panoramas.size()) {
+        return absl::InternalError("IngestScan: fewer panoramas than camera sources");
       }
       ingest::CameraSource cam = CameraOf(src, info.batch);
-      cam.image = std::move(images[next_image++]);
+      cam.load = [&scan, i = next_image++, max_image_pixels] {
+        return ingest::DecodePanorama(scan, i, max_image_pixels);
+      };
       change.new_sources.cameras.push_back(std::move(cam));
     }
   }

@@ -67,6 +67,35 @@ absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool 
 
 }  // namespace internal
 
+namespace {
+
+// What DecodeImage checks of a header before it allocates (see ProbeImage).
+absl::Status CheckSpec(const OIIO::ImageSpec& spec, int64_t max_pixels) {
+  if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
+    return absl::InvalidArgumentError("decoded image is empty");
+  }
+  if (spec.nchannels > 16) {  // the decode buffer is width × height × channels floats
+    return absl::ResourceExhaustedError(absl::StrCat("image has ", spec.nchannels,
+                                                     " channels; at most 16 are decoded"));
+  }
+  if (int64_t(spec.width) * spec.height > max_pixels) {
+    return absl::ResourceExhaustedError(absl::StrCat("image of ", spec.width, "x", spec.height,
+                                                     " pixels exceeds the limit of ", max_pixels));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes, int64_t max_pixels) {
+  absl::StatusOr<internal::MemoryImageInput> opened =
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/false, max_pixels);
+  if (!opened.ok()) return opened.status();
+  const OIIO::ImageSpec& spec = opened->in->spec();
+  if (absl::Status s = CheckSpec(spec, max_pixels); !s.ok()) return s;
+  return ImageHeader{spec.width, spec.height, spec.nchannels};
+}
+
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
                                         int64_t max_pixels) {
   using namespace OIIO;
@@ -75,17 +104,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   if (!opened.ok()) return opened.status();
   ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();
-  if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
-    return absl::InvalidArgumentError("decoded image is empty");
-  }
-  if (spec.nchannels > 16) {  // the buffer below is width × height × channels floats
-    return absl::ResourceExhaustedError(absl::StrCat("image has ", spec.nchannels,
-                                                     " channels; at most 16 are decoded"));
-  }
-  if (int64_t(spec.width) * spec.height > max_pixels) {
-    return absl::ResourceExhaustedError(absl::StrCat("image of ", spec.width, "x", spec.height,
-                                                     " pixels exceeds the limit of ", max_pixels));
-  }
+  if (absl::Status s = CheckSpec(spec, max_pixels); !s.ok()) return s;
   const bool is_float = spec.format.basetype == TypeDesc::FLOAT ||
                         spec.format.basetype == TypeDesc::HALF ||
                         spec.format.basetype == TypeDesc::DOUBLE;

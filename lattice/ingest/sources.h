@@ -32,6 +32,18 @@ struct LinearImage {
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
                                         int64_t max_pixels);
 
+/// What an image's header says, read without decoding its pixels.
+struct ImageHeader {
+  int width_px = 0;
+  int height_px = 0;
+  int channels = 0;  ///< as stored
+};
+
+/// Reads the header of PNG, JPEG, EXR or TIFF bytes and makes the checks DecodeImage makes
+/// before it allocates (a non-empty image, at most 16 channels, at most `max_pixels`), with
+/// its codes; the pixels are not decoded, and may still fail to.
+absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes, int64_t max_pixels);
+
 /// The LiDAR of a scan.
 struct LidarSource {
   int32_t id = 0;                     ///< source id (record `scan`)

@@ -31,7 +31,7 @@ absl::Status ValidateText(const std::string& what, const std::string& text, size
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits) {
+absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, const ScanLimits& limits) {
   const auto bad = [&scan](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("scan '", scan.scan_name, "': ", what));
   };
@@ -72,7 +72,7 @@ absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, con
                                                      limits.max_panoramas_per_scan));
   }
   std::set<std::string> names;
-  std::vector<LinearImage> images;
+  std::vector<ImageHeader> images;
   for (const PanoramaData& pano : scan.panoramas) {
     if (absl::Status s = ValidateText("a panorama name", pano.name, 128); !s.ok()) return s;
     const std::string what = absl::StrCat("panorama '", pano.name, "'");
@@ -92,8 +92,7 @@ absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, con
                                                        " bytes, above the limit of ",
                                                        limits.max_image_bytes));
     }
-    auto image = DecodeImage(pano.encoded_image, pano.modality == records::Modality::kIr,
-                                     limits.max_image_pixels);
+    absl::StatusOr<ImageHeader> image = ProbeImage(pano.encoded_image, limits.max_image_pixels);
     if (!image.ok()) {
       return absl::Status(image.status().code(),
                           absl::StrCat("scan '", scan.scan_name, "', ", what, ": ", image.status().message()));
@@ -104,9 +103,22 @@ absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, con
                               ": an equirectangular panorama spans 360°×180°, so its width must "
                               "be twice its height"));
     }
-    images.push_back(std::move(*image));
+    images.push_back(*image);
   }
   return images;
+}
+
+absl::StatusOr<LinearImage> DecodePanorama(const ScanInput& scan, size_t index,
+                                           int64_t max_image_pixels) {
+  const PanoramaData& pano = scan.panoramas.at(index);
+  absl::StatusOr<LinearImage> image =
+      DecodeImage(pano.encoded_image, pano.modality == records::Modality::kIr, max_image_pixels);
+  if (!image.ok()) {
+    return absl::Status(image.status().code(),
+                        absl::StrCat("scan '", scan.scan_name, "', panorama '", pano.name, "': ",
+                                     image.status().message()));
+  }
+  return image;
 }
 
 }  // namespace vasl::ingest

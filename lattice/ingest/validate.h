@@ -27,15 +27,21 @@ struct ScanLimits {
 absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what);
 
 /// Validates a scan (names, poses, finite points, intensities, divergence, panorama names,
-/// modalities, sizes, 2:1 equirect images) and decodes its panoramas, which it returns in
-/// order. INVALID_ARGUMENT for bad input, RESOURCE_EXHAUSTED above `limits`, each message
-/// naming the scan and the field.
+/// modalities, sizes, 2:1 equirect images) and reads its panoramas' headers (ProbeImage),
+/// which it returns in order; their pixels are decoded later, one panorama at a time, as
+/// each camera's records are made (DecodePanorama). INVALID_ARGUMENT for bad input,
+/// RESOURCE_EXHAUSTED above `limits`, each message naming the scan and the field.
 /// OK when `text` (a name or label a client chose) has 1..max_bytes bytes (0..max_bytes with
 /// `may_be_empty`) and no control character (so that it cannot forge a log line or a listing);
 /// INVALID_ARGUMENT naming `what` otherwise.
 absl::Status ValidateText(const std::string& what, const std::string& text, size_t max_bytes,
                           bool may_be_empty = false);
 
-absl::StatusOr<std::vector<LinearImage>> ValidateScan(const ScanInput& scan, const ScanLimits& limits);
+absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, const ScanLimits& limits);
+
+/// Decodes panorama `index` of a validated scan; its errors name the scan and the panorama
+/// (INVALID_ARGUMENT: pixels that do not decode).
+absl::StatusOr<LinearImage> DecodePanorama(const ScanInput& scan, size_t index,
+                                           int64_t max_image_pixels);
 
 }  // namespace vasl::ingest

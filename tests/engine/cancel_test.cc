@@ -1,6 +1,7 @@
 // Stopping long work (ARCHITECTURE.md "Errors and limits"): a change, a reweight or a render
 // whose caller no longer wants it (ingest::ProgressFn, RenderRequest::interrupt answer with a
-// status) stops where it is, with that status, and leaves the project as it was.
+// status) stops where it is, with that status, and leaves the project as it was; so does an
+// ingest whose panorama fails only when its pixels are decoded, one panorama at a time.
 #include <fstream>
 #include <iterator>
 #include <map>
@@ -114,6 +115,28 @@ TEST_F(CancelTest, AnIngestStoppedAtAnyStageLeavesTheProjectAsItWas) {
   auto scans = engine_->ListScans("site");
   ASSERT_TRUE(scans.ok());
   EXPECT_EQ(scans->size(), 2u);
+}
+
+// Claim: panoramas are decoded one at a time as their cameras are sampled, after validation
+// read their headers; one whose header reads but whose pixels do not decode fails the ingest
+// with INVALID_ARGUMENT naming the scan and the panorama, and the project stays as it was.
+TEST_F(CancelTest, APanoramaWhosePixelsDoNotDecodeLeavesTheProjectAsItWas) {
+  auto before = engine_->GetProject("site");
+  ASSERT_TRUE(before.ok());
+  const auto files = ProjectFiles(dir_ / "site");
+  ScanInput scan = scans_[1];
+  ASSERT_FALSE(scan.panoramas.empty());
+  PanoramaData second = scan.panoramas[0];
+  second.name = "cut";
+  second.encoded_image.resize(second.encoded_image.size() / 2);  // header whole, pixels cut
+  scan.panoramas.push_back(second);
+  auto result = engine_->IngestScan("site", scan);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument) << result.status();
+  const std::string message(result.status().message());
+  EXPECT_NE(message.find("scan '" + scan.scan_name + "', panorama 'cut'"), std::string::npos)
+      << message;
+  std::printf("truncated panorama: %s\n", message.c_str());
+  ExpectUnchanged(*before, files, "ingest with a truncated panorama");
 }
 
 // Claim: a reweight stopped after its first tile answers with the caller's status and leaves
