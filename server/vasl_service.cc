@@ -887,8 +887,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Deny(grpc::CallbackServerContext* con
 }
 
 grpc::ServerUnaryReactor* VaslServiceImpl::RunOn(
-    WorkerPool* lane, grpc::CallbackServerContext* context, const google::protobuf::Message& request,
-    const char* method, const std::string& project, Role need,
+    WorkerPool* lane, grpc::CallbackServerContext* context,
+    const google::protobuf::Message& request, const char* method, const std::string& project, Role need,
     std::function<grpc::Status(const Caller&)> body) {
   if (absl::Status bad = CheckRequestStrings(request); !bad.ok()) {
     return Deny(context, method, "", ToGrpcStatus(bad));
@@ -907,8 +907,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::RunOn(
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const Clock::time_point start = Clock::now();
   const absl::Status queued = lane->Submit([this, context, reactor, method, project, start,
-                                             client, caller = std::move(*caller),
-                                             body = std::move(body)] {
+                                            client, caller = std::move(*caller),
+                                            body = std::move(body)] {
     grpc::Status status;
     try {
       if (!ClientGone(context, &status)) status = body(caller);
@@ -1107,7 +1107,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rebuild(grpc::CallbackServerContext* 
                                                    const v1::RebuildRequest* request,
                                                    v1::ChangeResponse* response) {
   return RunChangeUnary(context, *request, "Rebuild", request->project(), Role::kWrite,
-                  [this, context, request, response] {
+                        [this, context, request, response] {
     return RunChange(context, request->project(), request->request_id(), "rebuild", "", response,
                      [&](const ProgressFn& progress) {
                        return engine_->Rebuild(request->project(), progress, request->request_id());
@@ -1119,12 +1119,12 @@ grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContex
                                                       const v1::DeleteScanRequest* request,
                                                       v1::ChangeResponse* response) {
   return RunChangeUnary(context, *request, "DeleteScan", request->project(), Role::kAdmin,
-                  [this, context, request, response] {
+                        [this, context, request, response] {
     if (request->scan().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "scan is empty: name the scan to delete");
     }
-    return RunChange(context, request->project(), request->request_id(), "delete", request->scan(),
-                     response, [&](const ProgressFn& progress) {
+    return RunChange(context, request->project(), request->request_id(), "delete",
+                     request->scan(), response, [&](const ProgressFn& progress) {
                        return engine_->DeleteScan(request->project(), request->scan(), progress,
                                                   request->request_id());
                      });
@@ -1132,8 +1132,8 @@ grpc::ServerUnaryReactor* VaslServiceImpl::DeleteScan(grpc::CallbackServerContex
 }
 
 grpc::Status VaslServiceImpl::RunChange(
-    grpc::CallbackServerContext* context, const std::string& project, const std::string& request_id, const std::string& kind,
-    const std::string& subject, v1::ChangeResponse* response,
+    grpc::CallbackServerContext* context, const std::string& project,
+    const std::string& request_id, const std::string& kind, const std::string& subject, v1::ChangeResponse* response,
     const std::function<absl::StatusOr<IngestResult>(const ProgressFn&)>& change) {
   std::optional<v1::Operation> committed;
   if (absl::Status s = StartOperation(project, request_id, kind, subject, &committed); !s.ok()) {
@@ -1277,7 +1277,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Reweight(grpc::CallbackServerContext*
                                                     const v1::ReweightRequest* request,
                                                     v1::ReweightResponse* response) {
   return RunChangeUnary(context, *request, "Reweight", request->project(), Role::kWrite,
-                  [this, context, request, response] {
+                        [this, context, request, response] {
     if (request->revision() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "revision must be >= 0 (0: latest)");
     }
@@ -1362,7 +1362,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
                                                      const v1::NormaliseRequest* request,
                                                      v1::NormaliseResponse* response) {
   return RunChangeUnary(context, *request, "Normalise", request->project(), Role::kWrite,
-                  [this, request, response] {
+                        [this, request, response] {
     absl::StatusOr<reweight::NormaliseOutcome> r =
         engine_->Normalise(request->project(), request->base_profile(), request->name());
     if (!r.ok()) return ToGrpcStatus(r.status());
@@ -1380,7 +1380,7 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext*
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {
   return RunChangeUnary(context, *request, "Rollback", request->project(), Role::kAdmin,
-                  [this, context, request, response] {
+                        [this, context, request, response] {
     const ProgressFn progress =
         ProgressReporter(context, "Rollback", request->project(),
                          absl::StrCat("version=", request->version()), Clock::now());
