@@ -372,14 +372,13 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     result.pixels_outside += stats.pixels_outside;
     result.pixels_invalid += stats.pixels_invalid;
   }
-  for (ingest::CameraSource& cam : change.new_sources.cameras) {
+  for (const ingest::CameraSource& cam : change.new_sources.cameras) {
     if (absl::Status stop = clock.Start(absl::StrCat("records of source ", cam.id), fraction);
         !stop.ok()) {
       return stop;
     }
     absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(g, cam);
-    if (!r.ok()) return r.status();
-    cam.image = {};  // free the decoded image as soon as it is sampled
+    if (!r.ok()) return r.status();  // CameraRecords decoded the panorama and freed it
     add_new(std::move(*r), cam.id);
   }
   next.records.SortByVossel();
