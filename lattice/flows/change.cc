@@ -28,6 +28,12 @@ double DepthPixelRad(const SourceRef& s) {
   return std::max(geometry::AzimuthPitchRad(size), geometry::ElevationPitchRad(size));
 }
 
+/// The pixel span of a source's slope-scaled tolerance (ComputeVisibility's `slope_pixels`
+/// times its pitch): a camera's tests read its dilated panorama.
+double TolerancePixelRad(const SourceRef& s) {
+  return (s.returns() ? 1.0 : 1.0 + ingest::CameraSampleRadiusPx()) * DepthPixelRad(s);
+}
+
 /// Directions to widen a source's caps by: pixel rounding of the splats and of the visibility
 /// test (2 pixels), a camera's dilation, and the splat's own angular growth (the beam
 /// divergence for a LiDAR, one pixel for a camera).
@@ -110,7 +116,7 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
   const Eigen::Vector3d o = source.info.pose.o_world;
   const double grow_m = 2.0 * h;
   const double margin_rad = AngularMarginRad(source);
-  const double pixel_rad = DepthPixelRad(source);
+  const double pixel_rad = TolerancePixelRad(source);
   const double tau_m = ingest::DepthToleranceM(h);
   auto widen = [&](tiles::ViewCap cap) {
     cap.half_angle_rad += margin_rad;

@@ -311,7 +311,8 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
       RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation, context);
   DilateDepthPanorama(depth, kCameraSampleRadiusPx);
   SourceRecords out;
-  out.records = SampleCamera(g, cam, ComputeVisibility(g, depth, tau, only));
+  out.records = SampleCamera(
+      g, cam, ComputeVisibility(g, depth, tau, only, 1 + kCameraSampleRadiusPx));
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;

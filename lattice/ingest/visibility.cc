@@ -147,7 +147,8 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
 }
 
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
-                                     double tau_m, const std::vector<uint8_t>* only) {
+                                     double tau_m, const std::vector<uint8_t>* only,
+                                     int slope_pixels) {
   // PCF samples over the vossel's patch: a 4×4 grid and the centre. 17 samples make V a
   // multiple of 1/17, which the record's 8-bit `vis` stores exactly (code 15·lit of 255), so no
   // V ≥ V_min test a profile can set flips between ingest and a reweight from disk (§7).
@@ -157,7 +158,9 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   const double h = g.vossel_size_m;
   const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
   const int W = depth.size.width_px, H = depth.size.height_px;
-  const double pixel_rad = std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
+  const double pixel_rad =
+      slope_pixels *
+      std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (only != nullptr && !(*only)[k]) continue;

@@ -68,9 +68,14 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
 /// the slope-scaled tolerance τ_k = τ + r·Δ·tanθ (choice: Δ the depth panorama's pixel pitch,
 /// cosθ floored at kCosIncidenceMin), the range change of the surface across one pixel.
 /// V = 1 lit, 0 < V < 1 penumbra, V = 0 shadow. With `only` (a flag per vossel) the other
-/// vossels get V = 0 without being tested. Parallel (TBB).
+/// vossels get V = 0 without being tested. `slope_pixels`: how many pixels apart the depth a
+/// test reads may lie from its own pixel: 1, or 1 + the radius of DilateDepthPanorama when
+/// `depth` was dilated (its min filter reads the surface itself up to that many pixels away, where
+/// a surface at grazing incidence is nearer by r·Δ·tanθ per pixel: without it such a surface
+/// shadows itself). Parallel (TBB).
 std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
                                      const DepthPanorama& depth, double tau_m,
-                                     const std::vector<uint8_t>* only = nullptr);
+                                     const std::vector<uint8_t>* only = nullptr,
+                                     int slope_pixels = 1);
 
 }  // namespace vasl::ingest
