@@ -19,21 +19,6 @@ namespace {
 constexpr double kVosselM = 0.05;
 constexpr int kPanoW = 1024, kPanoH = 512;
 
-// PSNR (peak 1, linear RGB) over pixels where `mask` is set.
-double Psnr(const std::vector<float>& a, const std::vector<float>& b, const std::vector<bool>& mask) {
-  double se = 0.0;
-  size_t n = 0;
-  for (size_t p = 0; p < mask.size(); ++p) {
-    if (!mask[p]) continue;
-    for (int c = 0; c < 3; ++c) {
-      const double d = double(a[3 * p + c]) - b[3 * p + c];
-      se += d * d;
-    }
-    n += 3;
-  }
-  return 10.0 * std::log10(1.0 / (se / double(n)));
-}
-
 class EngineTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
@@ -95,7 +80,7 @@ TEST_F(EngineTest, RenderFromStationReproducesItsPanorama) {
     ASSERT_TRUE(input.ok());
     std::vector<bool> hit(size_t(kPanoW) * kPanoH);
     for (size_t p = 0; p < hit.size(); ++p) hit[p] = std::isfinite(image->depth_m[p]);
-    const double psnr = Psnr(image->rgb, input->pixels, hit);
+    const double psnr = scenes::PsnrOver(image->rgb, input->pixels, hit);
     std::printf("station %zu camera: render vs its own panorama PSNR %.2f dB over %lld hit pixels "
                 "(%.2f%% of the image)\n", s + 1, psnr, (long long)image->hit_pixels,
                 100.0 * image->hit_pixels / hit.size());
@@ -124,7 +109,7 @@ TEST_F(EngineTest, RenderFromNovelViewMatchesAnalyticScene) {
       ++hits;
       depth_ok += std::abs(image->depth_m[p] - truth.depth_m[p]) < kVosselM;
     }
-    const double psnr = Psnr(image->rgb, truth.rgb, hit);
+    const double psnr = scenes::PsnrOver(image->rgb, truth.rgb, hit);
     std::printf("novel view %zu: PSNR %.2f dB vs analytic scene; depth error < 1 vossel for %.2f%% "
                 "of %zu hit pixels\n", v + 1, psnr, 100.0 * depth_ok / hits, hits);
     EXPECT_GE(psnr, 25.0);

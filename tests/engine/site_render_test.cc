@@ -39,22 +39,6 @@ struct ViewFigures {
   int64_t black = 0;          // hit pixels rendered black with colour (alpha 1, rgb 0)
 };
 
-// PSNR (peak 1, linear RGB) over pixels where `mask` is set.
-double Psnr(const std::vector<float>& a, const std::vector<float>& b,
-            const std::vector<bool>& mask) {
-  double se = 0.0;
-  size_t n = 0;
-  for (size_t p = 0; p < mask.size(); ++p) {
-    if (!mask[p]) continue;
-    for (int c = 0; c < 3; ++c) {
-      const double d = double(a[3 * p + c]) - b[3 * p + c];
-      se += d * d;
-    }
-    n += 3;
-  }
-  return 10.0 * std::log10(1.0 / (se / double(std::max<size_t>(n, 1))));
-}
-
 class SiteRenderTest : public ::testing::TestWithParam<Capture> {
  protected:
   void SetUp() override {
@@ -127,7 +111,7 @@ class SiteRenderTest : public ::testing::TestWithParam<Capture> {
         hit_right += hit && std::abs(image->depth_m[p] - truth.depth_m[p]) < h;
       }
     }
-    f.psnr_db = Psnr(image->rgb, truth.rgb, both);
+    f.psnr_db = scenes::PsnrOver(image->rgb, truth.rgb, both);
     f.hit_share = double(hit_right) / double(std::max<int64_t>(1, f.seen_pixels));
     return f;
   }

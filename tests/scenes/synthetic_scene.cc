@@ -369,6 +369,21 @@ float Luminance(const Vector3f& rgb) {
   return 0.2126f * rgb[0] + 0.7152f * rgb[1] + 0.0722f * rgb[2];
 }
 
+double PsnrOver(const std::vector<float>& a, const std::vector<float>& b,
+                const std::vector<bool>& mask) {
+  double se = 0.0;
+  size_t n = 0;
+  for (size_t p = 0; p < mask.size(); ++p) {
+    if (!mask[p]) continue;
+    for (int c = 0; c < 3; ++c) {
+      const double d = double(a[3 * p + c]) - b[3 * p + c];
+      se += d * d;
+    }
+    n += 3;
+  }
+  return 10.0 * std::log10(1.0 / (se / double(std::max<size_t>(n, 1))));
+}
+
 bool LidarRowKept(const LidarSettings& settings, int j) {
   const double psi = M_PI * (0.5 - (j + 0.5) / settings.elevation_steps);  // §2.1 row centre
   return psi >= -M_PI / 2.0 + settings.nadir_blind_rad;

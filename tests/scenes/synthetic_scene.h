@@ -251,6 +251,11 @@ geometry::Pose CameraPoseForStation(const geometry::Pose& T_world_scanner);
 /// Rec.709 luminance of a linear RGB triple (the synthetic LiDAR's reflectance).
 float Luminance(const Eigen::Vector3f& rgb_linear);
 
+/// PSNR (peak 1) of two linear RGB rasters (3 floats per pixel) over the pixels where `mask`
+/// is set: how closely a render matches the truth or an input panorama.
+double PsnrOver(const std::vector<float>& a, const std::vector<float>& b,
+                const std::vector<bool>& mask);
+
 /// LiDAR settings. Rays lie on the centres of an azimuth_steps × elevation_steps equirect grid
 /// of the sensor frame (§2.1); rays within 10° of the nadir are skipped (the tripod's blind
 /// cone), the zenith is kept.
