@@ -71,7 +71,8 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans) {
 
 std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
-                                        const std::vector<int32_t>& old_to_new, int T) {
+                                        const std::vector<int32_t>& old_to_new, int T,
+                                        std::set<tiles::TileKey>* surface_tiles) {
   const int B = BlockVossels(T);
   const double h = now.vossel_size_m;
   std::map<tiles::TileKey, ChangedBlock> blocks;  // keyed by block coordinates
@@ -79,14 +80,25 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     const tiles::TileKey b = tiles::TileOf(g.coord[v], B);
     auto [it, fresh] = blocks.try_emplace(b);
     ChangedBlock& block = it->second;
+    // The box of the block's changed cells alone: a change at one corner of a block is not
+    // taken as seen from wherever the block's far corner is.
+    const openvdb::Coord& k = g.coord[v];
+    const Eigen::Vector3d lo = h * (Eigen::Vector3d(k.x(), k.y(), k.z()).array() - 0.5).matrix();
+    const Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant(h);
     if (fresh) {
       block.key = b;
       block.tile = tiles::TileOf(g.coord[v], T);
-      block.box = tiles::BoxOf(b, B, h);
+      block.box.min_m = lo;
+      block.box.max_m = hi;
+    } else {
+      block.box.min_m = block.box.min_m.cwiseMin(lo);
+      block.box.max_m = block.box.max_m.cwiseMax(hi);
     }
-    block.centroid_m.push_back(g.centroid_m[v].cast<double>());
-    block.normal.push_back(g.normal[v].cast<double>());
+    block.centroid_m.push_back(g.FrameCentroid(v).cast<double>());
+    block.normal.push_back(g.FrameNormal(v).cast<double>());
+    surface_tiles->insert(block.tile);
   };
+  const bool frames = !old.frame.empty() && !now.frame.empty();
   std::vector<uint8_t> has_old(now.size(), 0);
   for (size_t v = 0; v < old_to_new.size(); ++v) {
     const int32_t n = old_to_new[v];
@@ -95,10 +107,14 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
       continue;
     }
     has_old[size_t(n)] = 1;
-    if (old.point_count[v] != now.point_count[size_t(n)] ||
-        old.centroid_m[v] != now.centroid_m[size_t(n)] || old.normal[v] != now.normal[size_t(n)]) {
+    const bool surface = old.point_count[v] != now.point_count[size_t(n)] ||
+                         old.centroid_m[v] != now.centroid_m[size_t(n)] ||
+                         old.normal[v] != now.normal[size_t(n)];
+    if (frames ? old.frame[v] != now.frame[size_t(n)] : surface) {
       add(old, v);
       add(now, size_t(n));
+    } else if (surface) {
+      surface_tiles->insert(tiles::TileOf(now.coord[size_t(n)], T));
     }
   }
   for (size_t n = 0; n < now.size(); ++n) {
@@ -122,7 +138,7 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
     cap.half_angle_rad += margin_rad;
     return cap;
   };
-  // 1. Changed blocks the source may reach (see change.h).
+  // 1. Changed blocks the source may reach (see change.h), by the box of their changed cells.
   std::vector<tiles::ViewCap> reached;
   std::set<tiles::TileKey> out;
   for (const ChangedBlock& c : changed) {
@@ -237,10 +253,11 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     return tiles::TileOf(openvdb::Coord(b.x * B, b.y * B, b.z * B), T);
   };
 
-  // 1. Changed tiles: vossels that appeared, vanished, or whose count, centroid or normal moved.
+  // 1. Changed blocks: vossels that appeared, vanished, or whose record frame changed; and the
+  //    tiles whose surface (count, centroid, normal) changed, whose geometry is rewritten.
   if (absl::Status stop = clock.Start("find changes", 0.45); !stop.ok()) return stop;
-  const std::vector<ChangedBlock> blocks = ChangedBlocks(old.geometry, g, change.old_to_new, T);
-  for (const ChangedBlock& b : blocks) plan.geometry_tiles.insert(b.tile);
+  const std::vector<ChangedBlock> blocks =
+      ChangedBlocks(old.geometry, g, change.old_to_new, T, &plan.geometry_tiles);
 
   // 2. Which older sources must be recomputed on which blocks.
   std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks

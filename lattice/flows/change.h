@@ -3,17 +3,21 @@
 ///        (VASL-MODEL §5). Shared by ingest (geometry grows) and delete (geometry shrinks).
 /// @details Which (older source m, tile t) pairs must be recomputed, and why that is exact:
 ///          a record of m on vossel k depends on k's geometry and on m's depth panorama D_m at
-///          the pixels k's visibility test reads. D_m is a min over splats of every vossel; a
-///          splat changes only for a vossel whose centroid or normal changed (or that appeared
-///          or vanished): the "changed" tiles C. Let cap_m(t) be the directions in which tile t
-///          (grown by 2h for splat and patch extents) appears from m, widened by m's angular
-///          margin (pixel pitch, beam divergence, camera dilation).
+///          the pixels k's visibility test reads. Both are evaluated on k's record frame
+///          (records::VosselFrame), not on the surface of all scans. D_m is a min over splats of
+///          every vossel; a splat changes only for a vossel whose frame changed (or that
+///          appeared or vanished): the "changed" tiles C. Appending a scan leaves the frames of
+///          the vossels it re-observes as they were, so C is the new vossels and the
+///          neighbours whose frame normal they change. Let cap_m(t) be the directions in which
+///          tile t (grown by 2h for splat and patch extents) appears from m, widened by m's
+///          angular margin (pixel pitch, beam divergence, camera dilation).
 ///          1. A block c of changed vossels that m's reach raster says m cannot reach (every
 ///             cell of cap_m(c) nearer than both c's near distance less 2h and every changed
 ///             vossel's range less h and its visibility tolerance τ_k) changes nothing: its old
 ///             and new splats lie behind D_m everywhere they fall, and none of its changed
-///             vossels is visible before or after.
-///          2. A reachable changed tile c can alter D_m only inside cap_m(c), and only at
+///             vossels is visible before or after. cap_m(c) is the cap of the box of c's
+///             changed cells, not of the whole block.
+///          2. A reachable changed block c can alter D_m only inside cap_m(c), and only at
 ///             depths ≥ near(c) − 2h; so it can alter the visibility of tile t only when
 ///             cap_m(t) meets cap_m(c) and far(t) + 4h ≥ near(c).
 ///          The rules are applied to blocks of 16³ vossels (finer than tiles): the records of m
@@ -78,19 +82,23 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans);
 struct ChangedBlock {
   tiles::TileKey key;                       ///< the block's key (TileOf with BlockVossels(T))
   tiles::TileKey tile;                      ///< the tile the block lies in
-  tiles::Box box;                           ///< the cells of the block
-  std::vector<Eigen::Vector3d> centroid_m;  ///< changed vossels, in their old and new state
+  tiles::Box box;                           ///< the bounding box of its changed cells
+  std::vector<Eigen::Vector3d> centroid_m;  ///< changed vossels' frames, old and new state
   std::vector<Eigen::Vector3d> normal;      ///< their normals (zero: none)
 };
 
 /// Edge of a block in vossels for tiles of edge T: 16, or T when smaller.
 inline int BlockVossels(int T) { return T < 16 ? T : 16; }
 
-/// Blocks of the vossels that appeared, vanished or whose count, centroid or normal changed
-/// between `old` and `now` (`old_to_new` maps old vossels to new ones, −1: gone).
+/// Blocks of the vossels that appeared, vanished or whose record frame changed between `old`
+/// and `now` (`old_to_new` maps old vossels to new ones, −1: gone), in their frames' centroids
+/// and normals; when either geometry has no frames, the surface stands in for them. Adds to
+/// `surface_tiles` every tile where a vossel appeared, vanished or changed its surface or frame
+/// (the geometry files a commit rewrites).
 std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
-                                        const std::vector<int32_t>& old_to_new, int T);
+                                        const std::vector<int32_t>& old_to_new, int T,
+                                        std::set<tiles::TileKey>* surface_tiles);
 
 /// The blocks of `all` (block keys, edge B vossels) whose records from `source` may change when
 /// the `changed` blocks change (see @details, applied per block: rule 1 with the depth margin

@@ -58,6 +58,7 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
     g.centroid_m.push_back(old.centroid_m[v]);
     g.normal.push_back(old.normal[v]);
     g.covariance_m2.push_back(old.covariance_m2[v]);
+    g.frame.push_back(old.frame[v]);
   }
   records::CanonicalizeVosselOrder(g);
   for (const internal::SourceRef& src : remaining) {

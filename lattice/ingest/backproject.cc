@@ -149,7 +149,7 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
       const int32_t v = order[starts[q]].first;
       double rgb[3] = {0, 0, 0}, range = 0, cos_sum = 0, u = 0, vv = 0, unc = 0;
       const double count = double(starts[q + 1] - starts[q]);
-      const Eigen::Vector3d n_k = g.normal[size_t(v)].cast<double>();
+      const Eigen::Vector3d n_k = g.FrameNormal(size_t(v)).cast<double>();
       for (size_t e = starts[q]; e < starts[q + 1]; ++e) {
         const size_t p = order[e].second;
         for (int c = 0; c < 3; ++c) rgb[c] += im.rgb[3 * p + c];

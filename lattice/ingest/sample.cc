@@ -75,7 +75,7 @@ RecordSet Concatenate(const Parts& parts) {
 
 // Unit normal of vossel k, or the direction toward `o` when the vossel has none.
 Eigen::Vector3d NormalOr(const records::VosselGeometry& g, size_t k, const Eigen::Vector3d& toward) {
-  const Eigen::Vector3d n = g.normal[k].cast<double>();
+  const Eigen::Vector3d n = g.FrameNormal(k).cast<double>();
   return n.squaredNorm() > 0.5 ? n : toward;
 }
 
@@ -94,7 +94,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
     RecordSet& out = parts.local();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (!(vis[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
+      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
       const Eigen::Vector3d to_cam = cam.pose.o_world - x;
       const double range = to_cam.norm();
       if (range < 1e-3) continue;
@@ -203,7 +203,7 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
     RecordSet& out = parts.local();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (count[k] == 0 || !(vis[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
+      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
       const Eigen::Vector3d to_sensor = lidar.pose.o_world - x;
       const double range = to_sensor.norm();
       if (range < 1e-3) continue;

@@ -69,8 +69,9 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       const double range = c_s.norm();
       if (range <= sphere_m) continue;  // the sensor sits inside this vossel
       const Eigen::Vector3d d = c_s / range;
-      const Eigen::Vector3d x_s = R_sensor_world * (g.centroid_m[k].cast<double>() - pose.o_world);
-      const Eigen::Vector3d n_s = R_sensor_world * g.normal[k].cast<double>();
+      const Eigen::Vector3d x_s =
+          R_sensor_world * (g.FrameCentroid(k).cast<double>() - pose.o_world);
+      const Eigen::Vector3d n_s = R_sensor_world * g.FrameNormal(k).cast<double>();
       const bool has_plane = n_s.squaredNorm() > 0.5;
       const double plane_d = n_s.dot(x_s);
       // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
@@ -164,8 +165,8 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (only != nullptr && !(*only)[k]) continue;
-      const Eigen::Vector3d x = g.centroid_m[k].cast<double>();
-      Eigen::Vector3d n = g.normal[k].cast<double>();
+      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
+      Eigen::Vector3d n = g.FrameNormal(k).cast<double>();
       const Eigen::Vector3d to_sensor = depth.pose.o_world - x;
       if (to_sensor.squaredNorm() == 0.0) continue;
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();

@@ -42,11 +42,13 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// §5: the depth panorama of a source rendered from the lattice by splatting each vossel's
 /// bounding sphere (radius h√3/2), dilated by the occluder's own footprint σ(r) at its range
 /// (radius h√3/2 + σ(r), §3). Inside the splat the depth is the range at which the pixel's ray
-/// crosses the vossel's plane (centroid, normal), and only rays crossing it within that radius of
-/// the centroid are splatted (a surfel splat, choice): a surface then does not shadow itself at
-/// grazing incidence. The paper uses the measured range image for
-/// LiDAR; the splatted lattice is used for every source here (choice): it has no holes between
-/// returns and equals the range image where returns exist. Parallel (TBB, atomic min).
+/// crosses the vossel's plane (its record frame's centroid and normal, records::VosselFrame),
+/// and only rays crossing it within that radius of the centroid are splatted (a surfel splat,
+/// choice): a surface then does not shadow itself at grazing incidence. The paper uses the
+/// measured range image for LiDAR; the splatted lattice is used for every source here
+/// (choice): it has no holes between returns and equals the range image where returns exist,
+/// and a new object in front of an older LiDAR's records shadows them. Parallel (TBB, atomic
+/// min).
 /// With `splat_only` (a flag per vossel) only the flagged vossels are splatted: the panorama is
 /// then exact wherever every vossel whose splat can fall is flagged (a revisit's cone).
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
@@ -63,7 +65,7 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
 
 /// §5: V_{k,m} for every vossel: the share of 17 points (a 4×4 grid and the centre; V is a
 /// multiple of 1/17, stored exactly by the record's 8-bit codec) over the vossel's surface
-/// patch (side h, in the plane (x_k, n_k)) whose pixel in `depth` satisfies
+/// patch (side h, in the plane (x_k, n_k) of its record frame) whose pixel in `depth` satisfies
 /// D(p) ≥ r_p − τ_k (percentage-closer filtering over the vossel's projected footprint), with
 /// the slope-scaled tolerance τ_k = τ + r·Δ·tanθ (choice: Δ the depth panorama's pixel pitch,
 /// cosθ floored at kCosIncidenceMin), the range change of the surface across one pixel.

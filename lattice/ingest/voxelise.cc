@@ -111,6 +111,21 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   return out;
 }
 
+records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,
+                             double h) {
+  records::VosselFrame f;
+  f.count = count;
+  const double n = std::max(1, count);
+  const Eigen::Vector3d mu = s.sum_m / n;
+  f.centroid_m = (h * Eigen::Vector3d(k.x(), k.y(), k.z()) + mu).cast<float>();
+  const auto& q = s.sum_xx_m2;
+  f.covariance_m2 = {float(q[0] / n - mu.x() * mu.x()), float(q[1] / n - mu.x() * mu.y()),
+                     float(q[2] / n - mu.x() * mu.z()), float(q[3] / n - mu.y() * mu.y()),
+                     float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
+  f.view = s.view_sum.cast<float>();
+  return f;
+}
+
 records::VosselGeometry EmptyGeometry(double h) {
   records::VosselGeometry g;
   g.vossel_size_m = h;
@@ -131,12 +146,14 @@ MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
   }
   g.sums.resize(before);
   g.point_count.resize(before);
+  g.frame.resize(before);
   for (size_t i = 0; i < add.size(); ++i) {
     if (slot[i] >= 0) continue;
     slot[i] = int32_t(g.coord.size());
     g.coord.push_back(add.coord[i]);
     g.point_count.push_back(0);
     g.sums.emplace_back();
+    g.frame.push_back(FrameOf(add.coord[i], add.count[i], add.sums[i], g.vossel_size_m));
   }
   result.new_vossels = g.coord.size() - before;
   std::vector<uint8_t> touched(g.coord.size(), 0);
@@ -165,15 +182,9 @@ void DeriveCentroidAndCovariance(records::VosselGeometry& g) {
   g.covariance_m2.resize(nv);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t v = r.begin(); v != r.end(); ++v) {
-      const records::VosselSums& s = g.sums[v];
-      const double n = std::max(1, g.point_count[v]);
-      const Eigen::Vector3d mu = s.sum_m / n;
-      const openvdb::Coord& k = g.coord[v];
-      g.centroid_m[v] = (h * Eigen::Vector3d(k.x(), k.y(), k.z()) + mu).cast<float>();
-      const auto& q = s.sum_xx_m2;
-      g.covariance_m2[v] = {float(q[0] / n - mu.x() * mu.x()), float(q[1] / n - mu.x() * mu.y()),
-                            float(q[2] / n - mu.x() * mu.z()), float(q[3] / n - mu.y() * mu.y()),
-                            float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
+      const records::VosselFrame all = FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
+      g.centroid_m[v] = all.centroid_m;
+      g.covariance_m2[v] = all.covariance_m2;
     }
   });
 }
@@ -191,54 +202,75 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
   return g;
 }
 
+namespace {
+
+// PCA normal over the 3×3×3 neighbourhood of vossel v (the pooled scatter of the neighbours'
+// points: Σ_j c_j (Σ_j + (μ_j − μ)(μ_j − μ)ᵀ)), oriented toward `view`; `view` itself when the
+// neighbourhood holds no plane. `count(j)`, `centroid(j)`, `covariance(j)` describe vossel j.
+template <typename Count, typename Centroid, typename Covariance>
+Eigen::Vector3f PcaNormal(const openvdb::Int32Grid::ConstAccessor& acc, const openvdb::Coord& c,
+                          const Eigen::Vector3f& view, Count count, Centroid centroid,
+                          Covariance covariance) {
+  double total = 0.0;
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  int neighbours = 0;
+  int32_t ids[27];
+  for (int dx = -1; dx <= 1; ++dx)
+    for (int dy = -1; dy <= 1; ++dy)
+      for (int dz = -1; dz <= 1; ++dz) {
+        int32_t id;
+        if (acc.probeValue(c.offsetBy(dx, dy, dz), id)) {
+          ids[neighbours++] = id;
+          total += count(id);
+          mean += double(count(id)) * centroid(id).template cast<double>();
+        }
+      }
+  mean /= total;
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (int j = 0; j < neighbours; ++j) {
+    const auto& s = covariance(ids[j]);
+    Eigen::Matrix3d cov;
+    cov << s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5];
+    const Eigen::Vector3d d = centroid(ids[j]).template cast<double>() - mean;
+    scatter += double(count(ids[j])) * (cov + d * d.transpose());
+  }
+  Eigen::Vector3f n = Eigen::Vector3f::Zero();
+  if (total >= 3.0) {
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter);
+    const Eigen::Vector3d ev = eig.eigenvalues();  // ascending
+    if (ev[1] > 1e-12 * std::max(1.0, ev[2])) n = eig.eigenvectors().col(0).cast<float>();
+  }
+  if (n.squaredNorm() == 0.0f) n = view;  // no plane: face the sensors
+  if (n.squaredNorm() > 0.0f) {
+    n.normalize();
+    if (n.dot(view) < 0.0f) n = -n;
+  }
+  return n;
+}
+
+}  // namespace
+
 void ComputeNormals(records::VosselGeometry& g, const std::vector<uint8_t>* only) {
   const size_t nv = g.size();
   g.normal.resize(nv, Eigen::Vector3f::Zero());
   if (nv == 0) return;
+  const bool frames = g.frame.size() == nv;
   const openvdb::Int32Grid& index = *g.index_grid;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 2048), [&](const tbb::blocked_range<size_t>& r) {
     auto acc = index.getConstAccessor();
     for (size_t v = r.begin(); v != r.end(); ++v) {
       if (only != nullptr && !(*only)[v]) continue;
-      // Pooled scatter of the points of the 3×3×3 neighbourhood: Σ_j c_j (Σ_j + (μ_j − μ)(μ_j − μ)ᵀ).
-      double total = 0.0;
-      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-      int neighbours = 0;
-      int32_t ids[27];
-      const openvdb::Coord c = g.coord[v];
-      for (int dx = -1; dx <= 1; ++dx)
-        for (int dy = -1; dy <= 1; ++dy)
-          for (int dz = -1; dz <= 1; ++dz) {
-            int32_t id;
-            if (acc.probeValue(c.offsetBy(dx, dy, dz), id)) {
-              ids[neighbours++] = id;
-              total += g.point_count[id];
-              mean += double(g.point_count[id]) * g.centroid_m[id].cast<double>();
-            }
-          }
-      mean /= total;
-      Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
-      for (int j = 0; j < neighbours; ++j) {
-        const auto& s = g.covariance_m2[ids[j]];
-        Eigen::Matrix3d cov;
-        cov << s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5];
-        const Eigen::Vector3d d = g.centroid_m[ids[j]].cast<double>() - mean;
-        scatter += double(g.point_count[ids[j]]) * (cov + d * d.transpose());
-      }
-      Eigen::Vector3f view =
+      const Eigen::Vector3f view =
           g.sums.empty() ? Eigen::Vector3f::Zero() : Eigen::Vector3f(g.sums[v].view_sum.cast<float>());
-      Eigen::Vector3f n = Eigen::Vector3f::Zero();
-      if (total >= 3.0) {
-        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter);
-        const Eigen::Vector3d ev = eig.eigenvalues();  // ascending
-        if (ev[1] > 1e-12 * std::max(1.0, ev[2])) n = eig.eigenvectors().col(0).cast<float>();
-      }
-      if (n.squaredNorm() == 0.0f) n = view;  // no plane: face the sensors
-      if (n.squaredNorm() > 0.0f) {
-        n.normalize();
-        if (n.dot(view) < 0.0f) n = -n;
-      }
-      g.normal[v] = n;
+      g.normal[v] = PcaNormal(
+          acc, g.coord[v], view, [&](int32_t j) { return g.point_count[j]; },
+          [&](int32_t j) -> const Eigen::Vector3f& { return g.centroid_m[j]; },
+          [&](int32_t j) -> const std::array<float, 6>& { return g.covariance_m2[j]; });
+      if (!frames) continue;
+      g.frame[v].normal = PcaNormal(
+          acc, g.coord[v], g.frame[v].view, [&](int32_t j) { return g.frame[j].count; },
+          [&](int32_t j) -> const Eigen::Vector3f& { return g.frame[j].centroid_m; },
+          [&](int32_t j) -> const std::array<float, 6>& { return g.frame[j].covariance_m2; });
     }
   });
 }

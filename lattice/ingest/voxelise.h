@@ -48,10 +48,16 @@ struct MergeResult {
   size_t new_vossels = 0;           ///< vossels the merge created
 };
 
+/// The surface estimate of `count` points with sums `s` in vossel k (§1): centroid h·k + Σ/n,
+/// covariance Σxxᵀ/n − μμᵀ, view Σ unit vectors to the sensors; normal left zero.
+records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,
+                             double vossel_size_m);
+
 /// Adds one LiDAR's binned returns into `geometry`: counts and sums of the vossels it hit grow
 /// (existing sums + the LiDAR's, in that order: merging scans in source-id order gives the same
-/// bits whatever the grouping), new vossels are created, and the vossels are renumbered in
-/// canonical order. Centroids, covariances and normals are not updated (see
+/// bits whatever the grouping), new vossels are created with this LiDAR's returns as their
+/// record frame (records::VosselFrame; an existing vossel keeps its frame), and the vossels are
+/// renumbered in canonical order. Centroids, covariances and normals are not updated (see
 /// DeriveCentroidAndCovariance, ComputeNormals). `geometry` must carry sums.
 MergeResult MergeBinned(records::VosselGeometry& geometry, const BinnedLidar& add);
 
@@ -67,7 +73,8 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
 
 /// Computes `geometry.normal` by PCA over each vossel's 3×3×3 neighbourhood (the pooled scatter
 /// of the neighbours' points), oriented toward the sensors that saw it (the sums' view_sum); a
-/// vossel with too few neighbours for a plane gets its view direction as normal. With `only`
+/// vossel with too few neighbours for a plane gets its view direction as normal. The frames'
+/// normals (when the geometry has frames) the same way over the neighbours' frames. With `only`
 /// (one flag per vossel) just the flagged vossels are recomputed and the others keep their
 /// normal; a vossel's normal depends only on its neighbourhood's counts and sums, so a partial
 /// recompute gives the same bits as a full one. `normal` is sized to the vossels first.

@@ -234,6 +234,7 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   if (geometry.normal.size() == n) Gather(geometry.normal, new_to_old);
   if (geometry.covariance_m2.size() == n) Gather(geometry.covariance_m2, new_to_old);
   if (geometry.sums.size() == n) Gather(geometry.sums, new_to_old);
+  if (geometry.frame.size() == n) Gather(geometry.frame, new_to_old);
 
   auto grid = Int32Grid::create(tree);
   grid->setTransform(openvdb::math::Transform::createLinearTransform(geometry.vossel_size_m));
@@ -272,7 +273,8 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
                          CheckArraySize(geometry.centroid_m.size(), *n, 1, "centroid_m"),
                          CheckArraySize(geometry.normal.size(), *n, 1, "normal"),
                          CheckArraySize(geometry.covariance_m2.size(), *n, 1, "covariance_m2"),
-                         CheckArraySize(geometry.sums.size(), *n, 1, "sums")}) {
+                         CheckArraySize(geometry.sums.size(), *n, 1, "sums"),
+                         CheckArraySize(geometry.frame.size(), *n, 1, "frame")}) {
     if (!s.ok()) return s;
   }
 
@@ -330,6 +332,26 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
       const Eigen::Vector3d& c = geometry.sums[v].view_sum;
       return Vec3d(c.x(), c.y(), c.z());
     }));
+  }
+  if (!geometry.frame.empty()) {
+    // The record frames (records.h VosselFrame): float, never merged, so stored as derived.
+    auto vec3 = [](const Eigen::Vector3f& c) { return Vec3f(c.x(), c.y(), c.z()); };
+    grids.push_back(GridOverVossels<Int32Grid>(
+        index, "frame_count", [&](int32_t v) { return geometry.frame[v].count; }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(
+        index, "frame_centroid", [&](int32_t v) { return vec3(geometry.frame[v].centroid_m); }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "frame_covariance_diag", [&](int32_t v) {
+      const auto& c = geometry.frame[v].covariance_m2;
+      return Vec3f(c[0], c[3], c[5]);
+    }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(index, "frame_covariance_off", [&](int32_t v) {
+      const auto& c = geometry.frame[v].covariance_m2;
+      return Vec3f(c[1], c[2], c[4]);
+    }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(
+        index, "frame_view", [&](int32_t v) { return vec3(geometry.frame[v].view); }));
+    grids.push_back(GridOverVossels<Vec3SGrid>(
+        index, "frame_normal", [&](int32_t v) { return vec3(geometry.frame[v].normal); }));
   }
   return grids;
 }
@@ -415,6 +437,44 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
                g.sums[v].view_sum = Eigen::Vector3d(c.x(), c.y(), c.z());
              })}) {
       if (!s.ok()) return s;
+    }
+  }
+  if (auto count = GridAs<Int32Grid>(*contents, "frame_count")) {
+    g.frame.assign(*n, VosselFrame{});
+    if (absl::Status s = ForEachActiveVossel(*index, *count, path,
+                                             [&](int32_t v, int32_t c) { g.frame[v].count = c; });
+        !s.ok()) {
+      return s;
+    }
+    std::vector<Eigen::Vector3f> centroid, cov_diag, cov_off, view, normal;
+    for (auto [name, out] : {std::pair<const char*, std::vector<Eigen::Vector3f>*>{
+                                 "frame_centroid", &centroid},
+                             {"frame_covariance_diag", &cov_diag},
+                             {"frame_covariance_off", &cov_off},
+                             {"frame_view", &view},
+                             {"frame_normal", &normal}}) {
+      if (!GridAs<openvdb::Vec3SGrid>(*contents, name)) {
+        return absl::DataLossError(absl::StrCat(
+            path.string(), " has \"frame_count\" but no Vec3s grid \"", name, "\""));
+      }
+      if (absl::Status s = read_vec3(name, *out); !s.ok()) return s;
+    }
+    for (size_t v = 0; v < *n; ++v) {
+      VosselFrame& f = g.frame[v];
+      f.centroid_m = centroid[v];
+      f.covariance_m2 = {cov_diag[v].x(), cov_off[v].x(), cov_off[v].y(),
+                         cov_diag[v].y(), cov_off[v].z(), cov_diag[v].z()};
+      f.view = view[v];
+      f.normal = normal[v];
+    }
+  } else if (!g.sums.empty() && g.point_count.size() == *n && g.centroid_m.size() == *n &&
+             g.normal.size() == *n && g.covariance_m2.size() == *n) {
+    // Written before record frames: each vossel's surface becomes its frame (the records
+    // stored with it were evaluated on that surface).
+    g.frame.resize(*n);
+    for (size_t v = 0; v < *n; ++v) {
+      g.frame[v] = {g.point_count[v], g.centroid_m[v], g.covariance_m2[v],
+                    g.sums[v].view_sum.cast<float>(), g.normal[v]};
     }
   }
   return g;

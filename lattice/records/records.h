@@ -73,6 +73,29 @@ struct VosselSums {
   }
 };
 
+/// The record frame of one vossel (VASL-MODEL §5-§6, choice): the surface estimate of the
+/// first LiDAR, in source-id order, whose returns fell in it. Visibility, sampling and every
+/// geometric term of a record (range, incidence, footprint, uv) are evaluated on the frame, not
+/// on the surface of all scans (VosselGeometry::centroid_m, normal), because appending a scan
+/// moves the surface of nearly every vossel it sees by a little and would otherwise change every
+/// older record there. A frame is set when its vossel appears and changes only when a vossel of
+/// its neighbourhood appears or vanishes (its normal) or when its own LiDAR is deleted; so an
+/// ingest revisits older sources only where the new geometry comes in front of them (§5), and
+/// the records still equal a rebuild's, which merges the LiDARs in the same order.
+struct VosselFrame {
+  int32_t count = 0;                                     ///< that LiDAR's returns in the vossel
+  Eigen::Vector3f centroid_m = Eigen::Vector3f::Zero();  ///< their mean, world metres
+  std::array<float, 6> covariance_m2 = {0, 0, 0, 0, 0, 0};  ///< their covariance (xx … zz)
+  Eigen::Vector3f view = Eigen::Vector3f::Zero();        ///< Σ unit vectors to that LiDAR
+  /// PCA over the frames of the 3×3×3 neighbourhood, oriented by `view` (ComputeNormals).
+  Eigen::Vector3f normal = Eigen::Vector3f::Zero();
+  bool operator==(const VosselFrame& o) const {
+    return count == o.count && centroid_m == o.centroid_m && covariance_m2 == o.covariance_m2 &&
+           view == o.view && normal == o.normal;
+  }
+  bool operator!=(const VosselFrame& o) const { return !(*this == o); }
+};
+
 /// Geometry of the vossels of one version (§1), indexed by vossel index.
 struct VosselGeometry {
   /// Vossel edge h, metres; the grid transform is createLinearTransform(h) (cell-centred).
@@ -92,8 +115,18 @@ struct VosselGeometry {
   /// Running sums of the vossel's points (count in point_count); centroid and covariance are
   /// derived from them (DeriveCentroidAndCovariance). Empty for geometry without sums.
   std::vector<VosselSums> sums;
+  /// The record frame of each vossel (VosselFrame). Empty for geometry built by hand or read
+  /// from a store written before frames: the surface is then the frame.
+  std::vector<VosselFrame> frame;
 
   size_t size() const { return coord.size(); }
+  /// Where records of vossel k are evaluated: its frame's centroid and normal (zero: none).
+  const Eigen::Vector3f& FrameCentroid(size_t k) const {
+    return frame.empty() ? centroid_m[k] : frame[k].centroid_m;
+  }
+  const Eigen::Vector3f& FrameNormal(size_t k) const {
+    return frame.empty() ? normal[k] : frame[k].normal;
+  }
 };
 
 /// The observation records of a version (§6), structure of arrays, sorted by (vossel, scan).

@@ -18,6 +18,7 @@ void AppendVossel(const records::VosselGeometry& src, size_t from, records::Voss
   if (!src.normal.empty()) dst.normal.push_back(src.normal[from]);
   if (!src.covariance_m2.empty()) dst.covariance_m2.push_back(src.covariance_m2[from]);
   if (!src.sums.empty()) dst.sums.push_back(src.sums[from]);
+  if (!src.frame.empty()) dst.frame.push_back(src.frame[from]);
 }
 
 /// Fused values of `vossels` (indices into `fused`'s arrays), in that order.
