@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
@@ -286,6 +287,33 @@ SourceRecords PointColourRecords(const records::VosselGeometry& g, const LidarSo
   return ReturnRecords(g, lidar, only, context, SamplePointColour);
 }
 
+namespace {
+
+// The rows of `depth` that ComputeVisibility reads for the flagged vossels: each one's patch
+// (within h of its frame centroid) projected, one row of rounding either side.
+std::pair<int, int> RowsTested(const records::VosselGeometry& g, const DepthPanorama& depth,
+                               const std::vector<uint8_t>& only) {
+  const int H = depth.size.height_px;
+  const double dpsi = geometry::ElevationPitchRad(depth.size);
+  const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
+  int lo = H, hi = 0;
+  for (size_t k = 0; k < g.size(); ++k) {
+    if (!only[k]) continue;
+    const Eigen::Vector3d d =
+        R_sensor_world * (g.FrameCentroid(k).cast<double>() - depth.pose.o_world);
+    const double r = d.norm();
+    if (!(r > g.vossel_size_m)) return {0, H};  // the sensor is at the patch: every row
+    const double psi = std::asin(std::clamp(d.z() / r, -1.0, 1.0));
+    const double v = H * (0.5 - psi / M_PI);
+    const double half = std::asin(g.vossel_size_m / r) / dpsi + 1.0;
+    lo = std::min(lo, int(std::floor(v - half)));
+    hi = std::max(hi, int(std::ceil(v + half)) + 1);
+  }
+  return {std::max(0, lo), std::min(H, hi)};
+}
+
+}  // namespace
+
 absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
                                             const CameraSource& stored,
                                             const std::vector<uint8_t>* only,
@@ -309,7 +337,9 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
                               : geometry::EquirectPixelAngleRad(0.0, image_size);
   DepthPanorama depth =
       RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation, context);
-  DilateDepthPanorama(depth, kCameraSampleRadiusPx);
+  const auto [row_begin, row_end] = only != nullptr ? RowsTested(g, depth, *only)
+                                                    : std::pair<int, int>{0, depth.size.height_px};
+  DilateDepthPanorama(depth, kCameraSampleRadiusPx, row_begin, row_end);
   SourceRecords out;
   out.records = SampleCamera(
       g, cam, ComputeVisibility(g, depth, tau, only, 1 + kCameraSampleRadiusPx));

@@ -125,12 +125,16 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   return out;
 }
 
-void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
+void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin, int row_end) {
   if (radius_px <= 0) return;
   const int W = depth.size.width_px, H = depth.size.height_px;
-  // Separable min filter: rows (wrapping), then columns (clamped).
+  row_begin = std::clamp(row_begin, 0, H);
+  row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
+  if (row_begin >= row_end) return;
+  // Separable min filter: rows (wrapping), then columns (clamped); the row pass covers the rows
+  // the column pass reads.
   std::vector<float> tmp(depth.depth_m.size());
-  tbb::parallel_for(0, H, [&](int j) {
+  tbb::parallel_for(std::max(0, row_begin - radius_px), std::min(H, row_end + radius_px), [&](int j) {
     const float* row = &depth.depth_m[size_t(j) * W];
     for (int i = 0; i < W; ++i) {
       float m = row[i];
@@ -138,7 +142,7 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px) {
       tmp[size_t(j) * W + i] = m;
     }
   });
-  tbb::parallel_for(0, H, [&](int j) {
+  tbb::parallel_for(row_begin, row_end, [&](int j) {
     for (int i = 0; i < W; ++i) {
       float m = tmp[size_t(j) * W + i];
       for (int d = -radius_px; d <= radius_px; ++d) m = std::min(m, tmp[size_t(std::clamp(j + d, 0, H - 1)) * W + i]);

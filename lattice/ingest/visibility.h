@@ -61,7 +61,10 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
 /// neighbourhood of pixels (bilinear read, pixel integration): a vossel is lit only where that
 /// whole neighbourhood sees it (choice, the "dilation-aware" mask of §5 applied to the
 /// sampling kernel).
-void DilateDepthPanorama(DepthPanorama& depth, int radius_px);
+/// With a row range [row_begin, row_end) only those rows are filtered (the rows a revisit's
+/// visibility tests read); the others keep their depth, an upper bound of the filtered one.
+void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin = 0,
+                         int row_end = -1);
 
 /// §5: V_{k,m} for every vossel: the share of 17 points (a 4×4 grid and the centre; V is a
 /// multiple of 1/17, stored exactly by the record's 8-bit codec) over the vossel's surface
