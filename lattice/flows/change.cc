@@ -82,17 +82,14 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     ChangedBlock& block = it->second;
     // The box of the block's changed cells alone: a change at one corner of a block is not
     // taken as seen from wherever the block's far corner is.
-    const openvdb::Coord& k = g.coord[v];
-    const Eigen::Vector3d lo = h * (Eigen::Vector3d(k.x(), k.y(), k.z()).array() - 0.5).matrix();
-    const Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant(h);
+    const tiles::Box cell = tiles::BoxOf(tiles::TileOf(g.coord[v], 1), 1, h);
     if (fresh) {
       block.key = b;
       block.tile = tiles::TileOf(g.coord[v], T);
-      block.box.min_m = lo;
-      block.box.max_m = hi;
+      block.box = cell;
     } else {
-      block.box.min_m = block.box.min_m.cwiseMin(lo);
-      block.box.max_m = block.box.max_m.cwiseMax(hi);
+      block.box.min_m = block.box.min_m.cwiseMin(cell.min_m);
+      block.box.max_m = block.box.max_m.cwiseMax(cell.max_m);
     }
     block.centroid_m.push_back(g.FrameCentroid(v).cast<double>());
     block.normal.push_back(g.FrameNormal(v).cast<double>());

@@ -303,8 +303,7 @@ std::pair<int, int> RowsTested(const records::VosselGeometry& g, const DepthPano
         R_sensor_world * (g.FrameCentroid(k).cast<double>() - depth.pose.o_world);
     const double r = d.norm();
     if (!(r > g.vossel_size_m)) return {0, H};  // the sensor is at the patch: every row
-    const double psi = std::asin(std::clamp(d.z() / r, -1.0, 1.0));
-    const double v = H * (0.5 - psi / M_PI);
+    const double v = geometry::EquirectProject(d, depth.size).y();
     const double half = std::asin(g.vossel_size_m / r) / dpsi + 1.0;
     lo = std::min(lo, int(std::floor(v - half)));
     hi = std::max(hi, int(std::ceil(v + half)) + 1);

@@ -151,6 +151,27 @@ absl::Status CheckArraySize(size_t got, size_t n, size_t stride, const char* wha
                                                  n, " vossels x ", stride, ")"));
 }
 
+// A covariance (xx, xy, xz, yy, yz, zz) is stored as two Vec3s grids: `<name>_diag`
+// (xx, yy, zz) and `<name>_off` (xy, xz, yz); `covariance_of(v)` gives vossel v's.
+template <typename CovarianceOf>
+void PushCovarianceGrids(openvdb::GridCPtrVec& grids, const Int32Grid& index,
+                         const std::string& name, CovarianceOf covariance_of) {
+  using openvdb::Vec3f;
+  grids.push_back(GridOverVossels<openvdb::Vec3SGrid>(index, name + "_diag", [&](int32_t v) {
+    const std::array<float, 6>& c = covariance_of(v);
+    return Vec3f(c[0], c[3], c[5]);
+  }));
+  grids.push_back(GridOverVossels<openvdb::Vec3SGrid>(index, name + "_off", [&](int32_t v) {
+    const std::array<float, 6>& c = covariance_of(v);
+    return Vec3f(c[1], c[2], c[4]);
+  }));
+}
+
+// The covariance PushCovarianceGrids stored as `diag` and `off`.
+std::array<float, 6> CovarianceFrom(const Eigen::Vector3f& diag, const Eigen::Vector3f& off) {
+  return {diag.x(), off.x(), off.y(), diag.y(), off.z(), diag.z()};
+}
+
 }  // namespace
 
 namespace internal {
@@ -302,15 +323,10 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
     }));
   }
   if (!geometry.covariance_m2.empty()) {
-    // (xx, xy, xz, yy, yz, zz) -> diag (xx, yy, zz), off-diagonal (xy, xz, yz).
-    grids.push_back(GridOverVossels<Vec3SGrid>(index, "covariance_diag", [&](int32_t v) {
-      const auto& c = geometry.covariance_m2[v];
-      return Vec3f(c[0], c[3], c[5]);
-    }));
-    grids.push_back(GridOverVossels<Vec3SGrid>(index, "covariance_off", [&](int32_t v) {
-      const auto& c = geometry.covariance_m2[v];
-      return Vec3f(c[1], c[2], c[4]);
-    }));
+    PushCovarianceGrids(grids, index, "covariance",
+                        [&](int32_t v) -> const std::array<float, 6>& {
+                          return geometry.covariance_m2[v];
+                        });
   }
   if (!geometry.sums.empty()) {
     // The exact running sums (double) that make merging scans exact (§1, records.h).
@@ -340,14 +356,10 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
         index, "frame_count", [&](int32_t v) { return geometry.frame[v].count; }));
     grids.push_back(GridOverVossels<Vec3SGrid>(
         index, "frame_centroid", [&](int32_t v) { return vec3(geometry.frame[v].centroid_m); }));
-    grids.push_back(GridOverVossels<Vec3SGrid>(index, "frame_covariance_diag", [&](int32_t v) {
-      const auto& c = geometry.frame[v].covariance_m2;
-      return Vec3f(c[0], c[3], c[5]);
-    }));
-    grids.push_back(GridOverVossels<Vec3SGrid>(index, "frame_covariance_off", [&](int32_t v) {
-      const auto& c = geometry.frame[v].covariance_m2;
-      return Vec3f(c[1], c[2], c[4]);
-    }));
+    PushCovarianceGrids(grids, index, "frame_covariance",
+                        [&](int32_t v) -> const std::array<float, 6>& {
+                          return geometry.frame[v].covariance_m2;
+                        });
     grids.push_back(GridOverVossels<Vec3SGrid>(
         index, "frame_view", [&](int32_t v) { return vec3(geometry.frame[v].view); }));
     grids.push_back(GridOverVossels<Vec3SGrid>(
@@ -406,10 +418,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     diag.resize(*n, Eigen::Vector3f::Zero());
     off.resize(*n, Eigen::Vector3f::Zero());
     g.covariance_m2.resize(*n);
-    for (size_t v = 0; v < *n; ++v) {
-      g.covariance_m2[v] = {diag[v].x(), off[v].x(), off[v].y(), diag[v].y(), off[v].z(),
-                            diag[v].z()};
-    }
+    for (size_t v = 0; v < *n; ++v) g.covariance_m2[v] = CovarianceFrom(diag[v], off[v]);
   }
   if (GridAs<openvdb::Vec3DGrid>(*contents, "sum")) {
     g.sums.assign(*n, VosselSums{});
@@ -462,8 +471,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     for (size_t v = 0; v < *n; ++v) {
       VosselFrame& f = g.frame[v];
       f.centroid_m = centroid[v];
-      f.covariance_m2 = {cov_diag[v].x(), cov_off[v].x(), cov_off[v].y(),
-                         cov_diag[v].y(), cov_off[v].z(), cov_diag[v].z()};
+      f.covariance_m2 = CovarianceFrom(cov_diag[v], cov_off[v]);
       f.view = view[v];
       f.normal = normal[v];
     }
