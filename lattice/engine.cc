@@ -287,13 +287,15 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
     }
     if (absl::Status stop = stage_done("validate", 0.05); !stop.ok()) return stop;
 
+    auto head = impl_->Snapshot(p, 0);
+    if (!head.ok()) return head.status();
+    if (scan.lidar.xyz_sensor_m.empty() && (*head)->geometry.size() == 0) {
+      return flows::CameraOnlyWithoutGeometry(project, scan.scan_name);
+    }
     // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
     auto info = flows::StoreScanBlobs(st, scan, *images);
     if (!info.ok()) return info.status();
     if (absl::Status stop = stage_done("store blobs", 0.15); !stop.ok()) return stop;
-
-    auto head = impl_->Snapshot(p, 0);
-    if (!head.ok()) return head.status();
     auto flow = flows::IngestScan(st, **head, *info, scan, impl_->limits.max_image_pixels,
                                   StageReporter(progress));
     if (flow.ok()) flow->stage_seconds.insert(flow->stage_seconds.begin(), stages.begin(), stages.end());

@@ -197,19 +197,14 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
   }
   out.layers = std::max(1, request.layers());
   if (request.has_pinhole()) {
-    const v1::PinholeCamera& c = request.pinhole();
     out.projection = render::Projection::kPinhole;
-    out.pinhole.fx_px = c.fx_px();
-    out.pinhole.fy_px = c.fy_px();
-    out.pinhole.cx_px = c.cx_px();
-    out.pinhole.cy_px = c.cy_px();
-    out.pinhole.k1 = c.k1();
-    out.pinhole.k2 = c.k2();
-    out.pinhole.k3 = c.k3();
-    out.pinhole.p1 = c.p1();
-    out.pinhole.p2 = c.p2();
+    out.pinhole = PinholeFromProto(request.pinhole());
   }
   return out;
+}
+
+geometry::PinholeIntrinsics PinholeFromProto(const v1::PinholeCamera& c) {
+  return {0, 0, c.fx_px(), c.fy_px(), c.cx_px(), c.cy_px(), c.k1(), c.k2(), c.k3(), c.p1(), c.p2()};
 }
 
 absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingProfile& p) {

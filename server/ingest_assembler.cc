@@ -108,12 +108,15 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     if (!iso.ok()) return iso.status();
     captured = *iso;
   }
-  if (!header.has_lidar()) {
+  const v1::LidarModel& lidar = header.lidar();  // unset or no points: a camera-only scan
+  const bool camera_only = lidar.point_count() == 0;
+  if (camera_only && header.panoramas_size() == 0) {
     return absl::InvalidArgumentError(
-        "header.lidar is required: divergence_rad, point_format and point_count");
+        "the header declares no LiDAR points (header.lidar.point_count) and no images "
+        "(header.panoramas): a scan needs one or the other");
   }
-  const v1::LidarModel& lidar = header.lidar();
-  if (!std::isfinite(lidar.divergence_rad()) || lidar.divergence_rad() <= 0.0) {
+  if (!camera_only &&
+      (!std::isfinite(lidar.divergence_rad()) || lidar.divergence_rad() <= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "header.lidar.divergence_rad must be > 0 radians (e.g. 0.0003), got ",
         lidar.divergence_rad()));
@@ -128,9 +131,9 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
           " is not supported; use POINT_FORMAT_XYZI_F32LE (16 bytes per point) or "
           "POINT_FORMAT_XYZIRGB_F32LE (28)"));
   }
-  if (lidar.point_count() <= 0) {
+  if (lidar.point_count() < 0) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "header.lidar.point_count must be > 0 (the number of points that follow), got ",
+        "header.lidar.point_count must be >= 0 (the number of points that follow), got ",
         lidar.point_count()));
   }
   if (lidar.point_count() > limits_.max_points_per_scan) {
@@ -182,6 +185,7 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.pose = *pano_pose;
     data.modality = *modality;
     data.angular_resolution_rad = pano.angular_resolution_rad();
+    if (pano.has_pinhole()) data.pinhole = PinholeFromProto(pano.pinhole());
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());
   }

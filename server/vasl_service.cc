@@ -158,10 +158,8 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       input_.name = h.name();
       input_.render_id = h.render_id();
       if (h.has_pinhole()) {
-        const v1::PinholeCamera& c = h.pinhole();
         input_.pinhole = true;
-        input_.intrinsics = {0, 0, c.fx_px(), c.fy_px(), c.cx_px(), c.cy_px(), c.k1(), c.k2(),
-                             c.k3(), c.p1(), c.p2()};
+        input_.intrinsics = PinholeFromProto(h.pinhole());
       }
       const int64_t limit = service_->engine()->limits().max_image_bytes;
       if (h.image_size_bytes() <= 0 || h.image_size_bytes() > limit) {

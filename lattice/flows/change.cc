@@ -20,10 +20,10 @@ namespace {
 /// Angular pitch (radians, the larger axis) of a source's depth panorama: the Δ of its
 /// visibility tolerance.
 double DepthPixelRad(const SourceRef& s) {
-  const double pitch = s.returns()
-                           ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
-                           : ingest::CameraDepthPitchRad(s.info.divergence_rad,
-                                                         {s.info.width_px, s.info.height_px});
+  const double pitch =
+      s.returns() ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
+                  : ingest::ImageProjection(CameraOf(s.info, 0), s.info.width_px, s.info.height_px)
+                        .PitchRad();
   const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
   return std::max(geometry::AzimuthPitchRad(size), geometry::ElevationPitchRad(size));
 }
@@ -186,10 +186,13 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
   // holds with or without a splat at depth ≥ r. So a block whose splats all lie beyond the far
   // side of every exact block it overlaps cannot change a test there: it is left out of the
   // context.
-  const double spread_rad = std::max({source.info.divergence_rad, DepthPixelRad(source),
-                                      source.returns() || source.info.width_px <= 0
-                                          ? 0.0
-                                          : 2.0 * M_PI / double(source.info.width_px)});
+  const double spread_rad = std::max(
+      {source.info.divergence_rad, DepthPixelRad(source),
+       source.returns() || source.info.width_px <= 0
+           ? 0.0
+           : ingest::ImageProjection(CameraOf(source.info, 0), source.info.width_px,
+                                     source.info.height_px)
+                 .PixelAngleRad(Eigen::Vector3d::UnitX())});
   for (const tiles::TileKey& b : all) {
     tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
     cap.half_angle_rad += margin_rad;

@@ -17,6 +17,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -50,14 +51,20 @@ struct FlowResult {
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
 };
 
-/// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality) as
-/// the stages take them, without its points or image.
+/// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality, a
+/// camera's projection) as the stages take them, without its points or image. A camera text
+/// that does not parse leaves it equirect; StoredCamera's loader refuses it (DATA_LOSS).
 ingest::LidarSource LidarOf(const store::SourceInfo& source, int32_t batch);
 ingest::CameraSource CameraOf(const store::SourceInfo& source, int32_t batch);
 
 /// A derived source's camera text (SourceInfo::camera) and back: "equirect" or "pinhole fx fy
-/// cx cy k1 k2 k3 p1 p2", then " render ID" when it cites a render.
+/// cx cy k1 k2 k3 p1 p2", then " render ID" when it cites a render. A camera's is empty (an
+/// equirect panorama) or the same pinhole text (a pinhole photo).
 std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k, int64_t render_id);
+/// The projection a camera text names: nullopt for an equirect one ("" or "equirect"), the
+/// intrinsics (width and height 0) for "pinhole …". DATA_LOSS for any other text.
+absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraText(
+    const std::string& camera_text);
 /// A stored derived source whose image is decoded from its blob on demand. DATA_LOSS for a
 /// camera text or image it cannot read.
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
@@ -84,10 +91,15 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);
 
+/// FAILED_PRECONDITION: a camera-only scan (images, no points) sent to a project without
+/// geometry, which it would have nothing to colour on.
+absl::Status CameraOnlyWithoutGeometry(const std::string& project, const std::string& scan);
+
 /// Stores a validated scan's raw inputs as content-addressed blobs (its LiDAR points packed as
 /// little-endian float32 x, y, z, intensity; per-point colour, when given, as float32 r, g, b;
 /// its encoded images) and returns its catalog description: sources with fresh ids (LiDAR
-/// first, then its point colour when given, then cameras in order), a fresh batch.
+/// first when it has points, then its point colour when given, then cameras in order; a
+/// pinhole camera's intrinsics in its camera text), a fresh batch.
 /// `images` are its panoramas' headers (for their sizes, ingest::ValidateScan).
 absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const ingest::ScanInput& scan,
                                                const std::vector<ingest::ImageHeader>& images);

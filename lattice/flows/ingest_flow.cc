@@ -2,6 +2,7 @@
 // recomputed where a neighbourhood changed, records of its own sources, and older sources
 // revisited only where the new geometry reaches them (change.h).
 #include <cstring>
+#include <numeric>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/change.h"
@@ -29,6 +30,13 @@ std::string PackPoints(const ingest::LidarData& lidar) {
 
 }  // namespace
 
+absl::Status CameraOnlyWithoutGeometry(const std::string& project, const std::string& scan) {
+  return absl::FailedPreconditionError(absl::StrCat(
+      "scan '", scan, "' has images and no LiDAR points, and project '", project,
+      "' has no geometry yet: ingest a scan with LiDAR points first (a camera-only scan "
+      "colours the surfaces the project already has)"));
+}
+
 absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const ingest::ScanInput& scan,
                                                const std::vector<ingest::ImageHeader>& images) {
   auto next_source = st.NextSourceId();
@@ -41,7 +49,7 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
   info.captured_utc = scan.captured_utc;
   info.pose = scan.pose;
   info.batch = *batch;
-  {
+  if (!scan.lidar.xyz_sensor_m.empty()) {  // none: a camera-only scan
     auto blob = st.PutBlob(PackPoints(scan.lidar));
     if (!blob.ok()) return blob.status();
     store::SourceInfo lidar;
@@ -80,6 +88,7 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
     cam.width_px = images[i].width_px;
     cam.height_px = images[i].height_px;
     cam.divergence_rad = pano.angular_resolution_rad;
+    if (pano.pinhole) cam.camera = DerivedCameraText(true, *pano.pinhole, 0);
     info.sources.push_back(cam);
   }
   return info;
@@ -120,48 +129,58 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       change.new_sources.cameras.push_back(std::move(cam));
     }
   }
-  if (change.new_sources.lidars.size() != 1) {
-    return absl::InternalError("IngestScan: a scan has exactly one LiDAR source");
+  if (change.new_sources.lidars.size() > 1) {
+    return absl::InternalError("IngestScan: a scan has at most one LiDAR source");
+  }
+  if (change.new_sources.lidars.empty() && head.geometry.size() == 0) {
+    return CameraOnlyWithoutGeometry(store.name(), scan.scan_name);
   }
 
-  // §1: bin the scan's own returns and merge them (exact sums), then derive.
-  if (absl::Status stop = clock.Start("voxelise", 0.2); !stop.ok()) return stop;
-  absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(change.new_sources.lidars[0], h);
-  if (!binned.ok()) return binned.status();
-  change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
-  const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
-  ingest::DeriveCentroidAndCovariance(change.geometry);
-  change.old_to_new = merged.old_to_new;
+  store::CommitPlan plan;
+  if (change.new_sources.lidars.empty()) {
+    // A camera-only scan: the geometry stays as it is; its cameras colour what they see of it.
+    change.geometry = head.geometry;
+    change.old_to_new.resize(head.geometry.size());
+    std::iota(change.old_to_new.begin(), change.old_to_new.end(), 0);
+  } else {
+    // §1: bin the scan's own returns and merge them (exact sums), then derive.
+    if (absl::Status stop = clock.Start("voxelise", 0.2); !stop.ok()) return stop;
+    absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(change.new_sources.lidars[0], h);
+    if (!binned.ok()) return binned.status();
+    change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
+    const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
+    ingest::DeriveCentroidAndCovariance(change.geometry);
+    change.old_to_new = merged.old_to_new;
 
-  // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.
-  if (absl::Status stop = clock.Start("normals", 0.35); !stop.ok()) return stop;
-  std::vector<uint8_t> renormal(change.geometry.size(), 0);
-  {
-    auto acc = change.geometry.index_grid->getConstAccessor();
-    for (size_t v = 0; v < merged.touched.size(); ++v) {
-      if (!merged.touched[v]) continue;
-      const openvdb::Coord c = change.geometry.coord[v];
-      for (int dx = -1; dx <= 1; ++dx)
-        for (int dy = -1; dy <= 1; ++dy)
-          for (int dz = -1; dz <= 1; ++dz) {
-            int32_t n;
-            if (acc.probeValue(c.offsetBy(dx, dy, dz), n)) renormal[size_t(n)] = 1;
-          }
+    // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.
+    if (absl::Status stop = clock.Start("normals", 0.35); !stop.ok()) return stop;
+    std::vector<uint8_t> renormal(change.geometry.size(), 0);
+    {
+      auto acc = change.geometry.index_grid->getConstAccessor();
+      for (size_t v = 0; v < merged.touched.size(); ++v) {
+        if (!merged.touched[v]) continue;
+        const openvdb::Coord c = change.geometry.coord[v];
+        for (int dx = -1; dx <= 1; ++dx)
+          for (int dy = -1; dy <= 1; ++dy)
+            for (int dz = -1; dz <= 1; ++dz) {
+              int32_t n;
+              if (acc.probeValue(c.offsetBy(dx, dy, dz), n)) renormal[size_t(n)] = 1;
+            }
+      }
+    }
+    ingest::ComputeNormals(change.geometry, &renormal);
+    std::set<tiles::TileKey>& returns = plan.source_tiles[change.new_sources.lidars[0].id];
+    for (const openvdb::Coord& c : binned->coord) returns.insert(tiles::TileOf(c, T));
+    for (const ingest::LidarSource& c : change.new_sources.point_colours) {
+      plan.source_tiles[c.colour_id] = returns;  // its records lie where the returns do
     }
   }
-  ingest::ComputeNormals(change.geometry, &renormal);
 
   absl::StatusOr<std::vector<store::ScanInfo>> scans = store.ListScans(head.version);
   if (!scans.ok()) return scans.status();
   if (head.version == 0) scans->clear();
-  store::CommitPlan plan;
   plan.made_by = absl::StrCat("ingest scan ", info.name);
   plan.add_scan = info;
-  std::set<tiles::TileKey>& returns = plan.source_tiles[change.new_sources.lidars[0].id];
-  for (const openvdb::Coord& c : binned->coord) returns.insert(tiles::TileOf(c, T));
-  for (const ingest::LidarSource& c : change.new_sources.point_colours) {
-    plan.source_tiles[c.colour_id] = returns;  // its records lie where the returns do
-  }
 
   absl::StatusOr<store::Snapshot> next =
       internal::Propagate(store, head, std::move(change), internal::SourcesOf(*scans),

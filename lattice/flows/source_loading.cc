@@ -28,6 +28,10 @@ ingest::CameraSource CameraOf(const store::SourceInfo& s, int32_t batch) {
   cam.pose = s.pose;
   cam.modality = s.modality;
   cam.angular_resolution_rad = s.divergence_rad;
+  if (absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> k = ProjectionOfCameraText(s.camera);
+      k.ok()) {
+    cam.pinhole = *k;
+  }
   return cam;
 }
 
@@ -91,6 +95,23 @@ std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k
   return s;
 }
 
+absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraText(
+    const std::string& camera_text) {
+  std::vector<std::string> f = absl::StrSplit(camera_text, ' ', absl::SkipEmpty());
+  if (f.empty() || f[0] == "equirect") return std::nullopt;
+  if (f[0] != "pinhole" || f.size() < 10) {
+    return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
+  }
+  geometry::PinholeIntrinsics k;
+  double* v[] = {&k.fx_px, &k.fy_px, &k.cx_px, &k.cy_px, &k.k1, &k.k2, &k.k3, &k.p1, &k.p2};
+  for (int i = 0; i < 9; ++i) {
+    if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
+      return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
+    }
+  }
+  return k;
+}
+
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
                                                   const store::SourceInfo& src, int32_t batch,
                                                   int64_t max_pixels) {
@@ -98,19 +119,13 @@ absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& sto
   out.id = src.id;
   out.batch = batch;
   out.pose = src.pose;
-  std::vector<std::string> f = absl::StrSplit(src.camera, ' ', absl::SkipEmpty());
-  if (!f.empty() && f[0] == "pinhole" && f.size() >= 10) {
-    out.pinhole = true;
-    double* v[] = {&out.intrinsics.fx_px, &out.intrinsics.fy_px, &out.intrinsics.cx_px,
-                   &out.intrinsics.cy_px, &out.intrinsics.k1, &out.intrinsics.k2,
-                   &out.intrinsics.k3, &out.intrinsics.p1, &out.intrinsics.p2};
-    for (int i = 0; i < 9; ++i) {
-      if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
-        return absl::DataLossError(absl::StrCat("source ", src.id, ": bad camera '", src.camera, "'"));
-      }
-    }
-  } else if (f.empty() || f[0] != "equirect") {
+  absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> k = ProjectionOfCameraText(src.camera);
+  if (!k.ok() || src.camera.empty()) {
     return absl::DataLossError(absl::StrCat("source ", src.id, ": bad camera '", src.camera, "'"));
+  }
+  if (k->has_value()) {
+    out.pinhole = true;
+    out.intrinsics = **k;
   }
   absl::StatusOr<std::string> bytes = store.ReadBlob(src.blob_sha256);
   if (!bytes.ok()) return bytes.status();
@@ -128,6 +143,11 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
   ingest::CameraSource cam = CameraOf(src, batch);
   const store::ProjectStore* st = &store;
   cam.load = [st, src, max_pixels]() -> absl::StatusOr<ingest::LinearImage> {
+    if (absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> k =
+            ProjectionOfCameraText(src.camera);
+        !k.ok()) {
+      return absl::DataLossError(absl::StrCat("source ", src.id, ": ", k.status().message()));
+    }
     absl::StatusOr<std::string> bytes = st->ReadBlob(src.blob_sha256);
     if (!bytes.ok()) return bytes.status();
     absl::StatusOr<ingest::LinearImage> image =

@@ -3,6 +3,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <optional>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -18,13 +20,15 @@ namespace {
 using records::RecordSet;
 
 // Bilinear read of a linear image at continuous pixel coordinates (§2.1: pixel centres at
-// half-integers); columns wrap across the seam, rows clamp.
-void SampleBilinear(const LinearImage& img, double u, double v, float* out, bool* clipped) {
+// half-integers); columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp.
+void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out,
+                    bool* clipped) {
   const double x = u - 0.5, y = v - 0.5;
   const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
   const double fx = x - i0, fy = y - j0;
   const int W = img.width_px, H = img.height_px, C = img.channels;
-  const int ia = geometry::WrapColumn(i0, W), ib = geometry::WrapColumn(i0 + 1, W);
+  const int ia = wrap ? geometry::WrapColumn(i0, W) : std::clamp(i0, 0, W - 1);
+  const int ib = wrap ? geometry::WrapColumn(i0 + 1, W) : std::clamp(i0 + 1, 0, W - 1);
   const int ja = std::clamp(j0, 0, H - 1), jb = std::clamp(j0 + 1, 0, H - 1);
   const float* p00 = &img.pixels[(size_t(ja) * W + ia) * C];
   const float* p10 = &img.pixels[(size_t(ja) * W + ib) * C];
@@ -82,9 +86,56 @@ Eigen::Vector3d NormalOr(const records::VosselGeometry& g, size_t k, const Eigen
 
 }  // namespace
 
+ImageProjection::ImageProjection(const CameraSource& cam, int width_px, int height_px)
+    : pinhole_(cam.pinhole), size_{width_px, height_px},
+      angular_resolution_rad_(cam.angular_resolution_rad) {
+  if (pinhole_) {
+    pinhole_->width_px = width_px;
+    pinhole_->height_px = height_px;
+  }
+}
+
+std::optional<Eigen::Vector2d> ImageProjection::Project(const Eigen::Vector3d& d_cam) const {
+  if (!pinhole_) return geometry::EquirectProject(d_cam, size_);  // §2.1
+  return geometry::PinholeProject(d_cam, *pinhole_);              // §2.2
+}
+
+bool ImageProjection::Inside(const Eigen::Vector2d& uv) const {
+  if (!pinhole_) return true;
+  return uv.x() >= 0.0 && uv.x() <= size_.width_px && uv.y() >= 0.0 && uv.y() <= size_.height_px;
+}
+
+double ImageProjection::PixelAngleRad(const Eigen::Vector3d& d_cam) const {
+  if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
+  if (pinhole_) return geometry::PinholePixelAngleRad(*pinhole_);  // §3: pitch over focal length
+  const double psi = std::asin(std::clamp(d_cam.z() / d_cam.norm(), -1.0, 1.0));
+  return geometry::EquirectPixelAngleRad(psi, size_);  // §3
+}
+
+double ImageProjection::PitchRad() const {
+  if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
+  if (pinhole_) return geometry::PinholePixelAngleRad(*pinhole_);
+  return geometry::ElevationPitchRad(size_);
+}
+
+double ImageProjection::HalfFieldRad() const {
+  if (!pinhole_) return M_PI;
+  double widest = 0.0;
+  const double W = size_.width_px, H = size_.height_px;
+  for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(W, 0),
+                                        Eigen::Vector2d(0, H), Eigen::Vector2d(W, H),
+                                        Eigen::Vector2d(W / 2, 0), Eigen::Vector2d(W / 2, H),
+                                        Eigen::Vector2d(0, H / 2), Eigen::Vector2d(W, H / 2)}) {
+    const Eigen::Vector3d d = geometry::PinholeUnproject(corner, *pinhole_);
+    widest = std::max(widest, std::acos(std::clamp(d.z() / d.norm(), -1.0, 1.0)));
+  }
+  return widest;
+}
+
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
                        const std::vector<float>& vis) {
-  const geometry::EquirectSize size{cam.image.width_px, cam.image.height_px};
+  const ImageProjection proj(cam, cam.image.width_px, cam.image.height_px);
+  const bool wrap = !cam.pinhole;
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
@@ -103,11 +154,10 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       const Eigen::Vector3d n = NormalOr(g, k, v_hat);
       const double cos_inc = geometry::CosIncidence(n, x, cam.pose.o_world);  // §3
       const Eigen::Vector3d d_cam = R_cam_world * (x - cam.pose.o_world);
-      const Eigen::Vector2d uv = geometry::EquirectProject(d_cam, size);
-      const double psi = std::asin(std::clamp(d_cam.z() / range, -1.0, 1.0));
-      const double theta_pix = cam.angular_resolution_rad > 0.0
-                                   ? cam.angular_resolution_rad
-                                   : geometry::EquirectPixelAngleRad(psi, size);  // §3
+      const std::optional<Eigen::Vector2d> at = proj.Project(d_cam);
+      if (!at || !proj.Inside(*at)) continue;  // outside a pinhole photo
+      const Eigen::Vector2d uv = *at;
+      const double theta_pix = proj.PixelAngleRad(d_cam);  // §3
       const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, theta_pix, cos_inc);
       const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
       const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
@@ -115,7 +165,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       double clipped_weight = 0.0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
         bool clipped;
-        SampleBilinear(cam.image, uv.x(), uv.y(), value, &clipped);
+        SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value, &clipped);
         clipped_weight = clipped ? 1.0 : 0.0;
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
@@ -126,10 +176,13 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         for (int a = 0; a < 3; ++a) {
           for (int b = 0; b < 3; ++b) {
             const Eigen::Vector3d p = x + node[a] * sk_major * t_major + node[b] * sk_minor * t_minor;
-            const Eigen::Vector2d q = geometry::EquirectProject(R_cam_world * (p - cam.pose.o_world), size);
+            // A kernel point behind a pinhole camera (a surface edge-on at its image border)
+            // reads the centre's pixel.
+            const Eigen::Vector2d q =
+                proj.Project(R_cam_world * (p - cam.pose.o_world)).value_or(uv);
             float s[3];
             bool clipped;
-            SampleBilinear(cam.image, q.x(), q.y(), s, &clipped);
+            SampleBilinear(cam.image, q.x(), q.y(), wrap, s, &clipped);
             const double w = weight[a] * weight[b];
             for (int c = 0; c < cam.image.channels; ++c) acc[c] += w * s[c];
             if (clipped) clipped_weight += w;
@@ -250,10 +303,6 @@ double LidarDepthPitchRad(size_t point_count) {
   return M_PI / std::sqrt(std::max<double>(double(point_count), 2048) / 2.0);
 }
 
-double CameraDepthPitchRad(double angular_resolution_rad, const geometry::EquirectSize& image) {
-  return angular_resolution_rad > 0.0 ? angular_resolution_rad : geometry::ElevationPitchRad(image);
-}
-
 int CameraSampleRadiusPx() { return kCameraSampleRadiusPx; }
 
 namespace {
@@ -329,20 +378,42 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
     return absl::InternalError("CameraRecords: a camera source has neither an image nor a loader");
   }
   const double tau = DepthToleranceM(g.vossel_size_m);
-  const geometry::EquirectSize image_size{cam.image.width_px, cam.image.height_px};
-  const double pitch = CameraDepthPitchRad(cam.angular_resolution_rad, image_size);
-  const double dilation = cam.angular_resolution_rad > 0.0
-                              ? cam.angular_resolution_rad
-                              : geometry::EquirectPixelAngleRad(0.0, image_size);
-  DepthPanorama depth =
-      RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch), dilation, context);
-  const auto [row_begin, row_end] = only != nullptr ? RowsTested(g, depth, *only)
-                                                    : std::pair<int, int>{0, depth.size.height_px};
+  const ImageProjection proj(cam, cam.image.width_px, cam.image.height_px);
+  const double pitch = proj.PitchRad();
+  DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch),
+                                            proj.PixelAngleRad(Eigen::Vector3d::UnitX()), context);
+  // A pinhole photo tests only the vossels its image holds (SampleCamera records no other).
+  std::vector<uint8_t> in_view;
+  double nearest_m = std::numeric_limits<double>::infinity();
+  if (cam.pinhole) {
+    in_view.assign(g.size(), 0);
+    const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
+    for (size_t k = 0; k < g.size(); ++k) {
+      const Eigen::Vector3d d = R_cam_world * (g.FrameCentroid(k).cast<double>() - cam.pose.o_world);
+      nearest_m = std::min(nearest_m, d.norm());
+      if (only != nullptr && !(*only)[k]) continue;
+      const std::optional<Eigen::Vector2d> uv = proj.Project(d);
+      in_view[k] = uv && proj.Inside(*uv) ? 1 : 0;
+    }
+  }
+  const std::vector<uint8_t>* tested = cam.pinhole ? &in_view : only;
+  const auto [row_begin, row_end] = tested != nullptr
+                                        ? RowsTested(g, depth, *tested)
+                                        : std::pair<int, int>{0, depth.size.height_px};
   DilateDepthPanorama(depth, kCameraSampleRadiusPx, row_begin, row_end);
   SourceRecords out;
   out.records = SampleCamera(
-      g, cam, ComputeVisibility(g, depth, tau, only, 1 + kCameraSampleRadiusPx));
+      g, cam, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx));
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
+  if (cam.pinhole) {
+    // Nothing outside a pinhole photo's field is recorded, so no change there can alter its
+    // records: its reach is 0 beyond the field, widened by the widest a test reads (a vossel's
+    // patch, √2·h across at the nearest vossel's range, and the dilation and rounding pixels).
+    const double patch_rad =
+        std::asin(std::min(1.0, std::sqrt(2.0) * g.vossel_size_m / std::max(nearest_m, 1e-9)));
+    MaskOutsideCone(depth, Eigen::Vector3d::UnitZ(),
+                    proj.HalfFieldRad() + patch_rad + (kCameraSampleRadiusPx + 2) * pitch);
+  }
   out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
   return out;
 }

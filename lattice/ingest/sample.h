@@ -3,6 +3,7 @@
 ///        footprint, pixel coordinates, visibility and the sample itself.
 #pragma once
 
+#include <optional>
 #include <vector>
 
 #include "lattice/ingest/sources.h"
@@ -12,7 +13,32 @@
 
 namespace vasl::ingest {
 
-/// Records of one equirect camera: one per vossel with V > 0. The sample is the §4.1 matched
+/// Where a camera's image sees (§2.1 equirect, §2.2 pinhole) and how finely (§3), for an image
+/// of the given size.
+class ImageProjection {
+ public:
+  ImageProjection(const CameraSource& camera, int width_px, int height_px);
+  /// Continuous pixel coordinates of a camera-frame direction; nullopt behind a pinhole camera.
+  std::optional<Eigen::Vector2d> Project(const Eigen::Vector3d& d_cam) const;
+  /// True when pixel coordinates lie on the image (always for a panorama).
+  bool Inside(const Eigen::Vector2d& uv_px) const;
+  /// §3 θ_pix in direction `d_cam`: the camera's own angular resolution when it gives one,
+  /// else max(Δψ, cosψ·Δφ) (equirect) or pixel pitch over focal length (pinhole).
+  double PixelAngleRad(const Eigen::Vector3d& d_cam) const;
+  /// The pitch of the camera's depth panorama (its Δ in the visibility tolerance): its angular
+  /// resolution, Δψ, or the pinhole pixel angle.
+  double PitchRad() const;
+  /// Largest angle between the optical axis (+z) and a ray of the image's border; π for a
+  /// panorama.
+  double HalfFieldRad() const;
+
+ private:
+  std::optional<geometry::PinholeIntrinsics> pinhole_;
+  geometry::EquirectSize size_;
+  double angular_resolution_rad_ = 0.0;
+};
+
+/// Records of one camera: one per vossel with V > 0 (that a pinhole image holds). The sample is the §4.1 matched
 /// filter when the pixel footprint is sharper than s* = h/2 (an elliptical Gaussian in the
 /// tangent plane, σ_K² = s*² − s² per axis, evaluated by 3×3 Gauss–Hermite quadrature whose
 /// points are projected into the image and read bilinearly with seam wrap; weights sum to 1),
@@ -64,10 +90,9 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geome
                                             const std::vector<uint8_t>* context = nullptr);
 
 /// Angular sampling of a source's depth panorama (radians per pixel): a LiDAR's from its point
-/// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's from its
-/// angular resolution or its image height. Fixed per source, so a revisit sees the same raster.
+/// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's its
+/// ImageProjection::PitchRad. Fixed per source, so a revisit sees the same raster.
 double LidarDepthPitchRad(size_t point_count);
-double CameraDepthPitchRad(double angular_resolution_rad, const geometry::EquirectSize& image);
 /// Pixels by which a camera's depth panorama is dilated (see DilateDepthPanorama).
 int CameraSampleRadiusPx();
 

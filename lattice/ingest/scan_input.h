@@ -3,10 +3,12 @@
 #pragma once
 
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
@@ -20,13 +22,17 @@ struct LidarData {
   double divergence_rad = 0.3e-3;   ///< full beam divergence θ_div (§3)
 };
 
-/// One equirectangular panorama of a scan (§2.1), with its own pose.
+/// One image of a scan with its own pose: an equirectangular panorama (§2.1) or, with
+/// `pinhole`, a pinhole photo (§2.2).
 struct PanoramaData {
   std::string name;                 ///< unique within the scan, e.g. "cam0"
   geometry::Pose pose;              ///< T_world_camera; the panorama's sensor frame (§2.1)
   records::Modality modality = records::Modality::kRgb;  ///< kRgb or kIr
   std::string encoded_image;        ///< PNG, JPEG, EXR or TIFF bytes (OpenImageIO decodes)
   double angular_resolution_rad = 0.0;  ///< 0: from the image size (§3 θ_pix)
+  /// Set: a pinhole photo with these intrinsics (their width and height are ignored: the
+  /// image's own size counts); unset: an equirectangular panorama.
+  std::optional<geometry::PinholeIntrinsics> pinhole;
 };
 
 /// One scan as sent by a capture rig.
@@ -34,7 +40,9 @@ struct ScanInput {
   std::string scan_name;            ///< client's scan id, unique in the project
   std::string rig;                  ///< rig / device name (provenance)
   std::string captured_utc;         ///< capture time, ISO 8601 (may be empty)
-  geometry::Pose pose;              ///< T_world_scanner of the LiDAR
+  geometry::Pose pose;              ///< T_world_scanner of the LiDAR (of the rig when camera-only)
+  /// The scan's returns; no points: a camera-only scan, whose images colour the geometry the
+  /// project already has.
   LidarData lidar;
   std::vector<PanoramaData> panoramas;
   /// The client's request id (empty: none): a retry under the id of a committed ingest is

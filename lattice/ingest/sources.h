@@ -6,6 +6,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string_view>
 #include <vector>
 
@@ -60,7 +61,7 @@ struct LidarSource {
   size_t point_count() const { return xyz_sensor_m.size() / 3; }
 };
 
-/// An equirectangular camera of a scan (§2.1).
+/// A camera of a scan: an equirectangular panorama (§2.1) or a pinhole photo (§2.2).
 struct CameraSource {
   int32_t id = 0;                     ///< source id (record `scan`)
   int32_t batch = 0;
@@ -71,6 +72,8 @@ struct CameraSource {
   /// held in memory one at a time (a decoded 8192×4096 panorama takes 400 MB).
   std::function<absl::StatusOr<LinearImage>()> load;
   double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
+  /// Set: a pinhole camera (its width and height are the image's); unset: equirectangular.
+  std::optional<geometry::PinholeIntrinsics> pinhole;
 };
 
 /// An RGBZ[N,U,A] image sent back as derived data (§10): a render, edited or refined.

@@ -41,7 +41,10 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
   const LidarData& lidar = scan.lidar;
   if (lidar.xyz_sensor_m.size() % 3 != 0) return bad("LiDAR xyz array length is not a multiple of 3");
   const size_t n = lidar.xyz_sensor_m.size() / 3;
-  if (n == 0) return bad("no LiDAR points: a scan needs at least one return to place vossels");
+  if (n == 0 && scan.panoramas.empty()) {
+    return bad("no LiDAR points and no images: a scan needs returns to place vossels, or images "
+               "to colour the vossels the project has");
+  }
   if (int64_t(n) > limits.max_points_per_scan) {
     return absl::ResourceExhaustedError(absl::StrCat("scan '", scan.scan_name, "' has ", n,
                                                      " points, above the limit of ",
@@ -63,7 +66,7 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
   for (float v : lidar.rgb) {
     if (!std::isfinite(v) || v < 0.0f) return bad("a point colour is negative, NaN or infinite");
   }
-  if (!(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
+  if (n > 0 && !(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
     return bad("LiDAR divergence_rad must lie in (0, 0.1] radians");
   }
   if (int64_t(scan.panoramas.size()) > limits.max_panoramas_per_scan) {
@@ -97,11 +100,18 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
       return absl::Status(image.status().code(),
                           absl::StrCat("scan '", scan.scan_name, "', ", what, ": ", image.status().message()));
     }
+    if (pano.pinhole) {
+      if (absl::Status s = geometry::ValidatePinhole(*pano.pinhole); !s.ok()) {
+        return bad(absl::StrCat(what, ": ", s.message()));
+      }
+      images.push_back(*image);
+      continue;
+    }
     const double aspect = double(image->width_px) / image->height_px;
     if (aspect < 1.95 || aspect > 2.05) {
       return bad(absl::StrCat(what, " is ", image->width_px, "x", image->height_px,
                               ": an equirectangular panorama spans 360°×180°, so its width must "
-                              "be twice its height"));
+                              "be twice its height (give intrinsics for a pinhole photo)"));
     }
     images.push_back(*image);
   }

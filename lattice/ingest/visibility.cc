@@ -125,6 +125,19 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   return out;
 }
 
+void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double half_angle_rad) {
+  if (half_angle_rad >= M_PI) return;
+  const int W = depth.size.width_px, H = depth.size.height_px;
+  const double cos_max = std::cos(half_angle_rad);
+  const Eigen::Vector3d a = axis.normalized();
+  tbb::parallel_for(0, H, [&](int j) {
+    for (int i = 0; i < W; ++i) {
+      const Eigen::Vector3d d = geometry::EquirectUnproject(i + 0.5, j + 0.5, depth.size);
+      if (d.dot(a) < cos_max) depth.depth_m[size_t(j) * W + i] = 0.0f;
+    }
+  });
+}
+
 void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin, int row_end) {
   if (radius_px <= 0) return;
   const int W = depth.size.width_px, H = depth.size.height_px;

@@ -66,6 +66,12 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
 void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin = 0,
                          int row_end = -1);
 
+/// Sets the depth to 0 (nothing reachable) at every pixel whose direction lies more than
+/// `half_angle_rad` from `axis` (sensor frame): for a source that records nothing there, so
+/// that its reach raster (tiles::ReachFromDepth) holds no change there as one it can see.
+/// Call it after the visibility tests have read the panorama.
+void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double half_angle_rad);
+
 /// §5: V_{k,m} for every vossel: the share of 17 points (a 4×4 grid and the centre; V is a
 /// multiple of 1/17, stored exactly by the record's 8-bit codec) over the vossel's surface
 /// patch (side h, in the plane (x_k, n_k) of its record frame) whose pixel in `depth` satisfies

@@ -213,6 +213,33 @@ TEST(IncrementalTest, IngestOfColouredScansEqualsRebuild) {
   IngestRoomThenRebuild(TestRoot("coloured"), true, "coloured room: incremental v4 vs rebuild v5");
 }
 
+// Claim (§2.2, §5, flows.h): a camera-only scan (a pinhole photo and a panorama, where no
+// LiDAR stood) between LiDAR scans is revisited like any camera when later scans change what it
+// sees, the photo only within its field: incremental equals rebuild bit for bit.
+TEST(IncrementalTest, CameraOnlyScanBetweenLidarScansEqualsRebuild) {
+  const fs::path root = TestRoot("camera-only");
+  auto engine = OpenEngine(root);
+  CreateProject(*engine, "room");
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  auto cameras = scenes::MakeCameraOnlyScan(
+      room, "cameras", scenes::LookAt(room.NovelViews()[0].o_world, {3.0, 3.3, 0.9}),
+      room.NovelViews()[1], kPanoW);
+  ASSERT_TRUE(cameras.ok()) << cameras.status();
+  for (size_t i = 0; i < room.Stations().size(); ++i) {
+    if (i == 2) Ingest(*engine, "room", *cameras);
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    Ingest(*engine, "room", *scan);
+  }
+  auto rebuilt = engine->Rebuild("room");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  auto st = OpenStore(root, "room");
+  const Diff d = CompareProjects(*st, 5, *st, 6);
+  d.Print("room with a camera-only scan: incremental v5 vs rebuild v6");
+  ExpectSame(d);
+  fs::remove_all(root);
+}
+
 // Claim (§5, flows.h): the same on a second site, a corridor of 4 rooms with 12 stations over
 // several tiles, where a scan reaches only part of the site: incremental equals rebuild bit for
 // bit, and older sources are recomputed only on the tiles the change can reach.

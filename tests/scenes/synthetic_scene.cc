@@ -437,8 +437,14 @@ LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanne
   return scan;
 }
 
-Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera,
-                        int width_px, int height_px, int supersample) {
+namespace {
+
+// Renders an image of width × height pixels whose camera-frame ray at continuous pixel
+// coordinates (u, v) is unproject(u, v): each pixel the mean albedo over supersample² strata
+// of [i, i+1) × [j, j+1), depth the centre ray's range.
+template <typename Unproject>
+Panorama RenderImage(const Scene& scene, const geometry::Pose& T_world_camera, int width_px,
+                     int height_px, int supersample, Unproject unproject) {
   Panorama pano;
   pano.width_px = std::max(0, width_px);
   pano.height_px = std::max(0, height_px);
@@ -446,22 +452,19 @@ Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera
   const size_t w = pano.width_px, h = pano.height_px;
   pano.rgb.assign(w * h * 3, 0.0f);
   pano.depth_m.assign(w * h, std::numeric_limits<float>::infinity());
-  const geometry::EquirectSize size{pano.width_px, pano.height_px};
   const Vector3d o = T_world_camera.o_world;
   const tbb::blocked_range<int> all_rows(0, pano.height_px);
   tbb::parallel_for(all_rows, [&](const tbb::blocked_range<int>& r) {
     for (int j = r.begin(); j < r.end(); ++j) {
       for (int i = 0; i < pano.width_px; ++i) {
         // Pixel integration: the mean over s × s strata of [i, i+1) × [j, j+1), each sampled
-        // at its centre with the §2.1 inverse at continuous coordinates.
+        // at its centre with the projection's inverse at continuous coordinates.
         Vector3d sum = Vector3d::Zero();
         int hits = 0;
         for (int b = 0; b < s; ++b) {
           for (int a = 0; a < s; ++a) {
-            const double u = i + (a + 0.5) / s;
-            const double v = j + (b + 0.5) / s;
-            const Vector3d d =
-                T_world_camera.DirectionToWorld(geometry::EquirectUnproject(u, v, size));
+            const Vector3d d = T_world_camera.DirectionToWorld(
+                unproject(i + (a + 0.5) / s, j + (b + 0.5) / s).normalized());
             const SceneHit hit = scene.Intersect(o, d, kInf);
             if (!hit.valid) continue;
             sum += hit.albedo_linear.cast<double>();
@@ -473,13 +476,57 @@ Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera
           for (int c = 0; c < 3; ++c) pano.rgb[3 * p + c] = static_cast<float>(sum[c] / hits);
         }
         const Vector3d d_centre =
-            T_world_camera.DirectionToWorld(geometry::EquirectUnproject(i + 0.5, j + 0.5, size));
+            T_world_camera.DirectionToWorld(unproject(i + 0.5, j + 0.5).normalized());
         const SceneHit centre = scene.Intersect(o, d_centre, kInf);
         if (centre.valid) pano.depth_m[p] = static_cast<float>(centre.t_m);
       }
     }
   });
   return pano;
+}
+
+}  // namespace
+
+Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera,
+                        int width_px, int height_px, int supersample) {
+  const geometry::EquirectSize size{std::max(0, width_px), std::max(0, height_px)};
+  return RenderImage(scene, T_world_camera, width_px, height_px, supersample,
+                     [&size](double u, double v) { return geometry::EquirectUnproject(u, v, size); });
+}
+
+geometry::Pose LookAt(const Eigen::Vector3d& o, const Eigen::Vector3d& target) {
+  const Vector3d f = (target - o).normalized();
+  const Vector3d r = f.cross(Vector3d::UnitZ()).normalized();
+  Eigen::Matrix3d R;
+  R.col(0) = r;
+  R.col(1) = f.cross(r);  // down
+  R.col(2) = f;
+  geometry::Pose pose;
+  pose.o_world = o;
+  pose.q_world_sensor = Eigen::Quaterniond(R).normalized();
+  return pose;
+}
+
+geometry::PinholeIntrinsics SurveyPhotoIntrinsics() {
+  geometry::PinholeIntrinsics k;
+  k.width_px = 640;
+  k.height_px = 480;
+  k.fx_px = k.fy_px = 500.0;
+  k.cx_px = 322.0;
+  k.cy_px = 238.0;
+  k.k1 = -0.08;
+  k.k2 = 0.01;
+  k.p1 = 0.0005;
+  k.p2 = -0.0003;
+  return k;
+}
+
+Panorama RenderPinhole(const Scene& scene, const geometry::Pose& T_world_camera,
+                       const geometry::PinholeIntrinsics& k, int supersample) {
+  return RenderImage(scene, T_world_camera, k.width_px, k.height_px, supersample,
+                     [&k](double u, double v) {
+                       return geometry::PinholeUnproject(Eigen::Vector2d(u, v), k);
+                     });
 }
 
 std::vector<uint8_t> ToSrgb8(const Panorama& pano) {
@@ -596,6 +643,32 @@ absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t stati
   if (!png.ok()) return png.status();
   pano.encoded_image = std::move(*png);
   scan.panoramas.push_back(std::move(pano));
+  return scan;
+}
+
+absl::StatusOr<ingest::ScanInput> MakeCameraOnlyScan(const Scene& scene, const std::string& name,
+                                                     const geometry::Pose& photo_pose,
+                                                     const geometry::Pose& pano_pose,
+                                                     int pano_width_px) {
+  ingest::ScanInput scan;
+  scan.scan_name = name;
+  scan.rig = "handheld";
+  scan.pose = photo_pose;
+  ingest::PanoramaData photo;
+  photo.name = "photo";
+  photo.pose = photo_pose;
+  photo.pinhole = SurveyPhotoIntrinsics();
+  absl::StatusOr<std::string> photo_png = EncodePng(RenderPinhole(scene, photo_pose, *photo.pinhole, 2));
+  if (!photo_png.ok()) return photo_png.status();
+  photo.encoded_image = std::move(*photo_png);
+  ingest::PanoramaData pano;
+  pano.name = "pano";
+  pano.pose = pano_pose;
+  absl::StatusOr<std::string> pano_png =
+      EncodePng(RenderPanorama(scene, pano_pose, pano_width_px, pano_width_px / 2, 2));
+  if (!pano_png.ok()) return pano_png.status();
+  pano.encoded_image = std::move(*pano_png);
+  scan.panoramas = {std::move(photo), std::move(pano)};
   return scan;
 }
 

@@ -31,6 +31,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/ingest/scan_input.h"
 
@@ -307,6 +308,20 @@ struct Panorama {
 Panorama RenderPanorama(const Scene& scene, const geometry::Pose& T_world_camera,
                         int width_px, int height_px, int supersample = 4);
 
+/// T_world_camera of a pinhole camera (§2.2 frame: x right, y down, z forward) at `o` looking
+/// at `target`, level (its x axis horizontal). `target` must not lie straight above or below.
+geometry::Pose LookAt(const Eigen::Vector3d& o, const Eigen::Vector3d& target);
+
+/// A survey photo's intrinsics: 640×480, about 65° across, with barrel distortion and a little
+/// decentring, as a camera calibration gives them.
+geometry::PinholeIntrinsics SurveyPhotoIntrinsics();
+
+/// Renders the photo of a pinhole camera (§2.2: x right, y down, z forward; Brown–Conrady
+/// distortion) at T_world_camera, k.width_px × k.height_px, pixel-integrated like
+/// RenderPanorama; depth is the centre ray's range (not its z).
+Panorama RenderPinhole(const Scene& scene, const geometry::Pose& T_world_camera,
+                       const geometry::PinholeIntrinsics& k, int supersample = 4);
+
 /// Linear → sRGB transfer (IEC 61966-2-1) and rounding to 8 bits, H·W·3 bytes: exactly the
 /// pixel values EncodePng writes.
 std::vector<uint8_t> ToSrgb8(const Panorama& pano);
@@ -329,5 +344,14 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
 absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t station,
                                                 const LidarSettings& lidar, int pano_width_px,
                                                 int supersample = 4, bool point_colour = false);
+
+/// A camera-only scan (no LiDAR points) named `name`, posed at `photo_pose`: a pinhole photo
+/// "photo" (SurveyPhotoIntrinsics) at `photo_pose` and an equirect panorama "pano" of
+/// pano_width_px × pano_width_px/2 at `pano_pose`, both pixel-integrated (supersample 2) and
+/// encoded as PNG.
+absl::StatusOr<ingest::ScanInput> MakeCameraOnlyScan(const Scene& scene, const std::string& name,
+                                                     const geometry::Pose& photo_pose,
+                                                     const geometry::Pose& pano_pose,
+                                                     int pano_width_px);
 
 }  // namespace vasl::scenes
