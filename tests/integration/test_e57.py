@@ -60,6 +60,45 @@ def test_reads_real_and_tiny_e57():
     assert len(single[0].cloud) == 1
 
 
+def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
+    """images2D: every image of a file is read with its kind, size and pose (a pinhole image's
+    turned into §2.2's frame); one that cannot be ingested says why, and never stops its scan."""
+    pump = read_e57(_need(PUMP))[0]
+    assert [(im.kind, im.width, im.height) for im in pump.images] == [("visual", 3072, 2304)]
+    assert "visual reference" in pump.images[0].problem
+    assert pump.images[0].data[:2] == b"\xff\xd8"  # its JPEG, read whole
+
+    path = _need(os.path.join(E57, "tiny", "tiny_pc_and_images.e57"))
+    scan = read_e57(path)[0]
+    kinds = {im.kind: im for im in scan.images}
+    assert sorted(kinds) == ["cylindrical", "pinhole", "spherical", "visual"]
+    sph = kinds["spherical"]
+    # Its stored rotation (w 0.5, x 1) is not a unit quaternion: normalised, and said so.
+    assert sph.pose is not None and sph.notes and "normalised" in sph.notes[0]
+    np.testing.assert_allclose(sph.pose.position_m, (1.0, 2.0, 3.0))
+    np.testing.assert_allclose(sph.pose.quaternion_xyzw, (1 / math.sqrt(1.25), 0, 0,
+                                                          0.5 / math.sqrt(1.25)), atol=1e-12)
+    assert "360" in sph.problem  # 100 px of 0.0314 rad: half a panorama
+    assert "cylindrical images are not supported" in kinds["cylindrical"].problem
+    assert "neither a JPEG nor a PNG" in kinds["pinhole"].problem  # this writer's blob is zeros
+    assert scan.ingestible_images == []
+    for im in scan.images:
+        print(f"\n{im.name} ({im.kind} {im.width}x{im.height}): {im.problem}")
+
+    # The CLI says so for each image and still ingests the scan's points.
+    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address,
+                        "project", "create", "e57-images", "--vossel-size", "0.05"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "ingest",
+                        "--project", "e57-images", "--quiet", path],
+                       capture_output=True, text=True, timeout=300)
+    print(r.stdout)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.count("not ingested") == 4
+    assert "tiny_pc_and_images: version 1, 2 points" in r.stdout
+
+
 @pytest.mark.parametrize("name", ["corrupt_crc.e57", "empty.e57", "empty_pc.e57",
                                   "lib-InvalidCVHeader.e57", "lib-ZeroPoints.e57",
                                   "lib-ZeroPointsInvalid.e57", "lib-bad-crc.e57"])

@@ -305,6 +305,31 @@ absl::Status Run(const Options& opt) {
     views.push_back({view, novel[k]});
   }
 
+  // A camera-only scan: a pinhole photo from the first novel view (where no LiDAR stood),
+  // looking along its +x and a little down, with a calibration's distortion.
+  {
+    const geometry::Pose photo_pose = LookAt(
+        novel[0].o_world, novel[0].o_world + novel[0].DirectionToWorld({1.0, 0.0, -0.3}));
+    const geometry::PinholeIntrinsics k = SurveyPhotoIntrinsics();
+    const Panorama photo = RenderPinhole(scene, photo_pose, k, opt.supersample);
+    absl::StatusOr<std::string> png = EncodePng(photo);
+    if (!png.ok()) return png.status();
+    if (auto st = WriteText(opt.out_dir / "photo-1.png", *png); !st.ok()) return st;
+    if (auto st = WriteTruth(photo, opt.out_dir / "truth", "photo-1"); !st.ok()) return st;
+    const std::string manifest = absl::StrCat(
+        "{\n  \"scan\": \"photo-1\",\n  \"rig\": \"handheld\",\n  \"pose\": ",
+        PoseJson(photo_pose), ",\n  \"panoramas\": [\n    {\"name\": \"photo\", \"image\": "
+        "\"photo-1.png\", \"modality\": \"rgb\",\n     \"pose\": ", PoseJson(photo_pose),
+        ",\n     \"pinhole\": ",
+        absl::StrFormat("{\"fx_px\": %.9g, \"fy_px\": %.9g, \"cx_px\": %.9g, \"cy_px\": %.9g, "
+                        "\"k1\": %.9g, \"k2\": %.9g, \"k3\": %.9g, \"p1\": %.9g, \"p2\": %.9g}",
+                        k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2),
+        "}\n  ]\n}\n");
+    if (auto st = WriteText(opt.out_dir / "photo-1.json", manifest); !st.ok()) return st;
+    std::printf("photo-1: %dx%d pinhole photo from novel view 1, no LiDAR -> photo-1.png; "
+                "photo-1.json\n", k.width_px, k.height_px);
+  }
+
   std::vector<std::string> view_json;
   for (const View& v : views) {
     view_json.push_back(absl::StrCat("    {\"name\": ", Quote(v.name), ", \"position\": ",

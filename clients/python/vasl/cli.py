@@ -85,11 +85,22 @@ class _ProgressLine:
 
 def _cmd_ingest(client: Client, args) -> int:
     # Read and validate every input before sending any: manifests, and E57 files (each of
-    # whose scans is ingested as a LiDAR scan).
+    # whose scans is ingested with its spherical and pinhole images; images of no scan make a
+    # camera-only scan).
     jobs = []
     for path in args.manifest:
         if path.lower().endswith(".e57"):
             for scan in read_e57(path):
+                for im in scan.images:
+                    what = f"{path}: {scan.scan}: image '{im.name}' ({im.kind})"
+                    if im.problem:
+                        print(f"{what}: not ingested: {im.problem}")
+                    elif im.notes:
+                        print(f"{what}: {'; '.join(im.notes)}")
+                if scan.cloud is None and not scan.ingestible_images:
+                    print(f"{path}: {scan.scan}: no points and no image that can be ingested; "
+                          "skipped")
+                    continue
                 jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest_e57_scan(
                     args.project, s, divergence_rad=args.divergence_rad,
                     rig=f"e57:{os.path.basename(p)}", progress=bar,

@@ -18,7 +18,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
-from .readers import E57Scan, Manifest, read_e57, read_manifest, read_ply
+from .readers import E57Scan, Manifest, pinhole_from_json, read_e57, read_manifest, read_ply
 from .types import (CONFIDENCE_FACTORS, ChangeResult, ChangeStats, ExportResult, Inspection,
                     IngestResult, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery,
                     RenderResult, ReweightResult, Scan, Source, Version)
@@ -448,36 +448,44 @@ class Client:
         Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
         (N, 3) linear per-point colour, which becomes a "point-colour" source], `pose`
         (see Pose.parse), `panoramas` as dicts {name, image (bytes or path), pose, modality
-        "rgb"|"ir", angular_resolution_rad}. `progress(dict)` is called with keys stage,
+        "rgb"|"ir", angular_resolution_rad, pinhole} (`pinhole`: a pinhole photo's intrinsics
+        {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1, p2]}; absent: an equirect panorama).
+        Without `points` (and with panoramas) the scan is camera-only: its images colour the
+        geometry the project already has. `progress(dict)` is called with keys stage,
         fraction, sent_bytes, total_bytes while uploading and while the server works.
         """
         self._check_name(project)
         if manifest is not None:
             m = read_manifest(manifest) if isinstance(manifest, (str, os.PathLike)) else manifest
-            cloud = read_ply(m.points_path)
-            scan, points, intensity = m.scan, cloud.xyz_m, cloud.intensity
+            cloud = read_ply(m.points_path) if m.points_path is not None else None
+            scan = m.scan
+            points, intensity = (cloud.xyz_m, cloud.intensity) if cloud is not None else (None, None)
             pose, divergence_rad, rig, captured_utc = m.pose, m.divergence_rad, m.rig, m.captured_utc
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
                           "modality": p.modality,
-                          "angular_resolution_rad": p.angular_resolution_rad}
+                          "angular_resolution_rad": p.angular_resolution_rad,
+                          "pinhole": p.pinhole}
                          for p in m.panoramas]
         if not scan:
             raise ValueError("scan: give the scan an id (or pass a manifest)")
-        if points is None or pose is None:
-            raise ValueError("points and pose are required (or pass a manifest)")
-        if not (divergence_rad > 0 and np.isfinite(divergence_rad)):
+        if pose is None:
+            raise ValueError("pose is required (or pass a manifest)")
+        if points is None and not panoramas:
+            raise ValueError("a scan needs points or panoramas (or pass a manifest)")
+        if points is not None and not (divergence_rad > 0 and np.isfinite(divergence_rad)):
             raise ValueError(f"divergence_rad must be > 0, got {divergence_rad}")
-        point_bytes = pack_points(points, intensity, rgb)
+        point_bytes = pack_points(points, intensity, rgb) if points is not None else b""
         header = pb.ScanHeader(project=project, scan=scan, rig=rig,
                                pose=pose_to_pb(Pose.parse(pose)))
         captured = _timestamp(captured_utc, "captured_utc")
         if captured is not None:
             header.capture_time.CopyFrom(captured)
-        header.lidar.divergence_rad = divergence_rad
-        stride = 16 if rgb is None else 28
-        header.lidar.point_format = (pb.POINT_FORMAT_XYZI_F32LE if rgb is None
-                                     else pb.POINT_FORMAT_XYZIRGB_F32LE)
-        header.lidar.point_count = len(point_bytes) // stride
+        if points is not None:  # none: a camera-only scan (header.lidar unset)
+            header.lidar.divergence_rad = divergence_rad
+            stride = 16 if rgb is None else 28
+            header.lidar.point_format = (pb.POINT_FORMAT_XYZI_F32LE if rgb is None
+                                         else pb.POINT_FORMAT_XYZIRGB_F32LE)
+            header.lidar.point_count = len(point_bytes) // stride
         images = []
         for i, p in enumerate(panoramas):
             if "name" not in p or "image" not in p or "pose" not in p:
@@ -491,10 +499,14 @@ class Client:
             modality = str(p.get("modality", "rgb")).lower()
             if modality not in _MODALITY_TO_PB:
                 raise ValueError(f"panoramas[{i}].modality must be 'rgb' or 'ir', got {modality!r}")
-            header.panoramas.add(name=p["name"], modality=_MODALITY_TO_PB[modality],
-                                 pose=pose_to_pb(Pose.parse(p["pose"])),
-                                 angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
-                                 encoded_size_bytes=len(image))
+            desc = header.panoramas.add(
+                name=p["name"], modality=_MODALITY_TO_PB[modality],
+                pose=pose_to_pb(Pose.parse(p["pose"])),
+                angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
+                encoded_size_bytes=len(image))
+            if p.get("pinhole") is not None:  # a pinhole photo (VASL-MODEL §2.2)
+                desc.pinhole.CopyFrom(pb.PinholeCamera(
+                    **pinhole_from_json(p["pinhole"], f"panoramas[{i}].pinhole")))
             images.append(bytes(image))
         total = len(point_bytes) + sum(len(b) for b in images)
         header.request_id = request_id or new_request_id()
@@ -505,11 +517,22 @@ class Client:
                         rig: str = "", progress: Optional[Callable[[dict], None]] = None,
                         request_id: Optional[str] = None) -> IngestResult:
         """Ingests one scan read by `read_e57`: its points, intensity, per-point colour (as a
-        "point-colour" source) and pose."""
-        return self.ingest(project, scan=scan.scan, points=scan.cloud.xyz_m,
-                           intensity=scan.cloud.intensity, rgb=scan.cloud.rgb, pose=scan.pose,
-                           divergence_rad=divergence_rad, rig=rig, progress=progress,
-                           request_id=request_id)
+        "point-colour" source) and pose, and its spherical and pinhole images (as panoramas and
+        pinhole photos with their poses; `scan.images` says why any other is left out). A scan
+        of images only is a camera-only scan."""
+        cloud = scan.cloud
+        panoramas = [{"name": im.name, "image": im.data, "pose": im.pose, "modality": "rgb",
+                      "pinhole": im.pinhole} for im in scan.ingestible_images]
+        names = [p["name"] for p in panoramas]
+        for i, p in enumerate(panoramas):  # E57 names need not be unique
+            if names.count(p["name"]) > 1:
+                p["name"] = f"{p['name']}-{i + 1}"
+        return self.ingest(project, scan=scan.scan,
+                           points=None if cloud is None else cloud.xyz_m,
+                           intensity=None if cloud is None else cloud.intensity,
+                           rgb=None if cloud is None else cloud.rgb, pose=scan.pose,
+                           divergence_rad=divergence_rad, panoramas=panoramas, rig=rig,
+                           progress=progress, request_id=request_id)
 
     def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],
                       *, total_bytes: int = 0, progress=None, poll_s: float = 0.5,

@@ -11,7 +11,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -119,15 +119,43 @@ def read_ply(path: str) -> PointCloud:
     return PointCloud(xyz_m=np.ascontiguousarray(xyz), intensity=intensity)
 
 
+PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
+
+
+def pinhole_from_json(obj, where: str) -> Dict[str, float]:
+    """A pinhole camera's intrinsics (VASL-MODEL §2.2: x right, y down, z forward; pixels;
+    Brown-Conrady k1 k2 k3 p1 p2, default 0) from a JSON object. ValueError naming the field."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object with fx_px, fy_px, cx_px, cy_px")
+    unknown = sorted(set(obj) - set(PINHOLE_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
+                         f"expected {', '.join(PINHOLE_KEYS)}")
+    out = {}
+    for key in PINHOLE_KEYS:
+        if key not in obj and key in ("fx_px", "fy_px", "cx_px", "cy_px"):
+            raise ValueError(f"{where}: missing '{key}'")
+        try:
+            out[key] = float(obj.get(key, 0.0))
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}.{key}: expected a number, got {obj.get(key)!r}") from None
+        if not math.isfinite(out[key]):
+            raise ValueError(f"{where}.{key}: must be finite")
+    if out["fx_px"] <= 0 or out["fy_px"] <= 0:
+        raise ValueError(f"{where}: fx_px and fy_px must be > 0 pixels")
+    return out
+
+
 @dataclass
 class PanoramaEntry:
-    """One panorama of a manifest."""
+    """One image of a manifest: an equirect panorama, or a pinhole photo with `pinhole`."""
 
     name: str
     image_path: str  #: absolute path of the encoded image
     modality: str  #: "rgb" or "ir"
     pose: Pose
     angular_resolution_rad: float = 0.0
+    pinhole: Optional[Dict[str, float]] = None  #: intrinsics (PINHOLE_KEYS), None: equirect
 
 
 @dataclass
@@ -139,7 +167,7 @@ class Manifest:
     rig: str
     captured_utc: str
     pose: Pose
-    points_path: str  #: absolute path of the PLY file
+    points_path: Optional[str]  #: absolute path of the PLY file; None: a camera-only scan
     divergence_rad: float
     panoramas: List[PanoramaEntry] = field(default_factory=list)
 
@@ -169,9 +197,11 @@ def read_manifest(path: str) -> Manifest:
     scan = need(doc, "scan", "")
     if not isinstance(scan, str) or not scan:
         raise ValueError(f"{path}: 'scan' must be a non-empty string")
-    lidar = need(doc, "lidar", "")
-    points = need(lidar, "points", "lidar.")
-    divergence = float(lidar.get("divergence_rad", 0.0003))
+    lidar = doc.get("lidar")  # none: a camera-only scan (its images colour known geometry)
+    if lidar is None and not doc.get("panoramas"):
+        raise ValueError(f"{path}: a scan needs 'lidar' (points) or 'panoramas' (images)")
+    points = need(lidar, "points", "lidar.") if lidar is not None else None
+    divergence = float((lidar or {}).get("divergence_rad", 0.0003))
     if not math.isfinite(divergence) or divergence <= 0:
         raise ValueError(f"{path}: 'lidar.divergence_rad' must be > 0, got {divergence}")
     panoramas = []
@@ -190,6 +220,8 @@ def read_manifest(path: str) -> Manifest:
             modality=modality,
             pose=_pose_from_json(need(p, "pose", f"panoramas[{i}]."), f"{path}: panoramas[{i}].pose"),
             angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
+            pinhole=(pinhole_from_json(p["pinhole"], f"{path}: panoramas[{i}].pinhole")
+                     if "pinhole" in p else None),
         ))
     return Manifest(
         path=os.path.abspath(path),
@@ -197,19 +229,45 @@ def read_manifest(path: str) -> Manifest:
         rig=str(doc.get("rig", "")),
         captured_utc=str(doc.get("captured_utc", "")),
         pose=_pose_from_json(need(doc, "pose", ""), f"{path}: pose"),
-        points_path=os.path.join(base, points),
+        points_path=os.path.join(base, points) if points is not None else None,
         divergence_rad=divergence,
         panoramas=panoramas,
     )
 
 
 @dataclass
-class E57Scan:
-    """One scan (data3D) of an E57 file: points in its own frame and its pose."""
+class E57Image:
+    """One image (images2D) of an E57 file, as it will be ingested or why it will not be."""
 
-    scan: str  #: scan id: the file stem, with "-<n>" when the file holds several scans
+    name: str  #: its E57 name, or "image-<n>"
+    kind: str  #: "spherical", "pinhole", "cylindrical" or "visual" (visual reference)
+    width: int
+    height: int
+    data: bytes  #: the encoded JPEG or PNG
+    #: T_world_camera in VASL's frames: §2.1 for a spherical image (the E57 frame as it is),
+    #: §2.2 for a pinhole one (the E57 camera frame, x right, y up, looking along -z, turned
+    #: 180° about x); None when the file gives no pose.
+    pose: Optional[Pose] = None
+    pinhole: Optional[Dict[str, float]] = None  #: intrinsics (PINHOLE_KEYS) of a pinhole image
+    scan_guid: str = ""  #: associatedData3DGuid: the scan it was taken with ("" none)
+    problem: str = ""  #: why it is not ingested ("" when it is)
+    notes: List[str] = field(default_factory=list)  #: what was mended on reading (pose, ...)
+
+
+@dataclass
+class E57Scan:
+    """One scan (data3D) of an E57 file: points in its own frame, its pose and the images
+    taken with it; or the images of the file that belong to no scan (cloud None: a
+    camera-only scan)."""
+
+    scan: str  #: scan id: the file stem, "-<n>" when the file holds several scans
     pose: Pose  #: the data3D pose (sensor frame to the file's world frame)
-    cloud: PointCloud  #: valid points only; intensity scaled to [0, 1] by the file's limits
+    cloud: Optional[PointCloud]  #: valid points only; intensity scaled to [0, 1]; None: images only
+    images: List[E57Image] = field(default_factory=list)
+
+    @property
+    def ingestible_images(self) -> List[E57Image]:
+        return [im for im in self.images if not im.problem]
 
 
 def read_e57(path: str) -> List[E57Scan]:
@@ -229,8 +287,9 @@ def read_e57(path: str) -> List[E57Scan]:
         count = e57.scan_count
     except Exception as e:  # pye57 raises its own exception types
         raise ValueError(f"{path}: not a readable E57 file: {str(e).splitlines()[0]}") from e
-    if count == 0:
-        raise ValueError(f"{path}: the E57 file holds no scan (no data3D)")
+    images = _read_e57_images(e57, path)
+    if count == 0 and not images:
+        raise ValueError(f"{path}: the E57 file holds no scan (no data3D) and no image (images2D)")
     scans = []
     for i in range(count):
         where = f"{path}: scan {i}"
@@ -268,10 +327,126 @@ def read_e57(path: str) -> List[E57Scan]:
         w, x, y, z = (float(v) for v in header.rotation)
         pose = Pose.make([float(v) for v in header.translation], [x, y, z, w], where=where)
         name = stem if count == 1 else f"{stem}-{i + 1}"
+        try:
+            guid = str(e57.image_file.root()["data3D"][i]["guid"].value())
+        except Exception:
+            guid = ""
         scans.append(E57Scan(scan=name, pose=pose, cloud=PointCloud(
             xyz_m=np.ascontiguousarray(xyz[keep], dtype=np.float32), intensity=intensity,
-            rgb=None if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32))))
+            rgb=None if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32)),
+            images=[im for im in images if guid and im.scan_guid == guid]))
+    # Images of no scan of the file (no or an unknown associatedData3DGuid): with one scan,
+    # taken as its; otherwise a camera-only scan of their own.
+    attached = {id(im) for sc in scans for im in sc.images}
+    loose = [im for im in images if id(im) not in attached]
+    if loose and len(scans) == 1:
+        scans[0].images.extend(loose)
+    elif loose:
+        first = next((im.pose for im in loose if im.pose is not None), Pose.make([0, 0, 0]))
+        scans.append(E57Scan(scan=f"{stem}-images" if scans else stem, pose=first, cloud=None,
+                             images=loose))
     return scans
+
+
+def _e57_pose(node, where: str, notes: List[str]) -> Optional[Pose]:
+    """A pose node (rotation w x y z, translation) as a Pose; a quaternion that is not of unit
+    length is normalised (noted), a zero or non-finite one refused (ValueError)."""
+    try:
+        w, x, y, z = (float(node["rotation"][c].value()) for c in "wxyz")
+        t = [float(node["translation"][c].value()) for c in "xyz"]
+    except Exception:
+        return None
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if not (norm > 0 and math.isfinite(norm)):
+        raise ValueError(f"{where}: the pose's rotation is not a quaternion ({w}, {x}, {y}, {z})")
+    if abs(norm - 1.0) > 1e-6:
+        notes.append(f"rotation quaternion of length {norm:.4g} normalised")
+    return Pose.make(t, [x / norm, y / norm, z / norm, w / norm], where=where)
+
+
+_IMAGE_KINDS = (("pinholeRepresentation", "pinhole"), ("sphericalRepresentation", "spherical"),
+                ("cylindricalRepresentation", "cylindrical"),
+                ("visualReferenceRepresentation", "visual"))
+
+
+def _read_e57_images(e57, path: str) -> List[E57Image]:
+    """Every image of an E57 file (images2D), each with the reason it cannot be ingested when
+    it cannot: a visual reference (no projection) or cylindrical image, a spherical image that
+    is not a whole 360° x 180° panorama, or bytes that are neither JPEG nor PNG."""
+    root = e57.image_file.root()
+    if not root.isDefined("images2D"):
+        return []
+    out = []
+    nodes = root["images2D"]
+    for i in range(nodes.childCount()):
+        node = nodes[i]
+        where = f"{path}: image {i}"
+        name = str(node["name"].value()) if node.isDefined("name") else f"image-{i + 1}"
+        kind, rep = next(((k, node[key]) for key, k in _IMAGE_KINDS if node.isDefined(key)),
+                         (None, None))
+        if rep is None:
+            out.append(E57Image(name, "unknown", 0, 0, b"", problem="no image representation"))
+            continue
+
+        def number(key, default=0.0):
+            return float(rep[key].value()) if rep.isDefined(key) else default
+
+        blob = next((rep[b] for b in ("jpegImage", "pngImage") if rep.isDefined(b)), None)
+        data = b""
+        if blob is not None:
+            buf = np.zeros(blob.byteCount(), dtype=np.uint8)
+            blob.read(buf, 0, blob.byteCount())
+            data = buf.tobytes()
+        notes: List[str] = []
+        pose = _e57_pose(node["pose"], where, notes) if node.isDefined("pose") else None
+        image = E57Image(name=name, kind=kind, width=int(number("imageWidth")),
+                         height=int(number("imageHeight")), data=data, pose=pose,
+                         scan_guid=(str(node["associatedData3DGuid"].value())
+                                    if node.isDefined("associatedData3DGuid") else ""))
+        problems = []
+        if kind == "visual":
+            problems.append("a visual reference image has no projection (kept in the file only)")
+        elif kind == "cylindrical":
+            problems.append("cylindrical images are not supported (only spherical and pinhole)")
+        elif kind == "spherical":
+            span_w = image.width * number("pixelWidth")
+            span_h = image.height * number("pixelHeight")
+            if abs(span_w - 2 * math.pi) > 0.02 * 2 * math.pi or abs(span_h - math.pi) > 0.02 * math.pi:
+                problems.append(f"the spherical image spans {math.degrees(span_w):.0f}° x "
+                                f"{math.degrees(span_h):.0f}°; only whole 360° x 180° panoramas "
+                                "are supported")
+        elif kind == "pinhole":
+            f, pw, ph = number("focalLength"), number("pixelWidth"), number("pixelHeight")
+            if f > 0 and pw > 0 and ph > 0:
+                image.pinhole = {"fx_px": f / pw, "fy_px": f / ph,
+                                 "cx_px": number("principalPointX"),
+                                 "cy_px": number("principalPointY"),
+                                 "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0}
+                if image.pose is not None:  # E57 camera: y up, looking along -z (see E57Image)
+                    q = image.pose.quaternion_xyzw
+                    turned = _quat_mul((q[0], q[1], q[2], q[3]), (1.0, 0.0, 0.0, 0.0))
+                    image.pose = Pose.make(image.pose.position_m, turned, where=where)
+            else:
+                problems.append("focalLength, pixelWidth and pixelHeight must be > 0")
+        if kind in ("spherical", "pinhole") and not problems:
+            if not (data.startswith(b"\x89PNG\r\n\x1a\n") or data.startswith(b"\xff\xd8")):
+                problems.append("its bytes are neither a JPEG nor a PNG image")
+            elif image.pose is None:
+                problems.append("it has no pose")
+        image.problem = "; ".join(problems)
+        image.notes = notes
+        out.append(image)
+    return out
+
+
+def _quat_mul(a, b):
+    """Hamilton product of two (x, y, z, w) quaternions."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
 
 
 def _e57_colour(header, values: np.ndarray, channel: str) -> np.ndarray:
