@@ -107,7 +107,9 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const
 /// Incremental ingest of one validated scan (`scan`) whose blobs are stored: `info` carries
 /// its sources (ids, poses, blob hashes, sizes). Each panorama is decoded as its camera's
 /// records are made and freed after, so an ingest holds one decoded panorama at a time.
-/// `head` is the project's HEAD snapshot.
+/// `head` is the project's HEAD snapshot. A camera-only scan (no points) keeps `head`'s
+/// geometry; the caller refuses one when `head` has none (CameraOnlyWithoutGeometry), before
+/// it stores any blob.
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const store::ScanInfo& info, const ingest::ScanInput& scan,
                                       int64_t max_image_pixels, const StageFn& stage = {});

@@ -132,9 +132,6 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   if (change.new_sources.lidars.size() > 1) {
     return absl::InternalError("IngestScan: a scan has at most one LiDAR source");
   }
-  if (change.new_sources.lidars.empty() && head.geometry.size() == 0) {
-    return CameraOnlyWithoutGeometry(store.name(), scan.scan_name);
-  }
 
   store::CommitPlan plan;
   if (change.new_sources.lidars.empty()) {

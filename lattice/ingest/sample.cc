@@ -10,6 +10,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 #include "lattice/geometry/footprint.h"
 #include "lattice/ingest/voxelise.h"
@@ -388,13 +389,20 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   if (cam.pinhole) {
     in_view.assign(g.size(), 0);
     const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
-    for (size_t k = 0; k < g.size(); ++k) {
-      const Eigen::Vector3d d = R_cam_world * (g.FrameCentroid(k).cast<double>() - cam.pose.o_world);
-      nearest_m = std::min(nearest_m, d.norm());
-      if (only != nullptr && !(*only)[k]) continue;
-      const std::optional<Eigen::Vector2d> uv = proj.Project(d);
-      in_view[k] = uv && proj.Inside(*uv) ? 1 : 0;
-    }
+    nearest_m = tbb::parallel_reduce(
+        tbb::blocked_range<size_t>(0, g.size(), 4096), nearest_m,
+        [&](const tbb::blocked_range<size_t>& r, double nearest) {
+          for (size_t k = r.begin(); k != r.end(); ++k) {
+            const Eigen::Vector3d d =
+                R_cam_world * (g.FrameCentroid(k).cast<double>() - cam.pose.o_world);
+            nearest = std::min(nearest, d.norm());
+            if (only != nullptr && !(*only)[k]) continue;
+            const std::optional<Eigen::Vector2d> uv = proj.Project(d);
+            in_view[k] = uv && proj.Inside(*uv) ? 1 : 0;
+          }
+          return nearest;
+        },
+        [](double a, double b) { return std::min(a, b); });
   }
   const std::vector<uint8_t>* tested = cam.pinhole ? &in_view : only;
   const auto [row_begin, row_end] = tested != nullptr

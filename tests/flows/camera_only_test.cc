@@ -7,7 +7,6 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <map>
 
 #include <gtest/gtest.h>
 
@@ -76,8 +75,32 @@ class CameraOnlyTest : public ::testing::Test {
   struct Check {
     size_t records = 0, hidden = 0, outside = 0;
     size_t seen = 0, seen_recorded = 0;  // vossels the camera sees squarely, and recorded
-    std::vector<double> colour_error;    // lit records on the surface the camera sees
+    std::vector<double> colour_error;    // lit records on the surface the camera sees (sorted)
+    double ColourQuantile(double q) const {
+      return colour_error[std::min(colour_error.size() - 1, size_t(double(colour_error.size()) * q))];
+    }
+    double SeenShare() const { return double(seen_recorded) / double(std::max<size_t>(1, seen)); }
+    void Print(const char* what) const {
+      std::printf("%s: %zu records, %zu outside the image, %zu on hidden vossels; %zu of %zu "
+                  "squarely seen vossels recorded (%.2f%%); colour vs albedo over %zu lit "
+                  "records: median %.4f, 99%% %.4f, max %.4f\n",
+                  what, records, outside, hidden, seen_recorded, seen, 100.0 * SeenShare(),
+                  colour_error.size(), ColourQuantile(0.5), ColourQuantile(0.99),
+                  colour_error.back());
+    }
   };
+
+  // CheckSource on HEAD for camera `index` of the camera-only scan (its last scan).
+  static Check CheckCamera(size_t index, const geometry::PinholeIntrinsics* k) {
+    auto st = store::ProjectStore::Open(*dir_ / "room");
+    EXPECT_TRUE(st.ok()) << st.status();
+    auto snap = (*st)->LoadSnapshot((*st)->head_version());
+    EXPECT_TRUE(snap.ok()) << snap.status();
+    auto scans = (*st)->ListScans();
+    EXPECT_TRUE(scans.ok()) << scans.status();
+    const store::SourceInfo& camera = scans->back().sources.at(index);
+    return CheckSource(**snap, camera.id, camera.pose, k);
+  }
 
   // Every record of `source` and every vossel of the geometry, against the scene seen from
   // `pose` (`k` set: a pinhole camera, whose image must hold the vossel).
@@ -204,57 +227,29 @@ TEST_F(CameraOnlyTest, AddsNoGeometryAndRevisitsNothing) {
 // a vossel hidden from it gets no record; it records nearly every vossel it sees squarely;
 // lit records carry the analytic albedo (the photo's pixels integrate the scene).
 TEST_F(CameraOnlyTest, PinholePhotoColoursWhatItSeesAndNothingHidden) {
-  auto st = store::ProjectStore::Open(*dir_ / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const store::SourceInfo& photo = scans->back().sources[0];
   const geometry::PinholeIntrinsics k = scenes::SurveyPhotoIntrinsics();
-  const Check c = CheckSource(**snap, photo.id, photo.pose, &k);
+  const Check c = CheckCamera(0, &k);
   ASSERT_GT(c.colour_error.size(), 1000u);
-  const double median = c.colour_error[c.colour_error.size() / 2];
-  const double p99 = c.colour_error[c.colour_error.size() * 99 / 100];
-  std::printf("pinhole photo: %zu records, %zu outside the image, %zu on hidden vossels; "
-              "%zu of %zu squarely seen vossels recorded (%.2f%%); colour vs albedo over %zu lit "
-              "records: median %.4f, 99%% %.4f, max %.4f\n",
-              c.records, c.outside, c.hidden, c.seen_recorded, c.seen,
-              100.0 * c.seen_recorded / std::max<size_t>(1, c.seen), c.colour_error.size(), median,
-              p99, c.colour_error.back());
+  c.Print("pinhole photo");
   EXPECT_EQ(c.outside, 0u);
   EXPECT_EQ(c.hidden, 0u) << "a vossel hidden from the photo took its colour";
-  EXPECT_GE(double(c.seen_recorded) / c.seen, 0.97);
-  EXPECT_LT(median, 0.02);
-  EXPECT_LT(p99, 0.08);
+  EXPECT_GE(c.SeenShare(), 0.97);
+  EXPECT_LT(c.ColourQuantile(0.5), 0.02);
+  EXPECT_LT(c.ColourQuantile(0.99), 0.08);
 }
 
 // Claim (§2.1, §5): the same for an equirect panorama that came without a LiDAR.
 TEST_F(CameraOnlyTest, PanoramaWithoutLidarColoursWhatItSeesAndNothingHidden) {
-  auto st = store::ProjectStore::Open(*dir_ / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const store::SourceInfo& pano = scans->back().sources[1];
-  const Check c = CheckSource(**snap, pano.id, pano.pose, nullptr);
+  const Check c = CheckCamera(1, nullptr);
   ASSERT_GT(c.colour_error.size(), 5000u);
-  const double median = c.colour_error[c.colour_error.size() / 2];
-  const double p99 = c.colour_error[c.colour_error.size() * 99 / 100];
-  std::printf("panorama: %zu records, %zu on hidden vossels; %zu of %zu squarely seen vossels "
-              "recorded (%.2f%%); colour vs albedo over %zu lit records: median %.4f, 99%% %.4f, "
-              "max %.4f\n",
-              c.records, c.hidden, c.seen_recorded, c.seen,
-              100.0 * c.seen_recorded / std::max<size_t>(1, c.seen), c.colour_error.size(), median,
-              p99, c.colour_error.back());
+  c.Print("panorama");
   // A panorama of 512 columns has pixels of 0.7°; at the box's edges a hidden face lies within
   // the slope-scaled tolerance (§5: τ + r·Δ·tanθ over the dilated pixels) of the face in front
   // of it, and a few such vossels keep a penumbra or grazing record (measured 42, 0.10%).
   EXPECT_LE(double(c.hidden) / c.records, 0.005) << "vossels hidden from the panorama took colour";
-  EXPECT_GE(double(c.seen_recorded) / c.seen, 0.97);
-  EXPECT_LT(median, 0.02);
-  EXPECT_LT(p99, 0.08);
+  EXPECT_GE(c.SeenShare(), 0.97);
+  EXPECT_LT(c.ColourQuantile(0.5), 0.02);
+  EXPECT_LT(c.ColourQuantile(0.99), 0.08);
 }
 
 // Claim (ARCHITECTURE "Errors and limits"): a camera-only scan into a project without geometry
