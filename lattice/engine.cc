@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
+#include "lattice/flows/world_frame.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/validate.h"
@@ -88,6 +89,7 @@ struct Engine::Impl {
     info.description = p.store->settings().description;
     info.vossel_size_m = p.store->settings().vossel_size_m;
     info.created_utc = p.store->created_utc();
+    info.origin_m = p.store->origin();
     auto head = p.store->HeadInfo();
     if (!head.ok()) return head.status();
     info.head_version = head->version;
@@ -257,7 +259,11 @@ absl::StatusOr<std::vector<ProjectInfo>> Engine::ListProjects() {
 absl::StatusOr<std::vector<store::ScanInfo>> Engine::ListScans(const std::string& project) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();
-  return (*p)->store->ListScans();
+  auto scans = (*p)->store->ListScans();
+  if (!scans.ok()) return scans.status();
+  const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
+  for (store::ScanInfo& scan : *scans) flows::ShiftScan(scan, origin);  // §1: world out
+  return scans;
 }
 
 absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,
@@ -292,9 +298,18 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
     if (scan.lidar.xyz_sensor_m.empty() && (*head)->geometry.size() == 0) {
       return flows::CameraOnlyWithoutGeometry(project, scan.scan_name);
     }
+    // §1: the first scan fixes a missing origin (in its commit); the flow works beneath it.
+    std::optional<Eigen::Vector3d> origin = st.origin();
+    if (!origin) {
+      origin = flows::OriginOfFirstScan(scan);
+      st.ProposeOrigin(*origin);
+    }
+    const double h = st.settings().vossel_size_m;
+    if (auto s = flows::CheckScanWithinReach(scan, *origin, h); !s.ok()) return s;
     // Raw inputs, content-addressed (ARCHITECTURE.md: blobs/).
     auto info = flows::StoreScanBlobs(st, scan, *images);
     if (!info.ok()) return info.status();
+    flows::ShiftScan(*info, -*origin);
     if (absl::Status stop = stage_done("store blobs", 0.15); !stop.ok()) return stop;
     auto flow = flows::IngestScan(st, **head, *info, scan, impl_->limits.max_image_pixels,
                                   StageReporter(progress));
@@ -304,13 +319,20 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
 }
 
 absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
-                                                 const BackProjectInput& input,
+                                                 BackProjectInput input,
                                                  const ProgressFn& progress) {
   // On failure a stored image is collected at once (RunFlow).
   const store::OperationRecord op{input.request_id, "back-project", input.name};
   return impl_->RunFlow(project, true, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
     auto head = impl_->Snapshot(p, 0);
     if (!head.ok()) return head.status();
+    const Eigen::Vector3d origin = p.store->origin().value_or(Eigen::Vector3d::Zero());
+    if (auto s = flows::CheckWithinReach(input.pose.o_world, origin,
+                                         p.store->settings().vossel_size_m, "the image's pose");
+        !s.ok()) {
+      return s;
+    }
+    input.pose = flows::Shifted(input.pose, -origin);  // §1: the lattice's frame
     return flows::BackProject(*p.store, **head, input, impl_->limits.max_image_bytes,
                               impl_->limits.max_image_pixels, StageReporter(progress));
   });
@@ -366,7 +388,7 @@ absl::StatusOr<flows::ExportResult> Engine::Export(const std::string& project, i
   }
   auto snap = impl_->Snapshot(**p, version);
   if (!snap.ok()) return snap.status();
-  return flows::Export(**snap, path);
+  return flows::Export(**snap, (*p)->store->origin().value_or(Eigen::Vector3d::Zero()), path);
 }
 
 absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const RenderRequest& request) {
@@ -390,7 +412,15 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   if (!profile.ok()) return profile.status();
   auto snap = impl_->Snapshot(**p, request.version);
   if (!snap.ok()) return snap.status();
-  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, request, (*p)->fused_layers);
+  const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
+  if (auto s = flows::CheckWithinReach(request.pose.o_world, origin,
+                                       (*p)->store->settings().vossel_size_m, "the render's pose");
+      !s.ok()) {
+    return s;
+  }
+  RenderRequest local = request;  // §1: the lattice's frame
+  local.pose = flows::Shifted(request.pose, -origin);
+  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, local, (*p)->fused_layers);
 }
 
 absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(
@@ -488,7 +518,12 @@ absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
   if (!profile.ok()) return profile.status();
   auto snap = impl_->Snapshot(**p, version);
   if (!snap.ok()) return snap.status();
-  return flows::QueryRecords(*(*p)->store, **snap, min_m, max_m, profile->profile, limit);
+  const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
+  auto found = flows::QueryRecords(*(*p)->store, **snap, min_m - origin, max_m - origin,
+                                   profile->profile, limit);
+  if (!found.ok()) return found.status();
+  for (flows::RecordRow& row : found->rows) row.centroid_m += origin;  // §1: world out
+  return found;
 }
 
 absl::StatusOr<IngestResult> Engine::Rollback(const std::string& project, int64_t version,

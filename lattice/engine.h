@@ -2,7 +2,9 @@
 /// @brief The typed facade of libvasl that the server (and tests) call: projects, ingest,
 ///        render, inspection. It orchestrates the flows of ARCHITECTURE.md ("The main flows")
 ///        over store/, ingest/, fusion/ and render/. No gRPC or protobuf types here.
-/// @details Errors are absl::Status with messages a user can act on:
+/// @details Every position the facade takes or gives is in world coordinates; beneath the
+///          project's origin (VASL-MODEL §1, flows/world_frame.h) the flows work in the
+///          lattice's. Errors are absl::Status with messages a user can act on:
 ///          INVALID_ARGUMENT for bad input, NOT_FOUND for an unknown project or version,
 ///          ALREADY_EXISTS for a duplicate project or scan name, RESOURCE_EXHAUSTED for limits,
 ///          INTERNAL only for bugs. Bad input never changes a project.
@@ -52,6 +54,9 @@ struct ProjectInfo {
   int64_t vossel_count = 0;
   int64_t record_count = 0;
   std::string created_utc;
+  /// The origin x_0 (VASL-MODEL §1): world = lattice + x_0; unset until given at creation or
+  /// fixed by the first scan (its position rounded to the kilometre).
+  std::optional<Eigen::Vector3d> origin_m;
   /// Set (ListProjects only) when the project cannot be opened: what is wrong with it. The
   /// other fields are then empty; the other projects are listed as usual.
   std::string problem;
@@ -124,7 +129,7 @@ class Engine {
   /// roll the batch back); raw records are never replaced. INVALID_ARGUMENT for an image
   /// without R, G, B, Z, a bad pose or projection, or no pixel landing on geometry; NOT_FOUND
   /// for an unknown render; ALREADY_EXISTS for a name in use.
-  absl::StatusOr<IngestResult> BackProject(const std::string& project, const BackProjectInput& input,
+  absl::StatusOr<IngestResult> BackProject(const std::string& project, BackProjectInput input,
                                            const ProgressFn& progress = {});
 
   /// Recomputes the whole project from its raw blobs as a new version (the oracle the

@@ -98,6 +98,11 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
   out->set_record_count(info.record_count);
   TimestampFromIso(info.created_utc, out->mutable_create_time());
   out->set_problem(RedactPaths(info.problem));
+  if (info.origin_m) {
+    out->mutable_origin_m()->set_x(info.origin_m->x());
+    out->mutable_origin_m()->set_y(info.origin_m->y());
+    out->mutable_origin_m()->set_z(info.origin_m->z());
+  }
 }
 
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
@@ -148,6 +153,13 @@ absl::StatusOr<store::ProjectSettings> SettingsFromProto(const v1::CreateProject
     return s;
   }
   settings.description = request.description();
+  if (request.has_origin_m()) {
+    const v1::Vec3& o = request.origin_m();
+    settings.origin_m = Eigen::Vector3d(o.x(), o.y(), o.z());
+    if (!settings.origin_m->allFinite()) {
+      return absl::InvalidArgumentError("origin_m must be a finite point, world metres");
+    }
+  }
   return settings;
 }
 

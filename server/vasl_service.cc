@@ -207,7 +207,9 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
   void Run() {
     const ProgressFn progress = service_->ProgressReporter(
         context_, "BackProject", project_, "name=" + input_.name, start_, request_id_);
-    absl::StatusOr<IngestResult> r = service_->engine()->BackProject(project_, input_, progress);
+    const std::string name = input_.name;
+    absl::StatusOr<IngestResult> r =
+        service_->engine()->BackProject(project_, std::move(input_), progress);
     if (!r.ok()) {
       Finish(ToGrpcStatus(r.status()));
       return;
@@ -215,7 +217,7 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
     response_->set_request_id(request_id_);
     if (r->replayed) {  // it committed while this copy was uploading
       *response_ = ReplayedAnswer(
-          OperationFromRecord(project_, {request_id_, "back-project", input_.name, r->version,
+          OperationFromRecord(project_, {request_id_, "back-project", name, r->version,
                                          r->scan_id, r->answer}),
           &v1::Operation::back_project);
       replayed_ = true;

@@ -8,9 +8,10 @@
 namespace vasl::flows {
 
 absl::StatusOr<ExportResult> Export(const store::Snapshot& snapshot,
+                                    const Eigen::Vector3d& origin_m,
                                     const std::filesystem::path& path) {
   if (absl::Status s = records::WriteVersionFile(snapshot.geometry, snapshot.records,
-                                                 snapshot.fused, path);
+                                                 snapshot.fused, path, origin_m);
       !s.ok()) {
     return s;
   }

@@ -184,7 +184,7 @@ store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
 struct RecordRow {
   int32_t vossel = 0;
   openvdb::Coord coord;             ///< the vossel's index-space coordinate k
-  Eigen::Vector3f centroid_m;       ///< the vossel's centroid
+  Eigen::Vector3d centroid_m;       ///< the vossel's centroid (lattice frame; world at the facade)
   int32_t source = 0;               ///< record `scan` field: the source id
   int64_t scan_id = 0;              ///< the scan the source belongs to (0: unknown)
   std::string scan_name;
@@ -234,7 +234,11 @@ struct ExportResult {
 /// The export query: one self-contained OpenVDB file at `path` holding every layer of
 /// `snapshot` (records::WriteVersionFile), for tools that want one file (Houdini, Blender,
 /// vdb_print).
+/// The grids' transforms place the vossels in world coordinates (lattice + `origin_m`, §1),
+/// which the file also keeps as metadata; values that are positions (centroid) stay in the
+/// lattice's frame, where a float keeps them.
 absl::StatusOr<ExportResult> Export(const store::Snapshot& snapshot,
+                                    const Eigen::Vector3d& origin_m,
                                     const std::filesystem::path& path);
 
 }  // namespace vasl::flows

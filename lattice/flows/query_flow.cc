@@ -228,7 +228,7 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
       RecordRow row;
       row.vossel = k;
       row.coord = g.coord[size_t(k)];
-      row.centroid_m = g.centroid_m[size_t(k)];
+      row.centroid_m = g.centroid_m[size_t(k)].cast<double>();
       row.source = r.scan[i];
       auto src = (*sources)->by_id.find(r.scan[i]);
       if (src != (*sources)->by_id.end()) {

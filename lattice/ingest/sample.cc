@@ -226,10 +226,10 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
     Sums& s = local.local();
     auto acc = g.index_grid->getConstAccessor();
     for (size_t i = r.begin(); i != r.end(); ++i) {
-      const Eigen::Vector3d p(lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1], lidar.xyz_sensor_m[3 * i + 2]);
-      if (p.x() == 0.0 && p.y() == 0.0 && p.z() == 0.0) continue;  // "no return" marker
-      const Eigen::Vector3d x = R * p + lidar.pose.o_world;
-      const Eigen::Vector3d kf = VosselIndexOf(x.cast<float>(), h);  // BuildGeometry's binning
+      const float* p = &lidar.xyz_sensor_m[3 * i];
+      if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) continue;  // "no return" marker
+      // BinLidar's binning, return for return.
+      const Eigen::Vector3d kf = VosselIndexOf(ReturnPosition(R, lidar.pose.o_world, p), h);
       const openvdb::Coord c(int(kf.x()), int(kf.y()), int(kf.z()));
       int32_t k;
       if (!acc.probeValue(c, k)) continue;

@@ -41,21 +41,18 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   // 1. Every return to world, keyed by its vossel (cell-centred: k = round(x / h), §1).
   const size_t total = src.point_count();
   std::vector<KeyedPoint> keyed(total);
-  std::vector<Eigen::Vector3f> x_world(total);
   std::atomic<bool> out_of_range{false};
-  const Eigen::Matrix3f R = src.pose.q_world_sensor.toRotationMatrix().cast<float>();
-  const Eigen::Vector3f o = src.pose.o_world.cast<float>();
+  const Eigen::Matrix3d R = src.pose.q_world_sensor.toRotationMatrix();
+  const Eigen::Vector3d o = src.pose.o_world;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, total, 1 << 14),
                     [&](const tbb::blocked_range<size_t>& r) {
     for (size_t i = r.begin(); i != r.end(); ++i) {
-      const Eigen::Vector3f p(&src.xyz_sensor_m[3 * i]);
-      if (p.x() == 0.0f && p.y() == 0.0f && p.z() == 0.0f) {  // "no return" marker
+      const float* p = &src.xyz_sensor_m[3 * i];
+      if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) {  // "no return" marker
         keyed[i] = {kNoKey, uint32_t(i)};
         continue;
       }
-      const Eigen::Vector3f x = R * p + o;
-      x_world[i] = x;
-      const Eigen::Vector3d k = VosselIndexOf(x, h);
+      const Eigen::Vector3d k = VosselIndexOf(ReturnPosition(R, o, p), h);
       if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) {
         out_of_range = true;
         keyed[i] = {kNoKey, uint32_t(i)};
@@ -67,7 +64,8 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   if (out_of_range) {
     return absl::InvalidArgumentError(absl::StrCat(
         "a point lies farther than ", kMaxVosselIndex * h,
-        " m from the world origin on some axis, outside the lattice; check the pose and units"));
+        " m from the project's origin on some axis, outside the lattice; check the pose and "
+        "units"));
   }
   tbb::parallel_sort(keyed.begin(), keyed.end());
 
@@ -84,7 +82,6 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   out.coord.resize(nv);
   out.count.resize(nv);
   out.sums.resize(nv);
-  const Eigen::Vector3d origin = src.pose.o_world;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t v = r.begin(); v != r.end(); ++v) {
       const size_t b = run_begin[v], e = run_begin[v + 1];
@@ -92,7 +89,7 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
       const Eigen::Vector3d centre = h * Eigen::Vector3d(k.x(), k.y(), k.z());
       records::VosselSums s;
       for (size_t i = b; i < e; ++i) {
-        const Eigen::Vector3d x = x_world[keyed[i].point].cast<double>();
+        const Eigen::Vector3d x = ReturnPosition(R, o, &src.xyz_sensor_m[3 * keyed[i].point]);
         const Eigen::Vector3d d = x - centre;
         s.sum_m += d;
         s.sum_xx_m2[0] += d.x() * d.x();
@@ -101,7 +98,7 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
         s.sum_xx_m2[3] += d.y() * d.y();
         s.sum_xx_m2[4] += d.y() * d.z();
         s.sum_xx_m2[5] += d.z() * d.z();
-        s.view_sum += (origin - x).normalized();
+        s.view_sum += (o - x).normalized();
       }
       out.coord[v] = k;
       out.count[v] = int32_t(e - b);

@@ -14,12 +14,20 @@ namespace vasl::ingest {
 /// Largest |index| of a vossel coordinate on any axis (keys pack 21 bits per axis).
 inline constexpr int kMaxVosselIndex = (1 << 20) - 1;
 
-/// §1: the vossel holding world point x, k = round(x / h) per axis (cell-centred), as doubles so
-/// that callers can check the range before converting. Points are binned in float world
-/// coordinates everywhere, so that every return finds the vossel BuildGeometry made for it.
-inline Eigen::Vector3d VosselIndexOf(const Eigen::Vector3f& x_world, double vossel_size_m) {
-  return {std::round(x_world.x() / vossel_size_m), std::round(x_world.y() / vossel_size_m),
-          std::round(x_world.z() / vossel_size_m)};
+/// §1: the lattice-frame position of a sensor-frame return p under the pose (R, o), in
+/// double. Every binning of a return computes it here, so that each return finds the vossel
+/// BinLidar made for it; in double, moving the origin by whole metres moves every position by
+/// exactly that (a georeferenced copy of a site bins as the site does).
+inline Eigen::Vector3d ReturnPosition(const Eigen::Matrix3d& R, const Eigen::Vector3d& o,
+                                      const float* p) {
+  return R * Eigen::Vector3d(p[0], p[1], p[2]) + o;
+}
+
+/// §1: the vossel holding lattice point x, k = round(x / h) per axis (cell-centred), as
+/// doubles so that callers can check the range before converting.
+inline Eigen::Vector3d VosselIndexOf(const Eigen::Vector3d& x, double vossel_size_m) {
+  return {std::round(x.x() / vossel_size_m), std::round(x.y() / vossel_size_m),
+          std::round(x.z() / vossel_size_m)};
 }
 
 /// One LiDAR's returns binned into vossels (§1): per vossel its point count and exact sums

@@ -524,7 +524,8 @@ absl::StatusOr<std::vector<AttributeInfo>> ListRecordAttributes(
 }
 
 absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& records,
-                              const FusedValues& fused, const std::filesystem::path& path) {
+                              const FusedValues& fused, const std::filesystem::path& path,
+                              const Eigen::Vector3d& origin_m) {
   absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, path.string());
   if (!grids.ok()) return grids.status();
   absl::StatusOr<openvdb::GridBase::Ptr> recs = RecordsGrid(geometry, records, path.string());
@@ -533,8 +534,15 @@ absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& r
   if (!fused_grids.ok()) return fused_grids.status();
   grids->push_back(*recs);
   grids->insert(grids->end(), fused_grids->begin(), fused_grids->end());
+  const openvdb::Vec3d origin(origin_m.x(), origin_m.y(), origin_m.z());
+  for (openvdb::GridBase::ConstPtr& grid : *grids) {  // shallow copies: trees are shared
+    openvdb::math::Transform::Ptr world = grid->transform().copy();
+    world->postTranslate(origin);
+    grid = grid->copyGridReplacingTransform(world);
+  }
   openvdb::MetaMap meta;
   meta.insertMeta("vasl_file", openvdb::StringMetadata("version"));
+  meta.insertMeta("origin_m", openvdb::Vec3DMetadata(origin));
   meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
   meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
   meta.insertMeta("record_count", openvdb::Int64Metadata(static_cast<int64_t>(records.size())));

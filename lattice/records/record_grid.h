@@ -57,8 +57,11 @@ absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
 
 /// Writes one self-contained OpenVDB file holding every layer of a version: the geometry grids,
 /// the "records" PointDataGrid and the fused grids (export, for tools that want one file).
+/// Every grid's transform is translated by `origin_m` (kept as metadata "origin_m"), so that
+/// the file places vossels in world coordinates (VASL-MODEL §1).
 absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& records,
-                              const FusedValues& fused, const std::filesystem::path& path);
+                              const FusedValues& fused, const std::filesystem::path& path,
+                              const Eigen::Vector3d& origin_m = Eigen::Vector3d::Zero());
 
 /// Rebuilds `geometry.index_grid` and renumbers vossels into canonical order (leaf order, then
 /// voxel offset) from `geometry.coord`; returns old→new index map. Arrays are permuted.

@@ -160,7 +160,11 @@ CREATE TABLE project(
   keep_versions INTEGER NOT NULL,
   tile_vossels INTEGER NOT NULL,
   created_utc TEXT NOT NULL,
-  active_profile TEXT NOT NULL DEFAULT 'default');
+  active_profile TEXT NOT NULL DEFAULT 'default',
+  origin_fixed INTEGER NOT NULL DEFAULT 0,
+  origin_x REAL NOT NULL DEFAULT 0,
+  origin_y REAL NOT NULL DEFAULT 0,
+  origin_z REAL NOT NULL DEFAULT 0);
 CREATE TABLE versions(
   version INTEGER PRIMARY KEY,
   vossel_count INTEGER NOT NULL,
@@ -249,7 +253,13 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       // 5 → 6: the projection of a derived source.
       "ALTER TABLE sources ADD COLUMN camera TEXT NOT NULL DEFAULT '';\n",
       // 6 → 7: changes asked for under a request id.
-      kOperationsTable};
+      kOperationsTable,
+      // 7 → 8: the project's origin; a project with scans worked in world coordinates (0).
+      "ALTER TABLE project ADD COLUMN origin_fixed INTEGER NOT NULL DEFAULT 0;\n"
+      "ALTER TABLE project ADD COLUMN origin_x REAL NOT NULL DEFAULT 0;\n"
+      "ALTER TABLE project ADD COLUMN origin_y REAL NOT NULL DEFAULT 0;\n"
+      "ALTER TABLE project ADD COLUMN origin_z REAL NOT NULL DEFAULT 0;\n"
+      "UPDATE project SET origin_fixed = 1 WHERE EXISTS (SELECT 1 FROM scans);\n"};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");

@@ -142,6 +142,9 @@ struct ProjectStore::Impl {
   bool fault_crash = false;
 
   std::optional<OperationRecord> operation;  ///< BeginOperation's, recorded by the next Commit
+  std::optional<Eigen::Vector3d> proposed_origin;  ///< ProposeOrigin's, fixed by the next Commit
+  mutable std::mutex origin_mu;                    ///< guards `origin`
+  std::optional<Eigen::Vector3d> origin;           ///< x_0 once fixed (§1)
 
   explicit Impl(Db d) : db(std::move(d)) {}
 
@@ -313,6 +316,9 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Create(
     return absl::InvalidArgumentError(absl::StrCat("keep_versions must be >= 0; got ",
                                                    settings.keep_versions));
   }
+  if (settings.origin_m && !settings.origin_m->allFinite()) {
+    return absl::InvalidArgumentError("the project origin must be finite");
+  }
   const int T = settings.tile_vossels;
   if (T < 8 || T > 512 || (T & (T - 1)) != 0) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -342,11 +348,15 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Create(
     if (absl::Status s = internal::CreateSchema(*db); !s.ok()) return fail(s);
     absl::Status s = RunSql(*db,
         "INSERT INTO project(id, name, description, vossel_size_m, keep_versions, tile_vossels, "
-        "created_utc) VALUES (1, ?1, ?2, ?3, ?4, ?5, ?6)",
+        "created_utc, origin_fixed, origin_x, origin_y, origin_z) "
+        "VALUES (1, ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
         [&](Stmt& st) {
           st.Bind(1, name).Bind(2, settings.description).Bind(3, settings.vossel_size_m);
           st.Bind(4, int64_t{settings.keep_versions}).Bind(5, int64_t{T});
           st.Bind(6, internal::UtcNowIso8601());
+          const Eigen::Vector3d o = settings.origin_m.value_or(Eigen::Vector3d::Zero());
+          st.Bind(7, int64_t{settings.origin_m.has_value()});
+          st.Bind(8, o.x()).Bind(9, o.y()).Bind(10, o.z());
         });
     if (!s.ok()) return fail(s);
   }  // connection closed: the WAL is checkpointed before the rename
@@ -411,8 +421,8 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
   }
   {
     absl::StatusOr<Stmt> st = impl->db.Prepare(
-        "SELECT name, description, vossel_size_m, keep_versions, tile_vossels, created_utc "
-        "FROM project WHERE id = 1");
+        "SELECT name, description, vossel_size_m, keep_versions, tile_vossels, created_utc, "
+        "origin_fixed, origin_x, origin_y, origin_z FROM project WHERE id = 1");
     if (!st.ok()) return st.status();
     absl::StatusOr<bool> row = st->Step();
     if (!row.ok()) return row.status();
@@ -426,6 +436,7 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
     impl->settings.keep_versions = static_cast<int>(st->Int(3));
     impl->settings.tile_vossels = static_cast<int>(st->Int(4));
     impl->created_utc = st->Text(5);
+    if (st->Int(6) != 0) impl->origin = Eigen::Vector3d(st->Real(7), st->Real(8), st->Real(9));
   }
   absl::StatusOr<std::unique_ptr<ObjectStore>> objects = OpenLocalObjectStore(dir / kObjectsDir);
   if (!objects.ok()) return objects.status();
@@ -438,6 +449,11 @@ absl::StatusOr<std::unique_ptr<ProjectStore>> ProjectStore::Open(const fs::path&
 const std::string& ProjectStore::name() const { return impl_->name; }
 const ProjectSettings& ProjectStore::settings() const { return impl_->settings; }
 const std::string& ProjectStore::created_utc() const { return impl_->created_utc; }
+
+std::optional<Eigen::Vector3d> ProjectStore::origin() const {
+  std::lock_guard<std::mutex> lock(impl_->origin_mu);
+  return impl_->origin;
+}
 const fs::path& ProjectStore::dir() const { return impl_->dir; }
 int64_t ProjectStore::head_version() const { return impl_->head.load(); }
 const ObjectStore& ProjectStore::objects() const { return *impl_->objects; }
@@ -968,6 +984,8 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     return absl::InternalError(absl::StrCat("injected commit failure after ", where));
   };
 
+  // A change that adds the first scan fixes the origin proposed for it (ProposeOrigin).
+  const bool fixes_origin = im.proposed_origin && plan.add_scan && !origin().has_value();
   // Bad input never changes the project: validate everything before writing.
   const bool no_snapshot = plan.layers_only || plan.rollback_to > 0;
   if (plan.rollback_to > 0) {
@@ -1257,6 +1275,14 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
             st.Bind(1, int64_t{scan.batch}).Bind(2, scan_id).Bind(3, version).Bind(4, now);
           });
     }
+    if (fixes_origin) {
+      run("UPDATE project SET origin_fixed = 1, origin_x = ?1, origin_y = ?2, origin_z = ?3 "
+          "WHERE id = 1 AND origin_fixed = 0",
+          [&](Stmt& st) {
+            st.Bind(1, im.proposed_origin->x()).Bind(2, im.proposed_origin->y());
+            st.Bind(3, im.proposed_origin->z());
+          });
+    }
     if (im.operation) {
       const OperationRecord& op = *im.operation;
       run("INSERT INTO operations(request_id, kind, subject, version, scan_id, created_utc) "
@@ -1298,6 +1324,10 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     if (!text.ok() || ParseVersion(*text) != version) return undo_catalog(s);
   }
   im.head = version;
+  if (fixes_origin) {
+    std::lock_guard<std::mutex> lock(im.origin_mu);
+    im.origin = im.proposed_origin;
+  }
   im.Collect().IgnoreError();  // best effort: a failure leaves garbage for the next one
   return version;
 }
@@ -1325,6 +1355,12 @@ void ProjectStore::BeginOperation(const OperationRecord& op) {
 void ProjectStore::EndOperation() {
   std::lock_guard<std::mutex> lock(impl_->commit_mu);
   impl_->operation.reset();
+  impl_->proposed_origin.reset();
+}
+
+void ProjectStore::ProposeOrigin(const Eigen::Vector3d& origin_m) {
+  std::lock_guard<std::mutex> lock(impl_->commit_mu);
+  impl_->proposed_origin = origin_m;
 }
 
 absl::StatusOr<std::optional<OperationRecord>> ProjectStore::FindOperation(

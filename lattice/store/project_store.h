@@ -51,6 +51,9 @@ struct ProjectSettings {
   std::string description;      ///< free text
   int keep_versions = 5;        ///< retention: versions kept besides HEAD's (and pinned ones)
   int tile_vossels = tiles::kDefaultTileVossels;  ///< tile edge T in vossels (power of 2, 8-512)
+  /// The origin x_0 given at creation (VASL-MODEL §1), world metres; unset: the first scan's
+  /// commit fixes it (ProposeOrigin). ProjectStore::origin() is the current one.
+  std::optional<Eigen::Vector3d> origin_m;
 };
 
 /// One observation source: the LiDAR of a scan, or one of its cameras. Its id is the `scan`
@@ -221,6 +224,9 @@ class ProjectStore {
   const std::filesystem::path& dir() const;
   /// The committed version; 0 for a project with no scan yet.
   int64_t head_version() const;
+  /// The project's origin x_0 (VASL-MODEL §1): world = lattice + x_0. Unset until given at
+  /// creation or fixed by the first commit that adds a scan; never changes once fixed.
+  std::optional<Eigen::Vector3d> origin() const;
   /// Catalog summary of the HEAD version (zeros for version 0).
   absl::StatusOr<VersionInfo> HeadInfo() const;
 
@@ -298,7 +304,12 @@ class ProjectStore {
   /// (OperationRecord) with its version. Call with the writer lock held; EndOperation after the
   /// flow, whatever its outcome (OperationScope does both).
   void BeginOperation(const OperationRecord& op);
+  /// Forgets BeginOperation's record and ProposeOrigin's origin.
   void EndOperation();
+  /// The change the writer runs now fixes the origin: the next Commit records `origin_m` in its
+  /// transaction when the project has none yet (so a change that fails fixes nothing). Call
+  /// with the writer lock held, inside an OperationScope.
+  void ProposeOrigin(const Eigen::Vector3d& origin_m);
   /// The committed change recorded under `request_id`, or nullopt.
   absl::StatusOr<std::optional<OperationRecord>> FindOperation(const std::string& request_id) const;
   /// Keeps the caller's answer (any bytes) with a committed operation.

@@ -89,10 +89,8 @@ TEST_F(PointColourTest, ColourRecordsAreTheLidarRecordsWithTheReturnsMeanColour)
     const ingest::LidarData& lidar = scans_[s].lidar;
     const Eigen::Matrix3d R = scans_[s].pose.q_world_sensor.toRotationMatrix();
     for (size_t i = 0; i < lidar.xyz_sensor_m.size() / 3; ++i) {
-      const Eigen::Vector3d p(lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1],
-                              lidar.xyz_sensor_m[3 * i + 2]);
-      const Eigen::Vector3f x = (R * p + scans_[s].pose.o_world).cast<float>();
-      const Eigen::Vector3d k = ingest::VosselIndexOf(x, kVosselM).cast<double>();
+      const Eigen::Vector3d k = ingest::VosselIndexOf(
+          ingest::ReturnPosition(R, scans_[s].pose.o_world, &lidar.xyz_sensor_m[3 * i]), kVosselM);
       auto [it, fresh] = mean.try_emplace({int(k.x()), int(k.y()), int(k.z())},
                                           Eigen::Vector3d::Zero(), 0);
       auto& m = it->second;

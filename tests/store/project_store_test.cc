@@ -585,7 +585,7 @@ TEST(ProjectStoreTest, CommitWritesOnlyChangedTiles) {
 }
 
 // Claim: a catalog of an earlier schema (2: before profiles and scan lives) opens migrated,
-// keeps its versions and scans, and takes profiles and rollbacks afterwards.
+// keeps its versions and scans (and the origin 0 they were stored in), and takes profiles and rollbacks afterwards.
 TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
   const fs::path root = TestRoot("migrate");
   {
@@ -605,6 +605,8 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
         "DROP TABLE operations; "
         "ALTER TABLE sources DROP COLUMN camera; "
         "ALTER TABLE project DROP COLUMN active_profile; "
+        "ALTER TABLE project DROP COLUMN origin_fixed; ALTER TABLE project DROP COLUMN origin_x; "
+        "ALTER TABLE project DROP COLUMN origin_y; ALTER TABLE project DROP COLUMN origin_z; "
         "CREATE UNIQUE INDEX live_scan_names ON scans(name) WHERE deleted_in IS NULL; "
         "UPDATE schema_version SET version = 2; COMMIT;", nullptr, nullptr, &err);
     EXPECT_EQ(rc, SQLITE_OK) << (err ? err : "");
@@ -618,6 +620,9 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
   EXPECT_EQ((*store)->ListScans(1)->size(), 1u);
   EXPECT_TRUE(*(*store)->HasScan("a"));
   EXPECT_EQ(*(*store)->ActiveProfile(), "default");
+  // A project that had scans before origins existed worked in world coordinates: origin 0.
+  ASSERT_TRUE((*store)->origin().has_value());
+  EXPECT_EQ(*(*store)->origin(), Eigen::Vector3d::Zero());
   auto put = (*store)->PutProfile("p1", [](int32_t r) { return absl::StrCat("revision ", r); });
   ASSERT_TRUE(put.ok()) << put.status();
   EXPECT_EQ(put->revision, 1);
