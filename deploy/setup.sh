@@ -42,7 +42,9 @@ if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv with $PY"
   "$PY" -m venv .venv
 fi
-if ! .venv/bin/python -c "import grpc, grpc_tools, grpc_health.v1, grpc_reflection, numpy, pytest, pye57, OpenEXR" 2>/dev/null; then
+modules="grpc, grpc_tools, grpc_health.v1, grpc_reflection, numpy, pytest, pye57, OpenEXR"
+modules="$modules, tqdm, laspy, lazrs, e57"
+if ! .venv/bin/python -c "import $modules" 2>/dev/null; then
   echo "setup: installing Python packages into .venv (clients/python/requirements.txt)"
   .venv/bin/pip install -q --upgrade pip
   .venv/bin/pip install -q -r clients/python/requirements.txt

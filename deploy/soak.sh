@@ -5,6 +5,9 @@
 #      (tests/soak/test_crash_soak.py);
 #   2. load: concurrent small renders during ingests on loopback: latency, errors, peak RSS
 #      (tests/soak/test_load.py);
+#   2b. client memory: a synthetic E57 of VASL_SOAK_CLIENT_POINTS points (default 20 M) written
+#      chunk by chunk and ingested by the CLI beside a 1 M-point one: the client's peak RSS
+#      and each file's size (tests/soak/test_large_e57_client.py);
 #   3. the fuzzers, if deploy/fuzz.sh exists, VASL_FUZZ_SECONDS (default 60) per target.
 # Prints every `soak:` (and fuzz.sh's `fuzz:`) line again at the end; exits non-zero if anything
 # failed.
@@ -14,7 +17,7 @@
 #   VASL_SOAK_INGEST_KILLS=20  VASL_SOAK_REWEIGHT_KILLS=8  VASL_SOAK_BACKPROJECT_KILLS=8
 #   VASL_SOAK_EXPORT_KILLS=6  VASL_SOAK_SEED=2026 (kill moments)
 #   VASL_SOAK_LOAD_THREADS=8  VASL_SOAK_LOAD_RENDERS=40 (per thread)  VASL_SOAK_LOAD_DEADLINE_S=600
-#   VASL_SOAK_LOAD_MAX_INGESTS=6
+#   VASL_SOAK_LOAD_MAX_INGESTS=6  VASL_SOAK_CLIENT_POINTS=20000000
 #   VASL_FUZZ_SECONDS=60          seconds per fuzz target; VASL_SOAK_NO_FUZZ=1 skips fuzzing
 # Extra arguments go to pytest (e.g. -k reweight).
 set -euo pipefail

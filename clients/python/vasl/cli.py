@@ -9,10 +9,11 @@ import argparse
 import json
 import os
 import sys
+import time
 from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
-from .readers import read_e57, read_manifest
+from .readers import is_las, read_e57, read_las, read_manifest
 from .types import Pose
 
 
@@ -24,15 +25,26 @@ def _print_project(p) -> None:
     print(f"  vossels        {p.vossel_count}")
     print(f"  records        {p.record_count}")
     print(f"  created_utc    {p.created_utc}")
+    print("  origin_m       " + (",".join(f"{v:.3f}" for v in p.origin_m) if p.origin_m
+                                 else "not fixed yet (the first scan fixes it)"))
     if p.description:
         print(f"  description    {p.description}")
 
 
 def _cmd_project(client: Client, args) -> int:
     if args.project_cmd == "create":
+        origin = None
+        if args.origin:
+            try:
+                origin = [float(x) for x in args.origin.split(",")]
+            except ValueError:
+                origin = []
+            if len(origin) != 3:
+                raise ValueError(f"--origin takes X,Y,Z in world metres, got {args.origin!r}")
         p = client.create_project(args.name, vossel_size_m=args.vossel_size,
-                                  description=args.description)
-        print(f"created project {p.name} (vossel {p.vossel_size_m:g} m)")
+                                  description=args.description, origin_m=origin)
+        print(f"created project {p.name} (vossel {p.vossel_size_m:g} m" +
+              (f", origin {','.join(f'{v:.3f}' for v in p.origin_m)})" if p.origin_m else ")"))
         return 0
     if args.project_cmd == "get":
         _print_project(client.get_project(args.name))
@@ -51,53 +63,86 @@ def _cmd_project(client: Client, args) -> int:
     return 0
 
 
-class _ProgressLine:
-    """Progress on one terminal line (plain lines when stderr is not a terminal)."""
+class _Progress:
+    """tqdm bars for one change: the upload (bytes, with the points sent, MB/s and the time
+    left), then each of the server's stages (percent). Bars show on a terminal only (tqdm's
+    disable=None): a log gets the summary lines alone, not a stream of redrawn bars."""
 
     def __init__(self, label: str):
         self.label = label
-        self.tty = sys.stderr.isatty()
-        self.last = None
+        self.stage = None
+        self.bar = None
+
+    def _open(self, stage: str, **kwargs) -> None:
+        from tqdm import tqdm  # imported here: only progress displays need it
+
+        self.done()
+        self.stage = stage
+        self.bar = tqdm(desc=f"{self.label}: {stage}", file=sys.stderr, disable=None,
+                        leave=False, mininterval=0.2, dynamic_ncols=True, **kwargs)
 
     def __call__(self, p: dict) -> None:
         if p["stage"] == "upload":
-            total = max(1, p["total_bytes"])
-            pct = int(100 * p["sent_bytes"] / total)
-            text = f"{self.label}: upload {p['sent_bytes'] / 1e6:.1f}/{total / 1e6:.1f} MB ({pct}%)"
-            key = ("upload", pct // (1 if self.tty else 25))
-        else:
-            text = f"{self.label}: {p['stage']} {100 * p['fraction']:.0f}%"
-            key = (p["stage"], int(100 * p["fraction"]) // (1 if self.tty else 10))
-        if key == self.last:
+            if self.stage != "upload":
+                self._open("upload", total=max(1, p["total_bytes"]), unit="B", unit_scale=True,
+                           unit_divisor=1000)
+            if "sent_points" in p:
+                self.bar.set_postfix_str(f"{p['sent_points']:,}/{p['total_points']:,} points",
+                                         refresh=False)
+            self.bar.update(p["sent_bytes"] - self.bar.n)
             return
-        self.last = key
-        if self.tty:
-            sys.stderr.write("\r\033[K" + text)
-        else:
-            sys.stderr.write(text + "\n")
-        sys.stderr.flush()
+        if p["stage"] != self.stage:
+            self._open(p["stage"], total=100,
+                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}")
+        self.bar.update(int(round(100 * p["fraction"])) - self.bar.n)
 
     def done(self) -> None:
-        if self.tty and self.last is not None:
-            sys.stderr.write("\r\033[K")
-            sys.stderr.flush()
+        if self.bar is not None:
+            self.bar.close()
+        self.bar = None
+        self.stage = None
+
+
+def _ingest_summary(r, seconds: float) -> str:
+    """One line per ingested scan: what was sent, how fast, and what the server made of it."""
+    rate = r.sent_bytes / 1e6 / r.upload_seconds if r.upload_seconds > 0 else 0.0
+    stages = ", ".join(f"{k} {v:.2f}s" for k, v in r.stages.items())
+    return (f"{r.scan}: version {r.version}, {r.point_count} points, "
+            f"{r.sent_bytes / 1e6:.1f} MB sent in {r.upload_seconds:.1f} s ({rate:.1f} MB/s), "
+            f"{r.new_vossels} new vossels, {r.vossel_count} vossels, {r.record_count} records, "
+            f"{seconds:.1f} s in all, server {r.total_seconds:.1f} s"
+            + (f" ({stages})" if stages else ""))
 
 
 def _cmd_ingest(client: Client, args) -> int:
-    # Read and validate every input before sending any: manifests, and E57 files (each of
-    # whose scans is ingested with its spherical and pinhole images; images of no scan make a
-    # camera-only scan).
+    # Read and validate every input before sending any: manifests, E57 files (each of whose
+    # scans is ingested with its spherical and pinhole images; images of no scan make a
+    # camera-only scan) and LAS/LAZ files (world coordinates: --pose places the scanner). The
+    # points themselves are read as they are sent, chunk by chunk.
+    pose = Pose.parse(args.pose) if args.pose else None
+    las = [p for p in args.manifest if is_las(p)]
+    if pose is not None and len(las) > 1:
+        raise ValueError(f"--pose places one scanner, but {len(las)} LAS/LAZ files were given: "
+                         "ingest them one at a time, or give each a manifest with its pose")
+    e57 = [p for p in args.manifest if p.lower().endswith(".e57")]
+    if pose is not None and not las and len(e57) > 1:
+        raise ValueError(f"--pose places one scanner, but {len(e57)} E57 files were given")
+    pose_used = False
     jobs = []
     for path in args.manifest:
         if path.lower().endswith(".e57"):
-            for scan in read_e57(path):
+            stored_without_pose = pose is not None and not las
+            for scan in read_e57(path, pose=pose if stored_without_pose else None):
+                pose_used = pose_used or stored_without_pose
+                for note in scan.notes:
+                    print(f"{path}: {scan.scan}: {note}")
                 for im in scan.images:
                     what = f"{path}: {scan.scan}: image '{im.name}' ({im.kind})"
                     if im.problem:
                         print(f"{what}: not ingested: {im.problem}")
                     elif im.notes:
                         print(f"{what}: {'; '.join(im.notes)}")
-                if scan.cloud is None and not scan.ingestible_images:
+                if scan.points is None and not scan.ingestible_images:
                     print(f"{path}: {scan.scan}: no points and no image that can be ingested; "
                           "skipped")
                     continue
@@ -105,10 +150,22 @@ def _cmd_ingest(client: Client, args) -> int:
                     args.project, s, divergence_rad=args.divergence_rad,
                     rig=f"e57:{os.path.basename(p)}", progress=bar,
                     request_id=args.request_id)))
+        elif is_las(path):
+            points = read_las(path, pose)
+            pose_used = True
+            name = os.path.splitext(os.path.basename(path))[0]
+            for note in points.notes:
+                print(f"{path}: {note}")
+            jobs.append((name, lambda bar, n=name, s=points, p=path: client.ingest(
+                args.project, scan=n, points=s, pose=s.pose, divergence_rad=args.divergence_rad,
+                rig=f"las:{os.path.basename(p)}", progress=bar, request_id=args.request_id)))
         else:
             m = read_manifest(path)
             jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar,
                                                                 request_id=args.request_id)))
+    if pose is not None and not pose_used:
+        raise ValueError("--pose is for LAS/LAZ files and E57 scans stored without a pose; a "
+                         "manifest gives its scan's pose itself")
     if args.request_id and len(jobs) != 1:
         raise ValueError(f"--request-id names one change, but {len(jobs)} scans were given")
     existing = set()
@@ -118,7 +175,8 @@ def _cmd_ingest(client: Client, args) -> int:
         if scan in existing:
             print(f"{scan}: already in project {args.project}, skipped")
             continue
-        bar = _ProgressLine(scan) if not args.quiet else None
+        bar = _Progress(scan) if not args.quiet else None
+        t0 = time.monotonic()
         try:
             r = run(bar)
         finally:
@@ -128,10 +186,7 @@ def _cmd_ingest(client: Client, args) -> int:
             print(f"{r.scan}: already committed in version {r.version} under request "
                   f"{r.request_id}; not ingested again")
             continue
-        stages = ", ".join(f"{k} {v:.2f}s" for k, v in r.stages.items())
-        print(f"{r.scan}: version {r.version}, {r.point_count} points, {r.new_vossels} new vossels,"
-              f" {r.vossel_count} vossels, {r.record_count} records, {r.total_seconds:.1f} s"
-              + (f" ({stages})" if stages else ""))
+        print(_ingest_summary(r, time.monotonic() - t0), flush=True)
     return 0
 
 
@@ -341,7 +396,7 @@ def _cmd_profile(client: Client, args) -> int:
 
 
 def _cmd_reweight(client: Client, args) -> int:
-    bar = _ProgressLine(f"reweight {args.project}") if not args.quiet else None
+    bar = _Progress(f"reweight {args.project}") if not args.quiet else None
     try:
         r = client.reweight(args.project, args.profile or "", args.revision, progress=bar,
                             request_id=args.request_id)
@@ -530,16 +585,26 @@ def build_parser() -> argparse.ArgumentParser:
     create.add_argument("--vossel-size", type=float, default=0.02, metavar="M",
                         help="vossel edge in metres (default 0.02)")
     create.add_argument("--description", default="")
+    create.add_argument("--origin", metavar="X,Y,Z",
+                        help="the project's origin in world metres (a georeferenced site's "
+                             "frame, e.g. UTM); default: the first scan's position rounded to "
+                             "the kilometre")
     psub.add_parser("list", help="list projects")
     get = psub.add_parser("get", help="show a project")
     get.add_argument("name")
 
-    ingest = sub.add_parser("ingest", help="ingest scans: manifest files or E57 files")
-    ingest.add_argument("manifest", nargs="+", metavar="MANIFEST.json|SCAN.e57",
-                        help="scan manifest JSON file(s) and/or E57 files (every scan of an E57 "
-                             "file is ingested as a LiDAR scan named after the file)")
+    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57 or LAS/LAZ files")
+    ingest.add_argument("manifest", nargs="+", metavar="MANIFEST.json|SCAN.e57|SCAN.las|SCAN.laz",
+                        help="scan manifest JSON file(s), E57 files (every scan of an E57 file "
+                             "is ingested as a LiDAR scan named after the file) and/or a LAS/LAZ "
+                             "file (one scan named after the file, placed by --pose)")
+    ingest.add_argument("--pose", metavar="x,y,z[,qx,qy,qz,qw]",
+                        help="the scanner's pose in the points' world coordinates: required for "
+                             "a LAS/LAZ file (it records no scanner position), and for an E57 "
+                             "file of one scan stored in world coordinates without a pose")
     ingest.add_argument("--divergence-rad", type=float, default=0.0003,
-                        help="LiDAR beam divergence for E57 scans (E57 does not record it)")
+                        help="LiDAR beam divergence for E57 and LAS/LAZ scans (neither records "
+                             "it)")
     ingest.add_argument("--project", required=True)
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")

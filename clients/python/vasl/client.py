@@ -18,7 +18,8 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
-from .readers import E57Scan, Manifest, pinhole_from_json, read_e57, read_manifest, read_ply
+from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_las,
+                      pinhole_from_json, read_e57, read_las, read_manifest, read_ply)
 from .types import (CONFIDENCE_FACTORS, ChangeResult, ChangeStats, ExportResult, Inspection,
                     IngestResult, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery,
                     RenderResult, ReweightResult, Scan, Source, Version)
@@ -132,8 +133,9 @@ def _timestamp(iso: str, what: str):
 
 
 def _project(p: pb.Project) -> Project:
+    origin = (p.origin_m.x, p.origin_m.y, p.origin_m.z) if p.HasField("origin_m") else None
     return Project(p.name, p.description, p.vossel_size_m, p.head_version, p.scan_count,
-                   p.vossel_count, p.record_count, _iso(p, "create_time"), p.problem)
+                   p.vossel_count, p.record_count, _iso(p, "create_time"), p.problem, origin)
 
 
 _PROFILE_NUMBERS = ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad",
@@ -194,11 +196,8 @@ def profile_from_pb(p: pb.WeightingProfile) -> dict:
             "created_utc": _iso(p, "create_time")}
 
 
-def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
-                rgb: Optional[np.ndarray] = None) -> bytes:
-    """(N, 3) or (N, 4) points [+ (N,) intensity] [+ (N, 3) linear colour] -> packed
-    little-endian float32 (x, y, z, i), or (x, y, z, i, r, g, b) with colour (28 bytes a point,
-    POINT_FORMAT_XYZIRGB_F32LE)."""
+def _check_points(xyz_m: np.ndarray, intensity, rgb) -> np.ndarray:
+    """Validates point arrays as pack_points takes them; the points as an array."""
     arr = np.asarray(xyz_m)
     if arr.ndim != 2 or arr.shape[1] not in (3, 4):
         raise ValueError(f"points must be an (N, 3) or (N, 4) array, got shape {arr.shape}")
@@ -206,13 +205,9 @@ def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
         raise ValueError("points: the scan has no point")
     if not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"points must be numeric, got dtype {arr.dtype}")
-    packed = np.zeros((arr.shape[0], 4 if rgb is None else 7), dtype="<f4")
-    packed[:, :arr.shape[1]] = arr
-    if intensity is not None:
-        inten = np.asarray(intensity).ravel()
-        if inten.shape[0] != arr.shape[0]:
-            raise ValueError(f"intensity has {inten.shape[0]} values for {arr.shape[0]} points")
-        packed[:, 3] = inten
+    if intensity is not None and np.asarray(intensity).size != arr.shape[0]:
+        raise ValueError(f"intensity has {np.asarray(intensity).size} values for "
+                         f"{arr.shape[0]} points")
     if rgb is not None:
         colour = np.asarray(rgb)
         if colour.shape != (arr.shape[0], 3):
@@ -220,25 +215,95 @@ def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
                              f"got shape {colour.shape}")
         if not np.all(np.isfinite(colour)) or np.any(colour < 0):
             raise ValueError("rgb: colours must be finite and >= 0 (linear)")
-        packed[:, 4:] = colour
+    return arr
+
+
+def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
+                rgb: Optional[np.ndarray] = None) -> bytes:
+    """(N, 3) or (N, 4) points [+ (N,) intensity] [+ (N, 3) linear colour] -> packed
+    little-endian float32 (x, y, z, i), or (x, y, z, i, r, g, b) with colour (28 bytes a point,
+    POINT_FORMAT_XYZIRGB_F32LE)."""
+    arr = _check_points(xyz_m, intensity, rgb)
+    packed = np.zeros((arr.shape[0], 4 if rgb is None else 7), dtype="<f4")
+    packed[:, :arr.shape[1]] = arr
+    if intensity is not None:
+        packed[:, 3] = np.asarray(intensity).ravel()
+    if rgb is not None:
+        packed[:, 4:] = np.asarray(rgb)
     return packed.tobytes()
 
 
-def ingest_requests(header: pb.ScanHeader, point_bytes: bytes,
+class ArrayPoints(PointSource):
+    """Points already in memory (arrays as `pack_points` takes them) as a PointSource, so that
+    they are packed and sent chunk by chunk like a file's: the packed copy never exists
+    whole. Validated when made, before anything is sent."""
+
+    def __init__(self, xyz_m, intensity=None, rgb=None):
+        super().__init__()
+        self.xyz_m = _check_points(xyz_m, intensity, rgb)
+        self.intensity = None if intensity is None else np.asarray(intensity).ravel()
+        self.rgb = None if rgb is None else np.asarray(rgb)
+        self.count = int(self.xyz_m.shape[0])
+        self.has_intensity = intensity is not None or self.xyz_m.shape[1] == 4
+        self.has_rgb = rgb is not None
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        for at in range(0, self.count, chunk_points):
+            end = at + chunk_points
+            yield PointCloud(self.xyz_m[at:end],
+                             None if self.intensity is None else self.intensity[at:end],
+                             None if self.rgb is None else self.rgb[at:end])
+
+
+def point_stride(source: PointSource) -> int:
+    """Bytes a point of `source` takes on the wire: 28 with colour, else 16."""
+    return 28 if source.has_rgb else 16
+
+
+def packed_chunks(source: PointSource, chunk_points: int = CHUNK_POINTS) -> Iterator[bytes]:
+    """A PointSource packed chunk by chunk (pack_points' layout), exactly `source.count` points
+    in all: points a reader dropped while reading are made up with (0, 0, 0) points, the
+    scanners' "no return" marker that the server skips. ValueError for a source that yields
+    more points than it declared."""
+    sent = 0
+    for chunk in source.chunks(chunk_points):
+        n = len(chunk)
+        if n == 0:
+            continue
+        if sent + n > source.count:
+            raise ValueError(f"{source.path or 'points'}: yields more points than the "
+                             f"{source.count} it declared")
+        yield pack_points(chunk.xyz_m, chunk.intensity if source.has_intensity else None,
+                          chunk.rgb if source.has_rgb else None)
+        sent += n
+    stride = point_stride(source)
+    while sent < source.count:
+        n = min(chunk_points, source.count - sent)
+        yield bytes(n * stride)
+        sent += n
+
+
+def ingest_requests(header: pb.ScanHeader, point_bytes: Union[bytes, Iterable[bytes]],
                     images: Sequence[bytes] = (), chunk_bytes: int = CHUNK_BYTES,
                     on_sent: Optional[Callable[[int], None]] = None) -> Iterator[pb.IngestScanRequest]:
     """The IngestScan stream: header, points chunks (whole points: multiples of 16 bytes, or
-    28 for coloured points), image chunks. No validation: a test may send anything this way."""
+    28 for coloured points), image chunks. `point_bytes` is the packed points whole, or an
+    iterable of packed pieces (each whole points) taken one at a time, so that only one piece
+    is in memory. No validation: a test may send anything this way."""
     yield pb.IngestScanRequest(header=header)
     sent = 0
     stride = 28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16
     step = max(stride, chunk_bytes - chunk_bytes % stride)
-    for i in range(0, len(point_bytes), step):
-        data = point_bytes[i:i + step]
-        yield pb.IngestScanRequest(points=pb.PointsChunk(data=data))
-        sent += len(data)
-        if on_sent:
-            on_sent(sent)
+    whole = isinstance(point_bytes, (bytes, bytearray, memoryview))
+    pieces = [point_bytes] if whole else point_bytes
+    for piece in pieces:
+        view = memoryview(piece)
+        for i in range(0, len(view), step):
+            data = bytes(view[i:i + step])
+            yield pb.IngestScanRequest(points=pb.PointsChunk(data=data))
+            sent += len(data)
+            if on_sent:
+                on_sent(sent)
     for index, image in enumerate(images):
         for i in range(0, len(image), chunk_bytes):
             data = image[i:i + chunk_bytes]
@@ -385,13 +450,23 @@ class Client:
 
     # -- projects ------------------------------------------------------------------------
     def create_project(self, name: str, vossel_size_m: float = 0.02, description: str = "",
-                       keep_versions: int = 0) -> Project:
+                       keep_versions: int = 0,
+                       origin_m: Optional[Sequence[float]] = None) -> Project:
+        """`origin_m`: the project's origin (x, y, z) in world metres, e.g. a point of a
+        georeferenced site in its UTM frame; None lets the first scan fix it (its position
+        rounded to the kilometre). The lattice holds positions within ±(2^20 - 1)·vossel_size_m
+        of it on each axis (±21 km at 2 cm)."""
         self._check_name(name)
         if not (vossel_size_m > 0 and np.isfinite(vossel_size_m)):
             raise ValueError(f"vossel_size_m must be > 0 metres, got {vossel_size_m}")
-        return _project(self._call("CreateProject", pb.CreateProjectRequest(
-            name=name, vossel_size_m=vossel_size_m, description=description,
-            keep_versions=keep_versions)))
+        request = pb.CreateProjectRequest(name=name, vossel_size_m=vossel_size_m,
+                                          description=description, keep_versions=keep_versions)
+        if origin_m is not None:
+            o = np.asarray(origin_m, dtype=np.float64)
+            if o.shape != (3,) or not np.all(np.isfinite(o)):
+                raise ValueError(f"origin_m must be 3 finite numbers (metres), got {origin_m!r}")
+            request.origin_m.x, request.origin_m.y, request.origin_m.z = (float(v) for v in o)
+        return _project(self._call("CreateProject", request))
 
     def get_project(self, name: str) -> Project:
         self._check_name(name)
@@ -446,20 +521,27 @@ class Client:
         twice and never lost silently.
 
         Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
-        (N, 3) linear per-point colour, which becomes a "point-colour" source], `pose`
-        (see Pose.parse), `panoramas` as dicts {name, image (bytes or path), pose, modality
-        "rgb"|"ir", angular_resolution_rad, pinhole} (`pinhole`: a pinhole photo's intrinsics
-        {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1, p2]}; absent: an equirect panorama).
-        Without `points` (and with panoramas) the scan is camera-only: its images colour the
-        geometry the project already has. `progress(dict)` is called with keys stage,
-        fraction, sent_bytes, total_bytes while uploading and while the server works.
+        (N, 3) linear per-point colour, which becomes a "point-colour" source], or a
+        PointSource (a file's points read chunk by chunk: `read_e57(...)[i].points`,
+        `read_las(path, pose)`), `pose` (see Pose.parse), `panoramas` as dicts {name, image
+        (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole}
+        (`pinhole`: a pinhole photo's intrinsics {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1,
+        p2]}; absent: an equirect panorama). Points are packed and sent chunk by chunk as the
+        upload proceeds, so a file's scan is never in memory whole. Without `points` (and with
+        panoramas) the scan is camera-only: its images colour the geometry the project already
+        has. `progress(dict)` is called with keys stage, fraction, sent_bytes, total_bytes (and
+        sent_points, total_points while uploading) while uploading and while the server works.
         """
         self._check_name(project)
         if manifest is not None:
             m = read_manifest(manifest) if isinstance(manifest, (str, os.PathLike)) else manifest
-            cloud = read_ply(m.points_path) if m.points_path is not None else None
             scan = m.scan
-            points, intensity = (cloud.xyz_m, cloud.intensity) if cloud is not None else (None, None)
+            points, intensity = None, None
+            if m.points_path is not None and is_las(m.points_path):  # world coordinates
+                points = read_las(m.points_path, m.pose)
+            elif m.points_path is not None:
+                cloud = read_ply(m.points_path)
+                points, intensity = cloud.xyz_m, cloud.intensity
             pose, divergence_rad, rig, captured_utc = m.pose, m.divergence_rad, m.rig, m.captured_utc
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
                           "modality": p.modality,
@@ -474,18 +556,24 @@ class Client:
             raise ValueError("a scan needs points or panoramas (or pass a manifest)")
         if points is not None and not (divergence_rad > 0 and np.isfinite(divergence_rad)):
             raise ValueError(f"divergence_rad must be > 0, got {divergence_rad}")
-        point_bytes = pack_points(points, intensity, rgb) if points is not None else b""
+        source = None
+        if isinstance(points, PointSource):
+            if intensity is not None or rgb is not None:
+                raise ValueError("intensity and rgb come with a PointSource's points: "
+                                 "give them only with point arrays")
+            source = points
+        elif points is not None:
+            source = ArrayPoints(points, intensity, rgb)
         header = pb.ScanHeader(project=project, scan=scan, rig=rig,
                                pose=pose_to_pb(Pose.parse(pose)))
         captured = _timestamp(captured_utc, "captured_utc")
         if captured is not None:
             header.capture_time.CopyFrom(captured)
-        if points is not None:  # none: a camera-only scan (header.lidar unset)
+        if source is not None:  # none: a camera-only scan (header.lidar unset)
             header.lidar.divergence_rad = divergence_rad
-            stride = 16 if rgb is None else 28
-            header.lidar.point_format = (pb.POINT_FORMAT_XYZI_F32LE if rgb is None
-                                         else pb.POINT_FORMAT_XYZIRGB_F32LE)
-            header.lidar.point_count = len(point_bytes) // stride
+            header.lidar.point_format = (pb.POINT_FORMAT_XYZIRGB_F32LE if source.has_rgb
+                                         else pb.POINT_FORMAT_XYZI_F32LE)
+            header.lidar.point_count = source.count
         images = []
         for i, p in enumerate(panoramas):
             if "name" not in p or "image" not in p or "pose" not in p:
@@ -508,37 +596,39 @@ class Client:
                 desc.pinhole.CopyFrom(pb.PinholeCamera(
                     **pinhole_from_json(p["pinhole"], f"panoramas[{i}].pinhole")))
             images.append(bytes(image))
-        total = len(point_bytes) + sum(len(b) for b in images)
+        point_total = 0 if source is None else source.count * point_stride(source)
+        total = point_total + sum(len(b) for b in images)
         header.request_id = request_id or new_request_id()
-        return self.ingest_stream(header, point_bytes, images, total_bytes=total,
-                                  progress=progress, poll_s=poll_s, retries=retries)
+        return self.ingest_stream(header, (lambda: packed_chunks(source)) if source else b"",
+                                  images, total_bytes=total, progress=progress, poll_s=poll_s,
+                                  retries=retries)
 
     def ingest_e57_scan(self, project: str, scan: E57Scan, *, divergence_rad: float = 0.0003,
                         rig: str = "", progress: Optional[Callable[[dict], None]] = None,
                         request_id: Optional[str] = None) -> IngestResult:
-        """Ingests one scan read by `read_e57`: its points, intensity, per-point colour (as a
-        "point-colour" source) and pose, and its spherical and pinhole images (as panoramas and
-        pinhole photos with their poses; `scan.images` says why any other is left out). A scan
-        of images only is a camera-only scan."""
-        cloud = scan.cloud
+        """Ingests one scan read by `read_e57`: its points (streamed from the file chunk by
+        chunk), intensity, per-point colour (as a "point-colour" source) and pose, and its
+        spherical and pinhole images (as panoramas and pinhole photos with their poses;
+        `scan.images` says why any other is left out). A scan of images only is a camera-only
+        scan."""
         panoramas = [{"name": im.name, "image": im.data, "pose": im.pose, "modality": "rgb",
                       "pinhole": im.pinhole} for im in scan.ingestible_images]
         names = [p["name"] for p in panoramas]
         for i, p in enumerate(panoramas):  # E57 names need not be unique
             if names.count(p["name"]) > 1:
                 p["name"] = f"{p['name']}-{i + 1}"
-        return self.ingest(project, scan=scan.scan,
-                           points=None if cloud is None else cloud.xyz_m,
-                           intensity=None if cloud is None else cloud.intensity,
-                           rgb=None if cloud is None else cloud.rgb, pose=scan.pose,
+        return self.ingest(project, scan=scan.scan, points=scan.points, pose=scan.pose,
                            divergence_rad=divergence_rad, panoramas=panoramas, rig=rig,
                            progress=progress, request_id=request_id)
 
-    def ingest_stream(self, header: pb.ScanHeader, point_bytes: bytes, images: Sequence[bytes],
-                      *, total_bytes: int = 0, progress=None, poll_s: float = 0.5,
-                      retries: int = 0) -> IngestResult:
+    def ingest_stream(self, header: pb.ScanHeader,
+                      point_bytes: Union[bytes, Callable[[], Iterable[bytes]]],
+                      images: Sequence[bytes], *, total_bytes: int = 0, progress=None,
+                      poll_s: float = 0.5, retries: int = 0) -> IngestResult:
         """Sends a prepared header and payloads (no client-side validation); with
-        `header.request_id` set, a call whose answer is lost is resolved as in `ingest`."""
+        `header.request_id` set, a call whose answer is lost is resolved as in `ingest`.
+        `point_bytes`: the packed points, or a function giving them as an iterable of packed
+        pieces (called again for each attempt, so a retry reads them again)."""
         return self._with_retries(
             header.project, header.request_id, retries, "IngestScan", "ingest",
             lambda: self._ingest_once(header, point_bytes, images, total_bytes, progress, poll_s))
@@ -580,21 +670,36 @@ class Client:
                 attempt += 1
 
     def _ingest_once(self, header, point_bytes, images, total_bytes, progress, poll_s):
-        state = {"sent": 0}
+        state = {"sent": 0, "error": None, "t0": time.monotonic(), "t1": None}
+        stride = 28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16
+        total_points = header.lidar.point_count
 
         def on_sent(n):
             state["sent"] = n
             if progress:
-                progress({"stage": "upload", "fraction": 0.0, "sent_bytes": n,
-                          "total_bytes": total_bytes})
+                points = min(n // stride, total_points)
+                progress({"stage": "upload", "fraction": n / max(1, total_bytes),
+                          "sent_bytes": n, "total_bytes": total_bytes,
+                          "sent_points": points, "total_points": total_points})
 
-        requests = ingest_requests(header, point_bytes, images, self.chunk_bytes, on_sent)
-        future = self.stub.IngestScan.future(requests, timeout=self.timeout_s)
+        def requests():
+            # Reading the points happens here, on gRPC's sending thread, as the upload proceeds.
+            # An error there (an unreadable chunk of a file) ends the stream early, so the
+            # server refuses it (byte counts short of the header's) and stores nothing; the
+            # error itself is raised to the caller below.
+            try:
+                pieces = point_bytes() if callable(point_bytes) else point_bytes
+                yield from ingest_requests(header, pieces, images, self.chunk_bytes, on_sent)
+            except Exception as e:  # noqa: BLE001 - re-raised by _ingest_once
+                state["error"] = e
+            state["t1"] = time.monotonic()
+
+        future = self.stub.IngestScan.future(requests(), timeout=self.timeout_s)
         if progress:
             last = None
             while not future.done():
                 time.sleep(poll_s)
-                if future.done() or state["sent"] < total_bytes:
+                if future.done() or state["t1"] is None:
                     continue
                 try:
                     p = self.stub.GetIngestProgress(
@@ -610,8 +715,15 @@ class Client:
         try:
             r = future.result()
         except grpc.RpcError as e:
+            if state["error"] is not None:
+                raise state["error"] from None
             raise _wrap("IngestScan", e) from None
-        return _ingest_result(r)
+        if state["error"] is not None:  # pragma: no cover - the server refuses a short stream
+            raise state["error"]
+        result = _ingest_result(r)
+        result.sent_bytes = state["sent"]
+        result.upload_seconds = ((state["t1"] or time.monotonic()) - state["t0"])
+        return result
 
     _OPERATION_STATES = {pb.Operation.STATE_RUNNING: "running",
                          pb.Operation.STATE_SUCCEEDED: "succeeded",

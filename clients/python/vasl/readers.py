@@ -1,9 +1,15 @@
-"""Readers for what a capture rig leaves on disk: PLY point clouds and the scan manifest.
+"""Readers for what a capture rig leaves on disk: PLY, E57 and LAS/LAZ point clouds and the scan
+manifest.
 
 PLY: ASCII, binary little endian and binary big endian; the ``vertex`` element's ``x, y, z``
 (float or double) and an optional ``intensity`` (any numeric type); other properties and elements
 are ignored. The manifest is the JSON file ``vasl_scene`` writes (documented in README.md); its
 paths are relative to the manifest file.
+
+E57 and LAS/LAZ scans can be far larger than memory (a terrestrial scan holds up to a few hundred
+million points), so their points are a `PointSource`: read chunk by chunk (`CHUNK_POINTS` at a
+time) whenever they are wanted, with everything the ingest header needs (the point count, whether
+there is intensity and colour, the normalisation limits) settled before the first point is sent.
 """
 from __future__ import annotations
 
@@ -11,7 +17,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -36,6 +42,73 @@ class PointCloud:
 
     def __len__(self) -> int:
         return int(self.xyz_m.shape[0])
+
+
+#: Points a streaming reader holds at once: its buffers (a few float64 fields a point) and the
+#: packed chunk stay within a few MB however large the scan.
+CHUNK_POINTS = 1 << 16
+#: No terrestrial scanner measures this far (the longest-range ones reach about 6 km): points that
+#: lie farther from their scan's origin were not stored in that scan's own frame but in a world
+#: (georeferenced) frame.
+GEOREFERENCED_M = 10_000.0
+
+
+class PointSource:
+    """The points of one scan in the sensor frame, read chunk by chunk whenever they are wanted
+    and as often (an ingest that is sent again reads them again), holding one chunk at a time.
+
+    `count`, `has_intensity` and `has_rgb` are known before any point is read, because the
+    ingest header declares them. `count` is what `chunks` yields in all, or more: a reader that
+    drops a point it finds unusable only while reading it (an E57 coordinate that is not
+    finite) yields fewer, and an ingest sends the difference as (0, 0, 0), the scanners'
+    "no return" marker that the server skips. `notes` say what was decided on reading (limits,
+    colour depth, frame conversions)."""
+
+    path: str = ""
+    count: int = 0
+    has_intensity: bool = False
+    has_rgb: bool = False
+
+    def __init__(self) -> None:
+        self.notes: List[str] = []
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        """PointClouds of at most `chunk_points` points each, in the file's order."""
+        raise NotImplementedError
+
+    def read(self) -> PointCloud:
+        """Every point at once: what a caller that wants whole arrays gets (its memory grows
+        with the scan, unlike `chunks`)."""
+        parts = list(self.chunks())
+        if not parts:
+            return PointCloud(np.zeros((0, 3), np.float32),
+                              np.zeros(0, np.float32) if self.has_intensity else None,
+                              np.zeros((0, 3), np.float32) if self.has_rgb else None)
+        return PointCloud(
+            np.ascontiguousarray(np.concatenate([p.xyz_m for p in parts]), dtype=np.float32),
+            np.concatenate([p.intensity for p in parts]) if self.has_intensity else None,
+            np.concatenate([p.rgb for p in parts]) if self.has_rgb else None)
+
+    def __len__(self) -> int:
+        return int(self.count)
+
+
+def rotation_matrix(quaternion_xyzw) -> np.ndarray:
+    """The 3x3 rotation (float64) of a quaternion (x, y, z, w), normalised first."""
+    x, y, z, w = (float(v) for v in quaternion_xyzw)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def world_to_sensor(xyz_world: np.ndarray, pose: Pose) -> np.ndarray:
+    """World points (N, 3) to the sensor frame of `pose` (T_world_sensor): p = Rᵀ(x − o), in
+    float64, so that georeferenced coordinates (10^5-10^7 m, where float32 steps by up to a
+    metre) keep their millimetres once the small sensor-frame values become float32."""
+    x = np.asarray(xyz_world, dtype=np.float64) - np.asarray(pose.position_m, dtype=np.float64)
+    return x @ rotation_matrix(pose.quaternion_xyzw)  # rows: (Rᵀ v)ᵀ = vᵀ R
 
 
 def read_ply(path: str) -> PointCloud:
@@ -167,7 +240,9 @@ class Manifest:
     rig: str
     captured_utc: str
     pose: Pose
-    points_path: Optional[str]  #: absolute path of the PLY file; None: a camera-only scan
+    #: absolute path of the PLY, LAS or LAZ file (LAS/LAZ: world coordinates, turned into the
+    #: sensor frame with `pose`); None: a camera-only scan
+    points_path: Optional[str]
     divergence_rad: float
     panoramas: List[PanoramaEntry] = field(default_factory=list)
 
@@ -256,85 +331,372 @@ class E57Image:
 
 @dataclass
 class E57Scan:
-    """One scan (data3D) of an E57 file: points in its own frame, its pose and the images
-    taken with it; or the images of the file that belong to no scan (cloud None: a
-    camera-only scan)."""
+    """One scan (data3D) of an E57 file: its points in its own frame (read when wanted), its
+    pose and the images taken with it; or the images of the file that belong to no scan
+    (points None: a camera-only scan)."""
 
     scan: str  #: scan id: the file stem, "-<n>" when the file holds several scans
     pose: Pose  #: the data3D pose (sensor frame to the file's world frame)
-    cloud: Optional[PointCloud]  #: valid points only; intensity scaled to [0, 1]; None: images only
+    #: the valid points, streamed (`E57Points`); None: images only
+    points: Optional["E57Points"] = None
     images: List[E57Image] = field(default_factory=list)
+    _cloud: Optional[PointCloud] = field(default=None, repr=False, compare=False)
+
+    @property
+    def cloud(self) -> Optional[PointCloud]:
+        """Every valid point read whole (intensity scaled to [0, 1]); None: images only. Read on
+        first use and kept: an ingest streams `points` instead and never needs it."""
+        if self._cloud is None and self.points is not None:
+            self._cloud = self.points.read()
+        return self._cloud
+
+    @property
+    def notes(self) -> List[str]:
+        return self.points.notes if self.points is not None else []
 
     @property
     def ingestible_images(self) -> List[E57Image]:
         return [im for im in self.images if not im.problem]
 
 
-def read_e57(path: str) -> List[E57Scan]:
-    """Reads every scan of an E57 file with pye57: Cartesian or spherical coordinates (spherical
-    ones converted with VASL-MODEL §2.1's axes: azimuth from +x toward +y, elevation up),
-    points flagged invalid dropped, intensity scaled to [0, 1] by ``intensityLimits``, colour
-    scaled by ``colorLimits`` and linearised (sRGB), extension fields (normals, ...) skipped.
-    ValueError with the file's name for a file that is not readable E57, holds no scan, or a
-    scan without valid points."""
+_E57_XYZ = ("cartesianX", "cartesianY", "cartesianZ")
+_E57_RAE = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+_E57_RGB = ("colorRed", "colorGreen", "colorBlue")
+
+
+class E57Points(PointSource):
+    """The valid points of one scan of an E57 file, read chunk by chunk through pye57's
+    libe57 bindings (a CompressedVectorReader filling fixed-size SourceDestBuffers, as
+    pye57's own read_scan_raw does for a whole scan at once), so a scan of any size never
+    sits in memory whole.
+
+    Each chunk: coordinates in float64 (spherical ones converted with VASL-MODEL §2.1's axes:
+    azimuth from +x toward +y, elevation up), points flagged invalid or not finite dropped,
+    points stored in a world frame turned into the sensor frame (`to_sensor`) while still
+    float64, then float32; intensity scaled to [0, 1] and colour scaled and linearised (sRGB) by
+    the limits settled when the file was opened (`intensity_limits`, `colour_limits`; see
+    read_e57 for where they come from)."""
+
+    def __init__(self, path: str, index: int, where: str, spherical: bool,
+                 invalid_field: Optional[str], records: int):
+        super().__init__()
+        self.path = path
+        self.index = index  #: data3D index
+        self.where = where
+        self.spherical = spherical
+        self.invalid_field = invalid_field
+        self.records = records  #: the scan's record count, invalid points included
+        self.count = records
+        self.intensity_limits: Optional[Tuple[float, float]] = None
+        self.colour_limits: Optional[List[Tuple[float, float]]] = None  #: red, green, blue
+        self.to_sensor: Optional[Pose] = None  #: set: the points are stored in its world frame
+
+    @property
+    def coordinate_fields(self) -> Tuple[str, ...]:
+        return _E57_RAE if self.spherical else _E57_XYZ
+
+    def raw_chunks(self, fields: Sequence[str], chunk_points: int = CHUNK_POINTS
+                   ) -> Iterator[Dict[str, np.ndarray]]:
+        """The scan's records chunk by chunk, `fields` as float64 arrays (views into buffers
+        reused for the next chunk: copy what must outlive it). ValueError naming the scan when
+        libe57 cannot read them."""
+        import pye57
+        from pye57 import libe57
+
+        try:
+            e57 = pye57.E57(self.path)
+            points = e57.data3d[self.index]["points"]
+            arrays = {f: np.empty(chunk_points, dtype=np.float64) for f in fields}
+            buffers = libe57.VectorSourceDestBuffer()
+            for f in fields:  # doConversion: integer and scaled fields into float64 buffers
+                buffers.append(libe57.SourceDestBuffer(e57.image_file, f, arrays[f],
+                                                       chunk_points, True, True))
+            reader = points.reader(buffers)
+        except Exception as e:
+            raise ValueError(f"{self.where}: cannot be read: {str(e).splitlines()[0]}") from e
+        try:
+            while True:
+                try:
+                    n = reader.read()
+                except Exception as e:
+                    raise ValueError(f"{self.where}: cannot be read: "
+                                     f"{str(e).splitlines()[0]}") from e
+                if n == 0:
+                    return
+                yield {f: a[:n] for f, a in arrays.items()}
+        finally:
+            reader.close()
+            e57.close()
+
+    def local_chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[np.ndarray]:
+        """The valid points' coordinates as stored (float64, Cartesian), chunk by chunk."""
+        fields = list(self.coordinate_fields) + ([self.invalid_field] if self.invalid_field
+                                                 else [])
+        for raw in self.raw_chunks(fields, chunk_points):
+            xyz, keep = self._xyz(raw)
+            yield xyz[keep]
+
+    def _xyz(self, raw: Dict[str, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+        """Cartesian float64 coordinates of a chunk and the mask of its valid points."""
+        if self.spherical:
+            r, az, el = (raw[f] for f in _E57_RAE)
+            xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
+                            r * np.sin(el)], axis=1)
+        else:
+            xyz = np.stack([raw[f] for f in _E57_XYZ], axis=1)
+        keep = np.all(np.isfinite(xyz), axis=1)
+        if self.invalid_field:
+            keep &= raw[self.invalid_field] == 0
+        return xyz, keep
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        fields = list(self.coordinate_fields)
+        if self.invalid_field:
+            fields.append(self.invalid_field)
+        if self.has_intensity:
+            fields.append("intensity")
+        if self.has_rgb:
+            fields.extend(_E57_RGB)
+        for raw in self.raw_chunks(fields, chunk_points):
+            xyz, keep = self._xyz(raw)
+            xyz = xyz[keep]
+            if self.to_sensor is not None:
+                xyz = world_to_sensor(xyz, self.to_sensor)
+            intensity = rgb = None
+            if self.has_intensity:
+                intensity = _scaled(raw["intensity"][keep], self.intensity_limits)
+                intensity = intensity.astype(np.float32)
+            if self.has_rgb:
+                rgb = np.stack([srgb_to_linear(_scaled(raw[f][keep], lim))
+                                for f, lim in zip(_E57_RGB, self.colour_limits)], axis=1)
+            yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity, rgb)
+
+
+def _scaled(values: np.ndarray, limits: Tuple[float, float]) -> np.ndarray:
+    """Values scaled to [0, 1] by (min, max) limits; all ones when the limits span nothing."""
+    lo, hi = limits
+    return (values - lo) / (hi - lo) if hi > lo else np.ones_like(values)
+
+
+def _e57_number(node) -> Optional[float]:
+    """A numeric node's value (a scaled integer's scaled value), None for anything else."""
+    for attr in ("scaledValue", "value"):
+        if hasattr(node, attr):
+            try:
+                return float(getattr(node, attr)())
+            except (TypeError, ValueError):
+                return None
+    return None
+
+
+def _e57_limits(node, lo_key: str, hi_key: str) -> Optional[Tuple[float, float]]:
+    """(min, max) from a limits structure (intensityLimits, colorLimits), None without both."""
+    try:
+        if node.isDefined(lo_key) and node.isDefined(hi_key):
+            lo, hi = _e57_number(node[lo_key]), _e57_number(node[hi_key])
+            if lo is not None and hi is not None and math.isfinite(lo) and math.isfinite(hi):
+                return lo, hi
+    except Exception:
+        pass
+    return None
+
+
+def _e57_field_limits(prototype, name: str) -> Optional[Tuple[float, float]]:
+    """The value range a point field's prototype declares: an integer's or scaled integer's
+    bounds; a float's only when it states bounds (libe57's default is the float type's whole
+    range, which says nothing)."""
+    node = prototype[name]
+    for lo_attr, hi_attr in (("scaledMinimum", "scaledMaximum"), ("minimum", "maximum")):
+        if hasattr(node, lo_attr):
+            lo, hi = float(getattr(node, lo_attr)()), float(getattr(node, hi_attr)())
+            if hasattr(node, "precision") and not (abs(lo) < 1e30 and abs(hi) < 1e30):
+                return None
+            return lo, hi
+    return None
+
+
+def _e57_open_scan(e57, i: int, path: str, where: str, stem: str, count: int
+                   ) -> Tuple[str, Pose, bool, "E57Points"]:
+    """A data3D's name, pose, whether it states a pose, and its points with the ingest header's
+    facts settled: valid point count, intensity and colour limits. ValueError for a scan
+    without coordinates or without any valid point."""
+    from pye57 import libe57
+
+    node = e57.data3d[i]
+    cv = node["points"]
+    prototype = libe57.StructureNode(cv.prototype())
+    names = [prototype.get(j).elementName() for j in range(prototype.childCount())]
+    if all(f in names for f in _E57_XYZ):
+        spherical, invalid = False, "cartesianInvalidState"
+    elif all(f in names for f in _E57_RAE):
+        spherical, invalid = True, "sphericalInvalidState"
+    else:
+        raise ValueError(f"{where}: has neither Cartesian nor spherical coordinates")
+    records = int(cv.childCount())
+    if records == 0:
+        raise ValueError(f"{where}: holds no valid point (it has no record)")
+    points = E57Points(path, i, where, spherical, invalid if invalid in names else None,
+                       records)
+    points.has_intensity = "intensity" in names
+    points.has_rgb = all(f in names for f in _E57_RGB)
+    survey = []  # what only a first pass over the data can tell
+    if points.invalid_field and _e57_field_limits(prototype, invalid) != (0.0, 0.0):
+        survey.append(invalid)
+    if points.has_intensity:
+        points.intensity_limits = (
+            (_e57_limits(node["intensityLimits"], "intensityMinimum", "intensityMaximum")
+             if node.isDefined("intensityLimits") else None)
+            or _e57_field_limits(prototype, "intensity"))
+        if points.intensity_limits is None:
+            survey.append("intensity")
+    if points.has_rgb:
+        header = node["colorLimits"] if node.isDefined("colorLimits") else None
+        limits = [(_e57_limits(header, f"{f}Minimum", f"{f}Maximum") if header is not None
+                   else None) or _e57_field_limits(prototype, f) for f in _E57_RGB]
+        if all(lim is not None for lim in limits):
+            points.colour_limits = limits
+        else:
+            survey.extend(_E57_RGB)
+    if survey:
+        _e57_survey(points, survey)
+    if points.count == 0:
+        raise ValueError(f"{where}: holds no valid point")
+    has_pose = node.isDefined("pose")
+    notes: List[str] = []
+    pose = ((_e57_pose(node["pose"], where, notes, partial=True) if has_pose else None)
+            or Pose.make([0, 0, 0]))
+    points.notes.extend(notes)
+    if has_pose and pose == Pose.make([0, 0, 0]):
+        has_pose = False
+    name = stem if count == 1 else f"{stem}-{i + 1}"
+    return name, pose, has_pose, points
+
+
+def _e57_survey(points: E57Points, fields: List[str]) -> None:
+    """A first pass over the fields the header leaves open, one chunk at a time: the number of
+    valid points (when an invalid-state field may flag some), and the data's own intensity
+    range and colour depth (when neither the scan's limits nor its prototype give them, as
+    the whole-file reader did before: intensity min..max of the valid points; colour 0..255,
+    or 0..65535 when a value exceeds 255)."""
+    count, lo, hi = 0, math.inf, -math.inf
+    top = [0.0, 0.0, 0.0]
+    for raw in points.raw_chunks(fields):
+        keep = (raw[points.invalid_field] == 0 if points.invalid_field in raw
+                else np.ones(len(next(iter(raw.values()))), dtype=bool))
+        count += int(keep.sum())
+        if "intensity" in raw and keep.any():
+            lo = min(lo, float(raw["intensity"][keep].min()))
+            hi = max(hi, float(raw["intensity"][keep].max()))
+        for c, f in enumerate(_E57_RGB):
+            if f in raw and keep.any():
+                top[c] = max(top[c], float(raw[f][keep].max()))
+    if points.invalid_field in fields:
+        points.count = count
+    if "intensity" in fields:
+        points.intensity_limits = (lo, hi) if hi >= lo else (0.0, 1.0)
+        points.notes.append(f"no intensity limits in the file: scaled by the data's range "
+                            f"{points.intensity_limits[0]:g}..{points.intensity_limits[1]:g}")
+    if _E57_RGB[0] in fields:
+        depth = 255.0 if max(top) <= 255 else 65535.0
+        points.colour_limits = [(0.0, depth)] * 3
+        points.notes.append(f"no colour limits in the file: scaled by 0..{depth:g}")
+
+
+def _e57_frame(points: E57Points, pose: Pose, has_pose: bool, given: Optional[Pose]
+               ) -> Optional[Pose]:
+    """Where the scan's points are stored, from its first valid points: None when they lie in
+    the scan's own frame; otherwise (points farther than GEOREFERENCED_M from its origin,
+    stored in a world frame) the scanner pose to turn them into the sensor frame: the scan's
+    pose when it places the scanner among them, else `given`. ValueError when the scanner's
+    position is unknown."""
+    chunks = points.local_chunks()
+    try:
+        first = next((c for c in chunks if len(c)), None)
+    finally:
+        chunks.close()
+    if first is None:
+        raise ValueError(f"{points.where}: holds no valid point")
+    centre = np.median(first, axis=0)
+    if given is not None:
+        if has_pose:
+            raise ValueError(f"{points.where}: the scan has its own pose; a scanner pose is "
+                             "only for scans stored without one")
+        return given
+    if np.linalg.norm(centre) <= GEOREFERENCED_M:
+        return None
+    if np.linalg.norm(centre - np.asarray(pose.position_m)) <= GEOREFERENCED_M:
+        return pose
+    raise ValueError(
+        f"{points.where}: its points lie {np.linalg.norm(centre) / 1000:.0f} km from the scan's "
+        "origin (stored georeferenced) and the scan's pose does not place the scanner among "
+        "them: the scanner position is unknown, and visibility needs the origin of the rays. "
+        "Give the scanner's pose in the points' frame (vasl ingest --pose x,y,z[,qx,qy,qz,qw])")
+
+
+def read_e57(path: str, pose=None) -> List[E57Scan]:
+    """Reads every scan of an E57 file with pye57: its pose, images, and points as a streaming
+    `E57Points` (read chunk by chunk when wanted; `E57Scan.cloud` reads them whole). Points
+    flagged invalid are dropped, extension fields (normals, ...) skipped.
+
+    What the ingest header needs is settled here, from the header where it can be:
+    - the point count: the scan's record count, less the points an invalid-state field flags
+      (a first pass over that field alone when its declared range allows any);
+    - intensity scaled to [0, 1] by the scan's ``intensityLimits``, else the intensity field's
+      declared range (an integer or scaled integer), else the data's own range (the first pass
+      reads it);
+    - colour scaled by ``colorLimits``, else the colour fields' declared ranges, else 0..255 or
+      0..65535 by the data's largest value; then linearised (E57 colour is display-referred,
+      taken as sRGB).
+    Points stored in a world frame (farther than GEOREFERENCED_M from the scan's origin) are
+    turned into the scanner's frame in float64 before they become float32: with the scan's pose
+    when it places the scanner among them, else with `pose` (the scanner's T_world_sensor in the
+    points' frame, for a file of one scan stored without a pose; it then becomes the scan's
+    pose). ValueError naming the file for one that is not readable E57, holds no scan, a scan
+    without valid points, or georeferenced points without a scanner position."""
     try:
         import pye57  # imported here: only E57 users need it
     except ImportError as e:  # pragma: no cover - setup.sh installs it
         raise ValueError("reading E57 needs the pye57 package (deploy/setup.sh installs it)") from e
+    given = None if pose is None else Pose.parse(pose)
     stem = os.path.splitext(os.path.basename(path))[0]
     try:
         e57 = pye57.E57(path)
         count = e57.scan_count
     except Exception as e:  # pye57 raises its own exception types
         raise ValueError(f"{path}: not a readable E57 file: {str(e).splitlines()[0]}") from e
-    images = _read_e57_images(e57, path)
-    if count == 0 and not images:
-        raise ValueError(f"{path}: the E57 file holds no scan (no data3D) and no image (images2D)")
-    scans = []
-    for i in range(count):
-        where = f"{path}: scan {i}"
-        try:
-            header = e57.get_header(i)
-            # Extension fields (normals, ...) are skipped, never a reason to lose the file.
-            raw = e57.read_scan_raw(i, ignore_unsupported_fields=True)
-        except Exception as e:
-            raise ValueError(f"{where}: cannot be read: {str(e).splitlines()[0]}") from e
-        if "cartesianX" in raw:
-            xyz = np.stack([raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]], axis=1)
-            invalid = raw.get("cartesianInvalidState")
-        elif "sphericalRange" in raw:
-            r, az, el = raw["sphericalRange"], raw["sphericalAzimuth"], raw["sphericalElevation"]
-            xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
-                            r * np.sin(el)], axis=1)
-            invalid = raw.get("sphericalInvalidState")
-        else:
-            raise ValueError(f"{where}: has neither Cartesian nor spherical coordinates")
-        keep = np.all(np.isfinite(xyz), axis=1)
-        if invalid is not None:
-            keep &= np.asarray(invalid) == 0
-        if not np.any(keep):
-            raise ValueError(f"{where}: holds no valid point")
-        intensity = None
-        if "intensity" in raw:
-            intensity = np.asarray(raw["intensity"], dtype=np.float64)[keep]
-            lo, hi = _e57_intensity_limits(header, intensity)
-            intensity = ((intensity - lo) / (hi - lo) if hi > lo else np.ones_like(intensity))
-            intensity = intensity.astype(np.float32)
-        rgb = None
-        if all(f"color{c}" in raw for c in ("Red", "Green", "Blue")):
-            rgb = np.stack([_e57_colour(header, raw[f"color{c}"], c)[keep]
-                            for c in ("Red", "Green", "Blue")], axis=1)
-        w, x, y, z = (float(v) for v in header.rotation)
-        pose = Pose.make([float(v) for v in header.translation], [x, y, z, w], where=where)
-        name = stem if count == 1 else f"{stem}-{i + 1}"
-        try:
-            guid = str(e57.image_file.root()["data3D"][i]["guid"].value())
-        except Exception:
-            guid = ""
-        scans.append(E57Scan(scan=name, pose=pose, cloud=PointCloud(
-            xyz_m=np.ascontiguousarray(xyz[keep], dtype=np.float32), intensity=intensity,
-            rgb=None if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32)),
-            images=[im for im in images if guid and im.scan_guid == guid]))
+    try:
+        images = _read_e57_images(e57, path)
+        if count == 0 and not images:
+            raise ValueError(f"{path}: the E57 file holds no scan (no data3D) and no image "
+                             "(images2D)")
+        if given is not None and count != 1:
+            raise ValueError(f"{path}: a scanner pose names one scan's position, but the file "
+                             f"holds {count} scans")
+        scans = []
+        for i in range(count):
+            where = f"{path}: scan {i}"
+            try:
+                name, scan_pose, has_pose, points = _e57_open_scan(e57, i, path, where, stem,
+                                                                   count)
+            except ValueError:
+                raise
+            except Exception as e:
+                raise ValueError(f"{where}: cannot be read: {str(e).splitlines()[0]}") from e
+            frame = _e57_frame(points, scan_pose, has_pose, given)
+            if frame is not None:
+                points.to_sensor = frame
+                scan_pose = frame
+                points.notes.append(
+                    "points stored in a world frame: turned into the scanner's frame (float64) "
+                    f"with the scanner at {', '.join(f'{v:.3f}' for v in frame.position_m)}")
+            try:
+                guid = str(e57.data3d[i]["guid"].value())
+            except Exception:
+                guid = ""
+            scans.append(E57Scan(scan=name, pose=scan_pose, points=points,
+                                 images=[im for im in images if guid and im.scan_guid == guid]))
+    finally:
+        e57.close()
     # Images of no scan of the file (no or an unknown associatedData3DGuid): with one scan,
     # taken as its; otherwise a camera-only scan of their own.
     attached = {id(im) for sc in scans for im in sc.images}
@@ -343,17 +705,26 @@ def read_e57(path: str) -> List[E57Scan]:
         scans[0].images.extend(loose)
     elif loose:
         first = next((im.pose for im in loose if im.pose is not None), Pose.make([0, 0, 0]))
-        scans.append(E57Scan(scan=f"{stem}-images" if scans else stem, pose=first, cloud=None,
+        scans.append(E57Scan(scan=f"{stem}-images" if scans else stem, pose=first, points=None,
                              images=loose))
     return scans
 
 
-def _e57_pose(node, where: str, notes: List[str]) -> Optional[Pose]:
+def _e57_pose(node, where: str, notes: List[str], partial: bool = False) -> Optional[Pose]:
     """A pose node (rotation w x y z, translation) as a Pose; a quaternion that is not of unit
-    length is normalised (noted), a zero or non-finite one refused (ValueError)."""
+    length is normalised (noted), a zero or non-finite one refused (ValueError). None when a
+    part is missing, or with `partial` (a scan's pose) a missing part is the identity's."""
+    def part(key: str, components: str, default: List[float]) -> List[float]:
+        if partial and not node.isDefined(key):
+            return default
+        values = [_e57_number(node[key][c]) for c in components]
+        if any(v is None for v in values):
+            raise ValueError(f"{where}: the pose's {key} is not numeric")
+        return values
+
     try:
-        w, x, y, z = (float(node["rotation"][c].value()) for c in "wxyz")
-        t = [float(node["translation"][c].value()) for c in "xyz"]
+        w, x, y, z = part("rotation", "wxyz", [1.0, 0.0, 0.0, 0.0])
+        t = part("translation", "xyz", [0.0, 0.0, 0.0])
     except Exception:
         return None
     norm = math.sqrt(w * w + x * x + y * y + z * z)
@@ -449,24 +820,95 @@ def _quat_mul(a, b):
             aw * bw - ax * bx - ay * by - az * bz)
 
 
-def _e57_colour(header, values: np.ndarray, channel: str) -> np.ndarray:
-    """One colour channel scaled to [0, 1] by the file's colorLimits (the data's integer range
-    when it gives none) and linearised: E57 colours are display-referred, taken as sRGB."""
-    v = np.asarray(values, dtype=np.float64)
-    lo, hi = 0.0, 255.0 if v.size == 0 or v.max() <= 255 else 65535.0
-    try:
-        limits = header.node["colorLimits"]
-        lo = float(limits[f"color{channel}Minimum"].value())
-        hi = float(limits[f"color{channel}Maximum"].value())
-    except Exception:
-        pass
-    scaled = (v - lo) / (hi - lo) if hi > lo else np.ones_like(v)
-    return srgb_to_linear(scaled)
+class LasPoints(PointSource):
+    """The points of a LAS or LAZ file (laspy; LAZ through its lazrs backend), read chunk by
+    chunk with laspy's chunk iterator.
+
+    LAS stores world coordinates (scaled integers plus an offset, often UTM: 10^5-10^7 m) and
+    no scanner position, so a scan needs the scanner's pose `pose` (T_world_sensor, in the
+    file's coordinates): each chunk's coordinates are turned into the sensor frame,
+    p = Rᵀ(x − o), in float64 before they become float32. Intensity is the 16-bit intensity
+    field over 65535. Colour, when the point format has red, green and blue, is 16-bit as the
+    specification says, or 8-bit values stored in 16 bits when no value in the file exceeds 255
+    (`colour_bits`; the check stops at the first larger value, usually within the first
+    chunk); scaled to [0, 1] and linearised (sRGB)."""
+
+    def __init__(self, path: str, pose: Pose):
+        super().__init__()
+        try:
+            import laspy  # imported here: only LAS users need it
+        except ImportError as e:  # pragma: no cover - setup.sh installs it
+            raise ValueError("reading LAS/LAZ needs the laspy package with lazrs "
+                             "(pip install 'laspy[lazrs]'; deploy/setup.sh installs it)") from e
+        self.path = path
+        self.pose = pose
+        try:
+            with laspy.open(path) as f:
+                header = f.header
+                self.count = int(header.point_count)
+                dims = set(header.point_format.dimension_names)
+                self.point_format = int(header.point_format.id)
+        except Exception as e:  # laspy raises its own errors (and OSError)
+            raise ValueError(f"{path}: not a readable LAS/LAZ file: "
+                             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
+        if self.count == 0:
+            raise ValueError(f"{path}: the LAS file holds no point")
+        self.has_intensity = "intensity" in dims
+        self.has_rgb = {"red", "green", "blue"} <= dims
+        self.colour_bits = 0
+        if self.has_rgb:
+            self.colour_bits = self._colour_bits()
+            self.notes.append(
+                f"point format {self.point_format}: RGB "
+                + ("16-bit" if self.colour_bits == 16
+                   else "8-bit values stored in 16 bits (no value above 255)"))
+
+    def _las_chunks(self, chunk_points: int):
+        import laspy
+
+        try:
+            with laspy.open(self.path) as f:
+                for chunk in f.chunk_iterator(chunk_points):
+                    yield chunk
+        except Exception as e:
+            raise ValueError(f"{self.path}: cannot be read: "
+                             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
+
+    def _colour_bits(self) -> int:
+        for chunk in self._las_chunks(CHUNK_POINTS):
+            if any(int(np.max(chunk[c], initial=0)) > 255 for c in ("red", "green", "blue")):
+                return 16
+        return 8
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        full = 65535.0 if self.colour_bits == 16 else 255.0
+        for chunk in self._las_chunks(chunk_points):
+            world = np.stack([np.asarray(chunk.x, dtype=np.float64),
+                              np.asarray(chunk.y, dtype=np.float64),
+                              np.asarray(chunk.z, dtype=np.float64)], axis=1)
+            xyz = world_to_sensor(world, self.pose).astype(np.float32)
+            intensity = (np.asarray(chunk.intensity, dtype=np.float32) / np.float32(65535.0)
+                         if self.has_intensity else None)
+            rgb = None
+            if self.has_rgb:
+                rgb = np.stack([srgb_to_linear(np.asarray(chunk[c], dtype=np.float64) / full)
+                                for c in ("red", "green", "blue")], axis=1)
+            yield PointCloud(np.ascontiguousarray(xyz), intensity, rgb)
 
 
-def _e57_intensity_limits(header, values: np.ndarray) -> Tuple[float, float]:
-    """The file's intensityLimits, or the data's own range when the file gives none."""
-    try:
-        return float(header.intensityMinimum), float(header.intensityMaximum)
-    except Exception:
-        return float(values.min()), float(values.max())
+def read_las(path: str, pose=None) -> LasPoints:
+    """A LAS or LAZ file's points as a streaming `LasPoints` in the sensor frame of `pose`
+    (the scanner's T_world_sensor in the file's coordinates; see Pose.parse). ValueError naming
+    the file for one without a pose (LAS records no scanner position, and visibility needs the
+    origin of the rays), one that is not readable LAS/LAZ, or one without points."""
+    if pose is None:
+        raise ValueError(f"{path}: a LAS/LAZ file records no scanner position, and visibility "
+                         "needs the origin of the rays: give the scanner's pose in the file's "
+                         "coordinates (vasl ingest --pose x,y,z[,qx,qy,qz,qw], or a manifest "
+                         "whose lidar.points names the file)")
+    return LasPoints(path, Pose.parse(pose))
+
+
+def is_las(path: str) -> bool:
+    """Whether a path names a LAS or LAZ file (by its extension)."""
+    return path.lower().endswith((".las", ".laz"))

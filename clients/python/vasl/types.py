@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -75,6 +75,9 @@ class Project:
     created_utc: str
     #: Set when the server cannot open the project (damaged): what is wrong with it.
     problem: str = ""
+    #: The origin x_0 (VASL-MODEL §1), world metres; None until given at creation or fixed by
+    #: the first scan (its position rounded to the kilometre). Every position is a world one.
+    origin_m: Optional[Tuple[float, float, float]] = None
 
 
 @dataclass
@@ -130,6 +133,9 @@ class IngestResult:
     change: ChangeStats = field(default_factory=ChangeStats)
     request_id: str = ""  #: the id the ingest was sent under (retries under it are answered once)
     replayed: bool = False  #: the ingest had committed before; this answers a retry
+    sent_bytes: int = 0  #: bytes this client sent (points and images); 0 for a replayed answer
+    #: from the call's start to its last byte sent (reading the points included)
+    upload_seconds: float = 0.0
 
 
 @dataclass

@@ -1,0 +1,158 @@
+"""Synthetic scans written as real files, for the streaming, LAS/LAZ and memory tests: points
+on the walls, floor and ceiling of a box room seen from a scanner inside it (so every point's
+range from the scanner is known), written chunk by chunk as E57 (pye57's libe57 bindings) or
+LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole."""
+from __future__ import annotations
+
+import uuid
+from typing import Dict, Iterator, Optional, Sequence, Tuple
+
+import numpy as np
+
+#: Half extents of the room around the scanner, metres (x, y, then z down and up).
+ROOM = (6.0, 4.5, 1.5, 1.8)
+
+
+def room_points(n: int, seed: int, room: Sequence[float] = ROOM) -> np.ndarray:
+    """`n` points (float64, sensor frame) where rays in uniformly random directions from the
+    scanner at the origin meet the room's box: -room[0] <= x <= room[0], -room[1] <= y <=
+    room[1], -room[2] <= z <= room[3]."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(divide="ignore"):
+        tx = room[0] / np.abs(d[:, 0])
+        ty = room[1] / np.abs(d[:, 1])
+        tz = np.where(d[:, 2] < 0, room[2], room[3]) / np.abs(d[:, 2])
+    t = np.minimum(np.minimum(tx, ty), tz)
+    return d * t[:, None]
+
+
+def room_chunks(n: int, chunk: int = 1 << 18, seed: int = 7) -> Iterator[Dict[str, np.ndarray]]:
+    """The room's points in chunks: "xyz" (sensor frame, float64), "intensity" (0..65535,
+    by height), "rgb" (uint8 by wall), "invalid" (every 97th point flagged invalid, its
+    coordinates left at 0)."""
+    for at in range(0, n, chunk):
+        m = min(chunk, n - at)
+        xyz = room_points(m, seed + at // chunk)
+        index = np.arange(at, at + m)
+        invalid = (index % 97 == 96).astype(np.int64) * 2
+        xyz[invalid != 0] = 0.0
+        intensity = np.clip((xyz[:, 2] + 2.0) / 4.0 * 65535, 0, 65535).astype(np.int64)
+        rgb = np.stack([(np.abs(xyz[:, 0]) * 40) % 256, (np.abs(xyz[:, 1]) * 50) % 256,
+                        (np.abs(xyz[:, 2]) * 60) % 256], axis=1).astype(np.int64)
+        yield {"xyz": xyz, "intensity": intensity, "rgb": rgb, "invalid": invalid}
+
+
+def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
+              pose: Optional[Tuple[Sequence[float], Sequence[float]]] = None,
+              scale_m: Optional[float] = 0.001, extent_m: float = 50.0,
+              intensity: bool = True, colour: bool = False, invalid: bool = False,
+              name: str = "synthetic") -> None:
+    """Writes one scan of `n` points from `chunks` (room_chunks' dicts) to a new E57 file, one
+    chunk at a time. Coordinates are scaled integers of `scale_m` within ±`extent_m`, or
+    doubles with `scale_m` None; `pose` is (translation, quaternion w x y z) or None (no pose).
+    Intensity (limits 0..65535), colour (0..255) and the invalid state are written as asked."""
+    import pye57
+    from pye57 import libe57
+
+    e57 = pye57.E57(path, mode="w")
+    imf = e57.image_file
+    scan = libe57.StructureNode(imf)
+    scan.set("guid", libe57.StringNode(imf, "{%s}" % uuid.uuid4()))
+    scan.set("name", libe57.StringNode(imf, name))
+    if pose is not None:
+        (tx, ty, tz), (qw, qx, qy, qz) = pose
+        node = libe57.StructureNode(imf)
+        rotation = libe57.StructureNode(imf)
+        for key, v in zip("wxyz", (qw, qx, qy, qz)):
+            rotation.set(key, libe57.FloatNode(imf, float(v)))
+        translation = libe57.StructureNode(imf)
+        for key, v in zip("xyz", (tx, ty, tz)):
+            translation.set(key, libe57.FloatNode(imf, float(v)))
+        node.set("rotation", rotation)
+        node.set("translation", translation)
+        scan.set("pose", node)
+    proto = libe57.StructureNode(imf)
+    fields = []
+    for axis in "XYZ":
+        if scale_m is None:
+            coord = libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, -1e300, 1e300)
+        else:
+            top = int(np.ceil(extent_m / scale_m))
+            coord = libe57.ScaledIntegerNode(imf, 0, -top, top, scale_m, 0.0)
+        proto.set(f"cartesian{axis}", coord)
+        fields.append((f"cartesian{axis}", "d"))
+    if intensity:
+        proto.set("intensity", libe57.IntegerNode(imf, 0, 0, 65535))
+        limits = libe57.StructureNode(imf)
+        limits.set("intensityMinimum", libe57.IntegerNode(imf, 0))
+        limits.set("intensityMaximum", libe57.IntegerNode(imf, 65535))
+        scan.set("intensityLimits", limits)
+        fields.append(("intensity", "u2"))
+    if colour:
+        limits = libe57.StructureNode(imf)
+        for c in ("Red", "Green", "Blue"):
+            proto.set(f"color{c}", libe57.IntegerNode(imf, 0, 0, 255))
+            limits.set(f"color{c}Minimum", libe57.IntegerNode(imf, 0))
+            limits.set(f"color{c}Maximum", libe57.IntegerNode(imf, 255))
+            fields.append((f"color{c}", "u1"))
+        scan.set("colorLimits", limits)
+    if invalid:
+        proto.set("cartesianInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
+        fields.append(("cartesianInvalidState", "i1"))
+    points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+    scan.set("points", points)
+    e57.data3d.append(scan)
+
+    # Buffer types libe57's bindings read right: 64-bit integers are taken for 32-bit ones.
+    capacity = 1 << 18
+    arrays = {f: np.zeros(capacity, dtype=t) for f, t in fields}
+    buffers = libe57.VectorSourceDestBuffer()
+    for f, _ in fields:
+        buffers.append(libe57.SourceDestBuffer(imf, f, arrays[f], capacity, True, True))
+    writer = points.writer(buffers)
+    written = 0
+    for chunk in chunks:
+        for at in range(0, len(chunk["xyz"]), capacity):
+            part = slice(at, min(at + capacity, len(chunk["xyz"])))
+            m = part.stop - part.start
+            for k, axis in enumerate("XYZ"):
+                arrays[f"cartesian{axis}"][:m] = chunk["xyz"][part, k]
+            if intensity:
+                arrays["intensity"][:m] = chunk["intensity"][part]
+            if colour:
+                for k, c in enumerate(("Red", "Green", "Blue")):
+                    arrays[f"color{c}"][:m] = chunk["rgb"][part, k]
+            if invalid:
+                arrays["cartesianInvalidState"][:m] = chunk["invalid"][part]
+            writer.write(m)
+            written += m
+    writer.close()
+    e57.close()
+    assert written == n, f"wrote {written} of {n} points"
+
+
+def write_las(path: str, world_xyz: np.ndarray, *, intensity: np.ndarray,
+              rgb: Optional[np.ndarray] = None, offset: Sequence[float] = (0.0, 0.0, 0.0),
+              scale_m: float = 0.001) -> None:
+    """Writes points (world coordinates) to a LAS file, or LAZ when `path` ends in .laz
+    (laspy with lazrs): point format 3 (with 16-bit RGB) when `rgb` is given (uint16 values,
+    stored as they are), else 1; coordinates as integers of `scale_m` around `offset`."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=3 if rgb is not None else 1, version="1.2")
+    header.offsets = np.asarray(offset, dtype=np.float64)
+    header.scales = np.array([scale_m] * 3)
+    with laspy.open(path, mode="w", header=header) as writer:
+        step = 1 << 17
+        for at in range(0, len(world_xyz), step):
+            part = slice(at, min(at + step, len(world_xyz)))
+            record = laspy.ScaleAwarePointRecord.zeros(part.stop - part.start, header=header)
+            record.x = world_xyz[part, 0]
+            record.y = world_xyz[part, 1]
+            record.z = world_xyz[part, 2]
+            record.intensity = intensity[part]
+            if rgb is not None:
+                record.red, record.green, record.blue = rgb[part, 0], rgb[part, 1], rgb[part, 2]
+            writer.write_points(record)
