@@ -122,6 +122,7 @@ struct Engine::Impl {
     result.pixels_back_projected = flow.pixels_back_projected;
     result.pixels_outside = flow.pixels_outside;
     result.pixels_invalid = flow.pixels_invalid;
+    result.calibration = std::move(flow.calibration);
     result.seconds = SecondsSince(t0);
     return result;
   }

@@ -85,6 +85,9 @@ struct IngestResult {
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
+  /// Ingest: §2.3 calibration health of each camera of the scan (by name) against its LiDAR
+  /// (ingest/calibration.h); none for a camera-only scan.
+  std::vector<std::pair<std::string, records::CalibrationHealth>> calibration;
   double seconds = 0.0;         ///< wall time of the whole flow
   std::vector<std::pair<std::string, double>> stage_seconds;  ///< per stage, in order
   /// A retry: the change had already committed under its request id, and was not done again.

@@ -105,6 +105,28 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out) {
   }
 }
 
+void CalibrationToProto(const std::string& camera, const records::CalibrationHealth& c,
+                        v1::CalibrationHealth* out) {
+  using V = records::CalibrationHealth::Verdict;
+  out->set_camera(camera);
+  out->set_lidar_source(c.lidar_source);
+  out->set_verdict(c.verdict == V::kOk        ? v1::CalibrationHealth::VERDICT_OK
+                   : c.verdict == V::kFlagged ? v1::CalibrationHealth::VERDICT_FLAGGED
+                                              : v1::CalibrationHealth::VERDICT_UNCHECKED);
+  out->set_points_in_view(c.points_in_view);
+  out->set_features(c.features);
+  out->set_matched(c.matched);
+  out->set_cell_px(c.cell_px);
+  out->set_pixel_mean_px(c.pixel_mean_px);
+  out->set_pixel_p95_px(c.pixel_p95_px);
+  out->set_offset_mean_m(c.offset_mean_m);
+  out->set_offset_p95_m(c.offset_p95_m);
+  out->set_roundtrip_mean_m(c.roundtrip_mean_m);
+  out->set_roundtrip_p95_m(c.roundtrip_p95_m);
+  out->set_rotation_deg(c.rotation_deg);
+  out->set_note(c.note);
+}
+
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
   out->set_id(scan.id);
   out->set_name(scan.name);
@@ -125,6 +147,7 @@ void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
     s->set_height_px(src.height_px);
     s->set_divergence_rad(src.divergence_rad);
     s->set_point_count(src.point_count);
+    if (src.calibration) CalibrationToProto(src.name, *src.calibration, s->mutable_calibration());
   }
 }
 

@@ -418,6 +418,9 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
     response_->set_total_seconds(SecondsSince(start_));
     StagesToProto(result->stage_seconds, response_->mutable_stages());
     ChangeStatsToProto(*result, response_->mutable_change());
+    for (const auto& [camera, health] : result->calibration) {
+      CalibrationToProto(camera, health, response_->add_calibration());
+    }
     Finish(grpc::Status::OK, true);
   }
 

@@ -49,6 +49,8 @@ struct FlowResult {
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour
+  /// Ingest: §2.3 calibration health of each camera of the scan (by name) against its LiDAR.
+  std::vector<std::pair<std::string, records::CalibrationHealth>> calibration;
 };
 
 /// A source's catalog fields (id, batch, pose, divergence or angular resolution, modality, a

@@ -7,6 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/change.h"
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/calibration.h"
 #include "lattice/ingest/validate.h"
 #include "lattice/ingest/voxelise.h"
 #include "lattice/tiles/tile_split.h"
@@ -173,11 +174,33 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     }
   }
 
+  plan.made_by = absl::StrCat("ingest scan ", info.name);
+  plan.add_scan = info;
+
+  // §2.3: each camera against the scan's own LiDAR, before its colours are fused.
+  if (!change.new_sources.lidars.empty()) {
+    const ingest::LidarSource& l = change.new_sources.lidars[0];
+    for (size_t k = 0; k < change.new_sources.cameras.size(); ++k) {
+      const ingest::CameraSource& cam = change.new_sources.cameras[k];
+      const double fraction = 0.35 + 0.1 * double(k) / double(change.new_sources.cameras.size());
+      if (absl::Status stop = clock.Start(absl::StrCat("calibration of source ", cam.id), fraction);
+          !stop.ok()) {
+        return stop;
+      }
+      absl::StatusOr<ingest::LinearImage> image = cam.load();
+      if (!image.ok()) return image.status();
+      records::CalibrationHealth health = ingest::CheckCalibration(l, cam, *image);
+      for (store::SourceInfo& src : plan.add_scan->sources) {
+        if (src.id != cam.id) continue;
+        result.calibration.emplace_back(src.name, health);
+        src.calibration = std::move(health);
+      }
+    }
+  }
+
   absl::StatusOr<std::vector<store::ScanInfo>> scans = store.ListScans(head.version);
   if (!scans.ok()) return scans.status();
   if (head.version == 0) scans->clear();
-  plan.made_by = absl::StrCat("ingest scan ", info.name);
-  plan.add_scan = info;
 
   absl::StatusOr<store::Snapshot> next =
       internal::Propagate(store, head, std::move(change), internal::SourcesOf(*scans),

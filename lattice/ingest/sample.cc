@@ -101,6 +101,11 @@ std::optional<Eigen::Vector2d> ImageProjection::Project(const Eigen::Vector3d& d
   return geometry::PinholeProject(d_cam, *pinhole_);              // §2.2
 }
 
+Eigen::Vector3d ImageProjection::Unproject(const Eigen::Vector2d& uv) const {
+  if (!pinhole_) return geometry::EquirectUnproject(uv.x(), uv.y(), size_);  // §2.1
+  return geometry::PinholeUnproject(uv, *pinhole_);                         // §2.2
+}
+
 bool ImageProjection::Inside(const Eigen::Vector2d& uv) const {
   if (!pinhole_) return true;
   return uv.x() >= 0.0 && uv.x() <= size_.width_px && uv.y() >= 0.0 && uv.y() <= size_.height_px;

@@ -20,6 +20,8 @@ class ImageProjection {
   ImageProjection(const CameraSource& camera, int width_px, int height_px);
   /// Continuous pixel coordinates of a camera-frame direction; nullopt behind a pinhole camera.
   std::optional<Eigen::Vector2d> Project(const Eigen::Vector3d& d_cam) const;
+  /// §2.1/§2.2 inverse: the unit camera-frame ray through continuous pixel coordinates.
+  Eigen::Vector3d Unproject(const Eigen::Vector2d& uv_px) const;
   /// True when pixel coordinates lie on the image (always for a panorama).
   bool Inside(const Eigen::Vector2d& uv_px) const;
   /// §3 θ_pix in direction `d_cam`: the camera's own angular resolution when it gives one,

@@ -41,6 +41,8 @@ absl::Status Stmt::Run() {
     if (!*row) return absl::OkStatus();
   }
 }
+bool Stmt::IsNull(int col) const { return sqlite3_column_type(stmt_, col) == SQLITE_NULL; }
+
 int64_t Stmt::Int(int col) const { return sqlite3_column_int64(stmt_, col); }
 double Stmt::Real(int col) const { return sqlite3_column_double(stmt_, col); }
 std::string Stmt::Text(int col) const {
@@ -144,6 +146,23 @@ constexpr char kOperationsTable[] = R"sql(CREATE TABLE operations(
   created_utc TEXT NOT NULL);
 )sql";
 
+// §2.3 calibration health of a camera source against its scan's LiDAR, found at ingest.
+constexpr char kCalibrationTable[] = R"sql(CREATE TABLE calibration(
+  camera_source INTEGER PRIMARY KEY,
+  lidar_source INTEGER NOT NULL,
+  version INTEGER NOT NULL,
+  verdict INTEGER NOT NULL,
+  points_in_view INTEGER NOT NULL,
+  features INTEGER NOT NULL,
+  matched INTEGER NOT NULL,
+  cell_px REAL NOT NULL,
+  pixel_mean_px REAL NOT NULL, pixel_p95_px REAL NOT NULL,
+  offset_mean_m REAL NOT NULL, offset_p95_m REAL NOT NULL,
+  roundtrip_mean_m REAL NOT NULL, roundtrip_p95_m REAL NOT NULL,
+  rotation_deg REAL NOT NULL,
+  note TEXT NOT NULL);
+)sql";
+
 }  // namespace
 
 absl::Status CreateSchema(Db& db) {
@@ -222,6 +241,7 @@ CREATE TABLE sources(
 CREATE INDEX sources_by_scan ON sources(scan_id);
 )sql",
                               kScanLivesTable, kProfilesTable, kRendersTable, kOperationsTable,
+                              kCalibrationTable,
                               R"sql(
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
@@ -259,7 +279,9 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       "ALTER TABLE project ADD COLUMN origin_x REAL NOT NULL DEFAULT 0;\n"
       "ALTER TABLE project ADD COLUMN origin_y REAL NOT NULL DEFAULT 0;\n"
       "ALTER TABLE project ADD COLUMN origin_z REAL NOT NULL DEFAULT 0;\n"
-      "UPDATE project SET origin_fixed = 1 WHERE EXISTS (SELECT 1 FROM scans);\n"};
+      "UPDATE project SET origin_fixed = 1 WHERE EXISTS (SELECT 1 FROM scans);\n",
+      // 8 → 9: calibration health of cameras.
+      kCalibrationTable};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");
@@ -277,6 +299,7 @@ absl::Status DropRowsNewerThan(Db& db, int64_t head) {
                           "UPDATE scan_lives SET to_version = NULL WHERE to_version > ?1",
                           "DELETE FROM scan_lives WHERE from_version > ?1",
                           "DELETE FROM sources WHERE version > ?1",
+                          "DELETE FROM calibration WHERE version > ?1",
                           "DELETE FROM scans WHERE version > ?1",
                           "DELETE FROM batches WHERE version > ?1",
                           "DELETE FROM operations WHERE version > ?1",

@@ -24,7 +24,7 @@ struct sqlite3_stmt;
 namespace vasl::store::internal {
 
 /// 2: tiled versions (manifest, reach, source_tiles), scan deletion, made_by and pins.
-inline constexpr int kCatalogSchemaVersion = 8;
+inline constexpr int kCatalogSchemaVersion = 9;
 
 /// One prepared statement; Bind* take 1-based parameter indices, Column* 0-based columns.
 class Stmt {
@@ -43,6 +43,8 @@ class Stmt {
   /// Steps until done (for statements without result rows).
   absl::Status Run();
 
+  /// True when column `col` of the current row is NULL (e.g. of a LEFT JOIN that found none).
+  bool IsNull(int col) const;
   int64_t Int(int col) const;
   double Real(int col) const;
   std::string Text(int col) const;

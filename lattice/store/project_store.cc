@@ -594,9 +594,12 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
     }
   }
   absl::StatusOr<Stmt> st = impl_->db.Prepare(
-      "SELECT id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, oz_m, blob_sha256, "
-      "width_px, height_px, divergence_rad, point_count, camera FROM sources WHERE version <= ?1 "
-      "ORDER BY id");
+      "SELECT s.id, s.scan_id, s.name, s.modality, s.qx, s.qy, s.qz, s.qw, s.ox_m, s.oy_m, "
+      "s.oz_m, s.blob_sha256, s.width_px, s.height_px, s.divergence_rad, s.point_count, s.camera, "
+      "c.lidar_source, c.verdict, c.points_in_view, c.features, c.matched, c.cell_px, "
+      "c.pixel_mean_px, c.pixel_p95_px, c.offset_mean_m, c.offset_p95_m, c.roundtrip_mean_m, "
+      "c.roundtrip_p95_m, c.rotation_deg, c.note FROM sources s "
+      "LEFT JOIN calibration c ON c.camera_source = s.id WHERE s.version <= ?1 ORDER BY s.id");
   if (!st.ok()) return st.status();
   st->Bind(1, v);
   for (;;) {
@@ -615,6 +618,24 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
     src.divergence_rad = st->Real(14);
     src.point_count = st->Int(15);
     src.camera = st->Text(16);
+    if (!st->IsNull(17)) {
+      records::CalibrationHealth c;
+      c.lidar_source = static_cast<int32_t>(st->Int(17));
+      c.verdict = static_cast<records::CalibrationHealth::Verdict>(st->Int(18));
+      c.points_in_view = st->Int(19);
+      c.features = st->Int(20);
+      c.matched = st->Int(21);
+      c.cell_px = st->Real(22);
+      c.pixel_mean_px = st->Real(23);
+      c.pixel_p95_px = st->Real(24);
+      c.offset_mean_m = st->Real(25);
+      c.offset_p95_m = st->Real(26);
+      c.roundtrip_mean_m = st->Real(27);
+      c.roundtrip_p95_m = st->Real(28);
+      c.rotation_deg = st->Real(29);
+      c.note = st->Text(30);
+      src.calibration = std::move(c);
+    }
     auto it = by_id.find(src.scan_id);
     if (it != by_id.end()) scans[it->second].sources.push_back(std::move(src));
   }
@@ -1257,6 +1278,20 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
               st.Bind(12, src.blob_sha256).Bind(13, int64_t{src.width_px});
               st.Bind(14, int64_t{src.height_px}).Bind(15, src.divergence_rad);
               st.Bind(16, src.point_count).Bind(17, version).Bind(18, src.camera);
+            });
+        if (!src.calibration) continue;
+        const records::CalibrationHealth& c = *src.calibration;
+        run("INSERT INTO calibration(camera_source, lidar_source, version, verdict, "
+            "points_in_view, features, matched, cell_px, pixel_mean_px, pixel_p95_px, "
+            "offset_mean_m, offset_p95_m, roundtrip_mean_m, roundtrip_p95_m, rotation_deg, note) "
+            "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
+            [&](Stmt& st) {
+              st.Bind(1, int64_t{src.id}).Bind(2, int64_t{c.lidar_source}).Bind(3, version);
+              st.Bind(4, int64_t{static_cast<int>(c.verdict)}).Bind(5, c.points_in_view);
+              st.Bind(6, c.features).Bind(7, c.matched).Bind(8, c.cell_px);
+              st.Bind(9, c.pixel_mean_px).Bind(10, c.pixel_p95_px).Bind(11, c.offset_mean_m);
+              st.Bind(12, c.offset_p95_m).Bind(13, c.roundtrip_mean_m);
+              st.Bind(14, c.roundtrip_p95_m).Bind(15, c.rotation_deg).Bind(16, c.note);
             });
       }
       for (const auto& [source, keys] : plan.source_tiles) {

@@ -31,6 +31,7 @@
 
 #include "absl/status/statusor.h"
 #include "lattice/geometry/pose.h"
+#include "lattice/records/calibration.h"
 #include "lattice/records/records.h"
 #include "lattice/store/object_store.h"
 #include "lattice/tiles/tiling.h"
@@ -72,6 +73,9 @@ struct SourceInfo {
   /// Derived sources (§10): the image's projection, "equirect" or "pinhole fx fy cx cy k1 k2 k3
   /// p1 p2" and, after "render", the render it came from. Empty for LiDAR and cameras.
   std::string camera;
+  /// A camera of a scan with LiDAR: its §2.3 calibration health against that LiDAR, found at
+  /// ingest. Unset for LiDAR, derived sources and cameras of camera-only scans.
+  std::optional<records::CalibrationHealth> calibration;
 };
 
 /// One ingested scan with its sources.

@@ -187,6 +187,8 @@ def _cmd_ingest(client: Client, args) -> int:
                   f"{r.request_id}; not ingested again")
             continue
         print(_ingest_summary(r, time.monotonic() - t0), flush=True)
+        for c in r.calibration:
+            print(f"  {c.summary()}", flush=True)
     return 0
 
 
@@ -250,7 +252,9 @@ def _cmd_scans(client: Client, args) -> int:
         print(json.dumps([{"id": s.id, "name": s.name, "rig": s.rig, "version": s.version,
                            "captured_utc": s.captured_utc,
                            "position_m": list(s.pose.position_m),
-                           "sources": [src.name for src in s.sources]} for s in scans], indent=2))
+                           "sources": [src.name for src in s.sources],
+                           "calibration": [src.calibration.__dict__ for src in s.sources
+                                           if src.calibration]} for s in scans], indent=2))
         return 0
     if not scans:
         print(f"no scans in project {args.project}")
@@ -261,6 +265,9 @@ def _cmd_scans(client: Client, args) -> int:
         pos = ",".join(f"{v:.3f}" for v in s.pose.position_m)
         sources = " ".join(f"{src.name}({src.modality})" for src in s.sources)
         print(f"{s.id:>4} {s.name:<20} {s.version:>7} {points:>10}  {pos:<26} {sources}")
+        for src in s.sources:
+            if src.calibration:
+                print(f"       {src.calibration.summary()}")
     return 0
 
 

@@ -20,9 +20,10 @@ from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
 from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_las,
                       pinhole_from_json, read_e57, read_las, read_manifest, read_ply)
-from .types import (CONFIDENCE_FACTORS, ChangeResult, ChangeStats, ExportResult, Inspection,
-                    IngestResult, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery,
-                    RenderResult, ReweightResult, Scan, Source, Version)
+from .types import (CONFIDENCE_FACTORS, CalibrationHealth, ChangeResult, ChangeStats,
+                    ExportResult, Inspection, IngestResult, NormaliseResult, Pose, Project,
+                    RecordAttribute, RecordsQuery, RenderResult, ReweightResult, Scan, Source,
+                    Version)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
@@ -64,11 +65,25 @@ def _reweight_result(r) -> ReweightResult:
                           r.replayed)
 
 
+_VERDICTS = {pb.CalibrationHealth.VERDICT_OK: "ok",
+             pb.CalibrationHealth.VERDICT_FLAGGED: "flagged",
+             pb.CalibrationHealth.VERDICT_UNCHECKED: "unchecked"}
+
+
+def _calibration(c: pb.CalibrationHealth) -> CalibrationHealth:
+    return CalibrationHealth(c.camera, c.lidar_source, _VERDICTS.get(c.verdict, "unchecked"),
+                             c.points_in_view, c.features, c.matched, c.cell_px, c.pixel_mean_px,
+                             c.pixel_p95_px, c.offset_mean_m, c.offset_p95_m, c.roundtrip_mean_m,
+                             c.roundtrip_p95_m, c.rotation_deg, c.note)
+
+
 def _ingest_result(r) -> IngestResult:
-    return IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
-                        r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
-                        {s.stage: s.seconds for s in r.stages}, _change_stats(r.change),
-                        r.request_id, r.replayed)
+    result = IngestResult(r.scan_id, r.scan, r.version, r.vossel_count, r.record_count,
+                          r.new_vossels, r.point_count, r.ingest_seconds, r.total_seconds,
+                          {s.stage: s.seconds for s in r.stages}, _change_stats(r.change),
+                          r.request_id, r.replayed)
+    result.calibration = [_calibration(c) for c in r.calibration]
+    return result
 
 
 def _back_project_result(r) -> dict:
@@ -495,7 +510,9 @@ class Client:
         for s in listed:
             sources = [Source(x.id, x.name, _MODALITY_NAMES.get(x.modality, "unspecified"),
                               _pose_from_pb(x.pose), x.blob_sha256, x.width_px, x.height_px,
-                              x.divergence_rad, x.point_count) for x in s.sources]
+                              x.divergence_rad, x.point_count,
+                              _calibration(x.calibration) if x.HasField("calibration") else None)
+                       for x in s.sources]
             scans.append(Scan(s.id, s.name, s.rig, _iso(s, "capture_time"), _pose_from_pb(s.pose),
                               s.batch, s.version, _iso(s, "create_time"), sources))
         return scans

@@ -81,6 +81,38 @@ class Project:
 
 
 @dataclass
+class CalibrationHealth:
+    """How well a camera sits on its pose, judged against its scan's LiDAR at ingest
+    (VASL-MODEL §2.3; README "Calibration health")."""
+
+    camera: str  #: the camera source's name
+    lidar_source: int  #: the LiDAR source id it was checked against
+    verdict: str  #: "ok", "flagged" or "unchecked"
+    points_in_view: int
+    features: int  #: textured LiDAR patches tried
+    matched: int  #: of those, found in the image
+    cell_px: float  #: camera pixels per analysis cell: the check's resolution
+    pixel_mean_px: float  #: |matched - projected|, camera pixels
+    pixel_p95_px: float
+    offset_mean_m: float  #: the same on the surface, metres
+    offset_p95_m: float
+    roundtrip_mean_m: float  #: the projection model's own round-trip error, metres
+    roundtrip_p95_m: float
+    rotation_deg: float  #: the rotation that best explains the residuals
+    note: str  #: the verdict in words
+
+    def summary(self) -> str:
+        """One line: the verdict and its figures."""
+        line = f"calibration {self.camera}: {self.verdict}"
+        if self.matched:
+            line += (f", {self.matched}/{self.features} patches matched, pixel residual mean "
+                     f"{self.pixel_mean_px:.2f} px, p95 {self.pixel_p95_px:.2f} px (cell "
+                     f"{self.cell_px:g} px; {1e3 * self.offset_p95_m:.1f} mm on the surface), "
+                     f"rotation {self.rotation_deg:.2f} deg")
+        return line + (f": {self.note}" if self.note else "")
+
+
+@dataclass
 class Source:
     id: int
     name: str
@@ -91,6 +123,7 @@ class Source:
     height_px: int
     divergence_rad: float
     point_count: int
+    calibration: Optional[CalibrationHealth] = None  #: a camera of a scan with LiDAR
 
 
 @dataclass
@@ -136,6 +169,8 @@ class IngestResult:
     sent_bytes: int = 0  #: bytes this client sent (points and images); 0 for a replayed answer
     #: from the call's start to its last byte sent (reading the points included)
     upload_seconds: float = 0.0
+    #: each camera of the scan against its LiDAR (none for camera-only scans and replays)
+    calibration: List[CalibrationHealth] = field(default_factory=list)
 
 
 @dataclass

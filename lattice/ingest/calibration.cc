@@ -1,0 +1,540 @@
+// Calibration health, VASL-MODEL §2.3 (calibration.h has the method and its choices).
+#include "lattice/ingest/calibration.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <numeric>
+
+#include <Eigen/SVD>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+#include "absl/strings/str_format.h"
+#include "lattice/ingest/sample.h"
+
+namespace vasl::ingest {
+namespace {
+
+using records::CalibrationHealth;
+using Verdict = records::CalibrationHealth::Verdict;
+
+constexpr float kEmpty = std::numeric_limits<float>::quiet_NaN();
+constexpr uint64_t kNoReturn = std::numeric_limits<uint64_t>::max();
+constexpr double kFillWanted = 0.9;   // share of the cells around returns that must hold one
+constexpr int kScaleLevels = 6;       // analysis scales tried: s0, 2·s0, … 32·s0
+constexpr double kMaxDepthSpread = 0.1;  // a patch's range spread over its centre's: no edge
+constexpr double kMinEigenRatio = 0.1;   // smaller over larger structure-tensor eigenvalue
+constexpr double kLevelWithNearest = 0.05;  // a return within 5 % of a cell's nearest counts
+constexpr float kMinWeight = 0.25f;      // least bilinear weight a cell's LiDAR value rests on
+constexpr double kMinCurvature = 0.005;  // least fall of the correlation a cell off its peak
+constexpr int kNeighbours = 6;           // matches a match is compared with
+constexpr double kConsistentCells = 1.0; // how far a match may stray from its neighbours' median
+constexpr size_t kRoundTripSample = 100'000;  // returns the round trip is measured on
+
+// Mean and 95th percentile of the finite values of v; (0, 0) when there is none.
+std::pair<double, double> MeanP95(std::vector<double> v) {
+  v.erase(std::remove_if(v.begin(), v.end(), [](double x) { return !std::isfinite(x); }), v.end());
+  if (v.empty()) return {0.0, 0.0};
+  const double mean = std::accumulate(v.begin(), v.end(), 0.0) / double(v.size());
+  const size_t k = size_t(std::ceil(0.95 * double(v.size()))) - 1;
+  std::nth_element(v.begin(), v.begin() + ptrdiff_t(k), v.end());
+  return {mean, v[k]};
+}
+
+float Luminance709(const float* rgb) { return 0.2126f * rgb[0] + 0.7152f * rgb[1] + 0.0722f * rgb[2]; }
+
+// The camera's view of the LiDAR's returns.
+class View {
+ public:
+  View(const LidarSource& lidar, const CameraSource& camera, const ImageProjection& projection)
+      : lidar_(lidar), camera_(camera), projection_(projection) {}
+
+  size_t size() const { return lidar_.point_count(); }
+
+  // Return i as the camera sees it: its world point, continuous pixel coordinates and range
+  // from the camera. False when it is no return (0, 0, 0), behind the camera or off its image.
+  bool Project(size_t i, Eigen::Vector3d* x, Eigen::Vector2d* uv, double* r) const {
+    const float* p = &lidar_.xyz_sensor_m[3 * i];
+    if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) return false;
+    *x = lidar_.pose.SensorToWorld(Eigen::Vector3d(p[0], p[1], p[2]));
+    const Eigen::Vector3d d = *x - camera_.pose.o_world;
+    *r = d.norm();
+    if (!(*r > 0.0) || !std::isfinite(*r)) return false;
+    const std::optional<Eigen::Vector2d> px = projection_.Project(camera_.pose.DirectionToSensor(d));
+    if (!px || !projection_.Inside(*px)) return false;
+    *uv = *px;
+    return true;
+  }
+
+  // The world point at range r along the ray through pixel coordinates uv (§2.3's lift).
+  Eigen::Vector3d Lift(const Eigen::Vector2d& uv, double r) const {
+    return camera_.pose.o_world + r * camera_.pose.DirectionToWorld(projection_.Unproject(uv));
+  }
+
+ private:
+  const LidarSource& lidar_;
+  const CameraSource& camera_;
+  const ImageProjection& projection_;
+};
+
+// A raster of analysis cells, s × s camera pixels each; columns wrap for a panorama.
+struct Cells {
+  int s = 1, width = 0, height = 0;
+  bool wrap = false;
+  int Column(double u) const { return std::clamp(int(std::floor(u / s)), 0, width - 1); }
+  int Row(double v) const { return std::clamp(int(std::floor(v / s)), 0, height - 1); }
+  // Index of cell (x, y); -1 off the raster (x wraps for a panorama).
+  int64_t At(int x, int y) const {
+    if (y < 0 || y >= height) return -1;
+    if (wrap) x = ((x % width) + width) % width;
+    if (x < 0 || x >= width) return -1;
+    return int64_t(y) * width + x;
+  }
+};
+
+Cells CellsAt(int s, int W, int H, bool wrap) {
+  return Cells{s, (W + s - 1) / s, (H + s - 1) / s, wrap};
+}
+
+// Key of a return in a cell's z-buffer: its range's bits (a positive float's bits order as the
+// float does), then its index, so that the smallest key is the nearest return.
+uint64_t NearestKey(double r, size_t i) {
+  const float rf = float(r);
+  uint32_t bits;
+  std::memcpy(&bits, &rf, 4);
+  return (uint64_t{bits} << 32) | uint64_t(i);
+}
+
+// The returns splatted into the cells of one analysis scale, nearest return per cell.
+struct Splat {
+  Cells cells;
+  std::vector<std::atomic<uint64_t>> nearest;  // NearestKey, kNoReturn for none
+};
+
+// The returns splatted at every candidate scale in one pass (s0 the smallest scale that keeps
+// the raster within max_width cells, then 2·s0, … 32·s0); the index of the smallest scale
+// whose cells the returns fill: where, of the cells within one of a return, kFillWanted hold
+// one (else the coarsest). `in_view`: the returns the camera sees.
+size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
+                      std::vector<Splat>* levels, int64_t* in_view) {
+  int s0 = 1;
+  while ((W + s0 - 1) / s0 > max_width) s0 *= 2;
+  *levels = std::vector<Splat>(kScaleLevels);
+  for (int l = 0; l < kScaleLevels; ++l) {
+    Splat& level = (*levels)[l];
+    level.cells = CellsAt(s0 << l, W, H, wrap);
+    level.nearest = std::vector<std::atomic<uint64_t>>(size_t(level.cells.width) * level.cells.height);
+    for (auto& a : level.nearest) a.store(kNoReturn, std::memory_order_relaxed);
+  }
+  std::atomic<int64_t> seen_total{0};
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, view.size(), 1 << 14), [&](const auto& range) {
+    Eigen::Vector3d x;
+    Eigen::Vector2d uv;
+    double r;
+    int64_t seen_here = 0;
+    for (size_t i = range.begin(); i != range.end(); ++i) {
+      if (i > std::numeric_limits<uint32_t>::max() || !view.Project(i, &x, &uv, &r)) continue;
+      ++seen_here;
+      const uint64_t key = NearestKey(r, i);
+      for (Splat& level : *levels) {
+        const Cells& c = level.cells;
+        std::atomic<uint64_t>& slot = level.nearest[size_t(c.At(c.Column(uv.x()), c.Row(uv.y())))];
+        uint64_t seen = slot.load(std::memory_order_relaxed);
+        while (key < seen && !slot.compare_exchange_weak(seen, key, std::memory_order_relaxed)) {
+        }
+      }
+    }
+    seen_total += seen_here;
+  });
+  *in_view = seen_total.load();
+  for (size_t l = 0; l < levels->size(); ++l) {
+    const Splat& level = (*levels)[l];
+    const Cells& c = level.cells;
+    const auto filled = [&](int x, int y) {
+      const int64_t k = c.At(x, y);
+      return k >= 0 && level.nearest[size_t(k)].load(std::memory_order_relaxed) != kNoReturn;
+    };
+    using Counts = std::pair<int64_t, int64_t>;  // cells with a return, cells near one
+    const Counts counts = tbb::parallel_reduce(
+        tbb::blocked_range<int>(0, c.height), Counts{0, 0},
+        [&](const tbb::blocked_range<int>& rows, Counts n) {
+          for (int y = rows.begin(); y != rows.end(); ++y) {
+            for (int x = 0; x < c.width; ++x) {
+              if (filled(x, y)) {
+                ++n.first;
+                ++n.second;
+                continue;
+              }
+              bool near = false;
+              for (int dy = -1; dy <= 1 && !near; ++dy)
+                for (int dx = -1; dx <= 1 && !near; ++dx) near = filled(x + dx, y + dy);
+              n.second += near;
+            }
+          }
+          return n;
+        },
+        [](Counts a, Counts b) { return Counts{a.first + b.first, a.second + b.second}; });
+    if (counts.second > 0 && double(counts.first) >= kFillWanted * double(counts.second)) return l;
+  }
+  return levels->size() - 1;
+}
+
+// One textured LiDAR patch: its centre cell and structure.
+struct Feature {
+  int x = 0, y = 0;
+  double strength = 0.0;  // the structure tensor's smaller eigenvalue
+};
+
+// Normalised cross-correlation of a (templ) and b (target) over the pairs where both are
+// finite; -inf when fewer than half the template's cells take part or b is flat.
+double Ncc(const std::vector<float>& a, const std::vector<float>& b, size_t min_n) {
+  double sa = 0, sb = 0, saa = 0, sbb = 0, sab = 0;
+  size_t n = 0;
+  for (size_t k = 0; k < a.size(); ++k) {
+    if (std::isnan(a[k]) || std::isnan(b[k])) continue;
+    sa += a[k], sb += b[k], saa += double(a[k]) * a[k], sbb += double(b[k]) * b[k];
+    sab += double(a[k]) * b[k];
+    ++n;
+  }
+  if (n < min_n) return -std::numeric_limits<double>::infinity();
+  const double va = saa - sa * sa / n, vb = sbb - sb * sb / n;
+  if (!(va > 1e-12) || !(vb > 1e-12)) return -std::numeric_limits<double>::infinity();
+  return (sab - sa * sb / n) / std::sqrt(va * vb);
+}
+
+// The (2R+1)² values of raster img around (cx, cy), NaN off the raster.
+void Patch(const std::vector<float>& img, const Cells& c, int cx, int cy, int R,
+           std::vector<float>* out) {
+  out->resize(size_t(2 * R + 1) * (2 * R + 1));
+  size_t k = 0;
+  for (int j = -R; j <= R; ++j)
+    for (int i = -R; i <= R; ++i) {
+      const int64_t at = c.At(cx + i, cy + j);
+      (*out)[k++] = at < 0 ? kEmpty : img[size_t(at)];
+    }
+}
+
+// The best NCC of `templ` against `img` over shifts within ±S of (cx, cy): the shift, the
+// correlation grid ((2S+1)², row-major) and its peak value.
+struct Search {
+  int bx = 0, by = 0;
+  double best = -std::numeric_limits<double>::infinity();
+  std::vector<double> grid;
+};
+Search SearchAround(const std::vector<float>& templ, const std::vector<float>& img,
+                    const Cells& c, int cx, int cy, int R, int S, size_t min_n) {
+  Search out;
+  const int side = 2 * S + 1, patch = 2 * R + 1, span = 2 * (R + S) + 1;
+  out.grid.assign(size_t(side) * side, -std::numeric_limits<double>::infinity());
+  std::vector<float> window(size_t(span) * span), target(size_t(patch) * patch);
+  for (int j = 0; j < span; ++j)
+    for (int i = 0; i < span; ++i) {
+      const int64_t at = c.At(cx - R - S + i, cy - R - S + j);
+      window[size_t(j) * span + i] = at < 0 ? kEmpty : img[size_t(at)];
+    }
+  for (int dy = 0; dy < side; ++dy)
+    for (int dx = 0; dx < side; ++dx) {
+      for (int j = 0; j < patch; ++j) {
+        std::memcpy(&target[size_t(j) * patch], &window[size_t(dy + j) * span + dx],
+                    size_t(patch) * sizeof(float));
+      }
+      const double v = Ncc(templ, target, min_n);
+      out.grid[size_t(dy) * side + dx] = v;
+      if (v > out.best) out.best = v, out.bx = dx - S, out.by = dy - S;
+    }
+  return out;
+}
+
+// Subpixel offset of a parabola through (−1, a), (0, b), (+1, c); nullopt unless b is a peak.
+std::optional<double> ParabolaPeak(double a, double b, double c) {
+  const double curvature = a - 2.0 * b + c;
+  if (!std::isfinite(curvature) || !(curvature < 0.0)) return std::nullopt;
+  return std::clamp(0.5 * (a - c) / curvature, -0.5, 0.5);
+}
+
+}  // namespace
+
+CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource& camera,
+                                   const LinearImage& image, const CalibrationSettings& cfg) {
+  CalibrationHealth out;
+  out.lidar_source = lidar.id;
+  const int W = image.width_px, H = image.height_px;
+  const size_t N = lidar.point_count();
+  const ImageProjection projection(camera, W, H);
+  const View view(lidar, camera, projection);
+  const bool wrap = !camera.pinhole;
+
+  // The LiDAR's texture: intensity when it varies, else the returns' colour luminance.
+  const float* intensity = nullptr;
+  if (lidar.intensity.size() == N && N > 0) {
+    const auto [lo, hi] = std::minmax_element(lidar.intensity.begin(), lidar.intensity.end());
+    if (*hi > *lo) intensity = lidar.intensity.data();
+  }
+  const bool colour = intensity == nullptr && lidar.rgb.size() == 3 * N && N > 0;
+  const auto texture = [&](size_t i) {
+    return intensity ? intensity[i] : Luminance709(&lidar.rgb[3 * i]);
+  };
+
+  // 1. The returns splatted into analysis cells at every candidate scale (nearest per cell),
+  // and the scale they fill chosen.
+  std::vector<Splat> levels;
+  int64_t in_view = 0;
+  const size_t level = SplatAndChoose(view, W, H, wrap, cfg.max_analysis_width, &levels, &in_view);
+  out.points_in_view = in_view;
+  if (in_view == 0) {
+    out.note = "the camera sees none of the scan's returns";
+    return out;
+  }
+
+  // 2. The round trip, on an even sample of the returns.
+  const size_t stride = std::max<size_t>(1, N / kRoundTripSample);
+  std::vector<double> roundtrip((N + stride - 1) / stride, std::nan(""));
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, roundtrip.size(), 1 << 12), [&](const auto& range) {
+    Eigen::Vector3d x;
+    Eigen::Vector2d uv;
+    double r;
+    for (size_t k = range.begin(); k != range.end(); ++k) {
+      if (view.Project(k * stride, &x, &uv, &r)) roundtrip[k] = (x - view.Lift(uv, r)).norm();
+    }
+  });
+  std::tie(out.roundtrip_mean_m, out.roundtrip_p95_m) = MeanP95(std::move(roundtrip));
+  if (!intensity && !colour) {
+    out.note = "the LiDAR has neither intensity nor colour to match against the image";
+    return out;
+  }
+
+  // 3. The LiDAR and camera images in the chosen cells.
+  const Cells cells = levels[level].cells;
+  const std::vector<std::atomic<uint64_t>>& nearest = levels[level].nearest;
+  out.cell_px = cells.s;
+  const size_t n_cells = size_t(cells.width) * cells.height;
+
+  // The LiDAR image at the cells' centres: each return's texture spread bilinearly over the four
+  // centres around it, into the cells whose nearest return it is level with (not a farther
+  // surface seen past an edge). Nearest-return splatting would shift each cell's value by up to
+  // half a cell, and the matches with it.
+  std::vector<float> range_img(n_cells, kEmpty);
+  tbb::parallel_for(size_t{0}, n_cells, [&](size_t c) {
+    const uint64_t key = nearest[c].load(std::memory_order_relaxed);
+    if (key == kNoReturn) return;
+    const uint32_t bits = uint32_t(key >> 32);
+    std::memcpy(&range_img[c], &bits, 4);
+  });
+  std::vector<std::atomic<float>> sum(n_cells), weight(n_cells);
+  for (size_t c = 0; c < n_cells; ++c) sum[c].store(0.0f), weight[c].store(0.0f);
+  const auto add = [](std::atomic<float>& a, float v) {
+    float seen = a.load(std::memory_order_relaxed);
+    while (!a.compare_exchange_weak(seen, seen + v, std::memory_order_relaxed)) {
+    }
+  };
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, N, 1 << 14), [&](const auto& range) {
+    Eigen::Vector3d x;
+    Eigen::Vector2d uv;
+    double r;
+    for (size_t i = range.begin(); i != range.end(); ++i) {
+      if (!view.Project(i, &x, &uv, &r)) continue;
+      const double fx = uv.x() / cells.s - 0.5, fy = uv.y() / cells.s - 0.5;
+      const int ix = int(std::floor(fx)), iy = int(std::floor(fy));
+      const double ax = fx - ix, ay = fy - iy;
+      const float t = texture(i);
+      for (int j = 0; j <= 1; ++j)
+        for (int k = 0; k <= 1; ++k) {
+          const int64_t c = cells.At(ix + k, iy + j);
+          if (c < 0 || std::isnan(range_img[size_t(c)])) continue;
+          if (r > (1.0 + kLevelWithNearest) * range_img[size_t(c)]) continue;
+          const float w = float((k ? ax : 1.0 - ax) * (j ? ay : 1.0 - ay));
+          add(sum[size_t(c)], w * t);
+          add(weight[size_t(c)], w);
+        }
+    }
+  });
+  std::vector<float> lidar_img(n_cells, kEmpty), camera_img(n_cells, kEmpty);
+  tbb::parallel_for(tbb::blocked_range<int>(0, cells.height), [&](const tbb::blocked_range<int>& rows) {
+    for (int y = rows.begin(); y != rows.end(); ++y) {
+      for (int x = 0; x < cells.width; ++x) {
+        const size_t c = size_t(y) * cells.width + x;
+        const float w = weight[c].load(std::memory_order_relaxed);
+        if (w >= kMinWeight) lidar_img[c] = sum[c].load(std::memory_order_relaxed) / w;
+        double total = 0.0;
+        int n = 0;
+        for (int j = y * cells.s; j < std::min(H, (y + 1) * cells.s); ++j)
+          for (int i = x * cells.s; i < std::min(W, (x + 1) * cells.s); ++i) {
+            const float* px = &image.pixels[(size_t(j) * W + i) * image.channels];
+            total += image.channels >= 3 ? Luminance709(px) : px[0];
+            ++n;
+          }
+        camera_img[c] = n ? float(total / n) : kEmpty;
+      }
+    }
+  });
+
+  // 4. Textured patches: candidates on a grid of R + 1 cells whose whole search window lies on
+  // the image (a panorama's columns wrap).
+  const int R = cfg.patch_radius, S = cfg.search_radius;
+  const size_t patch_cells = size_t(2 * R + 1) * (2 * R + 1);
+  double global_std = 0.0;
+  {
+    double s1 = 0, s2 = 0;
+    size_t n = 0;
+    for (float v : lidar_img)
+      if (!std::isnan(v)) s1 += v, s2 += double(v) * v, ++n;
+    if (n > 1) global_std = std::sqrt(std::max(0.0, s2 / n - (s1 / n) * (s1 / n)));
+  }
+  const int margin = R + S + 1;
+  const int x0 = wrap ? 0 : margin, x1 = wrap ? cells.width : cells.width - margin;
+  std::vector<Feature> candidates;
+  for (int y = margin; y < cells.height - margin; y += R + 1)
+    for (int x = x0; x < x1; x += R + 1) candidates.push_back({x, y, 0.0});
+  tbb::parallel_for(size_t{0}, candidates.size(), [&](size_t k) {
+    Feature& f = candidates[k];
+    const int64_t centre = cells.At(f.x, f.y);
+    if (std::isnan(lidar_img[size_t(centre)])) return;
+    const float r0 = range_img[size_t(centre)];
+    size_t filled = 0;
+    double s1 = 0, s2 = 0, sxx = 0, syy = 0, sxy = 0;
+    for (int j = -R; j <= R; ++j)
+      for (int i = -R; i <= R; ++i) {
+        const int64_t c = cells.At(f.x + i, f.y + j);
+        const float v = lidar_img[size_t(c)];
+        if (std::isnan(v)) continue;
+        if (std::abs(range_img[size_t(c)] - r0) > kMaxDepthSpread * r0) return;  // a depth edge
+        ++filled, s1 += v, s2 += double(v) * v;
+        const float l = lidar_img[size_t(cells.At(f.x + i - 1, f.y + j))];
+        const float rt = lidar_img[size_t(cells.At(f.x + i + 1, f.y + j))];
+        const float u = lidar_img[size_t(cells.At(f.x + i, f.y + j - 1))];
+        const float d = lidar_img[size_t(cells.At(f.x + i, f.y + j + 1))];
+        if (std::isnan(l) || std::isnan(rt) || std::isnan(u) || std::isnan(d)) continue;
+        const double gx = 0.5 * (rt - l), gy = 0.5 * (d - u);
+        sxx += gx * gx, syy += gy * gy, sxy += gx * gy;
+      }
+    if (filled < patch_cells * 4 / 5) return;
+    const double var = s2 / filled - (s1 / filled) * (s1 / filled);
+    if (!(std::sqrt(std::max(0.0, var)) > 0.02 * global_std)) return;
+    const double half_trace = 0.5 * (sxx + syy);
+    const double root = std::sqrt(std::max(0.0, half_trace * half_trace - (sxx * syy - sxy * sxy)));
+    const double lo = half_trace - root, hi = half_trace + root;
+    if (lo > 0.0 && lo >= kMinEigenRatio * hi) f.strength = lo;
+  });
+  std::sort(candidates.begin(), candidates.end(),
+            [](const Feature& a, const Feature& b) { return a.strength > b.strength; });
+  std::vector<Feature> features;
+  for (const Feature& f : candidates) {
+    if (!(f.strength > 0.0) || int(features.size()) >= cfg.max_features) break;
+    const bool crowded = std::any_of(features.begin(), features.end(), [&](const Feature& g) {
+      int dx = std::abs(g.x - f.x);
+      if (wrap) dx = std::min(dx, cells.width - dx);
+      return dx <= R && std::abs(g.y - f.y) <= R;
+    });
+    if (!crowded) features.push_back(f);
+  }
+  out.features = int64_t(features.size());
+
+  // 5. Matches: forward (LiDAR patch in the camera image), subpixel, then back (the camera patch
+  // found must search back to the LiDAR patch).
+  struct Match {
+    bool ok = false;
+    double dx = 0, dy = 0;  // cells
+  };
+  std::vector<Match> matches(features.size());
+  tbb::parallel_for(size_t{0}, features.size(), [&](size_t k) {
+    const Feature& f = features[k];
+    std::vector<float> templ, back;
+    Patch(lidar_img, cells, f.x, f.y, R, &templ);
+    const Search fwd = SearchAround(templ, camera_img, cells, f.x, f.y, R, S, patch_cells / 2);
+    if (!(fwd.best >= cfg.min_ncc) || std::abs(fwd.bx) >= S || std::abs(fwd.by) >= S) return;
+    const auto at = [&](int dx, int dy) { return fwd.grid[size_t(dy + S) * (2 * S + 1) + dx + S]; };
+    const auto sx = ParabolaPeak(at(fwd.bx - 1, fwd.by), fwd.best, at(fwd.bx + 1, fwd.by));
+    const auto sy = ParabolaPeak(at(fwd.bx, fwd.by - 1), fwd.best, at(fwd.bx, fwd.by + 1));
+    if (!sx || !sy) return;
+    // A peak flat along an axis does not locate the patch (an edge, or texture too smooth for
+    // the cell): the correlation must fall by kMinCurvature a cell away on both axes.
+    if (at(fwd.bx - 1, fwd.by) + at(fwd.bx + 1, fwd.by) - 2 * fwd.best > -kMinCurvature ||
+        at(fwd.bx, fwd.by - 1) + at(fwd.bx, fwd.by + 1) - 2 * fwd.best > -kMinCurvature) {
+      return;
+    }
+    Patch(camera_img, cells, f.x + fwd.bx, f.y + fwd.by, R, &back);
+    const Search bwd = SearchAround(back, lidar_img, cells, f.x + fwd.bx, f.y + fwd.by, R, S,
+                                    patch_cells / 2);
+    if (std::abs(bwd.bx + fwd.bx) > 1 || std::abs(bwd.by + fwd.by) > 1) return;
+    matches[k] = {true, fwd.bx + *sx, fwd.by + *sy};
+  });
+
+  // A miscalibrated camera shifts its image smoothly; a match that strays from the median shift
+  // of its nearest matches by more than a cell found a look-alike patch, and is dropped.
+  std::vector<size_t> found;
+  for (size_t k = 0; k < matches.size(); ++k)
+    if (matches[k].ok) found.push_back(k);
+  std::vector<uint8_t> consistent(features.size(), 0);
+  tbb::parallel_for(size_t{0}, found.size(), [&](size_t a) {
+    const Feature& f = features[found[a]];
+    std::vector<std::pair<double, size_t>> near;
+    for (size_t b = 0; b < found.size(); ++b) {
+      if (b == a) continue;
+      double dx = std::abs(features[found[b]].x - f.x);
+      if (wrap) dx = std::min(dx, cells.width - dx);
+      near.emplace_back(std::hypot(dx, features[found[b]].y - f.y), found[b]);
+    }
+    const size_t n = std::min<size_t>(kNeighbours, near.size());
+    if (n < 3) return;
+    std::partial_sort(near.begin(), near.begin() + ptrdiff_t(n), near.end());
+    std::vector<double> xs, ys;
+    for (size_t b = 0; b < n; ++b) {
+      xs.push_back(matches[near[b].second].dx);
+      ys.push_back(matches[near[b].second].dy);
+    }
+    std::nth_element(xs.begin(), xs.begin() + ptrdiff_t(n / 2), xs.end());
+    std::nth_element(ys.begin(), ys.begin() + ptrdiff_t(n / 2), ys.end());
+    const Match& m = matches[found[a]];
+    consistent[found[a]] = std::hypot(m.dx - xs[n / 2], m.dy - ys[n / 2]) <= kConsistentCells;
+  });
+
+  // The residuals of the matches, at the return of each patch's centre cell.
+  std::vector<double> pixel, offset;
+  Eigen::Matrix3d cross = Eigen::Matrix3d::Zero();
+  for (size_t k = 0; k < features.size(); ++k) {
+    if (!consistent[k]) continue;
+    // x: the LiDAR's surface at the patch's centre (its nearest return's range there).
+    const Eigen::Vector2d uv = (Eigen::Vector2d(features[k].x, features[k].y).array() + 0.5) * cells.s;
+    const double r = range_img[size_t(cells.At(features[k].x, features[k].y))];
+    const Eigen::Vector3d x = view.Lift(uv, r);
+    const Eigen::Vector2d shift = Eigen::Vector2d(matches[k].dx, matches[k].dy) * cells.s;
+    const Eigen::Vector2d m = uv + shift;
+    pixel.push_back(shift.norm());
+    offset.push_back((x - view.Lift(m, r)).norm());
+    cross += projection.Unproject(uv) * projection.Unproject(m).transpose();
+  }
+  out.matched = int64_t(pixel.size());
+  std::tie(out.pixel_mean_px, out.pixel_p95_px) = MeanP95(pixel);
+  std::tie(out.offset_mean_m, out.offset_p95_m) = MeanP95(offset);
+  if (pixel.size() >= 3) {  // 6. Kabsch: the rotation taking the projections onto the matches
+    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(cross, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
+    fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
+    const Eigen::Matrix3d rot = svd.matrixV() * fix * svd.matrixU().transpose();
+    out.rotation_deg = std::acos(std::clamp(0.5 * (rot.trace() - 1.0), -1.0, 1.0)) * 180.0 / M_PI;
+  }
+
+  const double threshold = std::max(cfg.flag_p95_px, 0.75 * cells.s);
+  if (out.matched < cfg.min_matches) {
+    out.note = absl::StrFormat(
+        "%d of %d textured patches matched (at least %d are needed): too little texture shared "
+        "by the LiDAR's %s and the image, or the camera is far off its pose",
+        out.matched, out.features, cfg.min_matches, intensity ? "intensity" : "colour");
+  } else if (out.pixel_p95_px > threshold) {
+    out.verdict = Verdict::kFlagged;
+    out.note = absl::StrFormat(
+        "the image lies %.2f px (95th percentile; mean %.2f px) off where the camera's pose "
+        "projects the LiDAR, above the %.2g px allowed; the best-fitting rotation is %.2f deg: "
+        "check the camera's pose and intrinsics before its colours are fused",
+        out.pixel_p95_px, out.pixel_mean_px, threshold, out.rotation_deg);
+  } else {
+    out.verdict = Verdict::kOk;
+  }
+  return out;
+}
+
+}  // namespace vasl::ingest
