@@ -10,6 +10,7 @@
 #include <set>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "lattice/flows/flows.h"
 #include "lattice/flows/world_frame.h"
 #include "lattice/fusion/fuse.h"
@@ -265,6 +266,32 @@ absl::StatusOr<std::vector<store::ScanInfo>> Engine::ListScans(const std::string
   const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
   for (store::ScanInfo& scan : *scans) flows::ShiftScan(scan, origin);  // §1: world out
   return scans;
+}
+
+absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> Engine::GetVisualReference(
+    const std::string& project, const std::string& scan, const std::string& name) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  auto scans = ListScans(project);
+  if (!scans.ok()) return scans.status();
+  for (const store::ScanInfo& s : *scans) {
+    if (s.name != scan) continue;
+    std::vector<std::string> names;
+    for (const store::VisualReferenceInfo& ref : s.visual_references) {
+      if (ref.name != name) {
+        names.push_back(ref.name);
+        continue;
+      }
+      auto bytes = (*p)->store->ReadBlob(ref.blob_sha256);
+      if (!bytes.ok()) return bytes.status();
+      return std::make_pair(ref, std::move(*bytes));
+    }
+    return absl::NotFoundError(absl::StrCat(
+        "scan '", scan, "' of project '", project, "' has no visual reference '", name, "'",
+        names.empty() ? std::string(" (it has none)")
+                      : absl::StrCat(" (it has: ", absl::StrJoin(names, ", "), ")")));
+  }
+  return absl::NotFoundError(absl::StrCat("project '", project, "' has no scan '", scan, "'"));
 }
 
 absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,

@@ -121,6 +121,10 @@ class Engine {
   absl::StatusOr<ProjectInfo> GetProject(const std::string& name);
   absl::StatusOr<std::vector<ProjectInfo>> ListProjects();
   absl::StatusOr<std::vector<store::ScanInfo>> ListScans(const std::string& project);
+  /// A visual reference of a live scan (world pose) and its image bytes as sent. NOT_FOUND
+  /// naming the scan, or the reference and the ones the scan has.
+  absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> GetVisualReference(
+      const std::string& project, const std::string& scan, const std::string& name);
 
   /// The ingest flow: validate (nothing is stored if this fails) → store blobs → voxelise →
   /// normals → visibility → records → fuse → atomic commit. `progress` may be empty.

@@ -127,6 +127,15 @@ void CalibrationToProto(const std::string& camera, const records::CalibrationHea
   out->set_note(c.note);
 }
 
+void VisualReferenceToProto(const store::VisualReferenceInfo& ref, v1::VisualReference* out) {
+  out->set_name(ref.name);
+  PoseToProto(ref.pose, out->mutable_pose());
+  out->set_blob_sha256(ref.blob_sha256);
+  out->set_width_px(ref.width_px);
+  out->set_height_px(ref.height_px);
+  out->set_size_bytes(ref.size_bytes);
+}
+
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
   out->set_id(scan.id);
   out->set_name(scan.name);
@@ -148,6 +157,9 @@ void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
     s->set_divergence_rad(src.divergence_rad);
     s->set_point_count(src.point_count);
     if (src.calibration) CalibrationToProto(src.name, *src.calibration, s->mutable_calibration());
+  }
+  for (const store::VisualReferenceInfo& ref : scan.visual_references) {
+    VisualReferenceToProto(ref, out->add_visual_references());
   }
 }
 

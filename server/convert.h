@@ -36,6 +36,7 @@ void ProjectToProto(const ProjectInfo& info, v1::Project* out);
 /// §2.3 figures of camera `camera` as the proto carries them.
 void CalibrationToProto(const std::string& camera, const records::CalibrationHealth& c,
                         v1::CalibrationHealth* out);
+void VisualReferenceToProto(const store::VisualReferenceInfo& ref, v1::VisualReference* out);
 void ScanToProto(const store::ScanInfo& scan, v1::Scan* out);
 void AttributeToProto(const records::AttributeInfo& info, v1::RecordAttribute* out);
 void VersionToProto(const store::VersionInfo& info, v1::Version* out);

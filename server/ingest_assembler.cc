@@ -2,6 +2,7 @@
 /// @brief IngestScan stream -> ScanInput, with structural validation.
 #include "server/ingest_assembler.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <set>
@@ -110,10 +111,13 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
   }
   const v1::LidarModel& lidar = header.lidar();  // unset or no points: a camera-only scan
   const bool camera_only = lidar.point_count() == 0;
-  if (camera_only && header.panoramas_size() == 0) {
+  const bool cameras = std::any_of(header.panoramas().begin(), header.panoramas().end(),
+                                   [](const v1::PanoramaDescriptor& p) { return !p.visual_reference(); });
+  if (camera_only && !cameras) {
     return absl::InvalidArgumentError(
-        "the header declares no LiDAR points (header.lidar.point_count) and no images "
-        "(header.panoramas): a scan needs one or the other");
+        "the header declares no LiDAR points (header.lidar.point_count) and no camera images "
+        "(header.panoramas; visual references alone colour nothing): a scan needs one or the "
+        "other");
   }
   if (!camera_only &&
       (!std::isfinite(lidar.divergence_rad()) || lidar.divergence_rad() <= 0.0)) {
@@ -159,7 +163,8 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
           absl::StrCat(field, ".name \"", pano.name(), "\" is used twice in the scan"));
     }
     absl::StatusOr<records::Modality> modality =
-        PanoramaModalityFromProto(pano.modality(), field);
+        pano.visual_reference() ? records::Modality::kRgb  // no source: its modality is moot
+                                : PanoramaModalityFromProto(pano.modality(), field);
     if (!modality.ok()) return modality.status();
     if (!pano.has_pose()) {
       return absl::InvalidArgumentError(absl::StrCat(field, ".pose is required"));
@@ -185,7 +190,8 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.pose = *pano_pose;
     data.modality = *modality;
     data.angular_resolution_rad = pano.angular_resolution_rad();
-    if (pano.has_pinhole()) data.pinhole = PinholeFromProto(pano.pinhole());
+    if (pano.has_pinhole() && !pano.visual_reference()) data.pinhole = PinholeFromProto(pano.pinhole());
+    data.visual_reference = pano.visual_reference();
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());
   }

@@ -668,6 +668,36 @@ class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
   v1::ExportRequest request_;
 };
 
+// GetVisualReference: a scan's reference photo, as it was sent.
+class VisualReferenceReactor final : public ChunkStreamReactor<v1::GetVisualReferenceResponse> {
+ public:
+  VisualReferenceReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                         const v1::GetVisualReferenceRequest* request)
+      : ChunkStreamReactor(service, context, "GetVisualReference", request->project()),
+        request_(*request) {
+    Start(request_);
+  }
+
+ private:
+  grpc::Status Prepare() override {
+    auto found = service_->engine()->GetVisualReference(request_.project(), request_.scan(),
+                                                        request_.name());
+    if (!found.ok()) return ToGrpcStatus(found.status());
+    VisualReferenceToProto(found->first, first_.mutable_reference());
+    payloads_.emplace_back(0, std::move(found->second));
+    return grpc::Status::OK;
+  }
+
+  void FillChunk(v1::GetVisualReferenceResponse& out, int, int64_t offset, const char* data,
+                 size_t n) override {
+    v1::ExportChunk* c = out.mutable_chunk();
+    c->set_offset_bytes(offset);
+    c->set_data(data, n);
+  }
+
+  v1::GetVisualReferenceRequest request_;
+};
+
 }  // namespace
 
 std::filesystem::path VaslServiceImpl::ExportStagingPath() const {
@@ -1192,6 +1222,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerCont
     for (const store::VersionInfo* v : *page) VersionToProto(*v, response->add_versions());
     return grpc::Status::OK;
   });
+}
+
+grpc::ServerWriteReactor<v1::GetVisualReferenceResponse>* VaslServiceImpl::GetVisualReference(
+    grpc::CallbackServerContext* context, const v1::GetVisualReferenceRequest* request) {
+  return new VisualReferenceReactor(this, context, request);
 }
 
 grpc::ServerWriteReactor<v1::ExportResponse>* VaslServiceImpl::Export(

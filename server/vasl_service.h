@@ -145,6 +145,8 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
                                        v1::Version* response) override;
   grpc::ServerWriteReactor<v1::ExportResponse>* Export(
       grpc::CallbackServerContext* context, const v1::ExportRequest* request) override;
+  grpc::ServerWriteReactor<v1::GetVisualReferenceResponse>* GetVisualReference(
+      grpc::CallbackServerContext* context, const v1::GetVisualReferenceRequest* request) override;
 
   // Used by the reactors (vasl_service.cc).
   /// A progress callback for a long engine call: it updates the progress board of `project`

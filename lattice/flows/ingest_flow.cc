@@ -80,6 +80,11 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
     const ingest::PanoramaData& pano = scan.panoramas[i];
     auto blob = st.PutBlob(pano.encoded_image);
     if (!blob.ok()) return blob.status();
+    if (pano.visual_reference) {  // kept with the scan, no source
+      info.visual_references.push_back({pano.name, pano.pose, *blob, images[i].width_px,
+                                        images[i].height_px, int64_t(pano.encoded_image.size())});
+      continue;
+    }
     store::SourceInfo cam;
     cam.id = (*next_source)++;
     cam.name = pano.name;
@@ -120,6 +125,9 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       c.colour_id = src.id;
       change.new_sources.point_colours.push_back(std::move(c));
     } else {
+      while (next_image < scan.panoramas.size() && scan.panoramas[next_image].visual_reference) {
+        ++next_image;  // kept with the scan, no camera source
+      }
       if (next_image >= scan.panoramas.size()) {
         return absl::InternalError("IngestScan: fewer panoramas than camera sources");
       }

@@ -25,6 +25,7 @@ geometry::Pose Shifted(geometry::Pose pose, const Eigen::Vector3d& by) {
 void ShiftScan(store::ScanInfo& scan, const Eigen::Vector3d& by) {
   scan.pose = Shifted(scan.pose, by);
   for (store::SourceInfo& src : scan.sources) src.pose = Shifted(src.pose, by);
+  for (store::VisualReferenceInfo& ref : scan.visual_references) ref.pose = Shifted(ref.pose, by);
 }
 
 absl::Status CheckWithinReach(const Eigen::Vector3d& world_m, const Eigen::Vector3d& origin,

@@ -33,6 +33,10 @@ struct PanoramaData {
   /// Set: a pinhole photo with these intrinsics (their width and height are ignored: the
   /// image's own size counts); unset: an equirectangular panorama.
   std::optional<geometry::PinholeIntrinsics> pinhole;
+  /// True: a visual reference, a photo kept with the scan as a blob (provenance) for people to
+  /// look at; no projection, no source, no records. Its modality, angular resolution and
+  /// pinhole are ignored.
+  bool visual_reference = false;
 };
 
 /// One scan as sent by a capture rig.

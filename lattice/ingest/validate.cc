@@ -1,5 +1,6 @@
 #include "lattice/ingest/validate.h"
 
+#include <algorithm>
 #include <cmath>
 #include <set>
 
@@ -41,9 +42,12 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
   const LidarData& lidar = scan.lidar;
   if (lidar.xyz_sensor_m.size() % 3 != 0) return bad("LiDAR xyz array length is not a multiple of 3");
   const size_t n = lidar.xyz_sensor_m.size() / 3;
-  if (n == 0 && scan.panoramas.empty()) {
-    return bad("no LiDAR points and no images: a scan needs returns to place vossels, or images "
-               "to colour the vossels the project has");
+  const bool cameras = std::any_of(scan.panoramas.begin(), scan.panoramas.end(),
+                                   [](const PanoramaData& p) { return !p.visual_reference; });
+  if (n == 0 && !cameras) {
+    return bad("no LiDAR points and no camera images: a scan needs returns to place vossels, or "
+               "images to colour the vossels the project has (visual references alone colour "
+               "nothing)");
   }
   if (int64_t(n) > limits.max_points_per_scan) {
     return absl::ResourceExhaustedError(absl::StrCat("scan '", scan.scan_name, "' has ", n,
@@ -83,12 +87,6 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
       return bad("panorama names must be non-empty and unique within the scan");
     }
     if (absl::Status s = ValidatePose(pano.pose, what); !s.ok()) return bad(std::string(s.message()));
-    if (pano.modality != records::Modality::kRgb && pano.modality != records::Modality::kIr) {
-      return bad(what + ": modality must be rgb or ir");
-    }
-    if (!(pano.angular_resolution_rad >= 0.0 && pano.angular_resolution_rad < 0.1)) {
-      return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
-    }
     if (pano.encoded_image.empty()) return bad(what + ": no image bytes");
     if (int64_t(pano.encoded_image.size()) > limits.max_image_bytes) {
       return absl::ResourceExhaustedError(absl::StrCat(what, " has ", pano.encoded_image.size(),
@@ -99,6 +97,16 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
     if (!image.ok()) {
       return absl::Status(image.status().code(),
                           absl::StrCat("scan '", scan.scan_name, "', ", what, ": ", image.status().message()));
+    }
+    if (pano.visual_reference) {  // kept as sent: it must be an image, nothing more
+      images.push_back(*image);
+      continue;
+    }
+    if (pano.modality != records::Modality::kRgb && pano.modality != records::Modality::kIr) {
+      return bad(what + ": modality must be rgb or ir");
+    }
+    if (!(pano.angular_resolution_rad >= 0.0 && pano.angular_resolution_rad < 0.1)) {
+      return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
     }
     if (pano.pinhole) {
       if (absl::Status s = geometry::ValidatePinhole(*pano.pinhole); !s.ok()) {

@@ -146,7 +146,8 @@ constexpr char kOperationsTable[] = R"sql(CREATE TABLE operations(
   created_utc TEXT NOT NULL);
 )sql";
 
-// §2.3 calibration health of a camera source against its scan's LiDAR, found at ingest.
+// §2.3 calibration health of a camera source against its scan's LiDAR, found at ingest; and the
+// visual reference photos kept with scans.
 constexpr char kCalibrationTable[] = R"sql(CREATE TABLE calibration(
   camera_source INTEGER PRIMARY KEY,
   lidar_source INTEGER NOT NULL,
@@ -161,6 +162,17 @@ constexpr char kCalibrationTable[] = R"sql(CREATE TABLE calibration(
   roundtrip_mean_m REAL NOT NULL, roundtrip_p95_m REAL NOT NULL,
   rotation_deg REAL NOT NULL,
   note TEXT NOT NULL);
+CREATE TABLE visual_references(
+  scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+  name TEXT NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  ox_m REAL NOT NULL, oy_m REAL NOT NULL, oz_m REAL NOT NULL,
+  blob_sha256 TEXT NOT NULL,
+  width_px INTEGER NOT NULL,
+  height_px INTEGER NOT NULL,
+  size_bytes INTEGER NOT NULL,
+  version INTEGER NOT NULL,
+  PRIMARY KEY (scan_id, name));
 )sql";
 
 }  // namespace
@@ -280,7 +292,7 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       "ALTER TABLE project ADD COLUMN origin_y REAL NOT NULL DEFAULT 0;\n"
       "ALTER TABLE project ADD COLUMN origin_z REAL NOT NULL DEFAULT 0;\n"
       "UPDATE project SET origin_fixed = 1 WHERE EXISTS (SELECT 1 FROM scans);\n",
-      // 8 → 9: calibration health of cameras.
+      // 8 → 9: calibration health of cameras, visual references of scans.
       kCalibrationTable};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
@@ -300,6 +312,7 @@ absl::Status DropRowsNewerThan(Db& db, int64_t head) {
                           "DELETE FROM scan_lives WHERE from_version > ?1",
                           "DELETE FROM sources WHERE version > ?1",
                           "DELETE FROM calibration WHERE version > ?1",
+                          "DELETE FROM visual_references WHERE version > ?1",
                           "DELETE FROM scans WHERE version > ?1",
                           "DELETE FROM batches WHERE version > ?1",
                           "DELETE FROM operations WHERE version > ?1",

@@ -191,8 +191,9 @@ struct ProjectStore::Impl {
       }
       const std::pair<const char*, std::set<std::string>*> queries[] = {
           {"SELECT object FROM manifest UNION SELECT object FROM reach", &live_objects},
-          {"SELECT DISTINCT src.blob_sha256 FROM sources src JOIN scan_lives l "
-           "ON src.scan_id = l.scan_id WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 "
+          {"SELECT DISTINCT b.blob_sha256 FROM (SELECT scan_id, blob_sha256 FROM sources UNION ALL "
+           "SELECT scan_id, blob_sha256 FROM visual_references) b JOIN scan_lives l "
+           "ON b.scan_id = l.scan_id WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 "
            "AND l.from_version <= v.version AND (l.to_version IS NULL OR l.to_version > v.version))",
            &live_blobs}};
       for (const auto& [sql, live_set] : queries) {
@@ -638,6 +639,26 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
     }
     auto it = by_id.find(src.scan_id);
     if (it != by_id.end()) scans[it->second].sources.push_back(std::move(src));
+  }
+  absl::StatusOr<Stmt> refs = impl_->db.Prepare(
+      "SELECT scan_id, name, qx, qy, qz, qw, ox_m, oy_m, oz_m, blob_sha256, width_px, height_px, "
+      "size_bytes FROM visual_references WHERE version <= ?1 ORDER BY scan_id, name");
+  if (!refs.ok()) return refs.status();
+  refs->Bind(1, v);
+  for (;;) {
+    absl::StatusOr<bool> row = refs->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    auto it = by_id.find(refs->Int(0));
+    if (it == by_id.end()) continue;
+    VisualReferenceInfo ref;
+    ref.name = refs->Text(1);
+    ref.pose = ColumnPose(*refs, 2);
+    ref.blob_sha256 = refs->Text(9);
+    ref.width_px = static_cast<int>(refs->Int(10));
+    ref.height_px = static_cast<int>(refs->Int(11));
+    ref.size_bytes = refs->Int(12);
+    scans[it->second].visual_references.push_back(std::move(ref));
   }
   return scans;
 }
@@ -1292,6 +1313,17 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
               st.Bind(9, c.pixel_mean_px).Bind(10, c.pixel_p95_px).Bind(11, c.offset_mean_m);
               st.Bind(12, c.offset_p95_m).Bind(13, c.roundtrip_mean_m);
               st.Bind(14, c.roundtrip_p95_m).Bind(15, c.rotation_deg).Bind(16, c.note);
+            });
+      }
+      for (const VisualReferenceInfo& ref : scan.visual_references) {
+        run("INSERT INTO visual_references(scan_id, name, qx, qy, qz, qw, ox_m, oy_m, oz_m, "
+            "blob_sha256, width_px, height_px, size_bytes, version) "
+            "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+            [&](Stmt& st) {
+              st.Bind(1, scan_id).Bind(2, ref.name);
+              BindPose(st, 3, ref.pose);
+              st.Bind(10, ref.blob_sha256).Bind(11, int64_t{ref.width_px});
+              st.Bind(12, int64_t{ref.height_px}).Bind(13, ref.size_bytes).Bind(14, version);
             });
       }
       for (const auto& [source, keys] : plan.source_tiles) {

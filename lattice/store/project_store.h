@@ -78,6 +78,17 @@ struct SourceInfo {
   std::optional<records::CalibrationHealth> calibration;
 };
 
+/// A photo kept with a scan for people to look at (an E57 visual reference): no projection,
+/// no source, no records; its blob lives as long as a kept version has the scan.
+struct VisualReferenceInfo {
+  std::string name;                 ///< unique within the scan, among its images
+  geometry::Pose pose;              ///< the pose it was sent with
+  std::string blob_sha256;          ///< the image bytes as sent
+  int width_px = 0;
+  int height_px = 0;
+  int64_t size_bytes = 0;
+};
+
 /// One ingested scan with its sources.
 struct ScanInfo {
   int64_t id = 0;                   ///< catalog id, assigned by CommitScan
@@ -90,6 +101,7 @@ struct ScanInfo {
   int64_t deleted_in = 0;           ///< version that deleted it; 0: not deleted
   std::string created_utc;          ///< server time of ingest, ISO 8601
   std::vector<SourceInfo> sources;
+  std::vector<VisualReferenceInfo> visual_references;
 };
 
 /// One object of a version's manifest.

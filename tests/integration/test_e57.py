@@ -62,10 +62,11 @@ def test_reads_real_and_tiny_e57():
 
 def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
     """images2D: every image of a file is read with its kind, size and pose (a pinhole image's
-    turned into §2.2's frame); one that cannot be ingested says why, and never stops its scan."""
+    turned into §2.2's frame); one that cannot be ingested says why, and never stops its scan;
+    a visual reference is kept with its scan."""
     pump = read_e57(_need(PUMP))[0]
     assert [(im.kind, im.width, im.height) for im in pump.images] == [("visual", 3072, 2304)]
-    assert "visual reference" in pump.images[0].problem
+    assert pump.images[0].problem == ""  # kept with the scan as a visual reference
     assert pump.images[0].data[:2] == b"\xff\xd8"  # its JPEG, read whole
 
     path = _need(os.path.join(E57, "tiny", "tiny_pc_and_images.e57"))
@@ -81,7 +82,7 @@ def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
     assert "360" in sph.problem  # 100 px of 0.0314 rad: half a panorama
     assert "cylindrical images are not supported" in kinds["cylindrical"].problem
     assert "neither a JPEG nor a PNG" in kinds["pinhole"].problem  # this writer's blob is zeros
-    assert scan.ingestible_images == []
+    assert [im.kind for im in scan.ingestible_images] == ["visual"]  # a JPEG with no pose
     for im in scan.images:
         print(f"\n{im.name} ({im.kind} {im.width}x{im.height}): {im.problem}")
 
@@ -95,8 +96,15 @@ def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
                        capture_output=True, text=True, timeout=300)
     print(r.stdout)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("not ingested") == 4
+    assert r.stdout.count("not ingested") == 3
+    assert "image 'visual' (visual): kept with the scan as a visual reference" in r.stdout
     assert "tiny_pc_and_images: version 1, 2 points" in r.stdout
+    from vasl import Client
+    with Client(server.address) as c:
+        listed = c.list_scans("e57-images")[0]
+        assert [v.name for v in listed.visual_references] == ["visual"]
+        np.testing.assert_allclose(listed.visual_references[0].pose.position_m,
+                                   listed.pose.position_m)  # no pose of its own: the scan's
 
 
 @pytest.mark.parametrize("name", ["corrupt_crc.e57", "empty.e57", "empty_pc.e57",
@@ -125,6 +133,20 @@ def test_real_e57_render_from_scanner_reproduces_ranges(server, client, tmp_path
     print("\n" + r.stdout.strip())
     info = client.get_project("pump")
     assert info.head_version == 1 and info.scan_count == 1
+
+    # Its visual reference photo is kept with the scan, and comes back byte for byte.
+    assert "kept with the scan as a visual reference" in r.stdout
+    scan = client.list_scans("pump")[0]
+    assert [(v.name, v.width_px, v.height_px) for v in scan.visual_references] == \
+        [(read_e57(PUMP)[0].images[0].name, 3072, 2304)]
+    assert [s.name for s in scan.sources] == ["lidar", "point-colour"]  # the photo is no source
+    out = tmp_path / "reference.jpg"
+    shown = subprocess.run(cli + ["reference", "--project", "pump", "--scan", scan.name,
+                                  "--name", scan.visual_references[0].name, "-o", str(out)],
+                           capture_output=True, text=True)
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    assert out.read_bytes() == read_e57(PUMP)[0].images[0].data
+    print(shown.stdout.strip())
 
     width, height = 2048, 1024
     render = client.render("pump", [0.0, 0.0, 0.0], width, height)

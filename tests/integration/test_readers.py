@@ -87,6 +87,17 @@ def test_manifest_paths_and_validation(tmp_path):
         with pytest.raises(ValueError, match=match):
             read_manifest(str(path))
 
+    # A visual reference may leave out its pose (it takes the scan's); a camera may not.
+    ref = {"name": "photo", "image": "img/photo.jpg", "visual_reference": True}
+    path.write_text(json.dumps({**doc, "panoramas": doc["panoramas"] + [ref]}))
+    m = read_manifest(str(path))
+    assert [(p.name, p.visual_reference, p.pose) for p in m.panoramas][1] == ("photo", True, None)
+    for bad, match in [({**ref, "visual_reference": False}, "pose"),
+                       ({**ref, "visual_reference": "yes"}, "true or false")]:
+        path.write_text(json.dumps({**doc, "panoramas": [bad]}))
+        with pytest.raises(ValueError, match=match):
+            read_manifest(str(path))
+
 
 def test_pose_parse_forms():
     assert Pose.parse("1,2,3").quaternion_xyzw == (0.0, 0.0, 0.0, 1.0)

@@ -602,7 +602,7 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
     char* err = nullptr;
     const int rc = sqlite3_exec(db,
         "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; DROP TABLE renders; "
-        "DROP TABLE operations; DROP TABLE calibration; "
+        "DROP TABLE operations; DROP TABLE calibration; DROP TABLE visual_references; "
         "ALTER TABLE sources DROP COLUMN camera; "
         "ALTER TABLE project DROP COLUMN active_profile; "
         "ALTER TABLE project DROP COLUMN origin_fixed; ALTER TABLE project DROP COLUMN origin_x; "

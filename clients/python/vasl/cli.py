@@ -140,11 +140,14 @@ def _cmd_ingest(client: Client, args) -> int:
                     what = f"{path}: {scan.scan}: image '{im.name}' ({im.kind})"
                     if im.problem:
                         print(f"{what}: not ingested: {im.problem}")
-                    elif im.notes:
+                    elif im.kind == "visual":
+                        print(f"{what}: kept with the scan as a visual reference")
+                    if im.notes and not im.problem:
                         print(f"{what}: {'; '.join(im.notes)}")
-                if scan.points is None and not scan.ingestible_images:
-                    print(f"{path}: {scan.scan}: no points and no image that can be ingested; "
-                          "skipped")
+                cameras = [im for im in scan.ingestible_images if im.kind != "visual"]
+                if scan.points is None and not cameras:
+                    print(f"{path}: {scan.scan}: no points and no camera image that can be "
+                          "ingested (visual references alone colour nothing); skipped")
                     continue
                 jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest_e57_scan(
                     args.project, s, divergence_rad=args.divergence_rad,
@@ -254,7 +257,13 @@ def _cmd_scans(client: Client, args) -> int:
                            "position_m": list(s.pose.position_m),
                            "sources": [src.name for src in s.sources],
                            "calibration": [src.calibration.__dict__ for src in s.sources
-                                           if src.calibration]} for s in scans], indent=2))
+                                           if src.calibration],
+                           "visual_references": [
+                               {"name": r.name, "width_px": r.width_px,
+                                "height_px": r.height_px, "size_bytes": r.size_bytes,
+                                "blob_sha256": r.blob_sha256,
+                                "position_m": list(r.pose.position_m)}
+                               for r in s.visual_references]} for s in scans], indent=2))
         return 0
     if not scans:
         print(f"no scans in project {args.project}")
@@ -268,6 +277,19 @@ def _cmd_scans(client: Client, args) -> int:
         for src in s.sources:
             if src.calibration:
                 print(f"       {src.calibration.summary()}")
+        for ref in s.visual_references:
+            print(f"       visual reference '{ref.name}': {ref.width_px}x{ref.height_px}, "
+                  f"{ref.size_bytes} bytes (vasl reference --project {args.project} "
+                  f"--scan {s.name} --name '{ref.name}' -o FILE)")
+    return 0
+
+
+def _cmd_reference(client: Client, args) -> int:
+    ref, data = client.get_visual_reference(args.project, args.scan, args.name)
+    with open(args.output, "wb") as f:
+        f.write(data)
+    print(f"wrote {args.output}: visual reference '{ref.name}' of scan {args.scan}, "
+          f"{ref.width_px}x{ref.height_px}, {len(data)} bytes")
     return 0
 
 
@@ -649,6 +671,12 @@ def build_parser() -> argparse.ArgumentParser:
     scans.add_argument("--project", required=True)
     scans.add_argument("--json", action="store_true")
 
+    reference = sub.add_parser("reference", help="write a scan's visual reference photo to a file")
+    reference.add_argument("--project", required=True)
+    reference.add_argument("--scan", required=True)
+    reference.add_argument("--name", required=True, help="the reference's name (vasl scans)")
+    reference.add_argument("-o", "--output", required=True, metavar="FILE")
+
     inspect = sub.add_parser("inspect", help="list record attributes (type, codec, stride)")
     inspect.add_argument("--project", required=True)
     inspect.add_argument("--version", type=int, default=0, help="version (0: HEAD)")
@@ -752,7 +780,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     handlers = {"project": _cmd_project, "ingest": _cmd_ingest, "render": _cmd_render,
-                "scans": _cmd_scans, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
+                "scans": _cmd_scans, "reference": _cmd_reference, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
                 "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,

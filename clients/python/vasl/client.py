@@ -10,7 +10,7 @@ import tempfile
 import threading
 import time
 import uuid
-from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Union
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import grpc
 import numpy as np
@@ -23,7 +23,7 @@ from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, 
 from .types import (CONFIDENCE_FACTORS, CalibrationHealth, ChangeResult, ChangeStats,
                     ExportResult, Inspection, IngestResult, NormaliseResult, Pose, Project,
                     RecordAttribute, RecordsQuery, RenderResult, ReweightResult, Scan, Source,
-                    Version)
+                    Version, VisualReference)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
@@ -513,9 +513,35 @@ class Client:
                               x.divergence_rad, x.point_count,
                               _calibration(x.calibration) if x.HasField("calibration") else None)
                        for x in s.sources]
+            refs = [VisualReference(r.name, _pose_from_pb(r.pose), r.blob_sha256, r.width_px,
+                                    r.height_px, r.size_bytes) for r in s.visual_references]
             scans.append(Scan(s.id, s.name, s.rig, _iso(s, "capture_time"), _pose_from_pb(s.pose),
-                              s.batch, s.version, _iso(s, "create_time"), sources))
+                              s.batch, s.version, _iso(s, "create_time"), sources, refs))
         return scans
+
+    def get_visual_reference(self, project: str, scan: str,
+                             name: str) -> Tuple[VisualReference, bytes]:
+        """A scan's visual reference photo and its bytes, as they were sent."""
+        self._check_name(project)
+        ref, parts = None, []
+        try:
+            for r in self.stub.GetVisualReference(
+                    pb.GetVisualReferenceRequest(project=project, scan=scan, name=name),
+                    timeout=self.timeout_s):
+                if r.HasField("reference"):
+                    x = r.reference
+                    ref = VisualReference(x.name, _pose_from_pb(x.pose), x.blob_sha256,
+                                          x.width_px, x.height_px, x.size_bytes)
+                else:
+                    parts.append(r.chunk.data)
+        except grpc.RpcError as e:
+            raise _wrap("GetVisualReference", e) from None
+        data = b"".join(parts)
+        if ref is None or len(data) != ref.size_bytes:
+            raise VaslError(grpc.StatusCode.DATA_LOSS,
+                            f"the stream ended after {len(data)} bytes of "
+                            f"{ref.size_bytes if ref else '?'}", "GetVisualReference")
+        return ref, data
 
     # -- ingest --------------------------------------------------------------------------
     def ingest_progress(self, project: str) -> pb.IngestProgress:
@@ -563,7 +589,7 @@ class Client:
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
                           "modality": p.modality,
                           "angular_resolution_rad": p.angular_resolution_rad,
-                          "pinhole": p.pinhole}
+                          "pinhole": p.pinhole, "visual_reference": p.visual_reference}
                          for p in m.panoramas]
         if not scan:
             raise ValueError("scan: give the scan an id (or pass a manifest)")
@@ -593,7 +619,8 @@ class Client:
             header.lidar.point_count = source.count
         images = []
         for i, p in enumerate(panoramas):
-            if "name" not in p or "image" not in p or "pose" not in p:
+            reference = bool(p.get("visual_reference", False))
+            if "name" not in p or "image" not in p or (p.get("pose") is None and not reference):
                 raise ValueError(f"panoramas[{i}] needs name, image and pose")
             image = p["image"]
             if isinstance(image, (str, os.PathLike)):
@@ -606,10 +633,10 @@ class Client:
                 raise ValueError(f"panoramas[{i}].modality must be 'rgb' or 'ir', got {modality!r}")
             desc = header.panoramas.add(
                 name=p["name"], modality=_MODALITY_TO_PB[modality],
-                pose=pose_to_pb(Pose.parse(p["pose"])),
+                pose=pose_to_pb(Pose.parse(p["pose"] if p.get("pose") is not None else pose)),
                 angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
-                encoded_size_bytes=len(image))
-            if p.get("pinhole") is not None:  # a pinhole photo (VASL-MODEL §2.2)
+                encoded_size_bytes=len(image), visual_reference=reference)
+            if p.get("pinhole") is not None and not reference:  # a pinhole photo (VASL-MODEL §2.2)
                 desc.pinhole.CopyFrom(pb.PinholeCamera(
                     **pinhole_from_json(p["pinhole"], f"panoramas[{i}].pinhole")))
             images.append(bytes(image))
@@ -625,11 +652,13 @@ class Client:
                         request_id: Optional[str] = None) -> IngestResult:
         """Ingests one scan read by `read_e57`: its points (streamed from the file chunk by
         chunk), intensity, per-point colour (as a "point-colour" source) and pose, and its
-        spherical and pinhole images (as panoramas and pinhole photos with their poses;
+        spherical and pinhole images (as panoramas and pinhole photos with their poses; visual
+        references kept with the scan, posed as the scan when the file gives them no pose;
         `scan.images` says why any other is left out). A scan of images only is a camera-only
         scan."""
         panoramas = [{"name": im.name, "image": im.data, "pose": im.pose, "modality": "rgb",
-                      "pinhole": im.pinhole} for im in scan.ingestible_images]
+                      "pinhole": im.pinhole, "visual_reference": im.kind == "visual"}
+                     for im in scan.ingestible_images]
         names = [p["name"] for p in panoramas]
         for i, p in enumerate(panoramas):  # E57 names need not be unique
             if names.count(p["name"]) > 1:

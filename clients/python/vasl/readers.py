@@ -226,9 +226,11 @@ class PanoramaEntry:
     name: str
     image_path: str  #: absolute path of the encoded image
     modality: str  #: "rgb" or "ir"
-    pose: Pose
+    pose: Optional[Pose]  #: None only for a visual reference (it takes the scan's pose)
     angular_resolution_rad: float = 0.0
     pinhole: Optional[Dict[str, float]] = None  #: intrinsics (PINHOLE_KEYS), None: equirect
+    #: a photo kept with the scan for people to look at: no projection, colours nothing
+    visual_reference: bool = False
 
 
 @dataclass
@@ -253,6 +255,14 @@ def _pose_from_json(obj, where: str) -> Pose:
     position = obj.get("position", [0.0, 0.0, 0.0])
     quaternion = obj.get("quaternion", [0.0, 0.0, 0.0, 1.0])
     return Pose.make(position, quaternion, where=where)
+
+
+def _flag(obj: dict, key: str, where: str) -> bool:
+    """An optional JSON boolean; ValueError for anything but true or false."""
+    value = obj.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{where}.{key} must be true or false, got {value!r}")
+    return value
 
 
 def read_manifest(path: str) -> Manifest:
@@ -289,14 +299,18 @@ def read_manifest(path: str) -> Manifest:
         modality = p.get("modality", "rgb").lower()
         if modality not in ("rgb", "ir"):
             raise ValueError(f"{path}: panoramas[{i}].modality must be 'rgb' or 'ir', got '{modality}'")
+        reference = _flag(p, "visual_reference", f"{path}: panoramas[{i}]")
         panoramas.append(PanoramaEntry(
             name=name,
             image_path=os.path.join(base, need(p, "image", f"panoramas[{i}].")),
             modality=modality,
-            pose=_pose_from_json(need(p, "pose", f"panoramas[{i}]."), f"{path}: panoramas[{i}].pose"),
+            pose=(None if reference and "pose" not in p else  # a reference may take the scan's
+                  _pose_from_json(need(p, "pose", f"panoramas[{i}]."),
+                                  f"{path}: panoramas[{i}].pose")),
             angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
             pinhole=(pinhole_from_json(p["pinhole"], f"{path}: panoramas[{i}].pinhole")
                      if "pinhole" in p else None),
+            visual_reference=reference,
         ))
     return Manifest(
         path=os.path.abspath(path),
@@ -742,8 +756,9 @@ _IMAGE_KINDS = (("pinholeRepresentation", "pinhole"), ("sphericalRepresentation"
 
 def _read_e57_images(e57, path: str) -> List[E57Image]:
     """Every image of an E57 file (images2D), each with the reason it cannot be ingested when
-    it cannot: a visual reference (no projection) or cylindrical image, a spherical image that
-    is not a whole 360° x 180° panorama, or bytes that are neither JPEG nor PNG."""
+    it cannot: a cylindrical image, a spherical image that is not a whole 360° x 180° panorama,
+    or bytes that are neither JPEG nor PNG. A visual reference (no projection) is kept with its
+    scan as a photo for people to look at."""
     root = e57.image_file.root()
     if not root.isDefined("images2D"):
         return []
@@ -775,9 +790,7 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
                          scan_guid=(str(node["associatedData3DGuid"].value())
                                     if node.isDefined("associatedData3DGuid") else ""))
         problems = []
-        if kind == "visual":
-            problems.append("a visual reference image has no projection (kept in the file only)")
-        elif kind == "cylindrical":
+        if kind == "cylindrical":
             problems.append("cylindrical images are not supported (only spherical and pinhole)")
         elif kind == "spherical":
             span_w = image.width * number("pixelWidth")
@@ -799,10 +812,10 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
                     image.pose = Pose.make(image.pose.position_m, turned, where=where)
             else:
                 problems.append("focalLength, pixelWidth and pixelHeight must be > 0")
-        if kind in ("spherical", "pinhole") and not problems:
+        if kind in ("spherical", "pinhole", "visual") and not problems:
             if not (data.startswith(b"\x89PNG\r\n\x1a\n") or data.startswith(b"\xff\xd8")):
                 problems.append("its bytes are neither a JPEG nor a PNG image")
-            elif image.pose is None:
+            elif image.pose is None and kind != "visual":  # a reference takes its scan's
                 problems.append("it has no pose")
         image.problem = "; ".join(problems)
         image.notes = notes

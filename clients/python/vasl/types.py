@@ -127,6 +127,18 @@ class Source:
 
 
 @dataclass
+class VisualReference:
+    """A photo kept with a scan for people to look at (an E57 visual reference)."""
+
+    name: str
+    pose: Pose
+    blob_sha256: str
+    width_px: int
+    height_px: int
+    size_bytes: int
+
+
+@dataclass
 class Scan:
     id: int
     name: str
@@ -137,6 +149,7 @@ class Scan:
     version: int
     created_utc: str
     sources: List[Source] = field(default_factory=list)
+    visual_references: List[VisualReference] = field(default_factory=list)
 
 
 @dataclass
