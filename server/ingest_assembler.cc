@@ -36,11 +36,16 @@ float LoadF32Le(const unsigned char* p) {
 }  // namespace
 
 void UnpackPointsF32Le(std::string_view bytes, bool colour, LidarData* lidar) {
-  const size_t stride = colour ? 28 : 16;
+  const size_t record = colour ? 28 : 16;
+  const bool grid = lidar->grid_columns > 0;
+  const size_t stride = record + (grid ? 8 : 0);
   const size_t n = bytes.size() / stride;
   lidar->xyz_sensor_m.resize(3 * n);
   lidar->intensity.resize(n);
   lidar->rgb.resize(colour ? 3 * n : 0);
+  lidar->grid_cell.resize(grid ? n : 0);
+  uint32_t* cell = lidar->grid_cell.data();
+  const uint64_t columns = uint64_t(std::max(0, lidar->grid_columns));
   const auto* src = reinterpret_cast<const unsigned char*>(bytes.data());
   float* xyz = lidar->xyz_sensor_m.data();
   float* intensity = lidar->intensity.data();
@@ -55,6 +60,13 @@ void UnpackPointsF32Le(std::string_view bytes, bool colour, LidarData* lidar) {
                         intensity[i] = LoadF32Le(p + 12);
                         if (colour) {
                           for (int c = 0; c < 3; ++c) rgb[3 * i + c] = LoadF32Le(p + 16 + 4 * c);
+                        }
+                        if (grid) {
+                          uint32_t rc[2];
+                          std::memcpy(rc, p + record, 8);  // little-endian hosts only (x86, arm)
+                          const uint64_t at = rc[1] < columns ? rc[0] * columns + rc[1]
+                                                              : ~uint64_t(0);
+                          cell[i] = at > 0xffffffffu ? 0xffffffffu : uint32_t(at);
                         }
                       }
                     });
@@ -134,6 +146,19 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
           "header.lidar.point_format ", static_cast<int>(lidar.point_format()),
           " is not supported; use POINT_FORMAT_XYZI_F32LE (16 bytes per point) or "
           "POINT_FORMAT_XYZIRGB_F32LE (28)"));
+  }
+  if (lidar.has_grid()) {
+    if (camera_only) {
+      return absl::InvalidArgumentError("header.lidar.grid is set but the scan has no points");
+    }
+    if (lidar.grid().rows() <= 0 || lidar.grid().columns() <= 0) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "header.lidar.grid must have rows and columns > 0, got ", lidar.grid().rows(), "x",
+          lidar.grid().columns()));
+    }
+    bytes_per_point_ += 8;  // row, column
+    scan_.lidar.grid_rows = lidar.grid().rows();
+    scan_.lidar.grid_columns = lidar.grid().columns();
   }
   if (lidar.point_count() < 0) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -218,8 +243,9 @@ absl::Status IngestAssembler::AddPoints(const v1::PointsChunk& chunk) {
   if (size % bytes_per_point_ != 0) {
     return absl::InvalidArgumentError(absl::StrCat(
         "message ", message_index_, ": a PointsChunk of ", size, " bytes is not a multiple of ",
-        bytes_per_point_, bytes_per_point_ == 16 ? " (float32 x, y, z, intensity per point)"
-                                                 : " (float32 x, y, z, intensity, r, g, b per point)"));
+        bytes_per_point_, " (per point float32 x, y, z, intensity",
+        bytes_per_point_ - (scan_.lidar.grid_columns > 0 ? 8 : 0) == 28 ? ", r, g, b" : "",
+        scan_.lidar.grid_columns > 0 ? ", then uint32 row, column)" : ")"));
   }
   const int64_t total = static_cast<int64_t>(point_bytes_.size()) + size;
   if (total > point_count_ * bytes_per_point_) {
@@ -285,7 +311,8 @@ absl::StatusOr<ScanInput> IngestAssembler::Finish() {
           " image bytes but its encoded_size_bytes is ", expected_image_bytes_[i]));
     }
   }
-  UnpackPointsF32Le(point_bytes_, bytes_per_point_ == 28, &scan_.lidar);
+  UnpackPointsF32Le(point_bytes_, bytes_per_point_ - (scan_.lidar.grid_columns > 0 ? 8 : 0) == 28,
+                    &scan_.lidar);
   std::string().swap(point_bytes_);
   error_ = absl::FailedPreconditionError("IngestAssembler::Finish was already called");
   return std::move(scan_);

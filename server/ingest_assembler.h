@@ -52,7 +52,7 @@ class IngestAssembler {
   bool images_started_ = false;
   std::string project_;
   int64_t point_count_ = 0;
-  int64_t bytes_per_point_ = 16;             ///< 16 (XYZI) or 28 (XYZIRGB)
+  int64_t bytes_per_point_ = 16;             ///< 16 (XYZI) or 28 (XYZIRGB), + 8 with a grid
   int64_t received_bytes_ = 0;
   std::string point_bytes_;                  ///< packed float32 LE (x, y, z, intensity[, r, g, b])
   std::vector<int64_t> expected_image_bytes_;  ///< per panorama
@@ -60,8 +60,10 @@ class IngestAssembler {
 };
 
 /// Unpacks little-endian float32 point records into `lidar`'s arrays (parallel for large
-/// inputs): 16 bytes (x, y, z, intensity), or with `colour` 28 (x, y, z, intensity, r, g, b).
-/// `bytes.size()` must be a multiple of the record size.
+/// inputs): 16 bytes (x, y, z, intensity), or with `colour` 28 (x, y, z, intensity, r, g, b);
+/// with `lidar->grid_columns` > 0, each followed by its row and column (uint32, 8 bytes) that
+/// become its grid cell (a column beyond the grid becomes a cell beyond it, which ValidateScan
+/// refuses). `bytes.size()` must be a multiple of the record size.
 void UnpackPointsF32Le(std::string_view bytes, bool colour, LidarData* lidar);
 
 }  // namespace vasl::server

@@ -16,17 +16,31 @@ namespace vasl::flows {
 namespace {
 
 // Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
-// format of a LiDAR source.
+// format of a LiDAR source (LoadLidar). A scan with a range grid appends each point's cell
+// (uint32) and then the grid's rows and columns (uint32 each): 20 bytes a point and 8.
 std::string PackPoints(const ingest::LidarData& lidar) {
   const size_t n = lidar.xyz_sensor_m.size() / 3;
-  std::string bytes(n * 16, '\0');
+  const bool grid = !lidar.grid_cell.empty();
+  std::string bytes(n * 16 + (grid ? n * 4 + 8 : 0), '\0');
   for (size_t i = 0; i < n; ++i) {
     const float rec[4] = {lidar.xyz_sensor_m[3 * i], lidar.xyz_sensor_m[3 * i + 1],
                           lidar.xyz_sensor_m[3 * i + 2],
                           lidar.intensity.empty() ? 1.0f : lidar.intensity[i]};
     std::memcpy(&bytes[i * 16], rec, 16);
   }
+  if (grid) {
+    std::memcpy(&bytes[n * 16], lidar.grid_cell.data(), n * 4);
+    const uint32_t shape[2] = {uint32_t(lidar.grid_rows), uint32_t(lidar.grid_columns)};
+    std::memcpy(&bytes[n * 20], shape, 8);
+  }
   return bytes;
+}
+
+// The scan's range grid onto one of its sources.
+void SetGrid(const ingest::LidarData& lidar, ingest::LidarSource* out) {
+  out->grid_rows = lidar.grid_rows;
+  out->grid_columns = lidar.grid_columns;
+  out->grid_cell = lidar.grid_cell;
 }
 
 }  // namespace
@@ -117,11 +131,13 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       ingest::LidarSource l = LidarOf(src, info.batch);
       l.xyz_sensor_m = lidar.xyz_sensor_m;
       l.intensity = lidar.intensity;
+      SetGrid(lidar, &l);
       change.new_sources.lidars.push_back(std::move(l));
     } else if (IsPointColour(src)) {
       ingest::LidarSource c = LidarOf(src, info.batch);
       c.xyz_sensor_m = lidar.xyz_sensor_m;
       c.rgb = lidar.rgb;
+      SetGrid(lidar, &c);  // its gap fill is sampled like the LiDAR's (as LoadPointColour has it)
       c.colour_id = src.id;
       change.new_sources.point_colours.push_back(std::move(c));
     } else {

@@ -39,12 +39,32 @@ absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
                                               const store::SourceInfo& s, int32_t batch) {
   absl::StatusOr<std::string> bytes = store.ReadBlob(s.blob_sha256);
   if (!bytes.ok()) return bytes.status();
-  if (bytes->size() % 16 != 0) {
+  // Points (16 bytes each), then with a range grid each point's cell (4) and the grid's shape
+  // (8): PackPoints. The catalog's point count tells the two apart.
+  const size_t counted = size_t(std::max<int64_t>(0, s.point_count));
+  const bool grid = counted > 0 && bytes->size() == counted * 20 + 8;
+  if (!grid && bytes->size() % 16 != 0) {
     return absl::DataLossError(
         absl::StrCat("points blob ", s.blob_sha256, " is not a whole number of points"));
   }
   ingest::LidarSource out = LidarOf(s, batch);
-  const size_t n = bytes->size() / 16;
+  const size_t n = grid ? counted : bytes->size() / 16;
+  if (grid) {
+    uint32_t shape[2];
+    std::memcpy(shape, bytes->data() + n * 20, 8);
+    out.grid_rows = int32_t(shape[0]);
+    out.grid_columns = int32_t(shape[1]);
+    out.grid_cell.resize(n);
+    std::memcpy(out.grid_cell.data(), bytes->data() + n * 16, n * 4);
+    const uint64_t cells = uint64_t(shape[0]) * shape[1];
+    for (uint32_t c : out.grid_cell) {
+      if (c >= cells) {
+        return absl::DataLossError(absl::StrCat("points blob ", s.blob_sha256, ": a grid cell ",
+                                                c, " beyond its ", shape[0], "x", shape[1],
+                                                " grid"));
+      }
+    }
+  }
   out.xyz_sensor_m.resize(3 * n);
   out.intensity.resize(n);
   for (size_t i = 0; i < n; ++i) {

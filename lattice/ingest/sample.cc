@@ -248,6 +248,32 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
       s.clipped[k] += clipped ? 1 : 0;
     }
   });
+  // A scan with a range grid also samples its gap-fill points (BinLidar), each the returns of
+  // its triangle interpolated: the vossels the fill made get the surface's values between them.
+  const GapFillPoints fill = GapFill(lidar, h);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, fill.size(), 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
+    Sums& s = local.local();
+    auto acc = g.index_grid->getConstAccessor();
+    for (size_t f = r.begin(); f != r.end(); ++f) {
+      const Eigen::Vector3d kf = VosselIndexOf(fill.x[f], h);
+      int32_t k;
+      if (!acc.probeValue(openvdb::Coord(int(kf.x()), int(kf.y()), int(kf.z())), k)) continue;
+      bool clipped = false;
+      for (int ch = 0; ch < C; ++ch) {
+        float v = 1.0f;
+        if (!values.empty()) {
+          v = 0.0f;
+          for (int c = 0; c < 3; ++c) {
+            v += fill.weight[f][c] * values[size_t(fill.corner[f][c]) * size_t(C) + size_t(ch)];
+          }
+        }
+        s.sum[size_t(k) * C + ch] += double(v);
+        clipped |= clip > 0.0f && v >= clip_at;
+      }
+      ++s.count[k];
+      s.clipped[k] += clipped ? 1 : 0;
+    }
+  });
   std::vector<double> sum(nv * size_t(C), 0.0);
   std::vector<int32_t> count(nv, 0), clipped(nv, 0);
   for (const Sums& s : local) {

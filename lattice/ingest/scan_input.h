@@ -20,6 +20,10 @@ struct LidarData {
   std::vector<float> intensity;     ///< empty, or one per point (linear, any scale)
   std::vector<float> rgb;           ///< empty, or 3 per point: the point's colour, linear
   double divergence_rad = 0.3e-3;   ///< full beam divergence θ_div (§3)
+  /// The scan's range grid (LidarSource::grid_cell): rows × columns, and per point its cell
+  /// row·columns + column; empty: an unordered scan.
+  int32_t grid_rows = 0, grid_columns = 0;
+  std::vector<uint32_t> grid_cell;
 };
 
 /// One image of a scan with its own pose: an equirectangular panorama (§2.1) or, with

@@ -58,7 +58,12 @@ struct LidarSource {
   /// scanner's origin (PointColourRecords).
   std::vector<float> rgb;
   int32_t colour_id = 0;              ///< source id of the colour records; 0: no colour source
+  /// The scan's range grid, when the scanner gave one (E57 rowIndex / columnIndex): rows ×
+  /// columns cells, and per point its cell row·columns + column. Empty: an unordered scan.
+  int32_t grid_rows = 0, grid_columns = 0;
+  std::vector<uint32_t> grid_cell;
   size_t point_count() const { return xyz_sensor_m.size() / 3; }
+  bool HasGrid() const { return grid_rows > 0 && grid_columns > 0 && !grid_cell.empty(); }
 };
 
 /// A camera of a scan: an equirectangular panorama (§2.1) or a pinhole photo (§2.2).

@@ -70,6 +70,24 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
   for (float v : lidar.rgb) {
     if (!std::isfinite(v) || v < 0.0f) return bad("a point colour is negative, NaN or infinite");
   }
+  if (!lidar.grid_cell.empty() || lidar.grid_rows != 0 || lidar.grid_columns != 0) {
+    if (lidar.grid_rows <= 0 || lidar.grid_columns <= 0 ||
+        int64_t(lidar.grid_rows) * lidar.grid_columns > int64_t{1} << 32) {
+      return bad(absl::StrCat("the range grid is ", lidar.grid_rows, "x", lidar.grid_columns,
+                              ": rows and columns must be > 0 and at most 2^32 cells in all"));
+    }
+    if (lidar.grid_cell.size() != n) {
+      return bad(absl::StrCat("the range grid gives ", lidar.grid_cell.size(), " cells for ", n,
+                              " points (one row and column per point)"));
+    }
+    const uint64_t cells = uint64_t(lidar.grid_rows) * uint64_t(lidar.grid_columns);
+    for (uint32_t c : lidar.grid_cell) {
+      if (c >= cells) {
+        return bad(absl::StrCat("a point's grid cell lies outside the ", lidar.grid_rows, "x",
+                                lidar.grid_columns, " range grid"));
+      }
+    }
+  }
   if (n > 0 && !(lidar.divergence_rad > 0.0 && lidar.divergence_rad <= 0.1)) {
     return bad("LiDAR divergence_rad must lie in (0, 0.1] radians");
   }

@@ -1,7 +1,9 @@
 #include "lattice/ingest/voxelise.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <limits>
 
 #include <Eigen/Eigenvalues>
 #include <tbb/blocked_range.h>
@@ -17,6 +19,7 @@ namespace {
 constexpr int kKeyBits = 21;
 constexpr uint64_t kNoKey = ~uint64_t(0);  // skipped returns: sorts after every vossel
 constexpr int64_t kKeyOffset = int64_t(1) << (kKeyBits - 1);
+constexpr uint32_t kNoGridPoint = ~uint32_t(0);
 
 uint64_t PackKey(const openvdb::Coord& c) {
   return (uint64_t(c.x() + kKeyOffset) << (2 * kKeyBits)) |
@@ -31,47 +34,162 @@ openvdb::Coord UnpackKey(uint64_t key) {
 
 struct KeyedPoint {
   uint64_t key;
-  uint32_t point;  // point index in the LiDAR
+  uint32_t point;  // point index in the LiDAR; from point_count() on, a gap-fill point
   bool operator<(const KeyedPoint& o) const { return key != o.key ? key < o.key : point < o.point; }
 };
 
-}  // namespace
+// Surface connectivity from a scan's range grid (voxelise.h, GapFill): the points of the
+// triangles between grid-neighbouring returns on one surface that fall in vossels holding none
+// of the scan's returns, in grid order (so that their sums do not depend on the thread count).
+// `real` holds the returns' keys, sorted, the first `real_end` of them valid.
+GapFillPoints FillGaps(const LidarSource& src, double h, const Eigen::Matrix3d& R,
+                       const Eigen::Vector3d& o, const std::vector<KeyedPoint>& real,
+                       size_t real_end) {
+  const int rows = src.grid_rows, cols = src.grid_columns;
+  std::vector<uint32_t> at(size_t(rows) * size_t(cols), kNoGridPoint);
+  for (size_t i = 0; i < src.grid_cell.size(); ++i) {
+    const float* p = &src.xyz_sensor_m[3 * i];
+    if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) continue;
+    at[src.grid_cell[i]] = uint32_t(i);  // a cell given twice keeps its last return
+  }
+  const auto holds_return = [&](uint64_t key) {
+    const auto it = std::lower_bound(real.begin(), real.begin() + ptrdiff_t(real_end),
+                                     KeyedPoint{key, 0});
+    return it != real.begin() + ptrdiff_t(real_end) && it->key == key;
+  };
+  const double max_edge = kGapFillMaxEdgeVossels * h, step = kGapFillStepVossels * h;
+  std::vector<GapFillPoints> per_row(size_t(std::max(0, rows - 1)));
+  tbb::parallel_for(0, std::max(0, rows - 1), [&](int r) {
+    GapFillPoints& out = per_row[size_t(r)];
+    for (int c = 0; c + 1 < cols; ++c) {
+      const uint32_t id[4] = {at[size_t(r) * cols + size_t(c)], at[size_t(r) * cols + size_t(c) + 1],
+                              at[size_t(r + 1) * cols + size_t(c) + 1],
+                              at[size_t(r + 1) * cols + size_t(c)]};
+      // The quad's two triangles, or the one its three returns make when a corner has none.
+      const int valid = (id[0] != kNoGridPoint) + (id[1] != kNoGridPoint) +
+                        (id[2] != kNoGridPoint) + (id[3] != kNoGridPoint);
+      if (valid < 3) continue;
+      Eigen::Vector3d x[4];
+      double range[4] = {0, 0, 0, 0};
+      for (int k = 0; k < 4; ++k) {
+        if (id[k] == kNoGridPoint) continue;
+        const float* p = &src.xyz_sensor_m[3 * size_t(id[k])];
+        range[k] = Eigen::Vector3d(p[0], p[1], p[2]).norm();
+        x[k] = ReturnPosition(R, o, p);
+      }
+      int tri[2][3] = {{0, 1, 2}, {0, 2, 3}};
+      int n_tri = 2;
+      if (valid == 3) {
+        int k = 0;
+        for (int j = 0; j < 4; ++j)
+          if (id[j] != kNoGridPoint) tri[0][k++] = j;
+        n_tri = 1;
+      }
+      for (int t = 0; t < n_tri; ++t) {
+        const int a = tri[t][0], b = tri[t][1], d = tri[t][2];
+        const double lo = std::min({range[a], range[b], range[d]});
+        const double hi = std::max({range[a], range[b], range[d]});
+        if (hi > lo * (1.0 + kGapFillRangeStep)) continue;  // a depth edge: two surfaces
+        const double edge = std::max({(x[a] - x[b]).norm(), (x[b] - x[d]).norm(),
+                                      (x[d] - x[a]).norm()});
+        if (edge <= h || edge > max_edge) continue;  // no gap, or too wide to bridge
+        const int n = int(std::ceil(edge / step));
+        for (int i = 0; i <= n; ++i)
+          for (int j = 0; i + j <= n; ++j) {
+            if ((i == 0 && j == 0) || (i == n && j == 0) || (i == 0 && j == n)) continue;
+            const double wb = double(i) / n, wd = double(j) / n;
+            const Eigen::Vector3d y = x[a] + wb * (x[b] - x[a]) + wd * (x[d] - x[a]);
+            const Eigen::Vector3d k = VosselIndexOf(y, h);
+            if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) continue;
+            if (holds_return(PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))))) continue;
+            out.x.push_back(y);
+            out.corner.push_back({id[a], id[b], id[d]});
+            out.weight.push_back({float(1.0 - wb - wd), float(wb), float(wd)});
+          }
+      }
+    }
+  });
+  GapFillPoints all;
+  for (GapFillPoints& row : per_row) {
+    all.x.insert(all.x.end(), row.x.begin(), row.x.end());
+    all.corner.insert(all.corner.end(), row.corner.begin(), row.corner.end());
+    all.weight.insert(all.weight.end(), row.weight.begin(), row.weight.end());
+  }
+  return all;
+}
 
-absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
-  // 1. Every return to world, keyed by its vossel (cell-centred: k = round(x / h), §1).
+// Step 1 of binning: every return keyed by its vossel (cell-centred: k = round(x / h), §1),
+// sorted; "no return" markers and points beyond the lattice get kNoKey (sorting last). The
+// count of keyed returns; false in `in_range` when a point lies beyond the lattice.
+size_t KeyReturns(const LidarSource& src, double h, const Eigen::Matrix3d& R,
+                  const Eigen::Vector3d& o, std::vector<KeyedPoint>* keyed, bool* in_range) {
   const size_t total = src.point_count();
-  std::vector<KeyedPoint> keyed(total);
+  keyed->resize(total);
   std::atomic<bool> out_of_range{false};
-  const Eigen::Matrix3d R = src.pose.q_world_sensor.toRotationMatrix();
-  const Eigen::Vector3d o = src.pose.o_world;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, total, 1 << 14),
                     [&](const tbb::blocked_range<size_t>& r) {
     for (size_t i = r.begin(); i != r.end(); ++i) {
       const float* p = &src.xyz_sensor_m[3 * i];
       if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) {  // "no return" marker
-        keyed[i] = {kNoKey, uint32_t(i)};
+        (*keyed)[i] = {kNoKey, uint32_t(i)};
         continue;
       }
       const Eigen::Vector3d k = VosselIndexOf(ReturnPosition(R, o, p), h);
       if (k.cwiseAbs().maxCoeff() > kMaxVosselIndex) {
         out_of_range = true;
-        keyed[i] = {kNoKey, uint32_t(i)};
+        (*keyed)[i] = {kNoKey, uint32_t(i)};
         continue;
       }
-      keyed[i] = {PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))), uint32_t(i)};
+      (*keyed)[i] = {PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))), uint32_t(i)};
     }
   });
-  if (out_of_range) {
+  *in_range = !out_of_range;
+  tbb::parallel_sort(keyed->begin(), keyed->end());
+  size_t end = 0;
+  while (end < total && (*keyed)[end].key != kNoKey) ++end;
+  return end;
+}
+
+}  // namespace
+
+absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
+  // 1. Every return keyed by its vossel (cell-centred: k = round(x / h), §1).
+  const size_t total = src.point_count();
+  const Eigen::Matrix3d R = src.pose.q_world_sensor.toRotationMatrix();
+  const Eigen::Vector3d o = src.pose.o_world;
+  std::vector<KeyedPoint> keyed;
+  bool in_range = true;
+  size_t end = KeyReturns(src, h, R, o, &keyed, &in_range);
+  if (!in_range) {
     return absl::InvalidArgumentError(absl::StrCat(
         "a point lies farther than ", kMaxVosselIndex * h,
         " m from the project's origin on some axis, outside the lattice; check the pose and "
         "units"));
   }
-  tbb::parallel_sort(keyed.begin(), keyed.end());
 
-  // 2. Runs of equal keys are vossels; skipped returns sort last. Sums in point order.
-  size_t end = 0;
-  while (end < total && keyed[end].key != kNoKey) ++end;
+  // 2. With a range grid, the gaps between neighbouring returns on one surface are filled
+  // (gap-fill points join the returns, numbered after them).
+  std::vector<Eigen::Vector3d> fill;
+  if (src.HasGrid()) {
+    fill = FillGaps(src, h, R, o, keyed, end).x;
+    if (total + fill.size() > std::numeric_limits<uint32_t>::max()) {
+      return absl::InvalidArgumentError("a scan's returns and gap fill exceed 2^32 points");
+    }
+    for (size_t f = 0; f < fill.size(); ++f) {
+      const Eigen::Vector3d k = VosselIndexOf(fill[f], h);
+      keyed.push_back({PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))),
+                       uint32_t(total + f)});
+    }
+    tbb::parallel_sort(keyed.begin(), keyed.end());
+    end = 0;
+    while (end < keyed.size() && keyed[end].key != kNoKey) ++end;
+  }
+  const auto position = [&](uint32_t point) {
+    return point < total ? ReturnPosition(R, o, &src.xyz_sensor_m[3 * size_t(point)])
+                         : fill[point - total];
+  };
+
+  // 3. Runs of equal keys are vossels; skipped returns sort last. Sums in point order.
   std::vector<size_t> run_begin;
   for (size_t i = 0; i < end; ++i) {
     if (i == 0 || keyed[i].key != keyed[i - 1].key) run_begin.push_back(i);
@@ -89,7 +207,7 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
       const Eigen::Vector3d centre = h * Eigen::Vector3d(k.x(), k.y(), k.z());
       records::VosselSums s;
       for (size_t i = b; i < e; ++i) {
-        const Eigen::Vector3d x = ReturnPosition(R, o, &src.xyz_sensor_m[3 * keyed[i].point]);
+        const Eigen::Vector3d x = position(keyed[i].point);
         const Eigen::Vector3d d = x - centre;
         s.sum_m += d;
         s.sum_xx_m2[0] += d.x() * d.x();
@@ -106,6 +224,15 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
     }
   });
   return out;
+}
+
+GapFillPoints GapFill(const LidarSource& src, double h) {
+  if (!src.HasGrid()) return {};
+  const Eigen::Matrix3d R = src.pose.q_world_sensor.toRotationMatrix();
+  std::vector<KeyedPoint> keyed;
+  bool in_range = true;
+  const size_t end = KeyReturns(src, h, R, src.pose.o_world, &keyed, &in_range);
+  return FillGaps(src, h, R, src.pose.o_world, keyed, end);
 }
 
 records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,

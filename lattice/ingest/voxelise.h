@@ -2,6 +2,7 @@
 /// @brief Voxelisation of LiDAR returns into vossels and their normals (VASL-MODEL §1).
 #pragma once
 
+#include <array>
 #include <cmath>
 #include <vector>
 
@@ -39,12 +40,40 @@ struct BinnedLidar {
   size_t size() const { return coord.size(); }
 };
 
+/// Surface connectivity from a range grid (choice; issue "Renders…", "no see-through gaps"):
+/// grid-neighbouring returns whose ranges differ by at most this share lie on one surface.
+inline constexpr double kGapFillRangeStep = 0.1;
+/// Triangles of such returns with an edge longer than this many vossels are not bridged (a gap
+/// that wide is more likely an opening than a surface the scanner sampled sparsely).
+inline constexpr double kGapFillMaxEdgeVossels = 8.0;
+/// Spacing of the fill points on a bridged triangle, vossels.
+inline constexpr double kGapFillStepVossels = 0.5;
+
 /// §1: bins every return of `lidar` into the vossel k = round(x / h) (cell-centred). Returns at
 /// sensor-frame (0,0,0) (a scanner's "no return" marker) are skipped. Within a vossel the
 /// points are summed in point order, so the result does not depend on the thread count.
+/// With a range grid (LidarSource::HasGrid), each pair of triangles between grid-neighbouring
+/// returns (a cell, its right, lower and lower-right neighbours) whose ranges differ by at most
+/// kGapFillRangeStep and whose longest edge lies in (h, kGapFillMaxEdgeVossels·h] is sampled
+/// every kGapFillStepVossels·h; the samples that fall in vossels holding none of the scan's
+/// returns join them as gap-fill points (counted and summed like returns, after them), so a
+/// surface the scan sampled more sparsely than the lattice has no holes for rays to pass. The
+/// LiDAR's records sample them too, each the returns of its triangle interpolated (GapFill).
 /// Parallel (TBB). INVALID_ARGUMENT when a point falls outside the lattice's range
 /// (±kMaxVosselIndex·h).
 absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& lidar, double vossel_size_m);
+
+/// The gap-fill points BinLidar adds for a LiDAR with a range grid, in its order: each point's
+/// lattice position and the three returns of the triangle it lies on with its barycentric
+/// weights, so that a sample of the returns (intensity, colour) can be interpolated there.
+struct GapFillPoints {
+  std::vector<Eigen::Vector3d> x;
+  std::vector<std::array<uint32_t, 3>> corner;
+  std::vector<std::array<float, 3>> weight;
+  size_t size() const { return x.size(); }
+};
+/// Empty for a LiDAR without a grid.
+GapFillPoints GapFill(const LidarSource& lidar, double vossel_size_m);
 
 /// An empty geometry of vossel size h with an (empty) index grid and sums.
 records::VosselGeometry EmptyGeometry(double vossel_size_m);

@@ -28,6 +28,8 @@ struct Capture {
   const char* name;
   double vossel_m;
   int azimuth_steps;  // LiDAR columns over 2π (rows: half)
+  bool range_grid = false;  // the scans carry their range grid (gap fill, voxelise.h)
+  double min_hit_share = 0.975;  // asserted share of seen pixels hit within one vossel
 };
 
 struct ViewFigures {
@@ -58,6 +60,7 @@ class SiteRenderTest : public ::testing::TestWithParam<Capture> {
       lidar.seed = uint64_t(s + 1);
       auto scan = scenes::MakeScanInput(site_, s, lidar, kPanoW, 2);
       ASSERT_TRUE(scan.ok()) << scan.status();
+      if (GetParam().range_grid) scenes::SetRangeGrid(lidar, &scan->lidar);
       auto r = engine_->IngestScan("site", *scan);
       ASSERT_TRUE(r.ok()) << r.status();
     }
@@ -135,7 +138,8 @@ class SiteRenderTest : public ::testing::TestWithParam<Capture> {
 //   panorama; before the slope-scaled tolerance covered the dilation, a floor or table top seen
 //   at grazing incidence shadowed itself: 1.5% of novel view 1 and 3.9% of view 2 at h = 2 cm);
 // - ≥ 97.5% of the pixels whose true surface a station saw hit it within one vossel, with a LiDAR
-//   grid finer or coarser than the vossel;
+//   grid finer or coarser than the vossel; ≥ 99% when the coarse scans carry their range grid,
+//   whose gap fill closes the far floors rays passed through (view 2: 97.81% → 99.33%);
 // - PSNR ≥ 20.5 dB at h = 5 cm and ≥ 25 dB at h = 2 cm.
 // The goals are 99% of seen pixels and 28 / 30 dB; the printed figures say where each
 // stands. The misses are silhouettes (a vossel overhangs its surface's edge by up to h/2) and
@@ -155,7 +159,7 @@ TEST_P(SiteRenderTest, NovelViewsMatchTheAnalyticSite) {
                 100.0 * colourless_share, (long long)f.black);
     EXPECT_EQ(f.black, 0);
     EXPECT_LE(colourless_share, 0.01);
-    EXPECT_GE(f.hit_share, 0.975);
+    EXPECT_GE(f.hit_share, c.min_hit_share);
     EXPECT_GE(f.psnr_db, c.vossel_m > 0.03 ? 20.5 : 25.0);
   }
 }
@@ -166,7 +170,8 @@ INSTANTIATE_TEST_SUITE_P(
     Captures, SiteRenderTest,
     ::testing::Values(Capture{"h5cm_fine_lidar", 0.05, 1440},
                       Capture{"h2cm_dense_lidar", 0.02, 3600},
-                      Capture{"h2cm_coarse_lidar", 0.02, 1440}),
+                      Capture{"h2cm_coarse_lidar", 0.02, 1440},
+                      Capture{"h2cm_coarse_lidar_grid", 0.02, 1440, true, 0.99}),
     [](const ::testing::TestParamInfo<Capture>& info) { return std::string(info.param.name); });
 
 }  // namespace

@@ -181,14 +181,16 @@ std::unique_ptr<store::ProjectStore> OpenStore(const fs::path& root, const std::
 
 // Ingests the room's 4 scans one at a time (their points coloured with `point_colour`), then
 // rebuilds: the incremental HEAD is v4, the rebuild v5.
-void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what) {
+void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what,
+                           bool range_grid = false) {
   auto engine = OpenEngine(root);
   CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
   for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2,
-                                      point_colour);
+    const scenes::LidarSettings lidar = scenes::LidarSettings::Small(i + 1);
+    auto scan = scenes::MakeScanInput(room, i, lidar, kPanoW, 2, point_colour);
     ASSERT_TRUE(scan.ok()) << scan.status();
+    if (range_grid) scenes::SetRangeGrid(lidar, &scan->lidar);
     Ingest(*engine, "room", *scan);
   }
   auto rebuilt = engine->Rebuild("room");
@@ -211,6 +213,14 @@ TEST(IncrementalTest, IngestOneAtATimeEqualsRebuildOnTheRoom) {
 // records are recomputed from its LiDAR's blob and its own): incremental equals rebuild.
 TEST(IncrementalTest, IngestOfColouredScansEqualsRebuild) {
   IngestRoomThenRebuild(TestRoot("coloured"), true, "coloured room: incremental v4 vs rebuild v5");
+}
+
+// Claim (voxelise.h): the same with coloured scans with range grids, whose gap fill is binned
+// with the returns and sampled by the LiDAR and its colour source on every path (ingest from
+// the rig's input, rebuild from the stored blob with its grid).
+TEST(IncrementalTest, IngestOfScansWithRangeGridsEqualsRebuild) {
+  IngestRoomThenRebuild(TestRoot("grid"), true, "gridded coloured room: incremental v4 vs "
+                        "rebuild v5", true);
 }
 
 // Claim (§2.2, §5, flows.h): a camera-only scan (a pinhole photo and a panorama, where no

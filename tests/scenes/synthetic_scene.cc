@@ -389,6 +389,18 @@ bool LidarRowKept(const LidarSettings& settings, int j) {
   return psi >= -M_PI / 2.0 + settings.nadir_blind_rad;
 }
 
+void SetRangeGrid(const LidarSettings& settings, ingest::LidarData* lidar) {
+  lidar->grid_rows = settings.elevation_steps;
+  lidar->grid_columns = settings.azimuth_steps;
+  lidar->grid_cell.clear();
+  for (int j = 0; j < settings.elevation_steps; ++j) {
+    if (!LidarRowKept(settings, j)) continue;
+    for (int i = 0; i < settings.azimuth_steps; ++i) {
+      lidar->grid_cell.push_back(uint32_t(j * settings.azimuth_steps + i));
+    }
+  }
+}
+
 LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanner,
                         const LidarSettings& settings) {
   const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};

@@ -283,6 +283,11 @@ struct LidarSettings {
 /// is at least −π/2 + nadir_blind_rad): GenerateLidar casts that row's rays.
 bool LidarRowKept(const LidarSettings& settings, int j);
 
+/// The range grid of a scan GenerateLidar casts with `settings`, as a scanner's row and column
+/// indices (E57 rowIndex / columnIndex) give it: elevation_steps × azimuth_steps cells, and per
+/// point (kept rows, row-major) its cell row·columns + column, into `lidar`.
+void SetRangeGrid(const LidarSettings& settings, ingest::LidarData* lidar);
+
 /// A LiDAR scan: points in the SENSOR frame, row-major over the ray grid (row 0 up).
 struct LidarScan {
   std::vector<float> xyz_sensor_m;  ///< 3 floats per point, sensor frame, metres

@@ -234,17 +234,22 @@ def _check_points(xyz_m: np.ndarray, intensity, rgb) -> np.ndarray:
 
 
 def pack_points(xyz_m: np.ndarray, intensity: Optional[np.ndarray] = None,
-                rgb: Optional[np.ndarray] = None) -> bytes:
-    """(N, 3) or (N, 4) points [+ (N,) intensity] [+ (N, 3) linear colour] -> packed
-    little-endian float32 (x, y, z, i), or (x, y, z, i, r, g, b) with colour (28 bytes a point,
-    POINT_FORMAT_XYZIRGB_F32LE)."""
+                rgb: Optional[np.ndarray] = None, grid: Optional[np.ndarray] = None) -> bytes:
+    """(N, 3) or (N, 4) points [+ (N,) intensity] [+ (N, 3) linear colour] [+ (N, 2) range-grid
+    row and column] -> packed little-endian float32 (x, y, z, i), or (x, y, z, i, r, g, b) with
+    colour (28 bytes a point, POINT_FORMAT_XYZIRGB_F32LE), each followed by uint32 row, column
+    with a grid (LidarModel.grid)."""
     arr = _check_points(xyz_m, intensity, rgb)
-    packed = np.zeros((arr.shape[0], 4 if rgb is None else 7), dtype="<f4")
-    packed[:, :arr.shape[1]] = arr
+    floats = 4 if rgb is None else 7
+    fields = [("f", "<f4", (floats,))] + ([("rc", "<u4", (2,))] if grid is not None else [])
+    packed = np.zeros(arr.shape[0], dtype=np.dtype(fields))
+    packed["f"][:, :arr.shape[1]] = arr
     if intensity is not None:
-        packed[:, 3] = np.asarray(intensity).ravel()
+        packed["f"][:, 3] = np.asarray(intensity).ravel()
     if rgb is not None:
-        packed[:, 4:] = np.asarray(rgb)
+        packed["f"][:, 4:] = np.asarray(rgb)
+    if grid is not None:
+        packed["rc"] = np.asarray(grid)
     return packed.tobytes()
 
 
@@ -271,8 +276,9 @@ class ArrayPoints(PointSource):
 
 
 def point_stride(source: PointSource) -> int:
-    """Bytes a point of `source` takes on the wire: 28 with colour, else 16."""
-    return 28 if source.has_rgb else 16
+    """Bytes a point of `source` takes on the wire: 28 with colour, else 16; 8 more with a range
+    grid (its row and column)."""
+    return (28 if source.has_rgb else 16) + (8 if source.grid_shape else 0)
 
 
 def packed_chunks(source: PointSource, chunk_points: int = CHUNK_POINTS) -> Iterator[bytes]:
@@ -289,13 +295,20 @@ def packed_chunks(source: PointSource, chunk_points: int = CHUNK_POINTS) -> Iter
             raise ValueError(f"{source.path or 'points'}: yields more points than the "
                              f"{source.count} it declared")
         yield pack_points(chunk.xyz_m, chunk.intensity if source.has_intensity else None,
-                          chunk.rgb if source.has_rgb else None)
+                          chunk.rgb if source.has_rgb else None,
+                          chunk.grid if source.grid_shape else None)
         sent += n
     stride = point_stride(source)
     while sent < source.count:
         n = min(chunk_points, source.count - sent)
         yield bytes(n * stride)
         sent += n
+
+
+def _wire_stride(header: pb.ScanHeader) -> int:
+    """Bytes a point takes in the stream `header` announces."""
+    return ((28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16)
+            + (8 if header.lidar.HasField("grid") else 0))
 
 
 def ingest_requests(header: pb.ScanHeader, point_bytes: Union[bytes, Iterable[bytes]],
@@ -307,7 +320,7 @@ def ingest_requests(header: pb.ScanHeader, point_bytes: Union[bytes, Iterable[by
     is in memory. No validation: a test may send anything this way."""
     yield pb.IngestScanRequest(header=header)
     sent = 0
-    stride = 28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16
+    stride = _wire_stride(header)
     step = max(stride, chunk_bytes - chunk_bytes % stride)
     whole = isinstance(point_bytes, (bytes, bytearray, memoryview))
     pieces = [point_bytes] if whole else point_bytes
@@ -617,6 +630,8 @@ class Client:
             header.lidar.point_format = (pb.POINT_FORMAT_XYZIRGB_F32LE if source.has_rgb
                                          else pb.POINT_FORMAT_XYZI_F32LE)
             header.lidar.point_count = source.count
+            if source.grid_shape:  # each point carries its row and column
+                header.lidar.grid.rows, header.lidar.grid.columns = source.grid_shape
         images = []
         for i, p in enumerate(panoramas):
             reference = bool(p.get("visual_reference", False))
@@ -717,7 +732,7 @@ class Client:
 
     def _ingest_once(self, header, point_bytes, images, total_bytes, progress, poll_s):
         state = {"sent": 0, "error": None, "t0": time.monotonic(), "t1": None}
-        stride = 28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16
+        stride = _wire_stride(header)
         total_points = header.lidar.point_count
 
         def on_sent(n):

@@ -39,6 +39,7 @@ class PointCloud:
     xyz_m: np.ndarray  #: (N, 3) float32, metres
     intensity: Optional[np.ndarray] = None  #: (N,) float32 or None
     rgb: Optional[np.ndarray] = None  #: (N, 3) float32 linear colour, or None
+    grid: Optional[np.ndarray] = None  #: (N, 2) uint32 range-grid row and column, or None
 
     def __len__(self) -> int:
         return int(self.xyz_m.shape[0])
@@ -68,6 +69,9 @@ class PointSource:
     count: int = 0
     has_intensity: bool = False
     has_rgb: bool = False
+    #: (rows, columns) of the scan's range grid when each point has its row and column (E57
+    #: rowIndex / columnIndex): the server then fills the gaps between neighbouring returns
+    grid_shape: Optional[Tuple[int, int]] = None
 
     def __init__(self) -> None:
         self.notes: List[str] = []
@@ -376,6 +380,9 @@ class E57Scan:
 _E57_XYZ = ("cartesianX", "cartesianY", "cartesianZ")
 _E57_RAE = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 _E57_RGB = ("colorRed", "colorGreen", "colorBlue")
+_E57_GRID = ("rowIndex", "columnIndex")
+#: Cells a range grid may have (the server's limit: 2^32).
+MAX_GRID_CELLS = 1 << 32
 
 
 class E57Points(PointSource):
@@ -404,6 +411,7 @@ class E57Points(PointSource):
         self.intensity_limits: Optional[Tuple[float, float]] = None
         self.colour_limits: Optional[List[Tuple[float, float]]] = None  #: red, green, blue
         self.to_sensor: Optional[Pose] = None  #: set: the points are stored in its world frame
+        self.grid_origin: Tuple[int, int] = (0, 0)  #: rowMinimum, columnMinimum of the grid
 
     @property
     def coordinate_fields(self) -> Tuple[str, ...]:
@@ -471,6 +479,8 @@ class E57Points(PointSource):
             fields.append("intensity")
         if self.has_rgb:
             fields.extend(_E57_RGB)
+        if self.grid_shape:
+            fields.extend(_E57_GRID)
         for raw in self.raw_chunks(fields, chunk_points):
             xyz, keep = self._xyz(raw)
             xyz = xyz[keep]
@@ -483,7 +493,12 @@ class E57Points(PointSource):
             if self.has_rgb:
                 rgb = np.stack([srgb_to_linear(_scaled(raw[f][keep], lim))
                                 for f, lim in zip(_E57_RGB, self.colour_limits)], axis=1)
-            yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity, rgb)
+            grid = None
+            if self.grid_shape:  # from the index bounds' minimum, clipped into the grid
+                rc = np.stack([raw[f][keep] - lo for f, lo in zip(_E57_GRID, self.grid_origin)],
+                              axis=1)
+                grid = np.clip(rc, 0, np.asarray(self.grid_shape) - 1).astype(np.uint32)
+            yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity, rgb, grid)
 
 
 def _scaled(values: np.ndarray, limits: Tuple[float, float]) -> np.ndarray:
@@ -575,6 +590,8 @@ def _e57_open_scan(e57, i: int, path: str, where: str, stem: str, count: int
         _e57_survey(points, survey)
     if points.count == 0:
         raise ValueError(f"{where}: holds no valid point")
+    if all(f in names for f in _E57_GRID):
+        _e57_grid(points, node, prototype)
     has_pose = node.isDefined("pose")
     notes: List[str] = []
     pose = ((_e57_pose(node["pose"], where, notes, partial=True) if has_pose else None)
@@ -584,6 +601,35 @@ def _e57_open_scan(e57, i: int, path: str, where: str, stem: str, count: int
         has_pose = False
     name = stem if count == 1 else f"{stem}-{i + 1}"
     return name, pose, has_pose, points
+
+
+def _e57_grid(points: E57Points, node, prototype) -> None:
+    """The scan's range grid from its rowIndex / columnIndex fields: bounds from the scan's
+    indexBounds, else the fields' declared ranges. A grid without bounds, or too large, is left
+    out (and said so): the scan is then ingested as unordered points."""
+    bounds = None
+    if node.isDefined("indexBounds"):
+        b = node["indexBounds"]
+        rows = _e57_limits(b, "rowMinimum", "rowMaximum")
+        cols = _e57_limits(b, "columnMinimum", "columnMaximum")
+        if rows and cols:
+            bounds = rows, cols
+    if bounds is None:
+        rows, cols = (_e57_field_limits(prototype, f) for f in _E57_GRID)
+        if rows and cols:
+            bounds = rows, cols
+    if bounds is None:
+        points.notes.append("rowIndex / columnIndex without bounds: the range grid is not used")
+        return
+    (r0, r1), (c0, c1) = bounds
+    shape = (int(r1 - r0) + 1, int(c1 - c0) + 1)
+    if min(shape) < 1 or shape[0] * shape[1] > MAX_GRID_CELLS:
+        points.notes.append(f"a {shape[0]}x{shape[1]} range grid is out of bounds: not used")
+        return
+    points.grid_shape = shape
+    points.grid_origin = (int(r0), int(c0))
+    points.notes.append(f"range grid {shape[0]} x {shape[1]} (rowIndex, columnIndex): the "
+                        "server fills the gaps between neighbouring returns on one surface")
 
 
 def _e57_survey(points: E57Points, fields: List[str]) -> None:
