@@ -10,7 +10,6 @@
 #include <set>
 
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_join.h"
 #include "lattice/flows/flows.h"
 #include "lattice/flows/world_frame.h"
 #include "lattice/fusion/fuse.h"
@@ -272,26 +271,9 @@ absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> Engine::GetVi
     const std::string& project, const std::string& scan, const std::string& name) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();
-  auto scans = ListScans(project);
+  auto scans = ListScans(project);  // world poses
   if (!scans.ok()) return scans.status();
-  for (const store::ScanInfo& s : *scans) {
-    if (s.name != scan) continue;
-    std::vector<std::string> names;
-    for (const store::VisualReferenceInfo& ref : s.visual_references) {
-      if (ref.name != name) {
-        names.push_back(ref.name);
-        continue;
-      }
-      auto bytes = (*p)->store->ReadBlob(ref.blob_sha256);
-      if (!bytes.ok()) return bytes.status();
-      return std::make_pair(ref, std::move(*bytes));
-    }
-    return absl::NotFoundError(absl::StrCat(
-        "scan '", scan, "' of project '", project, "' has no visual reference '", name, "'",
-        names.empty() ? std::string(" (it has none)")
-                      : absl::StrCat(" (it has: ", absl::StrJoin(names, ", "), ")")));
-  }
-  return absl::NotFoundError(absl::StrCat("project '", project, "' has no scan '", scan, "'"));
+  return flows::VisualReference(*(*p)->store, *scans, project, scan, name);
 }
 
 absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,

@@ -219,6 +219,12 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
                                                 const fusion::WeightingProfile& profile,
                                                 int64_t limit);
 
+/// A visual reference of a scan among `scans` (their poses as the caller wants them) and its
+/// image bytes as sent. NOT_FOUND naming the scan, or the reference and the ones it has.
+absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> VisualReference(
+    const store::ProjectStore& store, const std::vector<store::ScanInfo>& scans,
+    const std::string& project, const std::string& scan, const std::string& name);
+
 /// A new version that gives back version `version` of the project: its manifest (every tile
 /// and layer, shared, nothing rewritten), its counts and its live scans. NOT_FOUND when
 /// retention removed it, INVALID_ARGUMENT for HEAD or a later version.

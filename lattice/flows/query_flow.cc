@@ -6,6 +6,7 @@
 #include <memory>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_format.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
@@ -252,6 +253,29 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
     }
   }
   return out;
+}
+
+absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> VisualReference(
+    const store::ProjectStore& store, const std::vector<store::ScanInfo>& scans,
+    const std::string& project, const std::string& scan, const std::string& name) {
+  for (const store::ScanInfo& s : scans) {
+    if (s.name != scan) continue;
+    std::vector<std::string> names;
+    for (const store::VisualReferenceInfo& ref : s.visual_references) {
+      if (ref.name != name) {
+        names.push_back(ref.name);
+        continue;
+      }
+      absl::StatusOr<std::string> bytes = store.ReadBlob(ref.blob_sha256);
+      if (!bytes.ok()) return bytes.status();
+      return std::make_pair(ref, std::move(*bytes));
+    }
+    return absl::NotFoundError(absl::StrCat(
+        "scan '", scan, "' of project '", project, "' has no visual reference '", name, "'",
+        names.empty() ? std::string(" (it has none)")
+                      : absl::StrCat(" (it has: ", absl::StrJoin(names, ", "), ")")));
+  }
+  return absl::NotFoundError(absl::StrCat("project '", project, "' has no scan '", scan, "'"));
 }
 
 }  // namespace vasl::flows
