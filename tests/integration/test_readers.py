@@ -67,6 +67,18 @@ def test_ply_without_intensity_and_bad_files(tmp_path):
         read_ply(str(p))
 
 
+def test_ply_row_and_column_give_the_range_grid(tmp_path):
+    p = tmp_path / "g.ply"
+    head = ("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+            "property float z\nproperty int row\nproperty int column\nend_header\n")
+    p.write_text(head + "1 0 0 0 0\n1 0.1 0 2 5\n")
+    cloud = read_ply(str(p))
+    assert cloud.grid.tolist() == [[0, 0], [2, 5]] and cloud.grid.dtype == np.uint32
+    p.write_text(head + "1 0 0 0 0\n1 0.1 0 -1 5\n")
+    with pytest.raises(ValueError, match="whole numbers >= 0"):
+        read_ply(str(p))
+
+
 def test_manifest_paths_and_validation(tmp_path):
     doc = {"scan": "s1", "rig": "r", "captured_utc": "2026-01-01T00:00:00Z",
            "pose": {"position": [1, 2, 3], "quaternion": [0, 0, 0, 2]},

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import fcntl
 import glob
+import json
 import math
 import os
 import pty
@@ -200,10 +201,11 @@ class _GridWall(PointSource):
             yield PointCloud(part, np.full(len(part), 0.5, np.float32), None, rc)
 
 
-def test_a_range_grid_travels_with_the_points_and_closes_the_gaps(client):
+def test_a_range_grid_travels_with_the_points_and_closes_the_gaps(client, tmp_path):
     """LidarModel.grid: each point's row and column reach the server, which fills the gaps of
-    a surface sampled more coarsely than the lattice; a column beyond the grid is refused and
-    nothing is stored."""
+    a surface sampled more coarsely than the lattice (from a PointSource, and from a manifest's
+    PLY with row and column properties); a column beyond the grid is refused and nothing is
+    stored."""
     for name in ("wall-bare", "wall-grid"):
         client.create_project(name, vossel_size_m=0.02)
     bare = client.ingest("wall-bare", scan="wall", points=_GridWall(False), pose=[0, 0, 0])
@@ -215,6 +217,26 @@ def test_a_range_grid_travels_with_the_points_and_closes_the_gaps(client):
     assert bare.vossel_count <= bare.point_count
     assert grid.vossel_count >= 0.95 * 4.62 * 2.91 / 0.02 ** 2
     assert grid.sent_bytes == bare.sent_bytes + 8 * bare.point_count
+    # The same scan as a manifest's PLY with row and column properties: the same lattice.
+    wall = _GridWall(True)
+    ply = tmp_path / "wall.ply"
+    rows = np.zeros(wall.count, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("intensity", "<f4"), ("row", "<u4"), ("column", "<u4")])
+    for k, axis in enumerate("xyz"):
+        rows[axis] = wall.xyz[:, k]
+    rows["intensity"], rows["row"], rows["column"] = 0.5, wall.rc[:, 0], wall.rc[:, 1]
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % wall.count
+                    + b"".join(b"property %s %s\n" % (t, n) for t, n in (
+                        (b"float", b"x"), (b"float", b"y"), (b"float", b"z"),
+                        (b"float", b"intensity"), (b"uint", b"row"), (b"uint", b"column")))
+                    + b"end_header\n" + rows.tobytes())
+    (tmp_path / "wall.json").write_text(json.dumps({
+        "scan": "wall", "pose": {"position": [0, 0, 0], "quaternion": [0, 0, 0, 1]},
+        "lidar": {"points": "wall.ply", "divergence_rad": 0.0003}}))
+    client.create_project("wall-ply", vossel_size_m=0.02)
+    from_ply = client.ingest("wall-ply", str(tmp_path / "wall.json"))
+    assert from_ply.vossel_count == grid.vossel_count
+
     client.create_project("wall-bad", vossel_size_m=0.02)
     with pytest.raises(Exception, match="outside the 41x61 range grid"):
         client.ingest("wall-bad", scan="wall", points=_GridWall(True, bad=True), pose=[0, 0, 0])

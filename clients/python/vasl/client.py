@@ -258,7 +258,7 @@ class ArrayPoints(PointSource):
     they are packed and sent chunk by chunk like a file's: the packed copy never exists
     whole. Validated when made, before anything is sent."""
 
-    def __init__(self, xyz_m, intensity=None, rgb=None):
+    def __init__(self, xyz_m, intensity=None, rgb=None, grid=None):
         super().__init__()
         self.xyz_m = _check_points(xyz_m, intensity, rgb)
         self.intensity = None if intensity is None else np.asarray(intensity).ravel()
@@ -266,13 +266,22 @@ class ArrayPoints(PointSource):
         self.count = int(self.xyz_m.shape[0])
         self.has_intensity = intensity is not None or self.xyz_m.shape[1] == 4
         self.has_rgb = rgb is not None
+        self.grid = None
+        if grid is not None:  # (N, 2) row, column in the scanner's range grid
+            rc = np.asarray(grid)
+            if rc.shape != (self.count, 2) or np.any(rc < 0):
+                raise ValueError(f"grid must be an ({self.count}, 2) array of rows and columns "
+                                 f">= 0, got shape {rc.shape}")
+            self.grid = rc.astype(np.uint32)
+            self.grid_shape = (int(self.grid[:, 0].max()) + 1, int(self.grid[:, 1].max()) + 1)
 
     def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
         for at in range(0, self.count, chunk_points):
             end = at + chunk_points
             yield PointCloud(self.xyz_m[at:end],
                              None if self.intensity is None else self.intensity[at:end],
-                             None if self.rgb is None else self.rgb[at:end])
+                             None if self.rgb is None else self.rgb[at:end],
+                             None if self.grid is None else self.grid[at:end])
 
 
 def point_stride(source: PointSource) -> int:
@@ -598,6 +607,9 @@ class Client:
             elif m.points_path is not None:
                 cloud = read_ply(m.points_path)
                 points, intensity = cloud.xyz_m, cloud.intensity
+                if cloud.grid is not None:  # row and column properties: the range grid
+                    points, intensity = ArrayPoints(cloud.xyz_m, cloud.intensity,
+                                                    grid=cloud.grid), None
             pose, divergence_rad, rig, captured_utc = m.pose, m.divergence_rad, m.rig, m.captured_utc
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
                           "modality": p.modality,

@@ -30,6 +30,9 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance")
+#: PLY vertex properties that give a point's row and column in the scanner's range grid.
+_ROW_NAMES = ("row", "rowindex", "scalar_row")
+_COLUMN_NAMES = ("column", "col", "columnindex", "scalar_column")
 
 
 @dataclass
@@ -193,7 +196,19 @@ def read_ply(path: str) -> PointCloud:
         col = {n: table[n] for n in prop_names}
     xyz = np.stack([col["x"], col["y"], col["z"]], axis=1).astype(np.float32)
     intensity = col[intensity_name].astype(np.float32) if intensity_name else None
-    return PointCloud(xyz_m=np.ascontiguousarray(xyz), intensity=intensity)
+    grid = None
+    row_name = next((p for p in prop_names if p.lower() in _ROW_NAMES), None)
+    column_name = next((p for p in prop_names if p.lower() in _COLUMN_NAMES), None)
+    if row_name and column_name and count > 0:  # the scan's range grid (see PointSource)
+        rc = np.stack([col[row_name], col[column_name]], axis=1).astype(np.float64)
+        if not np.all(np.isfinite(rc)) or np.any(rc < 0) or np.any(rc != np.floor(rc)):
+            raise ValueError(f"{path}: '{row_name}' and '{column_name}' must be whole numbers "
+                             ">= 0 (a point's row and column in the scanner's grid)")
+        shape = (int(rc[:, 0].max()) + 1, int(rc[:, 1].max()) + 1)
+        if shape[0] * shape[1] > MAX_GRID_CELLS:
+            raise ValueError(f"{path}: a {shape[0]} x {shape[1]} range grid exceeds 2^32 cells")
+        grid = rc.astype(np.uint32)
+    return PointCloud(xyz_m=np.ascontiguousarray(xyz), intensity=intensity, grid=grid)
 
 
 PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
