@@ -45,26 +45,46 @@ struct KeyedPoint {
 GapFillPoints FillGaps(const LidarSource& src, double h, const Eigen::Matrix3d& R,
                        const Eigen::Vector3d& o, const std::vector<KeyedPoint>& real,
                        size_t real_end) {
-  const int rows = src.grid_rows, cols = src.grid_columns;
-  std::vector<uint32_t> at(size_t(rows) * size_t(cols), kNoGridPoint);
+  const uint64_t rows = uint64_t(src.grid_rows), cols = uint64_t(src.grid_columns);
+  // The returns by cell (memory grows with the returns, not the grid): a cell given twice
+  // keeps its last return.
+  std::vector<std::pair<uint32_t, uint32_t>> by_cell;  // (cell, return)
   for (size_t i = 0; i < src.grid_cell.size(); ++i) {
     const float* p = &src.xyz_sensor_m[3 * i];
     if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) continue;
-    at[src.grid_cell[i]] = uint32_t(i);  // a cell given twice keeps its last return
+    by_cell.emplace_back(src.grid_cell[i], uint32_t(i));
   }
+  tbb::parallel_sort(by_cell.begin(), by_cell.end());
+  const auto at = [&](uint64_t cell) {
+    const auto it = std::upper_bound(by_cell.begin(), by_cell.end(),
+                                     std::make_pair(uint32_t(cell), kNoGridPoint));
+    return it != by_cell.begin() && std::prev(it)->first == cell ? std::prev(it)->second
+                                                                 : kNoGridPoint;
+  };
+  // The quads with a return at a corner, by their top-left cell (grid order).
+  std::vector<uint32_t> quads;
+  quads.reserve(4 * by_cell.size());
+  for (const auto& [cell, point] : by_cell) {
+    const uint64_t r = cell / cols, c = cell % cols;
+    for (uint64_t dr = 0; dr <= std::min<uint64_t>(r, 1); ++dr)
+      for (uint64_t dc = 0; dc <= std::min<uint64_t>(c, 1); ++dc)
+        if (r - dr + 1 < rows && c - dc + 1 < cols) quads.push_back(uint32_t(cell - dr * cols - dc));
+  }
+  tbb::parallel_sort(quads.begin(), quads.end());
+  quads.erase(std::unique(quads.begin(), quads.end()), quads.end());
   const auto holds_return = [&](uint64_t key) {
     const auto it = std::lower_bound(real.begin(), real.begin() + ptrdiff_t(real_end),
                                      KeyedPoint{key, 0});
     return it != real.begin() + ptrdiff_t(real_end) && it->key == key;
   };
   const double max_edge = kGapFillMaxEdgeVossels * h, step = kGapFillStepVossels * h;
-  std::vector<GapFillPoints> per_row(size_t(std::max(0, rows - 1)));
-  tbb::parallel_for(0, std::max(0, rows - 1), [&](int r) {
-    GapFillPoints& out = per_row[size_t(r)];
-    for (int c = 0; c + 1 < cols; ++c) {
-      const uint32_t id[4] = {at[size_t(r) * cols + size_t(c)], at[size_t(r) * cols + size_t(c) + 1],
-                              at[size_t(r + 1) * cols + size_t(c) + 1],
-                              at[size_t(r + 1) * cols + size_t(c)]};
+  constexpr size_t kBlock = 4096;  // quads a task takes; outputs joined in block order
+  std::vector<GapFillPoints> per_block((quads.size() + kBlock - 1) / kBlock);
+  tbb::parallel_for(size_t{0}, per_block.size(), [&](size_t block) {
+    GapFillPoints& out = per_block[block];
+    for (size_t q = block * kBlock; q < std::min(quads.size(), (block + 1) * kBlock); ++q) {
+      const uint64_t tl = quads[q];
+      const uint32_t id[4] = {at(tl), at(tl + 1), at(tl + cols + 1), at(tl + cols)};
       // The quad's two triangles, or the one its three returns make when a corner has none.
       const int valid = (id[0] != kNoGridPoint) + (id[1] != kNoGridPoint) +
                         (id[2] != kNoGridPoint) + (id[3] != kNoGridPoint);
@@ -110,7 +130,7 @@ GapFillPoints FillGaps(const LidarSource& src, double h, const Eigen::Matrix3d& 
     }
   });
   GapFillPoints all;
-  for (GapFillPoints& row : per_row) {
+  for (GapFillPoints& row : per_block) {
     all.x.insert(all.x.end(), row.x.begin(), row.x.end());
     all.corner.insert(all.corner.end(), row.corner.begin(), row.corner.end());
     all.weight.insert(all.weight.end(), row.weight.begin(), row.weight.end());
