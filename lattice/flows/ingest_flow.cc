@@ -169,6 +169,9 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     if (absl::Status stop = clock.Start("voxelise", 0.2); !stop.ok()) return stop;
     absl::StatusOr<ingest::BinnedLidar> binned = ingest::BinLidar(change.new_sources.lidars[0], h);
     if (!binned.ok()) return binned.status();
+    // The gap fill binned here is what the LiDAR's and its colour's records sample.
+    change.new_sources.lidars[0].gap_fill = binned->fill;
+    for (ingest::LidarSource& c : change.new_sources.point_colours) c.gap_fill = binned->fill;
     change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
     const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
     ingest::DeriveCentroidAndCovariance(change.geometry);

@@ -250,7 +250,8 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
   });
   // A scan with a range grid also samples its gap-fill points (BinLidar), each the returns of
   // its triangle interpolated: the vossels the fill made get the surface's values between them.
-  const GapFillPoints fill = GapFill(lidar, h);
+  const std::shared_ptr<const GapFillPoints> fill_owner = GapFill(lidar, h);
+  const GapFillPoints& fill = *fill_owner;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, fill.size(), 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
     Sums& s = local.local();
     auto acc = g.index_grid->getConstAccessor();

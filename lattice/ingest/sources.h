@@ -4,8 +4,10 @@
 ///        its source id (the `scan` field of its records, VASL-MODEL §6).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string_view>
 #include <vector>
@@ -45,6 +47,16 @@ struct ImageHeader {
 /// its codes; the pixels are not decoded, and may still fail to.
 absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes, int64_t max_pixels);
 
+/// The gap-fill points BinLidar adds for a LiDAR with a range grid, in its order: each point's
+/// lattice position and the three returns of the triangle it lies on with its barycentric
+/// weights, so that a sample of the returns (intensity, colour) can be interpolated there.
+struct GapFillPoints {
+  std::vector<Eigen::Vector3d> x;
+  std::vector<std::array<uint32_t, 3>> corner;
+  std::vector<std::array<float, 3>> weight;
+  size_t size() const { return x.size(); }
+};
+
 /// The LiDAR of a scan.
 struct LidarSource {
   int32_t id = 0;                     ///< source id (record `scan`)
@@ -62,6 +74,9 @@ struct LidarSource {
   /// columns cells, and per point its cell row·columns + column. Empty: an unordered scan.
   int32_t grid_rows = 0, grid_columns = 0;
   std::vector<uint32_t> grid_cell;
+  /// Its gap fill at the project's vossel size, when already computed (BinnedLidar::fill);
+  /// null: GapFill computes it.
+  std::shared_ptr<const GapFillPoints> gap_fill;
   size_t point_count() const { return xyz_sensor_m.size() / 3; }
   bool HasGrid() const { return grid_rows > 0 && grid_columns > 0 && !grid_cell.empty(); }
 };

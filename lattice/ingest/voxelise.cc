@@ -189,14 +189,14 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
 
   // 2. With a range grid, the gaps between neighbouring returns on one surface are filled
   // (gap-fill points join the returns, numbered after them).
-  std::vector<Eigen::Vector3d> fill;
+  std::shared_ptr<const GapFillPoints> filled;
   if (src.HasGrid()) {
-    fill = FillGaps(src, h, R, o, keyed, end).x;
-    if (total + fill.size() > std::numeric_limits<uint32_t>::max()) {
+    filled = std::make_shared<const GapFillPoints>(FillGaps(src, h, R, o, keyed, end));
+    if (total + filled->size() > std::numeric_limits<uint32_t>::max()) {
       return absl::InvalidArgumentError("a scan's returns and gap fill exceed 2^32 points");
     }
-    for (size_t f = 0; f < fill.size(); ++f) {
-      const Eigen::Vector3d k = VosselIndexOf(fill[f], h);
+    for (size_t f = 0; f < filled->size(); ++f) {
+      const Eigen::Vector3d k = VosselIndexOf(filled->x[f], h);
       keyed.push_back({PackKey(openvdb::Coord(int(k.x()), int(k.y()), int(k.z()))),
                        uint32_t(total + f)});
     }
@@ -206,7 +206,7 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   }
   const auto position = [&](uint32_t point) {
     return point < total ? ReturnPosition(R, o, &src.xyz_sensor_m[3 * size_t(point)])
-                         : fill[point - total];
+                         : filled->x[point - total];
   };
 
   // 3. Runs of equal keys are vossels; skipped returns sort last. Sums in point order.
@@ -217,6 +217,7 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   const size_t nv = run_begin.size();
   run_begin.push_back(end);
   BinnedLidar out;
+  out.fill = filled;
   out.coord.resize(nv);
   out.count.resize(nv);
   out.sums.resize(nv);
@@ -246,13 +247,14 @@ absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& src, double h) {
   return out;
 }
 
-GapFillPoints GapFill(const LidarSource& src, double h) {
-  if (!src.HasGrid()) return {};
+std::shared_ptr<const GapFillPoints> GapFill(const LidarSource& src, double h) {
+  if (src.gap_fill) return src.gap_fill;
+  if (!src.HasGrid()) return std::make_shared<const GapFillPoints>();
   const Eigen::Matrix3d R = src.pose.q_world_sensor.toRotationMatrix();
   std::vector<KeyedPoint> keyed;
   bool in_range = true;
   const size_t end = KeyReturns(src, h, R, src.pose.o_world, &keyed, &in_range);
-  return FillGaps(src, h, R, src.pose.o_world, keyed, end);
+  return std::make_shared<const GapFillPoints>(FillGaps(src, h, R, src.pose.o_world, keyed, end));
 }
 
 records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,

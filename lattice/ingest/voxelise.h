@@ -2,8 +2,8 @@
 /// @brief Voxelisation of LiDAR returns into vossels and their normals (VASL-MODEL §1).
 #pragma once
 
-#include <array>
 #include <cmath>
+#include <memory>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -37,6 +37,9 @@ struct BinnedLidar {
   std::vector<openvdb::Coord> coord;      ///< index-space k of each vossel hit
   std::vector<int32_t> count;             ///< returns in it
   std::vector<records::VosselSums> sums;  ///< their sums relative to h·k
+  /// The gap-fill points binned with the returns (null without a range grid): set them as the
+  /// LiDAR's `gap_fill` so that its records do not compute them again.
+  std::shared_ptr<const GapFillPoints> fill;
   size_t size() const { return coord.size(); }
 };
 
@@ -63,17 +66,9 @@ inline constexpr double kGapFillStepVossels = 0.5;
 /// (±kMaxVosselIndex·h).
 absl::StatusOr<BinnedLidar> BinLidar(const LidarSource& lidar, double vossel_size_m);
 
-/// The gap-fill points BinLidar adds for a LiDAR with a range grid, in its order: each point's
-/// lattice position and the three returns of the triangle it lies on with its barycentric
-/// weights, so that a sample of the returns (intensity, colour) can be interpolated there.
-struct GapFillPoints {
-  std::vector<Eigen::Vector3d> x;
-  std::vector<std::array<uint32_t, 3>> corner;
-  std::vector<std::array<float, 3>> weight;
-  size_t size() const { return x.size(); }
-};
-/// Empty for a LiDAR without a grid.
-GapFillPoints GapFill(const LidarSource& lidar, double vossel_size_m);
+/// The gap-fill points of a LiDAR with a range grid (GapFillPoints), as BinLidar computes them;
+/// empty for a LiDAR without a grid. Its cache `lidar.gap_fill` when that is set.
+std::shared_ptr<const GapFillPoints> GapFill(const LidarSource& lidar, double vossel_size_m);
 
 /// An empty geometry of vossel size h with an (empty) index grid and sums.
 records::VosselGeometry EmptyGeometry(double vossel_size_m);
