@@ -28,6 +28,20 @@ def room_points(n: int, seed: int, room: Sequence[float] = ROOM) -> np.ndarray:
     return d * t[:, None]
 
 
+def equirect_pixels(p: np.ndarray, width: int, height: int
+                    ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """VASL-MODEL §2.1 from the sensor: each sensor-frame point's (N, 3) column and row in a
+    width × height equirect panorama, and its range: what a render from the scanner holds at
+    the point's pixel."""
+    p = np.asarray(p, dtype=np.float64)
+    rng = np.linalg.norm(p, axis=1)
+    phi = np.arctan2(p[:, 1], p[:, 0])
+    psi = np.arcsin(np.clip(p[:, 2] / rng, -1.0, 1.0))
+    u = np.floor(width * (0.5 - phi / (2 * np.pi))).astype(int) % width
+    v = np.clip(np.floor(height * (0.5 - psi / np.pi)).astype(int), 0, height - 1)
+    return u, v, rng
+
+
 def room_chunks(n: int, chunk: int = 1 << 18, seed: int = 7) -> Iterator[Dict[str, np.ndarray]]:
     """The room's points in chunks: "xyz" (sensor frame, float64), "intensity" (0..65535,
     by height), "rgb" (uint8 by wall), "invalid" (every 97th point flagged invalid, its

@@ -47,19 +47,29 @@ def client_ingest(address: str, path: str, project: str):
     return r.stdout, int(hwm.group(1)) / 1024.0, seconds
 
 
+def measure_e57_ingest(server, client, tmp_path, n: int, project: str):
+    """Writes a synthetic E57 of `n` points, ingests it with the CLI into a new project with
+    coarse vossels; (CLI output, peak RSS MB, seconds, file size MB, seconds writing it). The
+    file is removed afterwards."""
+    path = str(tmp_path / f"{project}.e57")
+    t0 = time.monotonic()
+    write_e57(path, n, room_chunks(n), invalid=True)
+    written = time.monotonic() - t0
+    client.create_project(project, vossel_size_m=VOSSEL_M)
+    out, peak_mb, seconds = client_ingest(server.address, path, project)
+    size_mb = os.path.getsize(path) / 1e6
+    os.unlink(path)
+    return out, peak_mb, seconds, size_mb, written
+
+
 def test_client_peak_memory_does_not_grow_with_the_scan(server, client, tmp_path):
     peaks = []
     for n in SIZES:
-        path = str(tmp_path / f"room-{n // 1_000_000}m.e57")
-        t0 = time.monotonic()
-        write_e57(path, n, room_chunks(n), invalid=True)
-        written = time.monotonic() - t0
-        project = f"memory-{n // 1_000_000}m"
-        client.create_project(project, vossel_size_m=VOSSEL_M)
-        out, peak_mb, seconds = client_ingest(server.address, path, project)
+        out, peak_mb, seconds, size_mb, written = measure_e57_ingest(
+            server, client, tmp_path, n, f"memory-{n // 1_000_000}m")
         peaks.append(peak_mb)
-        print(f"\n{out.strip()}\nclient ingest of {n:,} points ({os.path.getsize(path) / 1e6:.1f}"
-              f" MB E57, written in {written:.1f} s): peak RSS {peak_mb:.1f} MB, {seconds:.1f} s")
+        print(f"\n{out.strip()}\nclient ingest of {n:,} points ({size_mb:.1f} MB E57, written "
+              f"in {written:.1f} s): peak RSS {peak_mb:.1f} MB, {seconds:.1f} s")
     growth = peaks[1] - peaks[0]
     whole = (SIZES[1] - SIZES[0]) * 16 / 1e6
     print(f"client peak RSS growth from {SIZES[0]:,} to {SIZES[1]:,} points: {growth:+.1f} MB "

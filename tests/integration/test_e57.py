@@ -15,6 +15,7 @@ import pytest
 from vasl.readers import read_e57
 
 from conftest import REPO
+from synth_scans import equirect_pixels
 
 DATA = os.environ.get("VASL_DATA_DIR", os.path.join(REPO, "..", "shared", "data"))
 E57 = os.path.join(DATA, "e57")
@@ -151,12 +152,7 @@ def test_real_e57_render_from_scanner_reproduces_ranges(server, client, tmp_path
     width, height = 2048, 1024
     render = client.render("pump", [0.0, 0.0, 0.0], width, height)
     cloud = read_e57(PUMP)[0].cloud
-    xyz = cloud.xyz_m.astype(np.float64)
-    rng = np.linalg.norm(xyz, axis=1)
-    phi = np.arctan2(xyz[:, 1], xyz[:, 0])
-    psi = np.arcsin(np.clip(xyz[:, 2] / rng, -1.0, 1.0))
-    u = np.floor(width * (0.5 - phi / (2 * math.pi))).astype(int) % width   # §2.1
-    v = np.clip(np.floor(height * (0.5 - psi / math.pi)).astype(int), 0, height - 1)
+    u, v, rng = equirect_pixels(cloud.xyz_m, width, height)
     depth = render.depth_m[v, u]
     hit = np.isfinite(depth)
     close = np.abs(depth - rng) < 2 * vossel_m

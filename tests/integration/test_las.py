@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from synth_scans import room_points, write_las
+from synth_scans import equirect_pixels, room_points, write_las
 from vasl.readers import read_las, rotation_matrix, world_to_sensor
 
 # World frame of the files. Survey files sit at UTM-like coordinates (x ≈ 500000, y ≈ 5000000);
@@ -56,11 +56,7 @@ def _depth_agreement(client, project: str, path: str) -> float:
     p = world_to_sensor(world, Pose.parse(pose))
     width, height = 2048, 1024
     render = client.render(project, pose, width, height, formats=("exr",))
-    rng = np.linalg.norm(p, axis=1)
-    phi = np.arctan2(p[:, 1], p[:, 0])
-    psi = np.arcsin(np.clip(p[:, 2] / rng, -1.0, 1.0))
-    u = np.floor(width * (0.5 - phi / (2 * math.pi))).astype(int) % width  # §2.1
-    v = np.clip(np.floor(height * (0.5 - psi / math.pi)).astype(int), 0, height - 1)
+    u, v, rng = equirect_pixels(p, width, height)
     depth = render.depth_m[v, u]
     close = np.abs(depth - rng) < 2 * VOSSEL_M
     share = float(close.mean())

@@ -6,33 +6,24 @@ Prints `soak: client ...` lines with each file's size and the client process's p
 slack (tests/integration/test_client_memory.py)."""
 from __future__ import annotations
 
-import os
 import re
-import time
 
 from conftest import env_int
-from synth_scans import room_chunks, write_e57
-from test_client_memory import SLACK_MB, VOSSEL_M, client_ingest
+from test_client_memory import SLACK_MB, measure_e57_ingest
 
 
 def test_client_peak_memory_on_a_large_e57(server, client, tmp_path):
     big = env_int("VASL_SOAK_CLIENT_POINTS", 20_000_000)
     peaks = {}
     for n in (1_000_000, big):
-        path = str(tmp_path / f"room-{n}.e57")
-        t0 = time.monotonic()
-        write_e57(path, n, room_chunks(n), invalid=True)
-        written = time.monotonic() - t0
-        project = f"soak-client-{n}"
-        client.create_project(project, vossel_size_m=VOSSEL_M)
-        out, peak_mb, seconds = client_ingest(server.address, path, project)
+        out, peak_mb, seconds, size_mb, written = measure_e57_ingest(
+            server, client, tmp_path, n, f"soak-client-{n}")
         peaks[n] = peak_mb
         rate = re.search(r"\(([\d.]+) MB/s\)", out)
         print(f"\n{out.strip()}")
-        print(f"soak: client ingest of {n:,} points: E57 {os.path.getsize(path) / 1e6:.0f} MB "
+        print(f"soak: client ingest of {n:,} points: E57 {size_mb:.0f} MB "
               f"(written in {written:.0f} s), client peak RSS {peak_mb:.1f} MB, {seconds:.1f} s, "
               f"upload {rate.group(1) if rate else '?'} MB/s")
-        os.unlink(path)
     growth = peaks[big] - peaks[1_000_000]
     print(f"soak: client peak RSS growth from 1,000,000 to {big:,} points: {growth:+.1f} MB "
           f"(allowed {SLACK_MB:.0f} MB; {big:,} points packed whole: {big * 16 / 1e6:.0f} MB)")
