@@ -17,6 +17,7 @@ import math
 import os
 import xml.etree.ElementTree as ET
 
+import e57  # the independent reader; deploy/setup.sh installs it (requirements.txt)
 import numpy as np
 import pytest
 
@@ -24,7 +25,6 @@ from conftest import REPO
 from vasl.readers import read_e57, rotation_matrix
 from vasl.types import srgb_to_linear
 
-e57 = pytest.importorskip("e57", reason="the e57 package (pip install e57) is not installed")
 
 DATA = os.environ.get("VASL_DATA_DIR", os.path.join(REPO, "..", "shared", "data"))
 FILES = sorted(glob.glob(os.path.join(DATA, "e57", "tiny", "*.e57"))
