@@ -45,6 +45,8 @@ struct Engine::Impl {
 
   fs::path data_dir;
   EngineLimits limits;
+  /// Decoded camera images of colour-detail renders (§8), shared by the projects.
+  std::unique_ptr<flows::SourceImageCache> detail_images;
   std::mutex mu;  ///< guards `projects`
   std::map<std::string, std::shared_ptr<Project>> projects;
 
@@ -197,6 +199,7 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const fs::path& data_dir,
   auto impl = std::make_unique<Impl>();
   impl->data_dir = data_dir;
   impl->limits = limits;
+  impl->detail_images = std::make_unique<flows::SourceImageCache>(limits.max_detail_image_bytes);
   return std::unique_ptr<Engine>(new Engine(std::move(impl)));
 }
 
@@ -430,7 +433,11 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   }
   RenderRequest local = request;  // §1: the lattice's frame
   local.pose = flows::Shifted(request.pose, -origin);
-  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, local, (*p)->fused_layers);
+  flows::RenderCaches caches;
+  caches.fused = &(*p)->fused_layers;
+  caches.images = impl_->detail_images.get();
+  caches.max_image_pixels = impl_->limits.max_image_pixels;
+  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, local, caches);
 }
 
 absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(

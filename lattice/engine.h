@@ -42,6 +42,9 @@ struct EngineLimits {
   int64_t max_image_pixels = 16384ll * 8192;  ///< one decoded image
   int max_render_width_px = 16384;
   int max_render_height_px = 8192;
+  /// Decoded camera images that renders with colour detail (§8) keep and read at once
+  /// (float RGB: 400 MB for an 8192×4096 panorama); cameras beyond it keep their records' colour.
+  int64_t max_detail_image_bytes = 2ll << 30;
 };
 
 /// Summary of a project (catalog + HEAD version).

@@ -228,6 +228,18 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
     return absl::InvalidArgumentError(absl::StrCat("eta must be >= 0, got ", request.eta()));
   }
   out.eta = request.eta();
+  switch (request.colour_detail()) {
+    case v1::COLOUR_DETAIL_UNSPECIFIED:
+    case v1::COLOUR_DETAIL_VOSSEL:
+      out.colour_detail = render::ColourDetail::kVossel;
+      break;
+    case v1::COLOUR_DETAIL_SOURCE_IMAGES:
+      out.colour_detail = render::ColourDetail::kSourceImages;
+      break;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown colour_detail ", int(request.colour_detail())));
+  }
   if (!std::isfinite(request.max_range_m()) || request.max_range_m() < 0.0) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_range_m must be >= 0 (0: 1000 m), got ", request.max_range_m()));

@@ -604,6 +604,8 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     meta->set_fused_on_the_fly(image->fused_on_the_fly);
     meta->set_render_id(image->render_id);
     meta->set_colourless_pixels(image->colourless_pixels);
+    meta->set_detail_sources(image->detail_sources);
+    meta->set_detail_sources_skipped(image->detail_sources_skipped);
     meta->set_render_seconds(render_seconds);
     meta->set_encode_seconds(SecondsSince(encode_start));
     return grpc::Status::OK;

@@ -166,16 +166,49 @@ class FusedLayerCache {
   std::map<std::string, std::shared_ptr<const records::FusedValues>> layers_;
 };
 
+/// Decoded camera images for renders with ColourDetail::kSourceImages (§8), by blob hash,
+/// within a byte budget: the least recently used go first. Thread-safe.
+class SourceImageCache {
+ public:
+  explicit SourceImageCache(int64_t budget_bytes) : budget_bytes_(budget_bytes) {}
+  int64_t budget_bytes() const { return budget_bytes_; }
+  /// The image decoded from blob `sha`, or null when not cached.
+  std::shared_ptr<const geometry::LinearImage> Find(const std::string& sha);
+  /// Keeps `image` (evicting others to stay within the budget; one larger than it is not kept).
+  void Put(const std::string& sha, std::shared_ptr<const geometry::LinearImage> image);
+
+ private:
+  std::mutex mu_;
+  const int64_t budget_bytes_;
+  int64_t bytes_ = 0;
+  uint64_t clock_ = 0;
+  struct Entry {
+    std::shared_ptr<const geometry::LinearImage> image;
+    uint64_t used = 0;
+  };
+  std::map<std::string, Entry> entries_;
+};
+
+/// What a render query reads besides the snapshot.
+struct RenderCaches {
+  FusedLayerCache* fused = nullptr;        ///< required
+  SourceImageCache* images = nullptr;      ///< required for ColourDetail::kSourceImages
+  int64_t max_image_pixels = 0;            ///< decode limit of one image
+};
+
 /// The render query (§8) of `snapshot` under `profile`: the fused values are the version's
-/// layer for the profile when every tile holds it (read once into `cache`), else fused from
-/// the records for this render (the image says so). With η > 0 the records are weighed under
-/// `profile` (§7) and scaled by its channel gains. The render is recorded in the catalog and
-/// gets its id.
+/// layer for the profile when every tile holds it (read once into the fused cache), else fused
+/// from the records for this render (the image says so). With η > 0 or colour detail the
+/// records are weighed under `profile` (§7) and scaled by its channel gains. With
+/// ColourDetail::kSourceImages the cameras whose records lie on hit vossels are decoded (or
+/// found in the image cache), most-hit first, as long as together they fit the cache's
+/// budget; the others keep their records' colours (the image counts them). The render is
+/// recorded in the catalog and gets its id.
 absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
                                                std::shared_ptr<const store::Snapshot> snapshot,
                                                const fusion::WeightingProfile& profile,
                                                const render::RenderRequest& request,
-                                               FusedLayerCache& cache);
+                                               const RenderCaches& caches);
 
 /// What the catalog records of a render (its pose, projection, profile and version).
 store::RenderRecord RenderRecordOf(const render::RenderRequest& request,

@@ -5,6 +5,8 @@
 #include <map>
 #include <memory>
 
+#include <tbb/parallel_for.h>
+
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_format.h"
@@ -88,13 +90,121 @@ absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
 
 }  // namespace
 
+std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(const std::string& sha) {
+  std::lock_guard<std::mutex> lock(mu_);
+  auto it = entries_.find(sha);
+  if (it == entries_.end()) return nullptr;
+  it->second.used = ++clock_;
+  return it->second.image;
+}
+
+void SourceImageCache::Put(const std::string& sha,
+                           std::shared_ptr<const geometry::LinearImage> image) {
+  const int64_t bytes = int64_t(image->ByteSize());
+  if (bytes > budget_bytes_) return;
+  std::lock_guard<std::mutex> lock(mu_);
+  if (entries_.count(sha) != 0) return;
+  while (bytes_ + bytes > budget_bytes_ && !entries_.empty()) {
+    auto oldest = entries_.begin();
+    for (auto it = entries_.begin(); it != entries_.end(); ++it) {
+      if (it->second.used < oldest->second.used) oldest = it;
+    }
+    bytes_ -= int64_t(oldest->second.image->ByteSize());
+    entries_.erase(oldest);
+  }
+  bytes_ += bytes;
+  entries_[sha] = {std::move(image), ++clock_};
+}
+
+namespace {
+
+/// ColourDetail::kSourceImages: the images of the cameras whose weighted colour records lie on
+/// the render's hit vossels, by source id, most-hit first within the cache's budget. Counts in
+/// `*skipped` the cameras left out (beyond the budget).
+absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
+    const store::ProjectStore& store, const SourceTable& sources, const records::RecordSet& recs,
+    const fusion::RecordWeightsResult& weights, const render::RenderImage& image,
+    const RenderCaches& caches, int64_t* skipped) {
+  std::vector<int64_t> hits_of_vossel(weights.begin.size() - 1, 0);
+  for (int32_t k : image.vossel_index) {
+    if (k >= 0 && size_t(k) < hits_of_vossel.size()) ++hits_of_vossel[size_t(k)];
+  }
+  std::map<int32_t, int64_t> hits_of_source;
+  for (size_t k = 0; k < hits_of_vossel.size(); ++k) {
+    if (hits_of_vossel[k] == 0) continue;
+    for (size_t i = weights.begin[k]; i < weights.begin[k + 1]; ++i) {
+      if (records::Modality(recs.modality[i]) == records::Modality::kRgb && weights.weight[i] > 0) {
+        hits_of_source[recs.scan[i]] += hits_of_vossel[k];
+      }
+    }
+  }
+  std::vector<std::pair<int64_t, const store::SourceInfo*>> cameras;  // (hits, source)
+  for (const auto& [id, hits] : hits_of_source) {
+    auto it = sources.by_id.find(id);
+    if (it == sources.by_id.end()) continue;
+    const store::SourceInfo* src = it->second.second;
+    if (src->modality != records::Modality::kRgb || IsPointColour(*src) || src->width_px <= 0 ||
+        src->blob_sha256.empty()) {
+      continue;
+    }
+    cameras.emplace_back(hits, src);
+  }
+  std::sort(cameras.begin(), cameras.end(), [](const auto& a, const auto& b) {
+    return a.first != b.first ? a.first > b.first : a.second->id < b.second->id;
+  });
+  std::vector<const store::SourceInfo*> chosen;
+  int64_t bytes = 0;
+  for (const auto& [hits, src] : cameras) {
+    const int64_t need = int64_t(src->width_px) * src->height_px * 3 * int64_t(sizeof(float));
+    if (bytes + need > caches.images->budget_bytes()) {
+      ++*skipped;
+      continue;
+    }
+    bytes += need;
+    chosen.push_back(src);
+  }
+  std::vector<render::DetailImage> out;
+  for (const store::SourceInfo* src : chosen) {
+    if (size_t(src->id) >= out.size()) out.resize(size_t(src->id) + 1);
+  }
+  std::vector<absl::Status> status(chosen.size());
+  tbb::parallel_for(size_t(0), chosen.size(), [&](size_t c) {
+    const store::SourceInfo& src = *chosen[c];
+    std::shared_ptr<const geometry::LinearImage> img = caches.images->Find(src.blob_sha256);
+    if (!img) {
+      absl::StatusOr<ingest::LinearImage> decoded =
+          StoredCamera(store, src, 0, caches.max_image_pixels).load();
+      if (!decoded.ok()) {
+        status[c] = decoded.status();
+        return;
+      }
+      img = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
+      caches.images->Put(src.blob_sha256, img);
+    }
+    render::DetailImage& d = out[size_t(src.id)];
+    d.pose = src.pose;
+    if (absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> k =
+            ProjectionOfCameraText(src.camera);
+        k.ok()) {
+      d.pinhole = *k;
+    }
+    d.image = std::move(img);
+  });
+  for (const absl::Status& s : status) {
+    if (!s.ok()) return s;
+  }
+  return out;
+}
+
+}  // namespace
+
 absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
                                                std::shared_ptr<const store::Snapshot> snap,
                                                const fusion::WeightingProfile& profile,
                                                const render::RenderRequest& request,
-                                               FusedLayerCache& cache) {
+                                               const RenderCaches& caches) {
   absl::StatusOr<std::shared_ptr<const records::FusedValues>> stored =
-      StoredFused(store, snap, profile, cache);
+      StoredFused(store, snap, profile, *caches.fused);
   if (!stored.ok()) return stored.status();
   std::shared_ptr<const records::FusedValues> fused = *stored;
   if (!fused) {  // no fused tiles under this profile in the version: fuse for this render
@@ -109,13 +219,15 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
   const store::Snapshot& snapshot = *snap;
   render::ViewBlendInputs blend;
   absl::StatusOr<fusion::RecordWeightsResult> weights;
-  if (request.eta > 0.0) {  // §8 view term: the records, their §7 weights, the source origins
+  absl::StatusOr<std::unique_ptr<SourceTable>> sources;
+  const bool detail = request.colour_detail == render::ColourDetail::kSourceImages;
+  if (request.eta > 0.0 || detail) {  // §8: the records, their §7 weights, the source origins
     weights = fusion::RecordWeights(snapshot.records, snapshot.geometry.size(),
                                     snapshot.geometry.vossel_size_m, profile);
     if (!weights.ok()) return weights.status();
-    absl::StatusOr<std::unique_ptr<SourceTable>> sources = Sources(store, snapshot.version);
+    sources = Sources(store, snapshot.version);
     if (!sources.ok()) return sources.status();
-    blend.source_origin_m = std::move((*sources)->origin_m);
+    blend.source_origin_m = (*sources)->origin_m;
     for (const auto& a : fusion::DenseChannelGains(profile, snapshot.records)) {
       blend.channel_gain.push_back(a);
     }
@@ -126,6 +238,21 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
   absl::StatusOr<render::RenderImage> image =
       render::RenderEquirect(snapshot.geometry, *fused, request, &blend);
   if (!image.ok()) return image.status();
+  if (detail) {  // §8 with each record's colour read again at the pixel's own point
+    if (caches.images == nullptr) {
+      return absl::InvalidArgumentError("this engine keeps no source images for colour detail");
+    }
+    absl::StatusOr<std::vector<render::DetailImage>> images = DetailImages(
+        store, **sources, snapshot.records, *weights, *image, caches,
+        &image->detail_sources_skipped);
+    if (!images.ok()) return images.status();
+    blend.images = std::move(*images);
+    if (absl::Status s = render::ApplyColourDetail(snapshot.geometry, request, blend, &*image);
+        !s.ok()) {
+      return s;
+    }
+    image->vossel_index = {};
+  }
   image->version = snapshot.version;
   image->profile = profile.name;
   image->profile_revision = profile.version;

@@ -13,38 +13,14 @@
 #include <tbb/parallel_reduce.h>
 
 #include "lattice/geometry/footprint.h"
+#include "lattice/geometry/linear_image.h"
 #include "lattice/ingest/voxelise.h"
 
 namespace vasl::ingest {
 namespace {
 
+using geometry::SampleBilinear;
 using records::RecordSet;
-
-// Bilinear read of a linear image at continuous pixel coordinates (§2.1: pixel centres at
-// half-integers); columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp.
-void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out,
-                    bool* clipped) {
-  const double x = u - 0.5, y = v - 0.5;
-  const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
-  const double fx = x - i0, fy = y - j0;
-  const int W = img.width_px, H = img.height_px, C = img.channels;
-  const int ia = wrap ? geometry::WrapColumn(i0, W) : std::clamp(i0, 0, W - 1);
-  const int ib = wrap ? geometry::WrapColumn(i0 + 1, W) : std::clamp(i0 + 1, 0, W - 1);
-  const int ja = std::clamp(j0, 0, H - 1), jb = std::clamp(j0 + 1, 0, H - 1);
-  const float* p00 = &img.pixels[(size_t(ja) * W + ia) * C];
-  const float* p10 = &img.pixels[(size_t(ja) * W + ib) * C];
-  const float* p01 = &img.pixels[(size_t(jb) * W + ia) * C];
-  const float* p11 = &img.pixels[(size_t(jb) * W + ib) * C];
-  bool clip = false;
-  for (int c = 0; c < C; ++c) {
-    out[c] = float((1 - fy) * ((1 - fx) * p00[c] + fx * p10[c]) + fy * ((1 - fx) * p01[c] + fx * p11[c]));
-    if (img.clip_value > 0.0f) {
-      const float lim = 0.999f * img.clip_value;
-      clip |= p00[c] >= lim || p10[c] >= lim || p01[c] >= lim || p11[c] >= lim;
-    }
-  }
-  *clipped = clip;
-}
 
 // Appends one record with every field set.
 void PushRecord(RecordSet& s, int32_t vossel, int32_t scan, records::Modality m,

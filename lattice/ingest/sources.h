@@ -13,20 +13,15 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/linear_image.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
 
 namespace vasl::ingest {
 
-/// A decoded image, row-major, row 0 at the top, linear radiometry.
-struct LinearImage {
-  int width_px = 0;
-  int height_px = 0;
-  int channels = 0;            ///< 1 or 3
-  std::vector<float> pixels;   ///< width·height·channels values
-  float clip_value = 0.0f;     ///< linear value at which the encoding clips (1 for 8/16-bit); 0: none
-};
+/// A decoded image (geometry/linear_image.h: shared with the render's colour detail).
+using geometry::LinearImage;
 
 /// Decodes PNG, JPEG, EXR or TIFF bytes with OpenImageIO. Integer encodings are taken as sRGB
 /// and linearised; float encodings are linear already. Keeps 3 channels (gray is replicated)

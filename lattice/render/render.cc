@@ -18,16 +18,19 @@
 #include <cstdint>
 #include <limits>
 #include <mutex>
+#include <optional>
 #include <string>
 
 #include <openvdb/math/DDA.h>
 #include <openvdb/math/Ray.h>
 #include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "lattice/geometry/equirect.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/render/render.h"
 #include "lattice/render/render_internal.h"
 
@@ -141,11 +144,33 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
   }
 }
 
-/// §8 with η > 0 for the hit vossel k: C = Σ w·max(0, v_{k,m}·v_{k,o})^η·C_{k,m} / Σ w·(same)
-/// over k's rgb and derived records. Writes `rgb` and returns true, or returns false when no
-/// weighted record faces the view (the caller falls back to C_k).
-bool ViewBlend(const ViewBlendInputs& blend, const records::VosselGeometry& geometry, size_t k,
-               const RenderRequest& request, float* rgb) {
+/// Where source m's image sees the world point x (§2.1 or §2.2 through its pose), or nullopt
+/// behind or outside a pinhole photo.
+std::optional<Eigen::Vector2d> ImagePixel(const DetailImage& src, const Eigen::Vector3d& x) {
+  const Eigen::Vector3d d_cam = src.pose.q_world_sensor.conjugate() * (x - src.pose.o_world);
+  if (!src.pinhole) {
+    return geometry::EquirectProject(d_cam, {src.image->width_px, src.image->height_px});
+  }
+  geometry::PinholeIntrinsics k = *src.pinhole;
+  k.width_px = src.image->width_px;
+  k.height_px = src.image->height_px;
+  const std::optional<Eigen::Vector2d> uv = geometry::PinholeProject(d_cam, k);
+  if (!uv || uv->x() < 0.0 || uv->y() < 0.0 || uv->x() > k.width_px || uv->y() > k.height_px) {
+    return std::nullopt;
+  }
+  return uv;
+}
+
+/// §8 over the hit vossel k's rgb and derived records of positive weight:
+/// C = Σ w·f·a·S_m / Σ w·f, f = max(0, v_{k,m}·v_{k,o})^η (1 when η = 0; v the unit vectors
+/// from x_k to the source and to the render origin), a the channel gain, S_m = C_{k,m} or, with
+/// `x_hit` (ColourDetail::kSourceImages), source m's image read bilinearly where x_hit
+/// projects (C_{k,m} where it has none). Writes `rgb` and returns true, or returns false when no
+/// weighted record faces the view (the caller keeps C_k). Sets `used[m]` for each source whose
+/// image was read (may be null).
+bool BlendRecords(const ViewBlendInputs& blend, const records::VosselGeometry& geometry, size_t k,
+                  const RenderRequest& request, const Eigen::Vector3d* x_hit, float* rgb,
+                  std::vector<uint8_t>* used) {
   const records::RecordSet& recs = *blend.records;
   const Eigen::Vector3d x = geometry.centroid_m[k].cast<double>();
   const Eigen::Vector3d v_o = (request.pose.o_world - x).normalized();
@@ -160,18 +185,58 @@ bool ViewBlend(const ViewBlendInputs& blend, const records::VosselGeometry& geom
     }
     const Eigen::Vector3d& o_m = blend.source_origin_m[size_t(src)];
     if (!o_m.allFinite()) continue;
-    const double facing = std::max(0.0, (o_m - x).normalized().dot(v_o));
-    const double wv = w * std::pow(facing, request.eta);
+    double wv = w;
+    if (request.eta > 0.0) {
+      wv *= std::pow(std::max(0.0, (o_m - x).normalized().dot(v_o)), request.eta);
+    }
+    float sample[3];
+    const float* value = &recs.value[i * records::kValueChannels];
+    if (x_hit != nullptr && size_t(src) < blend.images.size() && blend.images[size_t(src)].image &&
+        blend.images[size_t(src)].image->channels == 3) {
+      const DetailImage& img = blend.images[size_t(src)];
+      if (const std::optional<Eigen::Vector2d> uv = ImagePixel(img, *x_hit)) {
+        geometry::SampleBilinear(*img.image, uv->x(), uv->y(), !img.pinhole, sample);
+        value = sample;
+        if (used != nullptr) (*used)[size_t(src)] = 1;
+      }
+    }
     const bool gained = size_t(src) < blend.channel_gain.size();
     sum_w += wv;
     for (int c = 0; c < 3; ++c) {
       const double a = gained ? blend.channel_gain[size_t(src)][c] : 1.0;
-      sum_c[c] += wv * a * recs.value[i * records::kValueChannels + c];
+      sum_c[c] += wv * a * value[c];
     }
   }
   if (!(sum_w > 0.0)) return false;
   for (int c = 0; c < 3; ++c) rgb[c] = float(sum_c[c] / sum_w);
   return true;
+}
+
+/// The blend inputs agree with the records and the geometry.
+bool BlendConsistent(const ViewBlendInputs* blend, const records::VosselGeometry& geometry) {
+  return blend != nullptr && blend->records != nullptr && blend->weight != nullptr &&
+         blend->begin != nullptr && blend->weight->size() == blend->records->size() &&
+         blend->begin->size() == geometry.size() + 1 &&
+         blend->begin->back() == blend->records->size();
+}
+
+/// The unit world ray through pixel (i, j)'s centre: the projection's inverse (§2.1 or §2.2)
+/// rotated by the pose. `intrinsics` carries the request's size.
+Eigen::Vector3d PixelRay(const RenderRequest& request, const geometry::PinholeIntrinsics& intrinsics,
+                         int i, int j) {
+  const Eigen::Vector3d d_sensor =
+      request.projection == Projection::kPinhole
+          ? geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics)
+          : geometry::EquirectUnproject(i + 0.5, j + 0.5, {request.width_px, request.height_px});
+  return request.pose.DirectionToWorld(d_sensor).normalized();
+}
+
+/// The request's pinhole intrinsics with the request's size.
+geometry::PinholeIntrinsics RequestIntrinsics(const RenderRequest& request) {
+  geometry::PinholeIntrinsics k = request.pinhole;
+  k.width_px = request.width_px;
+  k.height_px = request.height_px;
+  return k;
 }
 
 absl::Status ValidateInputs(const records::VosselGeometry& geometry,
@@ -195,9 +260,7 @@ absl::Status ValidateInputs(const records::VosselGeometry& geometry,
         blend->begin == nullptr) {
       return absl::InvalidArgumentError("eta > 0 needs the records and their weights (§8)");
     }
-    if (blend->weight->size() != blend->records->size() ||
-        blend->begin->size() != geometry.size() + 1 ||
-        (blend->begin->empty() ? 0 : blend->begin->back()) != blend->records->size()) {
+    if (!BlendConsistent(blend, geometry)) {
       return absl::InvalidArgumentError(
           "view blend inputs disagree with the records or the geometry");
     }
@@ -303,12 +366,10 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   scene.bbox_dda = openvdb::math::BBox<openvdb::Vec3d>(
       active_box.min().asVec3d(), active_box.max().asVec3d() + openvdb::Vec3d(1.0));
 
-  const geometry::EquirectSize size{width, height};
   std::atomic<int64_t> hit_pixels{0}, colourless_pixels{0};
-  const bool pinhole = request.projection == Projection::kPinhole;
-  geometry::PinholeIntrinsics intrinsics = request.pinhole;
-  intrinsics.width_px = width;
-  intrinsics.height_px = height;
+  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const bool keep_index = request.colour_detail == ColourDetail::kSourceImages;
+  if (keep_index) image.vossel_index.assign(pixels, -1);
   std::atomic<bool> bad{false};
   std::atomic<int32_t> bad_index{0};
   std::atomic<bool> interrupted{false};
@@ -329,11 +390,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         }
       }
       for (int i = 0; i < width; ++i) {
-        // The projection's inverse (§2.1 or §2.2) at the pixel centre, rotated into the world.
-        const Eigen::Vector3d d_sensor =
-            pinhole ? geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics)
-                    : geometry::EquirectUnproject(i + 0.5, j + 0.5, size);
-        const Eigen::Vector3d d_world = request.pose.DirectionToWorld(d_sensor).normalized();
+        const Eigen::Vector3d d_world = PixelRay(request, intrinsics, i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;
         if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, 0.0, &hit, &bad_value)) {
@@ -348,6 +405,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         image.depth_m[p] = static_cast<float>(hit.range_m);
         for (int c = 0; c < 3; ++c) image.normal[3 * p + c] = static_cast<float>(hit.normal[c]);
         const size_t k = static_cast<size_t>(hit.vossel);
+        if (keep_index) image.vossel_index[p] = hit.vossel;
         if (layers > 1) {  // multi-layer depth (§8): the surfaces behind, one vossel apart or more
           const size_t L = size_t(layers);
           auto keep = [&](size_t layer, const SurfaceHit& s) {
@@ -384,7 +442,8 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         }
         image.uncertainty[p] = scene.rgb->uncertainty[k];
         image.alpha[p] = 1.0f;
-        if (request.eta > 0.0 && ViewBlend(*blend, geometry, k, request, &image.rgb[3 * p])) {
+        if (request.eta > 0.0 &&
+            BlendRecords(*blend, geometry, k, request, nullptr, &image.rgb[3 * p], nullptr)) {
           continue;  // §8 with the view term
         }
         for (int c = 0; c < 3; ++c) image.rgb[3 * p + c] = scene.rgb->value[3 * k + c];  // C = C_k
@@ -405,6 +464,44 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
 }
 
 }  // namespace internal
+
+absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
+                               const RenderRequest& request, const ViewBlendInputs& blend,
+                               RenderImage* image) {
+  const size_t pixels = size_t(image->width_px) * size_t(image->height_px);
+  if (image->vossel_index.size() != pixels || image->width_px != request.width_px ||
+      image->height_px != request.height_px) {
+    return absl::InvalidArgumentError(
+        "colour detail needs a render of this request that kept its vossel indices");
+  }
+  if (!BlendConsistent(&blend, geometry)) {
+    return absl::InvalidArgumentError(
+        "colour detail inputs disagree with the records or the geometry");
+  }
+  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const int32_t n = int32_t(geometry.size());
+  tbb::enumerable_thread_specific<std::vector<uint8_t>> used_parts(
+      std::vector<uint8_t>(blend.images.size(), 0));
+  tbb::parallel_for(tbb::blocked_range<int>(0, image->height_px), [&](const tbb::blocked_range<int>& rows) {
+    std::vector<uint8_t>& used = used_parts.local();
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      for (int i = 0; i < image->width_px; ++i) {
+        const size_t p = size_t(j) * image->width_px + i;
+        const int32_t k = image->vossel_index[p];
+        if (k < 0 || k >= n || !(image->alpha[p] > 0.0f)) continue;  // no hit, or no colour
+        const Eigen::Vector3d x =
+            request.pose.o_world + double(image->depth_m[p]) * PixelRay(request, intrinsics, i, j);
+        BlendRecords(blend, geometry, size_t(k), request, &x, &image->rgb[3 * p], &used);
+      }
+    }
+  });
+  std::vector<uint8_t> used(blend.images.size(), 0);
+  for (const std::vector<uint8_t>& part : used_parts) {
+    for (size_t m = 0; m < used.size(); ++m) used[m] |= part[m];
+  }
+  image->detail_sources = std::count(used.begin(), used.end(), uint8_t{1});
+  return absl::OkStatus();
+}
 
 absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
                                            const records::FusedValues& fused,

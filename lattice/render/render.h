@@ -6,10 +6,13 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/linear_image.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
@@ -25,6 +28,17 @@ enum class Projection {
   kPinhole,   ///< §2.2: `pinhole` intrinsics and distortion; camera frame x right, y down, z forward
 };
 
+/// Where a hit pixel's colour comes from (§8).
+enum class ColourDetail {
+  kVossel,  ///< the vossel's colour: fused C_k (η = 0) or its records' C_{k,m} (η > 0)
+  /// The sources' images at the hit point: each colour record's C_{k,m} is read again where
+  /// the pixel's own point x = o + Z·d projects into its source's image (bilinear), so colour
+  /// varies within a vossel as finely as the images resolve; the §7 weights (and the view term)
+  /// blend them as they blend C_{k,m}. A record whose source has no image here (point colour,
+  /// derived data, an image beyond the budget, x outside a pinhole photo) keeps its C_{k,m}.
+  kSourceImages,
+};
+
 /// What to render (§8).
 struct RenderRequest {
   geometry::Pose pose;          ///< T_world_camera (the projection's own camera frame)
@@ -38,6 +52,7 @@ struct RenderRequest {
   std::string profile;          ///< weighting profile (§7); empty: the project's active one
   int32_t profile_revision = 0; ///< 0: the profile's latest revision
   double eta = 0.0;             ///< view term η (§8); 0 uses the fused colour C_k
+  ColourDetail colour_detail = ColourDetail::kVossel;
   double max_range_m = 1000.0;  ///< rays stop here
   /// Asked before each row is marched, from several threads (may be empty): a status other
   /// than OK stops the render with that status (the caller cancelled, or its deadline passed).
@@ -70,6 +85,20 @@ struct RenderImage {
   std::vector<float> deep_rgb;       ///< 3 per layer and pixel
   std::vector<float> deep_alpha;     ///< 1 per layer and pixel: 1 where the surface has colour
   int64_t hit_pixels = 0;          ///< pixels whose ray met a vossel within max_range_m
+  /// Per pixel, the vossel its ray hit (-1: none); kept only for a kSourceImages render.
+  std::vector<int32_t> vossel_index;
+  /// kSourceImages: sources whose image coloured some pixel, and sources with records on hit
+  /// vossels whose image was left out (not decodable here, or beyond the byte budget).
+  int64_t detail_sources = 0;
+  int64_t detail_sources_skipped = 0;
+};
+
+/// A source's image as the colour detail reads it (§2.1 or §2.2 through its pose).
+struct DetailImage {
+  geometry::Pose pose;  ///< T_world_camera, the lattice frame
+  /// Set: a pinhole photo (width and height are the image's); unset: equirectangular.
+  std::optional<geometry::PinholeIntrinsics> pinhole;
+  std::shared_ptr<const geometry::LinearImage> image;  ///< 3 channels, linear; null: none
 };
 
 /// What the §8 view term (η > 0) reads besides the fused values: every vossel's records with
@@ -82,6 +111,8 @@ struct ViewBlendInputs {
   std::vector<Eigen::Vector3d> source_origin_m;
   /// a_{m,c} of the profile (§7) by source id (fusion::DenseChannelGains); empty or short: 1.
   std::vector<std::array<float, 3>> channel_gain;
+  /// kSourceImages: each source's image by source id; short or null image: none.
+  std::vector<DetailImage> images;
 };
 
 /// Renders `request` from a version's geometry and fused values (§8). Parallel over rows (TBB).
@@ -99,12 +130,26 @@ struct ViewBlendInputs {
 ///          alpha 0, rgb 0 and U = +inf (also when `fused` has no rgb modality). A vossel
 ///          with a zero normal is hit where the ray enters its cell, with N = 0.
 ///          `image.version` is copied from the request (the engine sets the resolved version).
+///          With ColourDetail::kSourceImages the image keeps each pixel's vossel index for
+///          ApplyColourDetail, which the caller runs once it has the sources' images.
 /// @return INVALID_ARGUMENT for a non-positive or over-large (> 2^28 pixels) size, η < 0,
 ///         η > 0 without `blend` or with inconsistent blend inputs, max_range_m ≤ 0, a
 ///         non-unit pose quaternion, a null index grid or one whose transform is not linear and
 ///         uniform, geometry/fused arrays whose sizes disagree, or an index grid holding a vossel
 ///         index outside [0, geometry.size()).
 /// @warning Thread-safe: reads its inputs only (each TBB task uses its own ValueAccessor).
+/// Recolours the hit pixels of `image` (rendered from `request` with kSourceImages, so that it
+/// keeps its vossel indices) from the sources' images at each pixel's own point (§8,
+/// ColourDetail::kSourceImages): C = Σ w·f·a·I_m(π_m(x)) / Σ w·f over the hit vossel's rgb and
+/// derived records of positive weight w (f = max(0, v_{k,m}·v_{k,o})^η, 1 when η = 0; a the
+/// channel gain), with I_m(π_m(x)) replaced by C_{k,m} where source m has no image. Pixels
+/// without colour stay so; sets image.detail_sources. Parallel over rows (TBB).
+/// @return INVALID_ARGUMENT when the image kept no vossel indices or the blend inputs are
+///         missing or disagree with the geometry.
+absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
+                               const RenderRequest& request, const ViewBlendInputs& blend,
+                               RenderImage* image);
+
 absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geometry,
                                            const records::FusedValues& fused,
                                            const RenderRequest& request,

@@ -1,10 +1,16 @@
 // VASL-MODEL §8 view term: with η > 0 a render favours the records of scans that saw a vossel
 // from near the render's own direction; η = 0 is the fused colour C_k.
+#include <algorithm>
 #include <cmath>
+#include <memory>
+#include <optional>
+#include <vector>
 
 #include <gtest/gtest.h>
 
 #include "lattice/fusion/fuse.h"
+#include "lattice/geometry/equirect.h"
+#include "lattice/geometry/pinhole.h"
 #include "lattice/records/record_grid.h"
 #include "lattice/render/render.h"
 
@@ -115,6 +121,136 @@ TEST(ViewBlendTest, ViewTermFavoursScansSeenFromNearTheRenderDirection) {
   std::printf("η = 2 from the west: red %.3f (η = 8: %.3f)\n", mild.x(), from_west.x());
   EXPECT_GT(mild.x(), 0.5);
   EXPECT_LT(mild.x(), from_west.x());
+}
+
+// The floor's striped albedo for the colour-detail test: bands 7 cm wide along x, so that
+// their edges fall anywhere within a 5 cm vossel.
+Eigen::Vector3f Stripe(double x) {
+  return int(std::floor(x / 0.07)) % 2 == 0 ? Eigen::Vector3f(0.9f, 0.8f, 0.1f)
+                                            : Eigen::Vector3f(0.1f, 0.2f, 0.7f);
+}
+
+// An image of the striped floor (z = 0) from `pose`: each pixel centre's ray, through the
+// projection (equirect, or pinhole when given), coloured where it meets the floor.
+geometry::LinearImage FloorImage(const geometry::Pose& pose, int w, int h,
+                                 const std::optional<geometry::PinholeIntrinsics>& pinhole) {
+  geometry::LinearImage img;
+  img.width_px = w;
+  img.height_px = h;
+  img.channels = 3;
+  img.pixels.assign(size_t(w) * h * 3, 0.0f);
+  for (int j = 0; j < h; ++j) {
+    for (int i = 0; i < w; ++i) {
+      const Eigen::Vector3d d_cam =
+          pinhole ? geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), *pinhole)
+                  : geometry::EquirectUnproject(i + 0.5, j + 0.5, {w, h});
+      const Eigen::Vector3d d = pose.DirectionToWorld(d_cam);
+      if (!(d.z() < 0.0)) continue;
+      const Eigen::Vector3d x = pose.o_world - pose.o_world.z() / d.z() * d;
+      const Eigen::Vector3f c = Stripe(x.x());
+      for (int ch = 0; ch < 3; ++ch) img.pixels[(size_t(j) * w + i) * 3 + ch] = c[ch];
+    }
+  }
+  return img;
+}
+
+// Claim (§8, ColourDetail::kSourceImages): with the overhead camera's image (equirect or
+// pinhole) each hit pixel's colour is Σ w·S / Σ w over the vossel's records, where the overhead
+// record's S is its image read at the pixel's own floor point and the west record, whose source
+// has no image, keeps its red C_{k,m}. Away from stripe edges (≥ 2 cm: the image's bilinear read
+// is exact there) that equals the analytic blend to 1e-4, so colour changes within a vossel as
+// the stripes do, which one colour per vossel cannot.
+TEST(ViewBlendTest, ColourDetailReadsTheSourceImagesAtEachPixelsPoint) {
+  const TwoViewFloor f = MakeFloor();
+  auto weights = fusion::RecordWeights(f.records, f.geometry.size(), kVosselM, fusion::WeightingProfile{});
+  ASSERT_TRUE(weights.ok());
+  geometry::Pose top;
+  top.o_world = f.top;
+  geometry::PinholeIntrinsics k;
+  k.width_px = k.height_px = 1000;
+  k.fx_px = k.fy_px = 1000.0;
+  k.cx_px = k.cy_px = 500.0;
+  geometry::Pose down = top;  // camera x right (+x), y down (−y), z forward (−z)
+  Eigen::Matrix3d R;
+  R.col(0) = Eigen::Vector3d::UnitX();
+  R.col(1) = -Eigen::Vector3d::UnitY();
+  R.col(2) = -Eigen::Vector3d::UnitZ();
+  down.q_world_sensor = Eigen::Quaterniond(R);
+  for (const bool pinhole : {false, true}) {
+    ViewBlendInputs blend;
+    blend.records = &f.records;
+    blend.weight = &weights->weight;
+    blend.begin = &weights->begin;
+    blend.source_origin_m = {f.west, f.top};
+    blend.images.resize(2);  // source 0 (west): no image
+    if (pinhole) {
+      blend.images[1] = {down, k, std::make_shared<geometry::LinearImage>(FloorImage(down, 1000, 1000, k))};
+    } else {
+      blend.images[1] = {top, std::nullopt,
+                         std::make_shared<geometry::LinearImage>(FloorImage(top, 4096, 2048, {}))};
+    }
+    RenderRequest req;
+    req.width_px = 512;
+    req.height_px = 256;
+    req.pose.o_world = Eigen::Vector3d(1.0, 1.0, 2.0);
+    req.colour_detail = ColourDetail::kSourceImages;
+    auto image = RenderEquirect(f.geometry, f.fused, req, &blend);
+    ASSERT_TRUE(image.ok()) << image.status();
+    ASSERT_TRUE(ApplyColourDetail(f.geometry, req, blend, &*image).ok());
+    EXPECT_EQ(image->detail_sources, 1);
+    int64_t checked = 0, mismatched = 0, varying_vossels = 0;
+    double max_err = 0.0;
+    std::vector<float> first_seen(3 * f.geometry.size(), -1.0f);
+    std::vector<uint8_t> varies(f.geometry.size(), 0);
+    for (int j = 0; j < req.height_px; ++j) {
+      for (int i = 0; i < req.width_px; ++i) {
+        const size_t p = size_t(j) * req.width_px + i;
+        const int32_t v = image->vossel_index[p];
+        if (v < 0) continue;
+        const Eigen::Vector3d d = req.pose.DirectionToWorld(
+            geometry::EquirectUnproject(i + 0.5, j + 0.5, {req.width_px, req.height_px}));
+        const Eigen::Vector3d x = req.pose.o_world + double(image->depth_m[p]) * d;
+        if (float* seen = &first_seen[3 * size_t(v)]; seen[0] < 0.0f) {
+          std::copy_n(&image->rgb[3 * p], 3, seen);
+        } else if (std::abs(seen[0] - image->rgb[3 * p]) > 0.3f) {
+          varies[size_t(v)] = 1;
+        }
+        const double u = x.x() / 0.07;
+        if (std::abs(u - std::round(u)) * 0.07 < 0.02) continue;  // near a stripe edge
+        const size_t b = weights->begin[size_t(v)];
+        ASSERT_EQ(weights->begin[size_t(v) + 1], b + 2);
+        const double w0 = weights->weight[b], w1 = weights->weight[b + 1];  // west, top
+        const Eigen::Vector3f stripe = Stripe(x.x());
+        const double red[3] = {0.9, 0.1, 0.1};
+        for (int c = 0; c < 3; ++c) {
+          const double expect = (w0 * red[c] + w1 * stripe[c]) / (w0 + w1);
+          const double err = std::abs(image->rgb[3 * p + c] - expect);
+          max_err = std::max(max_err, err);
+          mismatched += err > 1e-4;
+        }
+        ++checked;
+      }
+    }
+    varying_vossels = std::count(varies.begin(), varies.end(), uint8_t{1});
+    std::printf("colour detail from a%s image: %lld pixels checked, max error %.2g, %lld of %zu "
+                "vossels show two stripes\n", pinhole ? " pinhole" : "n equirect",
+                (long long)checked, max_err, (long long)varying_vossels, f.geometry.size());
+    EXPECT_GT(checked, 5000);
+    EXPECT_EQ(mismatched, 0);
+    EXPECT_GT(varying_vossels, 100);
+  }
+  // Without the vossel indices of a kSourceImages render there is nothing to recolour.
+  RenderRequest plain;
+  plain.width_px = 64;
+  plain.height_px = 32;
+  auto image = RenderEquirect(f.geometry, f.fused, plain);
+  ASSERT_TRUE(image.ok());
+  ViewBlendInputs blend;
+  blend.records = &f.records;
+  blend.weight = &weights->weight;
+  blend.begin = &weights->begin;
+  EXPECT_EQ(ApplyColourDetail(f.geometry, plain, blend, &*image).code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(ViewBlendTest, EtaNeedsTheRecords) {

@@ -224,7 +224,7 @@ def _cmd_render(client: Client, args) -> int:
     formats = ("exr", "png", "deep") if args.layers > 1 else ("exr", "png")
     r = client.render(args.project, pose, args.width, args.height, version=args.version,
                       formats=formats, eta=args.eta, decode=False, profile=args.profile,
-                      pinhole=pinhole, layers=args.layers)
+                      pinhole=pinhole, layers=args.layers, colour_detail=args.colour_detail)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     png = out[:-4] + ".png"
     with open(out, "wb") as f:
@@ -242,6 +242,10 @@ def _cmd_render(client: Client, args) -> int:
           f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
           f"{r.render_seconds:.2f} s, profile {r.profile} revision {r.profile_revision}"
           + (" (fused for this render: run vasl reweight to store it)" if r.fused_on_the_fly else ""))
+    if args.colour_detail == "images":
+        print(f"colour from {r.detail_sources} cameras' images"
+              + (f"; {r.detail_sources_skipped} more left out (their images exceed the server's "
+                 f"budget) keep their records' colour" if r.detail_sources_skipped else ""))
     if r.colourless_pixels:
         print(f"{r.colourless_pixels} hit pixels show vossels without colour: alpha 0 and U = inf "
               f"in the EXR, transparent grey in the PNG")
@@ -662,6 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "instead of an equirectangular panorama")
     render.add_argument("--layers", type=int, default=1, metavar="L",
                         help="also write OUT-deep.exr with up to L successive surfaces per pixel")
+    render.add_argument("--colour-detail", choices=("vossel", "images"), default="vossel",
+                        help="vossel: one colour per vossel; images: read each camera's image "
+                             "where the pixel's own point lands (sharper, slower)")
     render.add_argument("--profile", default="",
                         help="weighting profile (default: the project's active one)")
     render.add_argument("-o", "--output", required=True, metavar="OUT.exr",

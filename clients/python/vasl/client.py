@@ -36,6 +36,7 @@ _MODALITY_NAMES = {pb.MODALITY_LIDAR: "lidar", pb.MODALITY_RGB: "rgb", pb.MODALI
                    pb.MODALITY_RADAR: "radar", pb.MODALITY_DERIVED: "derived"}
 _FORMATS = {"exr": pb.IMAGE_FORMAT_EXR, "png": pb.IMAGE_FORMAT_PNG,
             "deep": pb.IMAGE_FORMAT_DEEP_EXR}
+_COLOUR_DETAIL = {"vossel": pb.COLOUR_DETAIL_VOSSEL, "images": pb.COLOUR_DETAIL_SOURCE_IMAGES}
 
 
 class VaslError(Exception):
@@ -1105,13 +1106,17 @@ class Client:
                version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
                max_range_m: float = 0.0, decode: bool = True, profile: str = "",
                profile_revision: int = 0, pinhole: Optional[dict] = None,
-               layers: int = 1) -> RenderResult:
+               layers: int = 1, colour_detail: str = "vossel") -> RenderResult:
         """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
         `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
         `profile` names the weighting profile (default: the project's active one). `pinhole`
         ({"fx_px", "fy_px", "cx_px", "cy_px"} and optional "k1", "k2", "k3", "p1", "p2") makes a
-        pinhole render of width_px × height_px in the camera frame x right, y down, z forward."""
+        pinhole render of width_px × height_px in the camera frame x right, y down, z forward.
+        `colour_detail` "vossel" shows one colour per vossel; "images" reads each colour record
+        again where the pixel's own point projects into its camera's image (sharper, slower)."""
         self._check_name(project)
+        if colour_detail not in _COLOUR_DETAIL:
+            raise ValueError(f"colour_detail must be one of {sorted(_COLOUR_DETAIL)}, got {colour_detail!r}")
         if int(width_px) <= 0 or int(height_px) <= 0:
             raise ValueError(f"width_px and height_px must be > 0, got {width_px}x{height_px}")
         unknown = [f for f in formats if f not in _FORMATS]
@@ -1123,7 +1128,8 @@ class Client:
                                    width_px=int(width_px), height_px=int(height_px),
                                    version=version, formats=[_FORMATS[f] for f in formats],
                                    eta=eta, max_range_m=max_range_m, profile=profile,
-                                   profile_revision=int(profile_revision), layers=int(layers))
+                                   profile_revision=int(profile_revision), layers=int(layers),
+                                   colour_detail=_COLOUR_DETAIL[colour_detail])
         if pinhole is not None:
             keys = {"fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"}
             unknown = set(pinhole) - keys
@@ -1156,7 +1162,9 @@ class Client:
                               meta.render_seconds, profile=meta.profile,
                               profile_revision=meta.profile_revision,
                               fused_on_the_fly=meta.fused_on_the_fly, render_id=meta.render_id,
-                              colourless_pixels=meta.colourless_pixels)
+                              colourless_pixels=meta.colourless_pixels,
+                              detail_sources=meta.detail_sources,
+                              detail_sources_skipped=meta.detail_sources_skipped)
         if pb.IMAGE_FORMAT_EXR in parts:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
         if pb.IMAGE_FORMAT_PNG in parts:

@@ -244,6 +244,8 @@ class RenderResult:
     fused_on_the_fly: bool = False  #: no stored fused tiles for the profile: fused for this render
     render_id: int = 0  #: the id the project recorded this render under (cite it when editing)
     colourless_pixels: int = 0  #: hit pixels whose vossel has no colour (alpha 0, never black)
+    detail_sources: int = 0  #: colour_detail="images": cameras whose image coloured some pixel
+    detail_sources_skipped: int = 0  #: cameras left out, their images beyond the server's budget
     alpha: Optional[np.ndarray] = None  #: (H, W) float32 coverage: 1 where the pixel has a colour
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
