@@ -13,12 +13,14 @@
 namespace vasl::ingest {
 
 /// Decodes an OpenEXR (or any float image OpenImageIO reads) whose channels are named like a
-/// render's: R, G, B and Z are required; N.x, N.y, N.z, U and A are used when present.
+/// render's: R, G, B and Z are required; N.x, N.y, N.z, U and A are used when present. A deep
+/// OpenEXR (a deep render: each pixel's successive surfaces, R, G, B, Z and A per sample) keeps
+/// every sample (DerivedImage::sample_pixel).
 /// INVALID_ARGUMENT when a required channel is missing or the bytes do not decode;
-/// RESOURCE_EXHAUSTED above `max_pixels` or 16 channels.
+/// RESOURCE_EXHAUSTED above `max_pixels` pixels (a deep image: samples) or 16 channels.
 absl::StatusOr<DerivedImage> DecodeRgbzImage(std::string_view bytes, int64_t max_pixels);
 
-/// What BackProjectRecords found.
+/// What BackProjectRecords found, in pixels (a deep image: samples).
 struct BackProjectStats {
   int64_t pixels_used = 0;     ///< finite Z, covered, landing in a vossel of the lattice
   int64_t pixels_outside = 0;  ///< finite Z whose point lies in no vossel (no geometry there)
@@ -33,7 +35,9 @@ struct BackProjectStats {
 /// or |n_k·d| with the vossel's (1 when it has none), footprint from the pixel's angle (§3),
 /// uv = mean pixel centre, V = 1, confidence factors 1 but conf[codec] = 1/(1 + U/0.1)
 /// *(choice: U in the slot an edited image's own quality takes)*, flags derived, modality
-/// derived. With `only` (a flag per vossel) other vossels get no record. Parallel (TBB).
+/// derived. A deep image back-projects every sample of each pixel the same way (each layer
+/// lands on its own surface's vossel). With `only` (a flag per vossel) other vossels get no
+/// record. Parallel (TBB).
 records::RecordSet BackProjectRecords(const records::VosselGeometry& geometry,
                                       const DerivedSource& source,
                                       const std::vector<uint8_t>* only = nullptr,

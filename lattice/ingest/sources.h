@@ -100,6 +100,15 @@ struct DerivedImage {
   std::vector<float> normal;       ///< 3 per pixel (world), or empty
   std::vector<float> uncertainty;  ///< 1 per pixel, or empty
   std::vector<float> alpha;        ///< 1 per pixel coverage, or empty (every finite Z counts)
+  /// A deep image (successive surfaces per pixel, §8 multi-layer depth): the pixel of each
+  /// sample, in pixel order; rgb, depth_m and alpha then hold one entry per sample, and normal
+  /// and uncertainty are empty. Empty: a flat image, one sample per pixel.
+  std::vector<uint32_t> sample_pixel;
+
+  /// Samples the image holds: one per pixel, or the deep image's.
+  size_t SampleCount() const {
+    return sample_pixel.empty() ? size_t(width_px) * size_t(height_px) : sample_pixel.size();
+  }
 };
 
 /// A derived source: an image with its pose and projection, back-projected into records (§10).

@@ -55,3 +55,25 @@ def test_backproject_a_render_list_and_roll_back(client, server, scene_dir, tmp_
     back = client.render(PROJECT, POSE, 512, 256, formats=("exr",))
     assert np.array_equal(back.rgb, before.rgb)
     assert "no derived batches" in run_cli(server, "batch", "list", "--project", PROJECT).stdout
+
+
+def test_backproject_a_deep_render_from_the_cli(client, server, scene_dir, tmp_path):
+    """A deep render (`--layers 3`, out-deep.exr) comes back through the CLI: every layer is
+    back-projected, so more samples become derived records than the flat render's pixels."""
+    project = PROJECT + "-deep"
+    client.create_project(project, vossel_size_m=VOSSEL_M)
+    for m in manifests(scene_dir)[:2]:
+        client.ingest(project, m)
+    exr = str(tmp_path / "view.exr")
+    out = run_cli(server, "render", "--project", project, "--pose", POSE, "--width", "512",
+                  "--height", "256", "--layers", "3", "-o", exr).stdout
+    render_id = int(re.search(r"render (\d+):", out).group(1))
+    flat = run_cli(server, "backproject", exr, "--project", project, "--pose", POSE,
+                   "--name", "flat").stdout
+    deep = run_cli(server, "backproject", str(tmp_path / "view-deep.exr"), "--project", project,
+                   "--pose", POSE, "--render", str(render_id), "--name", "deep").stdout
+    print(flat + deep)
+    used = [int(re.search(r"(\d+) pixels -> derived records", o).group(1)) for o in (flat, deep)]
+    assert used[1] > used[0] > 100000, (flat, deep)
+    listed = json.loads(run_cli(server, "batch", "list", "--project", project, "--json").stdout)
+    assert sorted(b["name"] for b in listed) == ["deep", "flat"]
