@@ -30,6 +30,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "lattice/geometry/equirect.h"
+#include "lattice/geometry/footprint.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/render/render.h"
 #include "lattice/render/render_internal.h"
@@ -62,12 +63,49 @@ struct Scene {
   double max_range_m = 0.0;
 };
 
+/// WithinPointExtent's bound, its widening (vossels) and the points it needs.
+constexpr double kExtentChi2 = 6.0;
+constexpr double kExtentFloorVox = 0.1;
+constexpr int32_t kExtentMinPoints = 8;
+
 /// The first surface a ray crosses (§8).
 struct SurfaceHit {
   double range_m = 0.0;     ///< distance along the unit world ray to the vossel's plane, metres
   int32_t vossel = -1;      ///< vossel index k
   Eigen::Vector3d normal;   ///< n_k oriented toward the camera; zero for an undetermined normal
 };
+
+/// Does the in-plane offset δ (crossing point − x_k) lie on the patch vossel k's points cover
+/// *(choice: §8 leaves the plane's extent to the cell)*? Points spread uniformly over a patch
+/// of half-width a along an axis have variance a²/3 there, so the patch is taken as the
+/// ellipse δ_tᵀ Σ_t⁻¹ δ_t ≤ kExtentChi2 of the in-plane covariance Σ_t, each axis widened by
+/// (kExtentFloorVox·h)² (6 circumscribes a full cell's square). A vossel cut by a silhouette
+/// edge covers only part of its cell; without this test its plane overhangs the edge by up to
+/// a vossel (corridor site, h = 5 cm with range grids: 98.5% → 99.0% of seen pixels hit within
+/// one vossel; with 16 points required, 98.9%). Vossels with fewer than kExtentMinPoints
+/// points (or a zero covariance) keep their whole cell: a few points say too little about the
+/// patch. The price: where a coarse grid leaves a vossel few points, the ellipse can open
+/// cracks at the corners between neighbours (the coarse 2 cm captures lose 0.2-0.3% of their
+/// hits: 99.55% → 99.23%, 97.81% → 97.57% without range grids).
+bool WithinPointExtent(const Scene& scene, int32_t vossel, const Eigen::Vector3d& n,
+                       const Eigen::Vector3d& delta) {
+  const records::VosselGeometry& g = *scene.geometry;
+  if (g.covariance_m2.size() != g.size() ||
+      g.point_count[size_t(vossel)] < kExtentMinPoints) {
+    return true;
+  }
+  const std::array<float, 6>& c = g.covariance_m2[size_t(vossel)];
+  if (!(c[0] + c[3] + c[5] > 0.0f)) return true;  // no covariance known (built by hand)
+  Eigen::Matrix3d S;
+  S << c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5];
+  const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
+  const double floor_m2 = std::pow(kExtentFloorVox * g.vossel_size_m, 2);
+  const double a = t1.dot(S * t1) + floor_m2, b = t1.dot(S * t2), d = t2.dot(S * t2) + floor_m2;
+  const double det = a * d - b * b;
+  if (!(det > 0.0)) return true;
+  const double u = t1.dot(delta), v = t2.dot(delta);
+  return (d * u * u - 2.0 * b * u * v + a * v * v) / det <= kExtentChi2;
+}
 
 /// The per-vossel test of §8: does the ray (o + r·d, world, |d| = 1) cross vossel k's plane
 /// (x_k, n_k) inside k's cell expanded by the margin? `entry_range_m` is where the ray enters
@@ -97,6 +135,7 @@ bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
   for (int axis = 0; axis < 3; ++axis) {
     if (std::abs(p[axis] - (k[axis] + 0.5)) > half) return false;
   }
+  if (!WithinPointExtent(scene, vossel, n, o_world + range_m * d_world - x_k)) return false;
   hit->range_m = range_m;
   hit->vossel = vossel;
   hit->normal = n_dot_d > 0.0 ? Eigen::Vector3d(-n) : n;

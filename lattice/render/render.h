@@ -121,7 +121,9 @@ struct ViewBlendInputs {
 ///          by hierarchical DDA over `geometry.index_grid` (empty space skipped per node); the
 ///          first active vossel whose plane (x_k, n_k) the ray crosses at range ≥ 0 inside the
 ///          vossel's cell, expanded by internal::kDefaultCellMarginVox (0.25 h) to close cracks
-///          between neighbouring planes, is the hit: Z = range to that plane, N = n_k turned
+///          between neighbouring planes, and on the patch its points cover (an ellipse of their
+///          in-plane covariance, for vossels of ≥ 8 points; render.cc WithinPointExtent), is
+///          the hit: Z = range to that plane, N = n_k turned
 ///          toward the camera, C = fused rgb C_k (0 if its rgb weight is 0; such vossels still
 ///          occlude) when η = 0; when η > 0, C = Σ w·max(0, v_{k,m}·v_{k,o})^η·C_{k,m} / Σ (same
 ///          weights) over the vossel's rgb and derived records (v the unit vectors from x_k to
