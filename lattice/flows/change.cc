@@ -22,7 +22,7 @@ namespace {
 double DepthPixelRad(const SourceRef& s) {
   const double pitch =
       s.returns() ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
-                  : ingest::ImageProjection(CameraOf(s.info, 0), s.info.width_px, s.info.height_px)
+                  : ingest::ProjectionOf(CameraOf(s.info, 0), s.info.width_px, s.info.height_px)
                         .PitchRad();
   const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
   return std::max(geometry::AzimuthPitchRad(size), geometry::ElevationPitchRad(size));
@@ -190,8 +190,8 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
       {source.info.divergence_rad, DepthPixelRad(source),
        source.returns() || source.info.width_px <= 0
            ? 0.0
-           : ingest::ImageProjection(CameraOf(source.info, 0), source.info.width_px,
-                                     source.info.height_px)
+           : ingest::ProjectionOf(CameraOf(source.info, 0), source.info.width_px,
+                                  source.info.height_px)
                  .PixelAngleRad(Eigen::Vector3d::UnitX())});
   for (const tiles::TileKey& b : all) {
     tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);

@@ -12,6 +12,7 @@
 #include "absl/strings/str_format.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/fuse.h"
+#include "lattice/ingest/sample.h"
 
 namespace vasl::flows {
 namespace {
@@ -183,11 +184,7 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
     }
     render::DetailImage& d = out[size_t(src.id)];
     d.pose = src.pose;
-    if (absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> k =
-            ProjectionOfCameraText(src.camera);
-        k.ok()) {
-      d.pinhole = *k;
-    }
+    d.projection = ingest::ProjectionOf(CameraOf(src, 0), img->width_px, img->height_px);
     d.image = std::move(img);
   });
   for (const absl::Status& s : status) {

@@ -264,7 +264,7 @@ CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource&
   out.lidar_source = lidar.id;
   const int W = image.width_px, H = image.height_px;
   const size_t N = lidar.point_count();
-  const ImageProjection projection(camera, W, H);
+  const ImageProjection projection = ProjectionOf(camera, W, H);
   const View view(lidar, camera, projection);
   const bool wrap = !camera.pinhole;
 

@@ -63,60 +63,13 @@ Eigen::Vector3d NormalOr(const records::VosselGeometry& g, size_t k, const Eigen
 
 }  // namespace
 
-ImageProjection::ImageProjection(const CameraSource& cam, int width_px, int height_px)
-    : pinhole_(cam.pinhole), size_{width_px, height_px},
-      angular_resolution_rad_(cam.angular_resolution_rad) {
-  if (pinhole_) {
-    pinhole_->width_px = width_px;
-    pinhole_->height_px = height_px;
-  }
-}
-
-std::optional<Eigen::Vector2d> ImageProjection::Project(const Eigen::Vector3d& d_cam) const {
-  if (!pinhole_) return geometry::EquirectProject(d_cam, size_);  // §2.1
-  return geometry::PinholeProject(d_cam, *pinhole_);              // §2.2
-}
-
-Eigen::Vector3d ImageProjection::Unproject(const Eigen::Vector2d& uv) const {
-  if (!pinhole_) return geometry::EquirectUnproject(uv.x(), uv.y(), size_);  // §2.1
-  return geometry::PinholeUnproject(uv, *pinhole_);                         // §2.2
-}
-
-bool ImageProjection::Inside(const Eigen::Vector2d& uv) const {
-  if (!pinhole_) return true;
-  return uv.x() >= 0.0 && uv.x() <= size_.width_px && uv.y() >= 0.0 && uv.y() <= size_.height_px;
-}
-
-double ImageProjection::PixelAngleRad(const Eigen::Vector3d& d_cam) const {
-  if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
-  if (pinhole_) return geometry::PinholePixelAngleRad(*pinhole_);  // §3: pitch over focal length
-  const double psi = std::asin(std::clamp(d_cam.z() / d_cam.norm(), -1.0, 1.0));
-  return geometry::EquirectPixelAngleRad(psi, size_);  // §3
-}
-
-double ImageProjection::PitchRad() const {
-  if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
-  if (pinhole_) return geometry::PinholePixelAngleRad(*pinhole_);
-  return geometry::ElevationPitchRad(size_);
-}
-
-double ImageProjection::HalfFieldRad() const {
-  if (!pinhole_) return M_PI;
-  double widest = 0.0;
-  const double W = size_.width_px, H = size_.height_px;
-  for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(W, 0),
-                                        Eigen::Vector2d(0, H), Eigen::Vector2d(W, H),
-                                        Eigen::Vector2d(W / 2, 0), Eigen::Vector2d(W / 2, H),
-                                        Eigen::Vector2d(0, H / 2), Eigen::Vector2d(W, H / 2)}) {
-    const Eigen::Vector3d d = geometry::PinholeUnproject(corner, *pinhole_);
-    widest = std::max(widest, std::acos(std::clamp(d.z() / d.norm(), -1.0, 1.0)));
-  }
-  return widest;
+ImageProjection ProjectionOf(const CameraSource& cam, int width_px, int height_px) {
+  return ImageProjection(cam.pinhole, width_px, height_px, cam.angular_resolution_rad);
 }
 
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
                        const std::vector<float>& vis) {
-  const ImageProjection proj(cam, cam.image.width_px, cam.image.height_px);
+  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
   const bool wrap = !cam.pinhole;
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
@@ -387,7 +340,7 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
     return absl::InternalError("CameraRecords: a camera source has neither an image nor a loader");
   }
   const double tau = DepthToleranceM(g.vossel_size_m);
-  const ImageProjection proj(cam, cam.image.width_px, cam.image.height_px);
+  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
   const double pitch = proj.PitchRad();
   DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch),
                                             proj.PixelAngleRad(Eigen::Vector3d::UnitX()), context);

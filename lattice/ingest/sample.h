@@ -6,6 +6,7 @@
 #include <optional>
 #include <vector>
 
+#include "lattice/geometry/image_projection.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/visibility.h"
 #include "lattice/records/records.h"
@@ -13,32 +14,10 @@
 
 namespace vasl::ingest {
 
-/// Where a camera's image sees (§2.1 equirect, §2.2 pinhole) and how finely (§3), for an image
-/// of the given size.
-class ImageProjection {
- public:
-  ImageProjection(const CameraSource& camera, int width_px, int height_px);
-  /// Continuous pixel coordinates of a camera-frame direction; nullopt behind a pinhole camera.
-  std::optional<Eigen::Vector2d> Project(const Eigen::Vector3d& d_cam) const;
-  /// §2.1/§2.2 inverse: the unit camera-frame ray through continuous pixel coordinates.
-  Eigen::Vector3d Unproject(const Eigen::Vector2d& uv_px) const;
-  /// True when pixel coordinates lie on the image (always for a panorama).
-  bool Inside(const Eigen::Vector2d& uv_px) const;
-  /// §3 θ_pix in direction `d_cam`: the camera's own angular resolution when it gives one,
-  /// else max(Δψ, cosψ·Δφ) (equirect) or pixel pitch over focal length (pinhole).
-  double PixelAngleRad(const Eigen::Vector3d& d_cam) const;
-  /// The pitch of the camera's depth panorama (its Δ in the visibility tolerance): its angular
-  /// resolution, Δψ, or the pinhole pixel angle.
-  double PitchRad() const;
-  /// Largest angle between the optical axis (+z) and a ray of the image's border; π for a
-  /// panorama.
-  double HalfFieldRad() const;
+/// A camera's image projection (geometry/image_projection.h), for an image of the given size.
+using geometry::ImageProjection;
+ImageProjection ProjectionOf(const CameraSource& camera, int width_px, int height_px);
 
- private:
-  std::optional<geometry::PinholeIntrinsics> pinhole_;
-  geometry::EquirectSize size_;
-  double angular_resolution_rad_ = 0.0;
-};
 
 /// Records of one camera: one per vossel with V > 0 (that a pinhole image holds). The sample is the §4.1 matched
 /// filter when the pixel footprint is sharper than s* = h/2 (an elliptical Gaussian in the

@@ -187,16 +187,8 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
 /// behind or outside a pinhole photo.
 std::optional<Eigen::Vector2d> ImagePixel(const DetailImage& src, const Eigen::Vector3d& x) {
   const Eigen::Vector3d d_cam = src.pose.q_world_sensor.conjugate() * (x - src.pose.o_world);
-  if (!src.pinhole) {
-    return geometry::EquirectProject(d_cam, {src.image->width_px, src.image->height_px});
-  }
-  geometry::PinholeIntrinsics k = *src.pinhole;
-  k.width_px = src.image->width_px;
-  k.height_px = src.image->height_px;
-  const std::optional<Eigen::Vector2d> uv = geometry::PinholeProject(d_cam, k);
-  if (!uv || uv->x() < 0.0 || uv->y() < 0.0 || uv->x() > k.width_px || uv->y() > k.height_px) {
-    return std::nullopt;
-  }
+  const std::optional<Eigen::Vector2d> uv = src.projection.Project(d_cam);
+  if (!uv || !src.projection.Inside(*uv)) return std::nullopt;
   return uv;
 }
 
@@ -234,7 +226,7 @@ bool BlendRecords(const ViewBlendInputs& blend, const records::VosselGeometry& g
         blend.images[size_t(src)].image->channels == 3) {
       const DetailImage& img = blend.images[size_t(src)];
       if (const std::optional<Eigen::Vector2d> uv = ImagePixel(img, *x_hit)) {
-        geometry::SampleBilinear(*img.image, uv->x(), uv->y(), !img.pinhole, sample);
+        geometry::SampleBilinear(*img.image, uv->x(), uv->y(), img.projection.panorama(), sample);
         value = sample;
         if (used != nullptr) (*used)[size_t(src)] = 1;
       }

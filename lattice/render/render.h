@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/image_projection.h"
 #include "lattice/geometry/linear_image.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
@@ -95,9 +96,8 @@ struct RenderImage {
 
 /// A source's image as the colour detail reads it (§2.1 or §2.2 through its pose).
 struct DetailImage {
-  geometry::Pose pose;  ///< T_world_camera, the lattice frame
-  /// Set: a pinhole photo (width and height are the image's); unset: equirectangular.
-  std::optional<geometry::PinholeIntrinsics> pinhole;
+  geometry::Pose pose;                  ///< T_world_camera, the lattice frame
+  geometry::ImageProjection projection; ///< of `image` (its width and height)
   std::shared_ptr<const geometry::LinearImage> image;  ///< 3 channels, linear; null: none
 };
 

@@ -184,9 +184,10 @@ TEST(ViewBlendTest, ColourDetailReadsTheSourceImagesAtEachPixelsPoint) {
     blend.source_origin_m = {f.west, f.top};
     blend.images.resize(2);  // source 0 (west): no image
     if (pinhole) {
-      blend.images[1] = {down, k, std::make_shared<geometry::LinearImage>(FloorImage(down, 1000, 1000, k))};
+      blend.images[1] = {down, geometry::ImageProjection(k, 1000, 1000),
+                         std::make_shared<geometry::LinearImage>(FloorImage(down, 1000, 1000, k))};
     } else {
-      blend.images[1] = {top, std::nullopt,
+      blend.images[1] = {top, geometry::ImageProjection(std::nullopt, 4096, 2048),
                          std::make_shared<geometry::LinearImage>(FloorImage(top, 4096, 2048, {}))};
     }
     RenderRequest req;
