@@ -512,8 +512,13 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   }
   /// Fills `first_` and `payloads_` (tag, bytes), or returns an error.
   virtual grpc::Status Prepare() = 0;
-  /// One chunk of payload `tag` at `offset`.
-  virtual void FillChunk(Response& out, int tag, int64_t offset, const char* data, size_t n) = 0;
+  /// One chunk of payload `tag` at `offset`: every response's chunk carries its offset and
+  /// bytes; a reactor whose payloads differ by tag overrides this to name it too.
+  virtual void FillChunk(Response& out, int /*tag*/, int64_t offset, const char* data, size_t n) {
+    auto* c = out.mutable_chunk();
+    c->set_offset_bytes(offset);
+    c->set_data(data, n);
+  }
 
   VaslServiceImpl* service_;
   Response first_;
@@ -613,10 +618,8 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
 
   void FillChunk(v1::RenderResponse& out, int tag, int64_t offset, const char* data,
                  size_t n) override {
-    v1::RenderChunk* c = out.mutable_chunk();
-    c->set_format(static_cast<v1::ImageFormat>(tag));
-    c->set_offset_bytes(offset);
-    c->set_data(data, n);
+    ChunkStreamReactor::FillChunk(out, tag, offset, data, n);
+    out.mutable_chunk()->set_format(static_cast<v1::ImageFormat>(tag));
   }
 
   v1::RenderRequest request_;
@@ -660,13 +663,6 @@ class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
     return grpc::Status::OK;
   }
 
-  void FillChunk(v1::ExportResponse& out, int, int64_t offset, const char* data,
-                 size_t n) override {
-    v1::ExportChunk* c = out.mutable_chunk();
-    c->set_offset_bytes(offset);
-    c->set_data(data, n);
-  }
-
   v1::ExportRequest request_;
 };
 
@@ -688,13 +684,6 @@ class VisualReferenceReactor final : public ChunkStreamReactor<v1::GetVisualRefe
     VisualReferenceToProto(found->first, first_.mutable_reference());
     payloads_.emplace_back(0, std::move(found->second));
     return grpc::Status::OK;
-  }
-
-  void FillChunk(v1::GetVisualReferenceResponse& out, int, int64_t offset, const char* data,
-                 size_t n) override {
-    v1::ExportChunk* c = out.mutable_chunk();
-    c->set_offset_bytes(offset);
-    c->set_data(data, n);
   }
 
   v1::GetVisualReferenceRequest request_;
