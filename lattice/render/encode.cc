@@ -1,6 +1,6 @@
 /// @file encode.cc
-/// @brief EXR (OpenEXR C++ API, in memory) and PNG (OpenImageIO, in memory) encoders of a
-///        RenderImage (VASL-MODEL §8 outputs).
+/// @brief Row-streaming encoders of a RenderImage (VASL-MODEL §8 outputs): flat and deep EXR
+///        (OpenEXR C++ API) and PNG (OpenImageIO), each writing through a ByteSink.
 #include "lattice/render/encode.h"
 
 #include <algorithm>
@@ -9,10 +9,14 @@
 #include <cstring>
 #include <exception>
 #include <memory>
+#include <stdexcept>
+#include <thread>
+#include <utility>
 #include <vector>
 
 #include <OpenEXR/ImfChannelList.h>
 #include <OpenEXR/ImfPartType.h>
+#include <OpenEXR/ImfThreading.h>
 #include <OpenEXR/ImfCompression.h>
 #include <OpenEXR/ImfFrameBuffer.h>
 #include <OpenEXR/ImfHeader.h>
@@ -23,6 +27,7 @@
 #include <OpenEXR/ImfOutputFile.h>
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
+#include <tbb/parallel_for.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -30,23 +35,85 @@
 namespace vasl::render {
 namespace {
 
-/// An Imf::OStream appending to (and seeking within) a std::string.
-class StringOStream : public Imf::OStream {
+/// Bytes on their way to a ByteSink: contiguous writes are gathered into one run, sent when a
+/// write lands elsewhere (a seek), when the run reaches kRunBytes, or on Flush. After the sink
+/// fails, or after Close, writes are dropped.
+class SinkBuffer {
  public:
-  explicit StringOStream(std::string* bytes) : Imf::OStream("memory.exr"), bytes_(bytes) {}
+  static constexpr size_t kRunBytes = size_t{1} << 20;
 
-  void write(const char c[], int n) override {
-    const size_t end = pos_ + static_cast<size_t>(n);
-    if (end > bytes_->size()) bytes_->resize(end);
-    std::memcpy(bytes_->data() + pos_, c, static_cast<size_t>(n));
-    pos_ = end;
+  explicit SinkBuffer(ByteSink sink) : sink_(std::move(sink)) {}
+
+  /// Queues `n` bytes at `offset`; false when they were dropped.
+  bool Write(int64_t offset, const char* data, size_t n) {
+    if (closed_ || !status_.ok()) return false;
+    if (!run_.empty() && offset != run_offset_ + int64_t(run_.size())) Flush();
+    if (run_.empty()) run_offset_ = offset;
+    run_.append(data, n);
+    if (run_.size() >= kRunBytes) Flush();
+    return status_.ok();
   }
-  uint64_t tellp() override { return pos_; }
-  void seekp(uint64_t pos) override { pos_ = static_cast<size_t>(pos); }
+  void Flush() {
+    if (run_.empty() || closed_ || !status_.ok()) return;
+    status_ = sink_(run_offset_, run_);
+    run_.clear();
+  }
+  void Close() { closed_ = true; }
+  bool closed() const { return closed_; }
+  const absl::Status& status() const { return status_; }
 
  private:
-  std::string* bytes_;  ///< not owned
-  size_t pos_ = 0;      ///< write position, bytes
+  ByteSink sink_;
+  std::string run_;
+  int64_t run_offset_ = 0;
+  absl::Status status_;
+  bool closed_ = false;
+};
+
+/// An Imf::OStream writing into a SinkBuffer; it seeks freely (OpenEXR patches its offset
+/// table last). A write the sink refuses throws, so that OpenEXR stops, unless the buffer was
+/// closed or `quiet` is set (a destructor is writing).
+class SinkOStream : public Imf::OStream {
+ public:
+  explicit SinkOStream(SinkBuffer* buffer) : Imf::OStream("render.exr"), buffer_(buffer) {}
+
+  void write(const char c[], int n) override {
+    const bool kept = buffer_->Write(int64_t(pos_), c, size_t(n));
+    pos_ += uint64_t(n);
+    if (!kept && !quiet_ && !buffer_->closed()) {
+      throw std::runtime_error(std::string(buffer_->status().message()));
+    }
+  }
+  uint64_t tellp() override { return pos_; }
+  void seekp(uint64_t pos) override { pos_ = pos; }
+  void set_quiet() { quiet_ = true; }
+
+ private:
+  SinkBuffer* buffer_;  ///< not owned
+  uint64_t pos_ = 0;
+  bool quiet_ = false;
+};
+
+/// An OIIO IOProxy writing into a SinkBuffer.
+class SinkIOProxy : public OIIO::Filesystem::IOProxy {
+ public:
+  explicit SinkIOProxy(SinkBuffer* buffer) : IOProxy("", Write), buffer_(buffer) {}
+  const char* proxytype() const override { return "vasl-sink"; }
+  size_t write(const void* buf, size_t size) override {
+    const size_t n = pwrite(buf, size, m_pos);
+    m_pos += int64_t(n);
+    return n;
+  }
+  size_t pwrite(const void* buf, size_t size, int64_t offset) override {
+    if (!buffer_->Write(offset, static_cast<const char*>(buf), size)) return 0;
+    end_ = std::max(end_, offset + int64_t(size));
+    return size;
+  }
+  size_t size() const override { return size_t(end_); }
+
+ private:
+  SinkBuffer* buffer_;  ///< not owned
+  int64_t end_ = 0;
 };
 
 absl::Status ValidateImage(const RenderImage& image) {
@@ -66,6 +133,302 @@ absl::Status ValidateImage(const RenderImage& image) {
   return absl::OkStatus();
 }
 
+/// Coverage of pixel p (§8): images made before the alpha channel existed count every hit.
+float Coverage(const RenderImage& image, size_t p) {
+  if (image.alpha.size() == image.depth_m.size()) return image.alpha[p];
+  return std::isfinite(image.depth_m[p]) ? 1.0f : 0.0f;
+}
+
+/// A frame-buffer base for a band that starts at row `row`: OpenEXR addresses pixel (x, y) at
+/// base + x·xStride + y·yStride, so a band's own buffer is shifted back by `row` rows.
+char* BandBase(const void* band, int row, size_t row_bytes) {
+  return const_cast<char*>(static_cast<const char*>(band)) - ptrdiff_t(row) * ptrdiff_t(row_bytes);
+}
+
+/// Threads OpenEXR compresses a file's chunks on: one per core (its global pool, sized once).
+int ExrThreads() {
+  static const int threads = [] {
+    const int n = std::max(1, int(std::thread::hardware_concurrency()));
+    Imf::setGlobalThreadCount(n);
+    return n;
+  }();
+  return threads;
+}
+
+/// What every format's encoder shares: the size, the rows written so far, the sink.
+class EncoderBase : public RowEncoder {
+ public:
+  EncoderBase(int width_px, int height_px, ByteSink sink)
+      : width_(width_px), height_(height_px), buffer_(std::move(sink)) {}
+
+ protected:
+  absl::Status CheckRows(const RenderImage& image, int row_begin, int row_end) const {
+    if (absl::Status s = ValidateImage(image); !s.ok()) return s;
+    if (image.width_px != width_ || image.height_px != height_) {
+      return absl::InvalidArgumentError(absl::StrCat("the image is ", image.width_px, "x",
+                                                     image.height_px, ", the encoder's ",
+                                                     width_, "x", height_));
+    }
+    if (row_begin != next_row_ || row_end <= row_begin || row_end > height_) {
+      return absl::InvalidArgumentError(absl::StrCat("rows [", row_begin, ", ", row_end,
+                                                     ") out of order: the next row is ",
+                                                     next_row_, " of ", height_));
+    }
+    return buffer_.status();
+  }
+  absl::Status CheckComplete() const {
+    if (next_row_ != height_) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "the encoder has ", next_row_, " of ", height_, " rows: it cannot finish"));
+    }
+    return buffer_.status();
+  }
+  /// The sink's failure, else the codec's.
+  absl::Status Failed(const char* codec, const std::string& what) const {
+    if (!buffer_.status().ok()) return buffer_.status();
+    return absl::InternalError(absl::StrCat(codec, " failed to encode the render: ", what));
+  }
+  /// Sends the rows' bytes; the sink's status.
+  absl::Status Sent(int row_end) {
+    buffer_.Flush();
+    next_row_ = row_end;
+    return buffer_.status();
+  }
+
+  const int width_;
+  const int height_;
+  int next_row_ = 0;
+  SinkBuffer buffer_;
+};
+
+/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; ZIP compression, row 0 on top.
+class ExrEncoder final : public EncoderBase {
+ public:
+  using EncoderBase::EncoderBase;
+  ~ExrEncoder() override {
+    buffer_.Close();  // an unfinished file's offset table goes nowhere
+    file_.reset();
+  }
+
+  absl::Status Open() {
+    try {
+      Imf::Header header(width_, height_);  // data window (0,0)-(w-1,h-1)
+      header.compression() = Imf::ZIP_COMPRESSION;
+      header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
+      for (const char* name : kChannels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
+      file_ = std::make_unique<Imf::OutputFile>(stream_, header, ExrThreads());
+    } catch (const std::exception& e) {
+      return Failed("OpenEXR", e.what());
+    }
+    return Sent(0);
+  }
+
+  absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
+    if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
+    const size_t w = size_t(width_);
+    const size_t first = size_t(row_begin) * w;
+    alpha_.resize(size_t(row_end - row_begin) * w);
+    for (size_t p = 0; p < alpha_.size(); ++p) alpha_[p] = Coverage(image, first + p);
+    const std::pair<const float*, size_t> planes[] = {  // base, floats per pixel
+        {image.rgb.data() + 0, 3},    {image.rgb.data() + 1, 3},    {image.rgb.data() + 2, 3},
+        {image.depth_m.data(), 1},    {image.normal.data() + 0, 3}, {image.normal.data() + 1, 3},
+        {image.normal.data() + 2, 3}, {image.uncertainty.data(), 1}};
+    Imf::FrameBuffer frame;
+    for (size_t c = 0; c < std::size(planes); ++c) {
+      const auto& [base, stride] = planes[c];
+      // OpenEXR's Slice takes a mutable pointer; writing only reads through it.
+      frame.insert(kChannels[c], Imf::Slice(Imf::FLOAT, const_cast<char*>(
+                                                              reinterpret_cast<const char*>(base)),
+                                            stride * sizeof(float), stride * sizeof(float) * w));
+    }
+    frame.insert("A", Imf::Slice(Imf::FLOAT, BandBase(alpha_.data(), row_begin, sizeof(float) * w),
+                                 sizeof(float), sizeof(float) * w));
+    try {
+      file_->setFrameBuffer(frame);
+      file_->writePixels(row_end - row_begin);  // copies the rows: alpha_ may change after
+    } catch (const std::exception& e) {
+      return Failed("OpenEXR", e.what());
+    }
+    return Sent(row_end);
+  }
+
+  absl::Status Finish() override {
+    if (absl::Status s = CheckComplete(); !s.ok()) return s;
+    stream_.set_quiet();  // the destructor writes the offset table and must not throw
+    file_.reset();
+    buffer_.Flush();
+    return buffer_.status();
+  }
+
+ private:
+  static constexpr const char* kChannels[] = {"R", "G", "B", "Z", "N.x", "N.y", "N.z", "U", "A"};
+  SinkOStream stream_{&buffer_};
+  std::unique_ptr<Imf::OutputFile> file_;
+  std::vector<float> alpha_;  ///< the band's coverage
+};
+
+/// Deep EXR: per pixel its surface hits front to back as samples R, G, B, A, Z; ZIPS.
+class DeepExrEncoder final : public EncoderBase {
+ public:
+  using EncoderBase::EncoderBase;
+  ~DeepExrEncoder() override {
+    buffer_.Close();
+    file_.reset();
+  }
+
+  absl::Status Open() {
+    try {
+      Imf::Header header(width_, height_);
+      header.setType(Imf::DEEPSCANLINE);
+      header.compression() = Imf::ZIPS_COMPRESSION;
+      header.lineOrder() = Imf::INCREASING_Y;
+      for (const char* name : kChannels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
+      file_ = std::make_unique<Imf::DeepScanLineOutputFile>(stream_, header, ExrThreads());
+    } catch (const std::exception& e) {
+      return Failed("OpenEXR", e.what());
+    }
+    return Sent(0);
+  }
+
+  absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
+    if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
+    const size_t w = size_t(width_);
+    const size_t pixels = w * size_t(height_);
+    const size_t L = size_t(std::max(1, image.layers));
+    const bool deep = L > 1;
+    if (deep && (image.layer_count.size() != pixels || image.deep_depth_m.size() != pixels * L ||
+                 image.deep_rgb.size() != 3 * pixels * L ||
+                 image.deep_alpha.size() != pixels * L)) {
+      return absl::InvalidArgumentError(
+          "the image's layer arrays disagree with its size and layers");
+    }
+    // The band's samples front to back, packed per pixel: R, G, B, A, Z each in its own array.
+    const size_t first_pixel = size_t(row_begin) * w;
+    const size_t n = size_t(row_end - row_begin) * w;
+    count_.assign(n, 0);
+    size_t total = 0;
+    for (size_t i = 0; i < n; ++i) {
+      const size_t p = first_pixel + i;
+      count_[i] = deep ? image.layer_count[p] : (std::isfinite(image.depth_m[p]) ? 1u : 0u);
+      total += count_[i];
+    }
+    for (std::vector<float>& v : values_) v.resize(total);
+    for (std::vector<char*>& v : pointers_) v.resize(n);
+    size_t o = 0;
+    for (size_t i = 0; i < n; ++i) {
+      const size_t p = first_pixel + i;
+      for (size_t c = 0; c < std::size(kChannels); ++c) {
+        pointers_[c][i] = reinterpret_cast<char*>(values_[c].data() + o);
+      }
+      for (size_t s = 0; s < count_[i]; ++s, ++o) {
+        const size_t q = deep ? p * L + s : p;
+        const float* rgb = deep ? &image.deep_rgb[3 * q] : &image.rgb[3 * p];
+        for (int c = 0; c < 3; ++c) values_[c][o] = rgb[c];
+        values_[3][o] = deep ? image.deep_alpha[q] : Coverage(image, p);
+        values_[4][o] = deep ? image.deep_depth_m[q] : image.depth_m[p];
+      }
+    }
+    Imf::DeepFrameBuffer frame;
+    frame.insertSampleCountSlice(
+        Imf::Slice(Imf::UINT, BandBase(count_.data(), row_begin, sizeof(unsigned int) * w),
+                   sizeof(unsigned int), sizeof(unsigned int) * w));
+    for (size_t c = 0; c < std::size(kChannels); ++c) {
+      frame.insert(kChannels[c],
+                   Imf::DeepSlice(Imf::FLOAT, BandBase(pointers_[c].data(), row_begin, sizeof(char*) * w),
+                                  sizeof(char*), sizeof(char*) * w, sizeof(float)));
+    }
+    try {
+      file_->setFrameBuffer(frame);
+      file_->writePixels(row_end - row_begin);
+    } catch (const std::exception& e) {
+      return Failed("OpenEXR", e.what());
+    }
+    return Sent(row_end);
+  }
+
+  absl::Status Finish() override {
+    if (absl::Status s = CheckComplete(); !s.ok()) return s;
+    stream_.set_quiet();
+    file_.reset();
+    buffer_.Flush();
+    return buffer_.status();
+  }
+
+ private:
+  static constexpr const char* kChannels[] = {"R", "G", "B", "A", "Z"};
+  SinkOStream stream_{&buffer_};
+  std::unique_ptr<Imf::DeepScanLineOutputFile> file_;
+  std::vector<unsigned int> count_;     ///< the band's samples per pixel
+  std::vector<float> values_[5];        ///< the band's samples, per channel
+  std::vector<char*> pointers_[5];      ///< per channel and pixel: its first sample
+};
+
+/// PNG: RGBA 8-bit sRGB; alpha 0 where the ray hit nothing (black) or a vossel without colour
+/// (neutral grey 128: a viewer shows it as transparent; one that ignores alpha, as grey).
+class PngEncoder final : public EncoderBase {
+ public:
+  using EncoderBase::EncoderBase;
+  ~PngEncoder() override {
+    buffer_.Close();
+    out_.reset();
+  }
+
+  absl::Status Open() {
+    out_ = OIIO::ImageOutput::create("png");
+    if (!out_) {
+      return absl::InternalError(absl::StrCat("OpenImageIO has no PNG writer: ", OIIO::geterror()));
+    }
+    if (!out_->supports("ioproxy") || !out_->set_ioproxy(&proxy_)) {
+      return absl::InternalError("OpenImageIO's PNG writer cannot write to a stream (no ioproxy)");
+    }
+    OIIO::ImageSpec spec(width_, height_, 4, OIIO::TypeDesc::UINT8);
+    spec.alpha_channel = 3;
+    if (!out_->open("render.png", spec)) return Failed("OpenImageIO", out_->geterror());
+    return Sent(0);
+  }
+
+  absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
+    if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
+    const size_t first = size_t(row_begin) * size_t(width_);
+    srgb_.resize(4 * size_t(row_end - row_begin) * size_t(width_));
+    for (size_t i = 0; 4 * i < srgb_.size(); ++i) {
+      const size_t p = first + i;
+      const bool covered = Coverage(image, p) > 0.0f;
+      const bool colourless = !covered && std::isfinite(image.depth_m[p]);
+      for (int c = 0; c < 3; ++c) {
+        srgb_[4 * i + c] = colourless ? uint8_t{128}
+                           : !covered ? uint8_t{0}
+                                      : static_cast<uint8_t>(std::lround(
+                                            LinearToSrgb(image.rgb[3 * p + c]) * 255.0f));
+      }
+      srgb_[4 * i + 3] = covered ? 255 : 0;
+    }
+    if (!out_->write_scanlines(row_begin, row_end, 0, OIIO::TypeDesc::UINT8, srgb_.data())) {
+      return Failed("OpenImageIO", out_->geterror());
+    }
+    return Sent(row_end);
+  }
+
+  absl::Status Finish() override {
+    if (absl::Status s = CheckComplete(); !s.ok()) return s;
+    if (!out_->close()) return Failed("OpenImageIO", out_->geterror());
+    buffer_.Flush();
+    return buffer_.status();
+  }
+
+ private:
+  SinkIOProxy proxy_{&buffer_};
+  std::unique_ptr<OIIO::ImageOutput> out_;
+  std::vector<uint8_t> srgb_;  ///< the band's pixels
+};
+
+template <typename Encoder>
+absl::StatusOr<std::unique_ptr<RowEncoder>> Opened(int width_px, int height_px, ByteSink sink) {
+  auto encoder = std::make_unique<Encoder>(width_px, height_px, std::move(sink));
+  if (absl::Status s = encoder->Open(); !s.ok()) return s;
+  return std::unique_ptr<RowEncoder>(std::move(encoder));
+}
+
 }  // namespace
 
 float LinearToSrgb(float linear) {
@@ -75,151 +438,61 @@ float LinearToSrgb(float linear) {
   return 1.055f * std::pow(linear, 1.0f / 2.4f) - 0.055f;
 }
 
-absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
-  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
-  const int w = image.width_px;
-  const int h = image.height_px;
-  std::string bytes;
-  try {
-    // Coverage (§8): images made before the alpha channel existed count every hit as covered.
-    std::vector<float> alpha = image.alpha;
-    if (alpha.size() != image.depth_m.size()) {
-      alpha.assign(image.depth_m.size(), 0.0f);
-      for (size_t i = 0; i < alpha.size(); ++i) alpha[i] = std::isfinite(image.depth_m[i]) ? 1.0f : 0.0f;
-    }
-    Imf::Header header(w, h);  // data window (0,0)-(w-1,h-1)
-    header.compression() = Imf::ZIP_COMPRESSION;
-    header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
-    struct Plane {
-      const char* name;
-      const float* base;
-      size_t stride;  ///< floats per pixel
-    };
-    const Plane planes[] = {
-        {"R", image.rgb.data() + 0, 3},    {"G", image.rgb.data() + 1, 3},
-        {"B", image.rgb.data() + 2, 3},    {"Z", image.depth_m.data(), 1},
-        {"N.x", image.normal.data() + 0, 3}, {"N.y", image.normal.data() + 1, 3},
-        {"N.z", image.normal.data() + 2, 3}, {"U", image.uncertainty.data(), 1},
-        {"A", alpha.data(), 1},
-    };
-    Imf::FrameBuffer frame;
-    for (const Plane& p : planes) {
-      header.channels().insert(p.name, Imf::Channel(Imf::FLOAT));
-      // OpenEXR's Slice takes a mutable pointer; writing only reads through it.
-      frame.insert(p.name, Imf::Slice(Imf::FLOAT, const_cast<char*>(
-                                          reinterpret_cast<const char*>(p.base)),
-                                      p.stride * sizeof(float), p.stride * sizeof(float) * w));
-    }
-    StringOStream stream(&bytes);
-    Imf::OutputFile file(stream, header);
-    file.setFrameBuffer(frame);
-    file.writePixels(h);
-  } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("OpenEXR failed to encode the render: ", e.what()));
+absl::StatusOr<std::unique_ptr<RowEncoder>> RowEncoder::Create(ImageFormat format, int width_px,
+                                                               int height_px, ByteSink sink) {
+  if (width_px <= 0 || height_px <= 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("image size must be positive, got ", width_px, "x", height_px));
   }
+  switch (format) {
+    case ImageFormat::kExr:
+      return Opened<ExrEncoder>(width_px, height_px, std::move(sink));
+    case ImageFormat::kDeepExr:
+      return Opened<DeepExrEncoder>(width_px, height_px, std::move(sink));
+    case ImageFormat::kPng:
+      return Opened<PngEncoder>(width_px, height_px, std::move(sink));
+  }
+  return absl::InvalidArgumentError("unknown image format");
+}
+
+absl::Status WriteRows(const std::vector<RowEncoder*>& encoders, const RenderImage& image,
+                       int row_begin, int row_end) {
+  std::vector<absl::Status> status(encoders.size());
+  tbb::parallel_for(size_t{0}, encoders.size(), [&](size_t e) {
+    status[e] = encoders[e]->WriteRows(image, row_begin, row_end);
+  });
+  for (absl::Status& s : status) {
+    if (!s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::string> Encode(ImageFormat format, const RenderImage& image) {
+  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
+  std::string bytes;
+  auto encoder = RowEncoder::Create(
+      format, image.width_px, image.height_px, [&bytes](int64_t offset, std::string_view run) {
+        const size_t end = size_t(offset) + run.size();
+        if (end > bytes.size()) bytes.resize(end);
+        std::memcpy(bytes.data() + offset, run.data(), run.size());
+        return absl::OkStatus();
+      });
+  if (!encoder.ok()) return encoder.status();
+  if (absl::Status s = (*encoder)->WriteRows(image, 0, image.height_px); !s.ok()) return s;
+  if (absl::Status s = (*encoder)->Finish(); !s.ok()) return s;
   return bytes;
+}
+
+absl::StatusOr<std::string> EncodeExr(const RenderImage& image) {
+  return Encode(ImageFormat::kExr, image);
 }
 
 absl::StatusOr<std::string> EncodeDeepExr(const RenderImage& image) {
-  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
-  const int w = image.width_px;
-  const int h = image.height_px;
-  const size_t pixels = size_t(w) * size_t(h);
-  const size_t L = size_t(std::max(1, image.layers));
-  const bool deep = L > 1;
-  if (deep && (image.layer_count.size() != pixels || image.deep_depth_m.size() != pixels * L ||
-               image.deep_rgb.size() != 3 * pixels * L || image.deep_alpha.size() != pixels * L)) {
-    return absl::InvalidArgumentError("the image's layer arrays disagree with its size and layers");
-  }
-  // Samples front to back, packed per pixel: R, G, B, A, Z each in its own array.
-  std::vector<unsigned int> count(pixels, 0);
-  std::vector<size_t> first(pixels + 1, 0);
-  for (size_t p = 0; p < pixels; ++p) {
-    count[p] = deep ? image.layer_count[p] : (std::isfinite(image.depth_m[p]) ? 1u : 0u);
-    first[p + 1] = first[p] + count[p];
-  }
-  const size_t total = first[pixels];
-  std::vector<float> r(total), g(total), b(total), a(total), z(total);
-  for (size_t p = 0; p < pixels; ++p) {
-    for (size_t s = 0; s < count[p]; ++s) {
-      const size_t o = first[p] + s;
-      const size_t q = deep ? p * L + s : p;
-      const float* rgb = deep ? &image.deep_rgb[3 * q] : &image.rgb[3 * p];
-      r[o] = rgb[0];
-      g[o] = rgb[1];
-      b[o] = rgb[2];
-      a[o] = deep ? image.deep_alpha[q]
-                  : (image.alpha.size() == pixels ? image.alpha[p] : 1.0f);
-      z[o] = deep ? image.deep_depth_m[q] : image.depth_m[p];
-    }
-  }
-  std::string bytes;
-  try {
-    Imf::Header header(w, h);
-    header.setType(Imf::DEEPSCANLINE);
-    header.compression() = Imf::ZIPS_COMPRESSION;
-    header.lineOrder() = Imf::INCREASING_Y;
-    const std::pair<const char*, std::vector<float>*> planes[] = {
-        {"R", &r}, {"G", &g}, {"B", &b}, {"A", &a}, {"Z", &z}};
-    std::vector<std::vector<char*>> pointers;
-    Imf::DeepFrameBuffer frame;
-    frame.insertSampleCountSlice(Imf::Slice(Imf::UINT, reinterpret_cast<char*>(count.data()),
-                                            sizeof(unsigned int), sizeof(unsigned int) * w));
-    for (const auto& [name, values] : planes) {
-      header.channels().insert(name, Imf::Channel(Imf::FLOAT));
-      std::vector<char*>& ptr = pointers.emplace_back(pixels);
-      for (size_t p = 0; p < pixels; ++p) {
-        ptr[p] = reinterpret_cast<char*>(values->data() + first[p]);
-      }
-      frame.insert(name, Imf::DeepSlice(Imf::FLOAT, reinterpret_cast<char*>(ptr.data()),
-                                        sizeof(char*), sizeof(char*) * w, sizeof(float)));
-    }
-    StringOStream stream(&bytes);
-    Imf::DeepScanLineOutputFile file(stream, header);
-    file.setFrameBuffer(frame);
-    file.writePixels(h);
-  } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("OpenEXR failed to encode the deep render: ", e.what()));
-  }
-  return bytes;
+  return Encode(ImageFormat::kDeepExr, image);
 }
 
 absl::StatusOr<std::string> EncodePng(const RenderImage& image) {
-  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
-  const size_t pixels = static_cast<size_t>(image.width_px) * image.height_px;
-  // RGBA: alpha 0 where the ray hit nothing or a vossel without colour, whose RGB is the
-  // neutral grey 128 (a viewer shows it as transparent; one that ignores alpha, as grey).
-  const bool has_alpha = image.alpha.size() == pixels;
-  std::vector<uint8_t> srgb(4 * pixels);
-  for (size_t p = 0; p < pixels; ++p) {
-    const bool covered = has_alpha ? image.alpha[p] > 0.0f : std::isfinite(image.depth_m[p]);
-    const bool colourless = !covered && std::isfinite(image.depth_m[p]);
-    for (int c = 0; c < 3; ++c) {
-      srgb[4 * p + c] = colourless ? uint8_t{128}
-                        : !covered ? uint8_t{0}
-                                   : static_cast<uint8_t>(std::lround(
-                                         LinearToSrgb(image.rgb[3 * p + c]) * 255.0f));
-    }
-    srgb[4 * p + 3] = covered ? 255 : 0;
-  }
-  std::vector<unsigned char> bytes;
-  OIIO::Filesystem::IOVecOutput proxy(bytes);
-  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create("png");
-  if (!out) {
-    return absl::InternalError(
-        absl::StrCat("OpenImageIO has no PNG writer: ", OIIO::geterror()));
-  }
-  if (!out->supports("ioproxy") || !out->set_ioproxy(&proxy)) {
-    return absl::InternalError("OpenImageIO's PNG writer cannot write to memory (no ioproxy)");
-  }
-  OIIO::ImageSpec spec(image.width_px, image.height_px, 4, OIIO::TypeDesc::UINT8);
-  spec.alpha_channel = 3;
-  if (!out->open("render.png", spec) || !out->write_image(OIIO::TypeDesc::UINT8, srgb.data()) ||
-      !out->close()) {
-    return absl::InternalError(
-        absl::StrCat("OpenImageIO failed to encode the PNG: ", out->geterror()));
-  }
-  return std::string(bytes.begin(), bytes.end());
+  return Encode(ImageFormat::kPng, image);
 }
 
 }  // namespace vasl::render

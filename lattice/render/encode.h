@@ -3,12 +3,57 @@
 ///        OpenEXR, and an 8-bit sRGB PNG preview through OpenImageIO (VASL-MODEL §8 outputs).
 #pragma once
 
+#include <cstdint>
+#include <functional>
+#include <memory>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "lattice/render/render.h"
 
 namespace vasl::render {
+
+/// The encodings of a render (§8 outputs).
+enum class ImageFormat {
+  kExr,      ///< EncodeExr's channels
+  kDeepExr,  ///< EncodeDeepExr's samples
+  kPng,      ///< EncodePng's preview
+};
+
+/// Where an encoder's bytes go: `bytes` belong at byte `offset` of the encoded file. Runs come
+/// in the order the encoder writes them, and a later run may overwrite bytes of an earlier one
+/// (OpenEXR fills its chunk offset table, reserved after the header, last): a reader rebuilds
+/// the file by writing every run at its offset. A status other than OK stops the encoder with
+/// that status (the reader went away).
+using ByteSink = std::function<absl::Status(int64_t offset, std::string_view bytes)>;
+
+/// Encodes a render's rows as they become final, so that a large render's file streams while
+/// the rest is still marched (§8 outputs). The bytes equal those of EncodeExr, EncodeDeepExr or
+/// EncodePng of the whole image, however the rows are split.
+class RowEncoder {
+ public:
+  /// An encoder of a width_px × height_px image in `format`; writes its header to `sink`.
+  /// @return INVALID_ARGUMENT for a non-positive size; INTERNAL when the codec fails.
+  static absl::StatusOr<std::unique_ptr<RowEncoder>> Create(ImageFormat format, int width_px,
+                                                            int height_px, ByteSink sink);
+  virtual ~RowEncoder() = default;
+  /// Encodes rows [row_begin, row_end) of `image`, which has the encoder's size; calls come in
+  /// row order, each starting where the previous ended (0 first), and send the bytes they
+  /// complete to the sink before they return.
+  /// @return INVALID_ARGUMENT for rows out of order or an image whose arrays disagree with its
+  ///         size; the sink's status when it stopped; INTERNAL when the codec fails.
+  virtual absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) = 0;
+  /// Writes what follows the last row (EXR's offset table, PNG's end) once every row is written.
+  virtual absl::Status Finish() = 0;
+};
+
+/// Encodes rows [row_begin, row_end) of `image` with every encoder at once (one task per
+/// encoder, TBB); each encoder's sink is then called from its own task.
+/// @return the first encoder's failure, in the encoders' order.
+absl::Status WriteRows(const std::vector<RowEncoder*>& encoders, const RenderImage& image,
+                       int row_begin, int row_end);
 
 /// EXR bytes: float channels R, G, B (linear), Z (metres, +inf no hit), N.x, N.y, N.z
 /// (world), U (+inf where the hit vossel has no colour) and A (coverage: 1 where the pixel has
@@ -21,6 +66,8 @@ absl::StatusOr<std::string> EncodeDeepExr(const RenderImage& image);
 /// PNG bytes: RGBA 8-bit, sRGB transfer; alpha 0 where the ray hit nothing (RGB black) or a
 /// vossel without colour (RGB neutral grey 128).
 absl::StatusOr<std::string> EncodePng(const RenderImage& image);
+/// The whole image in `format` (one RowEncoder over every row).
+absl::StatusOr<std::string> Encode(ImageFormat format, const RenderImage& image);
 
 /// The standard sRGB OETF (IEC 61966-2-1): linear [0, 1] → encoded [0, 1], piecewise
 /// 12.92·c below 0.0031308, else 1.055·c^(1/2.4) − 0.055. Input clamped to [0, 1]; NaN → 0.

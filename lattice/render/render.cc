@@ -20,12 +20,15 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include <openvdb/math/DDA.h>
 #include <openvdb/math/Ray.h>
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/partitioner.h>
+#include <tbb/task_arena.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -50,6 +53,73 @@ constexpr int64_t kMaxPixels = int64_t{1} << 28;
 /// each other than the lattice resolves are one surface, and the same surface's next vossels
 /// (a wall two vossels thick) are not a layer of their own.
 constexpr double kLayerGapVox = 1.5;
+
+/// Bands of kBandRows rows handed to threads in row order (each thread takes the next band
+/// not yet taken), and handed on to RenderRequest::rows_done in row order as they finish.
+class Bands {
+ public:
+  Bands(const RenderRequest& request, const RenderImage& image, bool emit)
+      : request_(request), image_(image), height_(image.height_px),
+        count_((image.height_px + kBandRows - 1) / kBandRows), emit_(emit && request.rows_done),
+        done_(size_t(count_)) {}
+
+  /// Runs march(row_begin, row_end) over every band on the TBB threads, bands in row order;
+  /// march returns false to stop taking bands (interrupted). Then hands on what is left.
+  template <typename March>
+  absl::Status ForEach(March&& march) {
+    std::atomic<int> next{0};
+    const int workers = std::max(1, std::min(count_, tbb::this_task_arena::max_concurrency()));
+    tbb::parallel_for(tbb::blocked_range<int>(0, workers, 1), [&](const tbb::blocked_range<int>&) {
+      for (int b = next.fetch_add(1); b < count_ && !failed_.load(); b = next.fetch_add(1)) {
+        if (!march(b * kBandRows, std::min(height_, (b + 1) * kBandRows))) break;
+        done_[size_t(b)].store(true, std::memory_order_release);
+        Emit(/*wait=*/false);
+      }
+    }, tbb::simple_partitioner());
+    Emit(/*wait=*/true);
+    std::lock_guard<std::mutex> lock(mu_);
+    return status_;
+  }
+
+ private:
+  bool Ready() const {
+    const int n = next_emit_.load();
+    return emit_ && !failed_.load() && n < count_ &&
+           done_[size_t(n)].load(std::memory_order_acquire);
+  }
+  /// Hands on the finished bands that follow those handed on; without `wait`, only when no
+  /// other thread is doing so (that thread, or the final call, takes the rest).
+  void Emit(bool wait) {
+    if (!emit_) return;
+    do {
+      std::unique_lock<std::mutex> lock(mu_, std::defer_lock);
+      if (wait) {
+        lock.lock();
+      } else if (!lock.try_lock()) {
+        return;
+      }
+      while (Ready()) {
+        const int b = next_emit_.load();
+        int e = b + 1;
+        while (e < count_ && done_[size_t(e)].load(std::memory_order_acquire)) ++e;
+        status_ = request_.rows_done(image_, b * kBandRows, std::min(height_, e * kBandRows));
+        next_emit_.store(e);
+        if (!status_.ok()) failed_.store(true);
+      }
+    } while (!wait && Ready());
+  }
+
+  const RenderRequest& request_;
+  const RenderImage& image_;
+  const int height_;
+  const int count_;
+  const bool emit_;
+  std::vector<std::atomic<bool>> done_;  ///< per band: its rows are final
+  std::atomic<int> next_emit_{0};        ///< first band not yet handed on
+  std::atomic<bool> failed_{false};      ///< rows_done refused: stop
+  std::mutex mu_;                        ///< one thread hands on at a time
+  absl::Status status_;                  ///< rows_done's refusal
+};
 
 /// What RenderEquirect reads, validated once per render.
 struct Scene {
@@ -383,7 +453,14 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
     image.deep_rgb.assign(3 * pixels * size_t(layers), 0.0f);
     image.deep_alpha.assign(pixels * size_t(layers), 0.0f);
   }
-  if (geometry.size() == 0) return image;
+  const bool keep_index = request.colour_detail == ColourDetail::kSourceImages;
+  if (keep_index) image.vossel_index.assign(pixels, -1);
+  // kSourceImages: rows are final after ApplyColourDetail, which hands them on.
+  Bands bands(request, image, /*emit=*/!keep_index);
+  if (geometry.size() == 0) {  // nothing to hit: every row is final as it is
+    if (absl::Status s = bands.ForEach([](int, int) { return true; }); !s.ok()) return s;
+    return image;
+  }
 
   Scene scene;
   scene.tree = &geometry.index_grid->tree();
@@ -399,18 +476,17 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
 
   std::atomic<int64_t> hit_pixels{0}, colourless_pixels{0};
   const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
-  const bool keep_index = request.colour_detail == ColourDetail::kSourceImages;
-  if (keep_index) image.vossel_index.assign(pixels, -1);
   std::atomic<bool> bad{false};
   std::atomic<int32_t> bad_index{0};
   std::atomic<bool> interrupted{false};
   std::mutex interrupt_mu;
   absl::Status interrupt;  // the first answer of request.interrupt that stopped the render
-  tbb::parallel_for(tbb::blocked_range<int>(0, height), [&](const tbb::blocked_range<int>& rows) {
-    AccessorT acc(*scene.tree);
+  tbb::enumerable_thread_specific<AccessorT> accessors(std::cref(*scene.tree));
+  const absl::Status emitted = bands.ForEach([&](int row_begin, int row_end) {
+    AccessorT& acc = accessors.local();
     HddaT hdda;
     int64_t hits = 0, colourless = 0;
-    for (int j = rows.begin(); j != rows.end(); ++j) {
+    for (int j = row_begin; j != row_end; ++j) {
       if (interrupted.load(std::memory_order_relaxed)) break;
       if (request.interrupt) {
         if (absl::Status s = request.interrupt(); !s.ok()) {
@@ -482,8 +558,10 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
     }
     hit_pixels.fetch_add(hits);
     colourless_pixels.fetch_add(colourless);
+    return !interrupted.load();
   });
   if (interrupted.load()) return interrupt;
+  if (!emitted.ok()) return emitted;
   if (bad.load()) {
     return absl::InvalidArgumentError(
         absl::StrCat("the index grid holds vossel index ", bad_index.load(),
@@ -513,9 +591,10 @@ absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
   const int32_t n = int32_t(geometry.size());
   tbb::enumerable_thread_specific<std::vector<uint8_t>> used_parts(
       std::vector<uint8_t>(blend.images.size(), 0));
-  tbb::parallel_for(tbb::blocked_range<int>(0, image->height_px), [&](const tbb::blocked_range<int>& rows) {
+  Bands bands(request, *image, /*emit=*/true);
+  const absl::Status emitted = bands.ForEach([&](int row_begin, int row_end) {
     std::vector<uint8_t>& used = used_parts.local();
-    for (int j = rows.begin(); j != rows.end(); ++j) {
+    for (int j = row_begin; j != row_end; ++j) {
       for (int i = 0; i < image->width_px; ++i) {
         const size_t p = size_t(j) * image->width_px + i;
         const int32_t k = image->vossel_index[p];
@@ -525,7 +604,9 @@ absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
         BlendRecords(blend, geometry, size_t(k), request, &x, &image->rgb[3 * p], &used);
       }
     }
+    return true;
   });
+  if (!emitted.ok()) return emitted;
   std::vector<uint8_t> used(blend.images.size(), 0);
   for (const std::vector<uint8_t>& part : used_parts) {
     for (size_t m = 0; m < used.size(); ++m) used[m] |= part[m];

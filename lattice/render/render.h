@@ -40,6 +40,7 @@ enum class ColourDetail {
   kSourceImages,
 };
 
+struct RenderImage;
 /// What to render (§8).
 struct RenderRequest {
   geometry::Pose pose;          ///< T_world_camera (the projection's own camera frame)
@@ -58,7 +59,18 @@ struct RenderRequest {
   /// Asked before each row is marched, from several threads (may be empty): a status other
   /// than OK stops the render with that status (the caller cancelled, or its deadline passed).
   std::function<absl::Status()> interrupt;
+  /// Rows as they become final, for a caller that streams them (may be empty): called with
+  /// [row_begin, row_end) in row order, each row once, never concurrently, from one of the
+  /// render's threads, once the image's per-pixel arrays hold those rows' final values (its
+  /// counts are final only when the render returns). Rows are marched in bands of kBandRows
+  /// taken in order, so they arrive steadily while the rest is marched. With
+  /// ColourDetail::kSourceImages rows become final in ApplyColourDetail, which calls it.
+  /// A status other than OK stops the render with that status.
+  std::function<absl::Status(const RenderImage& image, int row_begin, int row_end)> rows_done;
 };
+/// Rows per band of a render's march: the unit of its work and of RenderRequest::rows_done
+/// (a multiple of the 16 rows OpenEXR's ZIP compression packs into one chunk).
+inline constexpr int kBandRows = 16;
 
 /// A rendered equirectangular RGBZ + normal + uncertainty image (§8), row-major, row 0 up.
 struct RenderImage {

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <limits>
 #include <vector>
 
@@ -502,6 +503,56 @@ TEST(RenderTest, RespectsMaxRange) {
   EXPECT_LT(img->hit_pixels, full->hit_pixels);
   EXPECT_LE(max_z, 3.0f);
   EXPECT_EQ(lost, 0);
+}
+
+// Claim (§8 outputs, streamed): rows_done hands on every row once, in row order, in bands of
+// kBandRows, and what a band holds when it is handed on is already the final image; a refusal
+// stops the render with its status.
+TEST(RenderTest, RowsArriveInOrderAndFinal) {
+  const AnalyticScene scene;
+  const Lattice lat = BuildLattice(scene);
+  RenderRequest req;
+  req.pose = CameraPose();
+  req.width_px = 512;
+  req.height_px = 250;  // not a multiple of the band: the last band is short
+  std::vector<std::pair<int, int>> calls;
+  std::vector<float> seen_depth(size_t(req.width_px) * req.height_px, -1.0f);
+  std::vector<float> seen_rgb(3 * seen_depth.size(), -1.0f);
+  req.rows_done = [&](const RenderImage& image, int row_begin, int row_end) {
+    calls.emplace_back(row_begin, row_end);  // never concurrent: no lock
+    const size_t a = size_t(row_begin) * image.width_px, b = size_t(row_end) * image.width_px;
+    std::copy(image.depth_m.begin() + a, image.depth_m.begin() + b, seen_depth.begin() + a);
+    std::copy(image.rgb.begin() + 3 * a, image.rgb.begin() + 3 * b, seen_rgb.begin() + 3 * a);
+    return absl::OkStatus();
+  };
+  auto img = RenderEquirect(lat.geometry, lat.fused, req);
+  ASSERT_TRUE(img.ok()) << img.status();
+  int next = 0;
+  for (const auto& [b, e] : calls) {
+    EXPECT_EQ(b, next);
+    EXPECT_GT(e, b);
+    EXPECT_TRUE(e % kBandRows == 0 || e == req.height_px) << e;
+    next = e;
+  }
+  EXPECT_EQ(next, req.height_px);
+  size_t same = 0;
+  for (size_t p = 0; p < seen_depth.size(); ++p) {
+    same += std::memcmp(&seen_depth[p], &img->depth_m[p], sizeof(float)) == 0 &&
+            std::memcmp(&seen_rgb[3 * p], &img->rgb[3 * p], 3 * sizeof(float)) == 0;
+  }
+  std::printf("rows handed on in %zu calls over %d rows; %zu of %zu pixels final when handed on\n",
+              calls.size(), req.height_px, same, seen_depth.size());
+  EXPECT_GE(calls.size(), 2u);
+  EXPECT_EQ(same, seen_depth.size());
+
+  int handed = 0;
+  req.rows_done = [&](const RenderImage&, int, int row_end) {
+    handed = row_end;
+    return absl::CancelledError("the reader went away");
+  };
+  auto stopped = RenderEquirect(lat.geometry, lat.fused, req);
+  EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_GT(handed, 0);
 }
 
 // Claim (ARCHITECTURE "Errors"): bad input is INVALID_ARGUMENT with a message, never a crash.

@@ -195,9 +195,25 @@ TEST(ViewBlendTest, ColourDetailReadsTheSourceImagesAtEachPixelsPoint) {
     req.height_px = 256;
     req.pose.o_world = Eigen::Vector3d(1.0, 1.0, 2.0);
     req.colour_detail = ColourDetail::kSourceImages;
+    // Streamed rows (§8 outputs) are final only once their colour detail is applied: the
+    // march hands on none, ApplyColourDetail hands on every row, each with its final colour.
+    bool detailed = false;
+    int handed = 0;
+    std::vector<float> handed_rgb(3 * size_t(req.width_px) * req.height_px, -1.0f);
+    req.rows_done = [&](const RenderImage& im, int row_begin, int row_end) {
+      EXPECT_TRUE(detailed) << "rows handed on before their colour detail";
+      EXPECT_EQ(row_begin, handed);
+      handed = row_end;
+      const size_t a = 3 * size_t(row_begin) * im.width_px, b = 3 * size_t(row_end) * im.width_px;
+      std::copy(im.rgb.begin() + a, im.rgb.begin() + b, handed_rgb.begin() + a);
+      return absl::OkStatus();
+    };
     auto image = RenderEquirect(f.geometry, f.fused, req, &blend);
     ASSERT_TRUE(image.ok()) << image.status();
+    detailed = true;
     ASSERT_TRUE(ApplyColourDetail(f.geometry, req, blend, &*image).ok());
+    EXPECT_EQ(handed, req.height_px);
+    EXPECT_TRUE(handed_rgb == image->rgb);
     EXPECT_EQ(image->detail_sources, 1);
     int64_t checked = 0, mismatched = 0, varying_vossels = 0;
     double max_err = 0.0;
