@@ -369,6 +369,17 @@ absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
   return formats;
 }
 
+render::ImageFormat ImageFormatFromProto(v1::ImageFormat format) {
+  switch (format) {
+    case v1::IMAGE_FORMAT_PNG:
+      return render::ImageFormat::kPng;
+    case v1::IMAGE_FORMAT_DEEP_EXR:
+      return render::ImageFormat::kDeepExr;
+    default:
+      return render::ImageFormat::kExr;
+  }
+}
+
 void VersionToProto(const store::VersionInfo& info, v1::Version* out) {
   out->set_version(info.version);
   out->set_vossel_count(info.vossel_count);

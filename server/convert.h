@@ -9,6 +9,7 @@
 
 #include "absl/status/statusor.h"
 #include "lattice/engine.h"
+#include "lattice/render/encode.h"
 #include "vasl/v1/vasl.pb.h"
 
 namespace vasl::server {
@@ -68,5 +69,7 @@ void RecordRowToProto(const flows::RecordRow& row, v1::RecordRow* out);
 
 absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
     const v1::RenderRequest& request);
+/// The encoder of a format RenderFormatsFromProto accepted.
+render::ImageFormat ImageFormatFromProto(v1::ImageFormat format);
 
 }  // namespace vasl::server

@@ -7,12 +7,16 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <condition_variable>
 #include <cstdio>
 #include <ctime>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <memory>
+#include <mutex>
+#include <string_view>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -464,9 +468,12 @@ class IngestReactor final : public grpc::ServerReadReactor<v1::IngestScanRequest
 };
 
 // ---------------------------------------------------------------------------------------------
-// Server streams of bytes (Render, Export): one writer reactor per call. `Prepare` runs on the
-// pool and produces the first message and the byte payloads; then each payload is streamed in
-// chunks, each write started from the previous write's completion.
+// Server streams of bytes (Render, Export, GetVisualReference): one writer reactor per call.
+// `Produce` runs on the pool and hands each message to Send as soon as it is ready; the reactor
+// writes them one at a time, each write started from the previous write's completion. Send
+// waits while kQueuedBytes of messages wait for the client, so a slow reader holds the producer
+// back instead of the server's memory. The call finishes only once Produce has returned (the
+// reactor outlives its producer) and every message it sent was written.
 template <typename Response>
 class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
  protected:
@@ -479,12 +486,15 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
         start_(Clock::now()) {}
 
   void OnWriteDone(bool ok) override {
-    if (!ok) {
-      Done(grpc::Status(grpc::StatusCode::CANCELLED,
-                        absl::StrCat("the client stopped reading the ", method_, " stream")));
-      return;
-    }
-    WriteNext();
+    std::unique_lock<std::mutex> lock(mu_);
+    writing_ = false;
+    if (!ok) Break();
+    WriteNext(lock);
+  }
+
+  void OnCancel() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Break();
   }
 
   void OnDone() override {
@@ -493,6 +503,9 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   }
 
  protected:
+  /// Messages not yet written that Send lets wait before it waits itself.
+  static constexpr size_t kQueuedBytes = size_t{16} << 20;
+
   /// Checks the request's text fields and the caller's read role, then queues Run on the pool
   /// (call last in the derived constructor).
   void Start(const google::protobuf::Message& request) {
@@ -510,8 +523,9 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
       Done(ToGrpcStatus(s));
     }
   }
-  /// Fills `first_` and `payloads_` (tag, bytes), or returns an error.
-  virtual grpc::Status Prepare() = 0;
+  /// Sends the call's messages (Send, SendBytes) on the pool; its status ends the call (an
+  /// error drops what was not yet written).
+  virtual grpc::Status Produce() = 0;
   /// One chunk of payload `tag` at `offset`: every response's chunk carries its offset and
   /// bytes; a reactor whose payloads differ by tag overrides this to name it too.
   virtual void FillChunk(Response& out, int /*tag*/, int64_t offset, const char* data, size_t n) {
@@ -520,32 +534,77 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
     c->set_data(data, n);
   }
 
+  /// Queues `message` for the client, waiting while kQueuedBytes wait. CANCELLED once the
+  /// client stopped reading (the producer should stop).
+  absl::Status Send(Response message) {
+    std::unique_lock<std::mutex> lock(mu_);
+    space_.wait(lock, [this] { return broken_ || queued_bytes_ < kQueuedBytes; });
+    if (broken_) {
+      return absl::CancelledError(absl::StrCat("the client stopped reading the ", method_,
+                                               " stream"));
+    }
+    queued_bytes_ += message.ByteSizeLong();
+    queue_.push_back(std::move(message));
+    WriteNext(lock);
+    return absl::OkStatus();
+  }
+  /// Sends `bytes`, payload `tag`'s bytes from `offset`, in chunks of the server's chunk size.
+  absl::Status SendBytes(int tag, int64_t offset, std::string_view bytes) {
+    const size_t chunk = static_cast<size_t>(service_->options().render_chunk_bytes);
+    for (size_t at = 0; at < bytes.size(); at += chunk) {
+      Response out;
+      FillChunk(out, tag, offset + int64_t(at), bytes.data() + at, std::min(chunk, bytes.size() - at));
+      if (absl::Status s = Send(std::move(out)); !s.ok()) return s;
+    }
+    return absl::OkStatus();
+  }
+
   VaslServiceImpl* service_;
-  Response first_;
-  std::vector<std::pair<int, std::string>> payloads_;
 
  private:
   void Run() {
-    grpc::Status gone;
-    if (ClientGone(context_, &gone)) return Done(gone);
-    const grpc::Status prepared = Prepare();
-    if (!prepared.ok()) return Done(prepared);
-    this->StartWrite(&first_);
+    grpc::Status status;
+    if (!ClientGone(context_, &status)) status = Produce();
+    std::unique_lock<std::mutex> lock(mu_);
+    produced_ = true;
+    produced_status_ = status;
+    if (!status.ok()) DropQueue();
+    WriteNext(lock);
   }
 
-  void WriteNext() {
-    const size_t chunk = static_cast<size_t>(service_->options().render_chunk_bytes);
-    while (index_ < payloads_.size() && offset_ >= payloads_[index_].second.size()) {
-      ++index_;
-      offset_ = 0;
+  /// With mu_ held by `lock`: starts the next write, or finishes the call once the producer is
+  /// done and nothing waits. Releases the lock when it writes or finishes.
+  void WriteNext(std::unique_lock<std::mutex>& lock) {
+    if (writing_ || finished_) return;
+    if (!queue_.empty()) {
+      current_ = std::move(queue_.front());
+      queue_.pop_front();
+      queued_bytes_ -= current_.ByteSizeLong();
+      writing_ = true;
+      space_.notify_all();
+      lock.unlock();
+      this->StartWrite(&current_);
+      return;
     }
-    if (index_ >= payloads_.size()) return Done(grpc::Status::OK);
-    const auto& [tag, bytes] = payloads_[index_];
-    const size_t n = std::min(chunk, bytes.size() - offset_);
-    chunk_.Clear();
-    FillChunk(chunk_, tag, static_cast<int64_t>(offset_), bytes.data() + offset_, n);
-    offset_ += n;
-    this->StartWrite(&chunk_);
+    if (!produced_) return;
+    finished_ = true;
+    grpc::Status status = produced_status_;
+    if (broken_ && status.ok()) {
+      status = grpc::Status(grpc::StatusCode::CANCELLED,
+                            absl::StrCat("the client stopped reading the ", method_, " stream"));
+    }
+    lock.unlock();
+    Done(status);
+  }
+  /// The client is gone: nothing more is written, and Send says so. With mu_ held.
+  void Break() {
+    broken_ = true;
+    DropQueue();
+    space_.notify_all();
+  }
+  void DropQueue() {
+    queue_.clear();
+    queued_bytes_ = 0;
   }
 
   void Done(const grpc::Status& status) {
@@ -557,14 +616,24 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
   const char* method_;
   std::string project_;
   Clock::time_point start_;
-  Response chunk_;
-  size_t index_ = 0;
-  size_t offset_ = 0;
   std::string client_;
   bool has_slot_ = false;
+
+  std::mutex mu_;
+  std::condition_variable space_;  ///< signalled as the queue shrinks or the client goes
+  std::deque<Response> queue_;     ///< sent, not yet written
+  size_t queued_bytes_ = 0;
+  Response current_;               ///< being written
+  bool writing_ = false;
+  bool broken_ = false;            ///< the client stopped reading or cancelled
+  bool produced_ = false;          ///< Produce returned
+  grpc::Status produced_status_;
+  bool finished_ = false;
 };
 
-// Render: renders and encodes, then streams the metadata and each format's bytes.
+// Render: renders and encodes as bands of rows finish (render::RowEncoder per format). Streamed
+// (stream_rows): each band's bytes go out as they are encoded, between a first and a last
+// RenderMetadata; otherwise the files are gathered and sent after the metadata.
 class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
  public:
   RenderReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
@@ -574,7 +643,15 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
   }
 
  private:
-  grpc::Status Prepare() override {
+  /// One requested format: its encoder, and its bytes when they are gathered.
+  struct Output {
+    v1::ImageFormat format;
+    std::unique_ptr<render::RowEncoder> encoder;
+    std::string bytes;
+    int64_t size = 0;  ///< the file's size so far
+  };
+
+  grpc::Status Produce() override {
     const EngineLimits& limits = service_->engine()->limits();
     absl::StatusOr<render::RenderRequest> request = RenderRequestFromProto(request_, limits);
     if (!request.ok()) return ToGrpcStatus(request.status());
@@ -583,22 +660,60 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     if (request_.project().empty()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "project is empty");
     }
-    const Clock::time_point render_start = Clock::now();
+    const bool streamed = request_.stream_rows();
+    if (streamed) {  // the size and formats first; the encoders' headers follow
+      v1::RenderResponse first;
+      first.mutable_metadata()->set_width_px(request->width_px);
+      first.mutable_metadata()->set_height_px(request->height_px);
+      for (v1::ImageFormat format : *formats) first.mutable_metadata()->add_formats(format);
+      if (absl::Status s = Send(std::move(first)); !s.ok()) return ToGrpcStatus(s);
+    }
+    std::vector<Output> outputs(formats->size());
+    for (size_t f = 0; f < outputs.size(); ++f) {
+      Output& out = outputs[f];
+      out.format = (*formats)[f];
+      auto encoder = render::RowEncoder::Create(
+          ImageFormatFromProto(out.format), request->width_px, request->height_px,
+          [this, &out, streamed](int64_t offset, std::string_view run) {
+            out.size = std::max(out.size, offset + int64_t(run.size()));
+            if (streamed) return SendBytes(out.format, offset, run);
+            if (out.size > int64_t(out.bytes.size())) out.bytes.resize(size_t(out.size));
+            std::copy(run.begin(), run.end(), out.bytes.begin() + offset);
+            return absl::OkStatus();
+          });
+      if (!encoder.ok()) return ToGrpcStatus(encoder.status());
+      out.encoder = std::move(*encoder);
+    }
+    double encode_seconds = 0.0;
+    const int rows_total = request->height_px;
     request->interrupt = [context = this->context()] { return StillWanted(context); };
+    std::vector<render::RowEncoder*> encoders;
+    for (Output& out : outputs) encoders.push_back(out.encoder.get());
+    request->rows_done = [&](const RenderImage& image, int row_begin, int row_end) {
+      const Clock::time_point encode_start = Clock::now();
+      if (absl::Status s = render::WriteRows(encoders, image, row_begin, row_end); !s.ok()) {
+        return s;
+      }
+      encode_seconds += SecondsSince(encode_start);
+      if (!streamed) return absl::OkStatus();
+      v1::RenderResponse progress;
+      progress.mutable_progress()->set_rows_done(row_end);
+      progress.mutable_progress()->set_rows_total(rows_total);
+      return Send(std::move(progress));
+    };
+    const Clock::time_point render_start = Clock::now();
     absl::StatusOr<RenderImage> image = service_->engine()->Render(request_.project(), *request);
     if (!image.ok()) return ToGrpcStatus(image.status());
-    const double render_seconds = SecondsSince(render_start);
-    const Clock::time_point encode_start = Clock::now();
-    v1::RenderMetadata* meta = first_.mutable_metadata();
-    for (v1::ImageFormat format : *formats) {
-      absl::StatusOr<std::string> bytes = format == v1::IMAGE_FORMAT_EXR ? render::EncodeExr(*image)
-                                          : format == v1::IMAGE_FORMAT_DEEP_EXR
-                                              ? render::EncodeDeepExr(*image)
-                                              : render::EncodePng(*image);
-      if (!bytes.ok()) return ToGrpcStatus(bytes.status());
-      meta->add_formats(format);
-      meta->add_size_bytes(static_cast<int64_t>(bytes->size()));
-      payloads_.emplace_back(format, std::move(*bytes));
+    const Clock::time_point finish_start = Clock::now();
+    for (Output& out : outputs) {
+      if (absl::Status s = out.encoder->Finish(); !s.ok()) return ToGrpcStatus(s);
+    }
+    encode_seconds += SecondsSince(finish_start);
+    v1::RenderResponse last;
+    v1::RenderMetadata* meta = last.mutable_metadata();
+    for (const Output& out : outputs) {
+      meta->add_formats(out.format);
+      meta->add_size_bytes(out.size);
     }
     meta->set_width_px(image->width_px);
     meta->set_height_px(image->height_px);
@@ -611,8 +726,14 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     meta->set_colourless_pixels(image->colourless_pixels);
     meta->set_detail_sources(image->detail_sources);
     meta->set_detail_sources_skipped(image->detail_sources_skipped);
-    meta->set_render_seconds(render_seconds);
-    meta->set_encode_seconds(SecondsSince(encode_start));
+    meta->set_render_seconds(SecondsSince(render_start));
+    meta->set_encode_seconds(encode_seconds);
+    if (absl::Status s = Send(std::move(last)); !s.ok()) return ToGrpcStatus(s);
+    if (streamed) return grpc::Status::OK;
+    for (Output& out : outputs) {
+      if (absl::Status s = SendBytes(out.format, 0, out.bytes); !s.ok()) return ToGrpcStatus(s);
+      out.bytes = {};
+    }
     return grpc::Status::OK;
   }
 
@@ -635,7 +756,7 @@ class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
   }
 
  private:
-  grpc::Status Prepare() override {
+  grpc::Status Produce() override {
     if (request_.version() < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                           absl::StrCat("version must be >= 0 (0: HEAD), got ", request_.version()));
@@ -654,13 +775,15 @@ class ExportReactor final : public ChunkStreamReactor<v1::ExportResponse> {
     if (int64_t(bytes.size()) != result->size_bytes) {
       return grpc::Status(grpc::StatusCode::INTERNAL, "export: the staged file changed size");
     }
-    v1::ExportMetadata* meta = first_.mutable_metadata();
+    v1::ExportResponse first;
+    v1::ExportMetadata* meta = first.mutable_metadata();
     meta->set_version(result->version);
     meta->set_vossel_count(result->vossel_count);
     meta->set_record_count(result->record_count);
     meta->set_size_bytes(result->size_bytes);
-    payloads_.emplace_back(0, std::move(bytes));
-    return grpc::Status::OK;
+    absl::Status sent = Send(std::move(first));
+    if (sent.ok()) sent = SendBytes(0, 0, bytes);
+    return ToGrpcStatus(sent);
   }
 
   v1::ExportRequest request_;
@@ -677,13 +800,15 @@ class VisualReferenceReactor final : public ChunkStreamReactor<v1::GetVisualRefe
   }
 
  private:
-  grpc::Status Prepare() override {
+  grpc::Status Produce() override {
     auto found = service_->engine()->GetVisualReference(request_.project(), request_.scan(),
                                                         request_.name());
     if (!found.ok()) return ToGrpcStatus(found.status());
-    VisualReferenceToProto(found->first, first_.mutable_reference());
-    payloads_.emplace_back(0, std::move(found->second));
-    return grpc::Status::OK;
+    v1::GetVisualReferenceResponse first;
+    VisualReferenceToProto(found->first, first.mutable_reference());
+    absl::Status sent = Send(std::move(first));
+    if (sent.ok()) sent = SendBytes(0, 0, found->second);
+    return ToGrpcStatus(sent);
   }
 
   v1::GetVisualReferenceRequest request_;

@@ -221,26 +221,32 @@ def _cmd_render(client: Client, args) -> int:
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
     pinhole = _parse_pinhole(args.pinhole)
-    formats = ("exr", "png", "deep") if args.layers > 1 else ("exr", "png")
-    r = client.render(args.project, pose, args.width, args.height, version=args.version,
-                      formats=formats, eta=args.eta, decode=False, profile=args.profile,
-                      pinhole=pinhole, layers=args.layers, colour_detail=args.colour_detail)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     png = out[:-4] + ".png"
-    with open(out, "wb") as f:
-        f.write(r.exr)
-    with open(png, "wb") as f:
-        f.write(r.png)
-    if r.deep_exr is not None:
-        deep = out[:-4] + "-deep.exr"
-        with open(deep, "wb") as f:
-            f.write(r.deep_exr)
+    deep = out[:-4] + "-deep.exr"
+    files = {"exr": out, "png": png}
+    if args.layers > 1:
+        files["deep"] = deep
+    shown = [0]
+
+    def progress(done: int, total: int) -> None:  # about every tenth of the rows
+        if done == total or done - shown[0] >= max(1, total // 10):
+            shown[0] = done
+            print(f"rows {done}/{total} rendered and sent", file=sys.stderr, flush=True)
+
+    # The files stream in as bands of rows finish: no render size is held in memory here.
+    r = client.render(args.project, pose, args.width, args.height, version=args.version,
+                      formats=tuple(files), eta=args.eta, decode=False, profile=args.profile,
+                      pinhole=pinhole, layers=args.layers, colour_detail=args.colour_detail,
+                      stream_rows=True, files=files,
+                      on_progress=progress if args.progress else None)
+    if "deep" in files:
         print(f"wrote {deep} (deep: up to {args.layers} surfaces per pixel, R,G,B,A,Z)")
     total = r.width_px * r.height_px
     print(f"render {r.render_id}: {'pinhole' if pinhole else 'equirect'} "
           f"{r.width_px}x{r.height_px} from version {r.version}: "
           f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
-          f"{r.render_seconds:.2f} s, profile {r.profile} revision {r.profile_revision}"
+          f"{r.render_seconds:.2f} s ({r.encode_seconds:.2f} s of it encoding), "
+          f"profile {r.profile} revision {r.profile_revision}"
           + (" (fused for this render: run vasl reweight to store it)" if r.fused_on_the_fly else ""))
     if args.colour_detail == "images":
         print(f"colour from {r.detail_sources} cameras' images"
@@ -672,7 +678,10 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--profile", default="",
                         help="weighting profile (default: the project's active one)")
     render.add_argument("-o", "--output", required=True, metavar="OUT.exr",
-                        help="EXR output; the PNG preview is written beside it")
+                        help="EXR output; the PNG preview is written beside it (the files "
+                             "stream in as bands of rows finish)")
+    render.add_argument("--progress", action="store_true",
+                        help="print the rows rendered and sent as they stream in")
 
     scans = sub.add_parser("scans", help="list the scans of a project")
     scans.add_argument("--project", required=True)

@@ -1106,14 +1106,21 @@ class Client:
                version: int = 0, formats: Sequence[str] = ("exr", "png"), eta: float = 0.0,
                max_range_m: float = 0.0, decode: bool = True, profile: str = "",
                profile_revision: int = 0, pinhole: Optional[dict] = None,
-               layers: int = 1, colour_detail: str = "vossel") -> RenderResult:
+               layers: int = 1, colour_detail: str = "vossel", stream_rows: bool = False,
+               files: Optional[Dict[str, str]] = None,
+               on_progress: Optional[Callable[[int, int], None]] = None) -> RenderResult:
         """Renders an equirectangular panorama from `pose` (VASL-MODEL §8). With "exr" among
         `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
         `profile` names the weighting profile (default: the project's active one). `pinhole`
         ({"fx_px", "fy_px", "cx_px", "cy_px"} and optional "k1", "k2", "k3", "p1", "p2") makes a
         pinhole render of width_px × height_px in the camera frame x right, y down, z forward.
         `colour_detail` "vossel" shows one colour per vossel; "images" reads each colour record
-        again where the pixel's own point projects into its camera's image (sharper, slower)."""
+        again where the pixel's own point projects into its camera's image (sharper, slower).
+        `stream_rows` has the server send each format's bytes as bands of rows finish, with
+        `on_progress(rows_done, rows_total)` after each band; `files` ({format: path}) writes
+        each format straight into its file as its bytes arrive (through PATH.part, renamed
+        once complete, removed on failure) instead of holding them in memory: together they
+        render images of any size."""
         self._check_name(project)
         if colour_detail not in _COLOUR_DETAIL:
             raise ValueError(f"colour_detail must be one of {sorted(_COLOUR_DETAIL)}, got {colour_detail!r}")
@@ -1137,42 +1144,81 @@ class Client:
                 raise ValueError(f"pinhole needs fx_px, fy_px, cx_px, cy_px (and optionally k1, "
                                  f"k2, k3, p1, p2); got {sorted(pinhole)}")
             request.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
+        request.stream_rows = bool(stream_rows)
+        files = dict(files or {})
+        unknown = set(files) - set(formats)
+        if unknown:
+            raise ValueError(f"files names formats not requested: {sorted(unknown)}")
+        names = {code: name for name, code in _FORMATS.items()}
         meta = None
         parts: Dict[int, bytearray] = {}
+        sizes: Dict[int, int] = {}  # bytes written per format, up to the furthest offset
+        out: Dict[int, object] = {}
         try:
+            for name, path in files.items():
+                os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+                out[_FORMATS[name]] = open(path + ".part", "wb")
             for msg in self.stub.Render(request, timeout=self.timeout_s):
                 if msg.HasField("metadata"):
                     meta = msg.metadata
+                elif msg.HasField("progress"):
+                    if on_progress is not None:
+                        on_progress(msg.progress.rows_done, msg.progress.rows_total)
                 elif msg.HasField("chunk"):
-                    buf = parts.setdefault(msg.chunk.format, bytearray())
-                    if msg.chunk.offset_bytes != len(buf):
+                    fmt, offset, data = msg.chunk.format, msg.chunk.offset_bytes, msg.chunk.data
+                    end = sizes.get(fmt, 0)
+                    # Unstreamed, a format's chunks are contiguous; streamed, a chunk may go back
+                    # (an EXR's offset table is written last) but never leaves a gap.
+                    if offset > end or (offset != end and not stream_rows):
                         raise VaslError(grpc.StatusCode.DATA_LOSS,
                                         "render chunks arrived out of order", "Render")
-                    buf.extend(msg.chunk.data)
+                    if fmt in out:
+                        out[fmt].seek(offset)
+                        out[fmt].write(data)
+                    else:
+                        parts.setdefault(fmt, bytearray())[offset:offset + len(data)] = data
+                    sizes[fmt] = max(end, offset + len(data))
+            if meta is None:
+                raise VaslError(grpc.StatusCode.DATA_LOSS, "the render stream had no metadata",
+                                "Render")
+            if len(meta.size_bytes) != len(meta.formats):
+                raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                "the render stream ended before its last metadata", "Render")
+            for fmt, size in zip(meta.formats, meta.size_bytes):
+                if sizes.get(fmt, 0) != size:
+                    raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                    f"render format {fmt}: got {sizes.get(fmt, 0)} of {size} bytes",
+                                    "Render")
+            for fmt, f in out.items():
+                f.close()
+                os.replace(files[names[fmt]] + ".part", files[names[fmt]])
         except grpc.RpcError as e:
             raise _wrap("Render", e) from None
-        if meta is None:
-            raise VaslError(grpc.StatusCode.DATA_LOSS, "the render stream had no metadata", "Render")
-        for fmt, size in zip(meta.formats, meta.size_bytes):
-            if len(parts.get(fmt, b"")) != size:
-                raise VaslError(grpc.StatusCode.DATA_LOSS,
-                                f"render format {fmt}: got {len(parts.get(fmt, b''))} of {size} bytes",
-                                "Render")
+        finally:
+            for fmt, f in out.items():
+                f.close()
+                if os.path.exists(files[names[fmt]] + ".part"):
+                    os.remove(files[names[fmt]] + ".part")
         result = RenderResult(meta.width_px, meta.height_px, meta.version, meta.hit_pixels,
                               meta.render_seconds, profile=meta.profile,
                               profile_revision=meta.profile_revision,
                               fused_on_the_fly=meta.fused_on_the_fly, render_id=meta.render_id,
                               colourless_pixels=meta.colourless_pixels,
                               detail_sources=meta.detail_sources,
-                              detail_sources_skipped=meta.detail_sources_skipped)
+                              detail_sources_skipped=meta.detail_sources_skipped,
+                              files=files, encode_seconds=meta.encode_seconds)
         if pb.IMAGE_FORMAT_EXR in parts:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])
         if pb.IMAGE_FORMAT_PNG in parts:
             result.png = bytes(parts[pb.IMAGE_FORMAT_PNG])
         if pb.IMAGE_FORMAT_DEEP_EXR in parts:
             result.deep_exr = bytes(parts[pb.IMAGE_FORMAT_DEEP_EXR])
-        if decode and result.exr is not None:
-            ch = decode_exr(result.exr)
+        exr = result.exr
+        if decode and exr is None and "exr" in files:
+            with open(files["exr"], "rb") as f:
+                exr = f.read()
+        if decode and exr is not None:
+            ch = decode_exr(exr)
             result.rgb = np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
             result.depth_m = ch["Z"]
             if "N.x" in ch:

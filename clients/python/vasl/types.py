@@ -250,6 +250,10 @@ class RenderResult:
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
     deep_exr: Optional[bytes] = None  #: the deep EXR (successive surfaces per pixel), if requested
+    #: render(files=...): the files written, by format ("exr", "png", "deep"); their bytes
+    #: are not held in memory (exr, png and deep_exr stay None)
+    files: Dict[str, str] = field(default_factory=dict)
+    encode_seconds: float = 0.0  #: of render_seconds, the time the server spent encoding
 
     @property
     def hit_mask(self) -> np.ndarray:
