@@ -8,8 +8,7 @@
 
 namespace vasl::geometry {
 
-void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out,
-                    bool* clipped) {
+void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
   const double x = u - 0.5, y = v - 0.5;
   const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
   const double fx = x - i0, fy = y - j0;
@@ -21,15 +20,9 @@ void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float
   const float* p10 = &img.pixels[(size_t(ja) * W + ib) * C];
   const float* p01 = &img.pixels[(size_t(jb) * W + ia) * C];
   const float* p11 = &img.pixels[(size_t(jb) * W + ib) * C];
-  bool clip = false;
   for (int c = 0; c < C; ++c) {
     out[c] = float((1 - fy) * ((1 - fx) * p00[c] + fx * p10[c]) + fy * ((1 - fx) * p01[c] + fx * p11[c]));
-    if (img.clip_value > 0.0f) {
-      const float lim = 0.999f * img.clip_value;
-      clip |= p00[c] >= lim || p10[c] >= lim || p01[c] >= lim || p11[c] >= lim;
-    }
   }
-  if (clipped != nullptr) *clipped = clip;
 }
 
 }  // namespace vasl::geometry

@@ -22,10 +22,8 @@ struct LinearImage {
 };
 
 /// Bilinear read of `img` at continuous pixel coordinates (u, v): `img.channels` values into
-/// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. `*clipped`
-/// (may be null) is set when any of the four pixels read has a channel at ≥ 0.999 of the
-/// image's clip level.
-void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out,
-                    bool* clipped = nullptr);
+/// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation
+/// is read from its own map, ingest::DetectSaturation.)
+void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out);
 
 }  // namespace vasl::geometry

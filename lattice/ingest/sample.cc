@@ -14,6 +14,7 @@
 
 #include "lattice/geometry/footprint.h"
 #include "lattice/geometry/linear_image.h"
+#include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/voxelise.h"
 
 namespace vasl::ingest {
@@ -68,9 +69,15 @@ ImageProjection ProjectionOf(const CameraSource& cam, int width_px, int height_p
 }
 
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
-                       const std::vector<float>& vis) {
+                       const std::vector<float>& vis, const LinearImage& saturation) {
   const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
   const bool wrap = !cam.pinhole;
+  auto confidence = [&](double u, double v) {  // §9: the saturation map at (u, v)
+    if (saturation.pixels.empty()) return 1.0f;
+    float c;
+    SampleBilinear(saturation, u, v, wrap, &c);
+    return c;
+  };
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
@@ -97,11 +104,10 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
       const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
       float value[3] = {0, 0, 0};
-      double clipped_weight = 0.0;
+      double conf = 0.0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
-        bool clipped;
-        SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value, &clipped);
-        clipped_weight = clipped ? 1.0 : 0.0;
+        SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value);
+        conf = confidence(uv.x(), uv.y());
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
         Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;
@@ -116,17 +122,16 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             const Eigen::Vector2d q =
                 proj.Project(R_cam_world * (p - cam.pose.o_world)).value_or(uv);
             float s[3];
-            bool clipped;
-            SampleBilinear(cam.image, q.x(), q.y(), wrap, s, &clipped);
+            SampleBilinear(cam.image, q.x(), q.y(), wrap, s);
             const double w = weight[a] * weight[b];
             for (int c = 0; c < cam.image.channels; ++c) acc[c] += w * s[c];
-            if (clipped) clipped_weight += w;
+            conf += w * confidence(q.x(), q.y());
           }
         }
         for (int c = 0; c < 3; ++c) value[c] = float(acc[c]);
       }
       PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.image.channels, range, cos_inc,
-                 foot, uv, vis[k], float(1.0 - clipped_weight), cam.batch);
+                 foot, uv, vis[k], float(conf), cam.batch);
     }
   });
   return Concatenate(parts);
@@ -372,7 +377,8 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   DilateDepthPanorama(depth, kCameraSampleRadiusPx, row_begin, row_end);
   SourceRecords out;
   out.records = SampleCamera(
-      g, cam, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx));
+      g, cam, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx),
+      DetectSaturation(cam.image, /*wrap=*/!cam.pinhole).conf);
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   if (cam.pinhole) {
     // Nothing outside a pinhole photo's field is recorded, so no change there can alter its

@@ -24,9 +24,11 @@ ImageProjection ProjectionOf(const CameraSource& camera, int width_px, int heigh
 /// tangent plane, σ_K² = s*² − s² per axis, evaluated by 3×3 Gauss–Hermite quadrature whose
 /// points are projected into the image and read bilinearly with seam wrap; weights sum to 1),
 /// else a bilinear point sample (the §4.2 range weight K_range discounts it at fusion).
-/// conf[saturation] = 1 − the kernel's weight on clipped pixels (§9); other factors 1.
+/// conf[saturation] = the kernel's weighted read of `saturation` (§9 saturation and blooming,
+/// DetectSaturation's map of the camera's image; empty: 1); other factors 1.
 records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const CameraSource& camera,
-                                const std::vector<float>& vis);
+                                const std::vector<float>& vis,
+                                const geometry::LinearImage& saturation);
 
 /// Records of one LiDAR: one per vossel that holds returns of this LiDAR and has V > 0; the
 /// sample is the mean intensity of those returns (1 when the scan has no intensity).

@@ -1,0 +1,282 @@
+/// @file artefacts.cc
+/// @brief Saturation and blooming as per-pixel confidence (VASL-MODEL §9).
+#include "lattice/ingest/artefacts.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+namespace vasl::ingest {
+namespace {
+
+/// The clip fraction at and above which a channel is clipped (as SampleBilinear's `clipped`).
+constexpr float kClipFraction = 0.999f;
+/// A pixel whose bloom adds more than this share to its own light is halo *(choice)*: less is
+/// within what exposure and texture vary by.
+constexpr double kHaloShare = 0.1;
+/// Bloom below this fraction of the clip level (2.5 codes of an 8-bit image) is the sensor's
+/// and the codec's noise, not bloom.
+constexpr double kNoise = 0.01;
+/// The ring quantile that measures bloom: a ring's darkest pixels carry its bloom as much as
+/// its brightest, while texture leaves them at the surround's darkest level.
+constexpr double kRingQuantile = 0.1;
+/// Rings over which a profile that falls by less than kNoise has met the surround.
+constexpr int kFlatRings = 3;
+/// A ring's quantile needs this many pixels.
+constexpr size_t kMinRingPixels = 4;
+
+/// Felzenszwalb–Huttenlocher 1D squared distance transform of f over n samples: d[q] =
+/// min_p (q − p)² + f[p], and arg[q] the p that attains it.
+void DistanceTransform1d(const double* f, int n, double* d, int* arg, int* v, double* z) {
+  const double inf = std::numeric_limits<double>::infinity();
+  int k = 0;
+  v[0] = 0;
+  z[0] = -inf;
+  z[1] = inf;
+  auto meet = [&](int q, int p) {  // where the parabolas of q and p cross
+    return ((f[q] + double(q) * q) - (f[p] + double(p) * p)) / (2.0 * q - 2.0 * p);
+  };
+  for (int q = 1; q < n; ++q) {
+    double s = meet(q, v[k]);
+    while (s <= z[k]) s = meet(q, v[--k]);  // z[0] = −∞ stops it
+    ++k;
+    v[k] = q;
+    z[k] = s;
+    z[k + 1] = inf;
+  }
+  k = 0;
+  for (int q = 0; q < n; ++q) {
+    while (z[k + 1] < q) ++k;
+    d[q] = (double(q) - v[k]) * (double(q) - v[k]) + f[v[k]];
+    arg[q] = v[k];
+  }
+}
+
+}  // namespace
+
+double SaturationMap::CoveredFraction(int width_px, int height_px) const {
+  const double pixels = double(width_px) * double(height_px);
+  return pixels > 0.0 ? double(clipped_pixels + halo_pixels) / pixels : 0.0;
+}
+
+SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
+  SaturationMap out;
+  const int W = image.width_px, H = image.height_px, C = image.channels;
+  if (!(image.clip_value > 0.0f) || W <= 0 || H <= 0 || C <= 0 ||
+      image.pixels.size() != size_t(W) * size_t(H) * size_t(C)) {
+    return out;
+  }
+  const size_t n = size_t(W) * size_t(H);
+  const float inv_clip = 1.0f / image.clip_value;
+  auto level = [&](size_t p) {  // brightest channel over the clip level
+    float m = 0.0f;
+    for (int c = 0; c < C; ++c) m = std::max(m, image.pixels[p * C + c] * inv_clip);
+    return m;
+  };
+  // Most images clip nowhere: find out before allocating anything.
+  out.clipped_pixels = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, n, 1 << 16), int64_t{0},
+      [&](const tbb::blocked_range<size_t>& r, int64_t count) {
+        for (size_t p = r.begin(); p != r.end(); ++p) count += level(p) >= kClipFraction;
+        return count;
+      },
+      [](int64_t a, int64_t b) { return a + b; });
+  if (out.clipped_pixels == 0) return out;
+  std::vector<uint8_t> clipped(n, 0);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t p = r.begin(); p != r.end(); ++p) clipped[p] = level(p) >= kClipFraction;
+  });
+
+  // Blobs: 8-connected clipped regions (columns wrap on a panorama).
+  std::vector<int32_t> label(n, -1);
+  std::vector<int64_t> area;
+  std::vector<int> box_x0, box_x1, box_y0, box_y1;  // each blob's pixel box
+  std::vector<size_t> stack;
+  for (size_t s = 0; s < n; ++s) {
+    if (!clipped[s] || label[s] >= 0) continue;
+    const int32_t b = int32_t(area.size());
+    area.push_back(0);
+    box_x0.push_back(W), box_x1.push_back(-1), box_y0.push_back(H), box_y1.push_back(-1);
+    label[s] = b;
+    stack.push_back(s);
+    while (!stack.empty()) {
+      const size_t p = stack.back();
+      stack.pop_back();
+      const int x = int(p % W), y = int(p / W);
+      ++area[b];
+      box_x0[b] = std::min(box_x0[b], x), box_x1[b] = std::max(box_x1[b], x);
+      box_y0[b] = std::min(box_y0[b], y), box_y1[b] = std::max(box_y1[b], y);
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          int xx = x + dx;
+          const int yy = y + dy;
+          if (yy < 0 || yy >= H) continue;
+          if (xx < 0 || xx >= W) {
+            if (!wrap) continue;
+            xx = (xx + W) % W;
+          }
+          const size_t q = size_t(yy) * W + xx;
+          if (clipped[q] && label[q] < 0) {
+            label[q] = b;
+            stack.push_back(q);
+          }
+        }
+      }
+    }
+  }
+  out.blobs = int(area.size());
+  const int cap = std::max(8, H / 4);
+  std::vector<int> reach(area.size());  // R_b, pixels
+  int x0 = W, x1 = -1, y0 = H, y1 = -1;  // the region every blob's rings lie in
+  for (size_t b = 0; b < area.size(); ++b) {
+    const double r_b = std::sqrt(double(area[b]) / M_PI);
+    reach[b] = std::min(cap, int(std::ceil(4.0 * r_b)) + 8);
+    x0 = std::min(x0, box_x0[b] - reach[b]), x1 = std::max(x1, box_x1[b] + reach[b]);
+    y0 = std::min(y0, box_y0[b] - reach[b]), y1 = std::max(y1, box_y1[b] + reach[b]);
+  }
+  x0 = std::max(0, x0), x1 = std::min(W - 1, x1), y0 = std::max(0, y0), y1 = std::min(H - 1, y1);
+  const int bw = x1 - x0 + 1, bh = y1 - y0 + 1;
+
+  // Exact Euclidean distance to the nearest clipped pixel over that region: columns, then rows.
+  const double far = 1e20;
+  std::vector<double> col_d2(size_t(bw) * bh);
+  std::vector<int> col_arg(size_t(bw) * bh);  // nearest clipped row in the column
+  tbb::parallel_for(tbb::blocked_range<int>(0, bw), [&](const tbb::blocked_range<int>& cols) {
+    std::vector<double> f(bh), d(bh), z(bh + 1);
+    std::vector<int> arg(bh), v(bh);
+    for (int i = cols.begin(); i != cols.end(); ++i) {
+      for (int j = 0; j < bh; ++j) f[j] = clipped[size_t(y0 + j) * W + x0 + i] ? 0.0 : far;
+      DistanceTransform1d(f.data(), bh, d.data(), arg.data(), v.data(), z.data());
+      for (int j = 0; j < bh; ++j) {
+        col_d2[size_t(j) * bw + i] = d[j];
+        col_arg[size_t(j) * bw + i] = arg[j];
+      }
+    }
+  });
+  std::vector<float> dist(size_t(bw) * bh);
+  std::vector<int32_t> nearest(size_t(bw) * bh);  // the blob of the nearest clipped pixel
+  tbb::parallel_for(tbb::blocked_range<int>(0, bh), [&](const tbb::blocked_range<int>& rows) {
+    std::vector<double> d(bw), z(bw + 1);
+    std::vector<int> arg(bw), v(bw);
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      const double* f = &col_d2[size_t(j) * bw];
+      DistanceTransform1d(f, bw, d.data(), arg.data(), v.data(), z.data());
+      for (int i = 0; i < bw; ++i) {
+        const size_t o = size_t(j) * bw + i;
+        const bool found = d[i] < 0.5 * far;
+        dist[o] = found ? float(std::sqrt(d[i])) : std::numeric_limits<float>::infinity();
+        const int sx = x0 + arg[i], sy = y0 + col_arg[size_t(j) * bw + arg[i]];
+        nearest[o] = found ? label[size_t(sy) * W + sx] : -1;
+      }
+    }
+  });
+
+  // Each blob's rings: the pixels at ⌊distance⌋ = k from it, k = 1 .. R_b − 1.
+  std::vector<size_t> ring_begin(area.size() + 1, 0);
+  for (size_t b = 0; b < area.size(); ++b) ring_begin[b + 1] = ring_begin[b] + size_t(reach[b]);
+  std::vector<size_t> ring_count(ring_begin.back() + 1, 0);
+  auto ring_of = [&](size_t o) -> int64_t {  // index into the rings, or −1
+    const int32_t b = nearest[o];
+    if (b < 0 || !(dist[o] >= 1.0f)) return -1;  // no blob, or clipped itself
+    const int k = int(dist[o]);
+    return k < reach[size_t(b)] ? int64_t(ring_begin[size_t(b)] + size_t(k)) : -1;
+  };
+  for (size_t o = 0; o < dist.size(); ++o) {
+    if (const int64_t r = ring_of(o); r >= 0) ++ring_count[size_t(r)];
+  }
+  std::vector<size_t> value_begin(ring_count.size() + 1, 0);
+  for (size_t r = 0; r < ring_count.size(); ++r) value_begin[r + 1] = value_begin[r] + ring_count[r];
+  std::vector<float> values(value_begin.back());
+  std::vector<size_t> fill(value_begin.begin(), value_begin.end() - 1);
+  for (int j = 0; j < bh; ++j) {
+    for (int i = 0; i < bw; ++i) {
+      const size_t o = size_t(j) * bw + i;
+      if (const int64_t r = ring_of(o); r >= 0) {
+        values[fill[size_t(r)]++] = level(size_t(y0 + j) * W + x0 + i);
+      }
+    }
+  }
+  // Per blob: each ring's low quantile, made non-increasing outward; its excess over the
+  // lowest (the surround's own level) is the ring's bloom Δ_k.
+  std::vector<float> ring_bloom(ring_count.size(), 0.0f);
+  tbb::parallel_for(size_t{0}, area.size(), [&](size_t b) {
+    const int R = reach[b];
+    std::vector<double> profile(size_t(R), -1.0);  // −1: too few pixels
+    double running = std::numeric_limits<double>::infinity();
+    for (int k = 1; k < R; ++k) {
+      const size_t r = ring_begin[b] + size_t(k);
+      float* first = values.data() + value_begin[r];
+      float* last = values.data() + value_begin[r + 1];
+      if (size_t(last - first) < kMinRingPixels) continue;
+      float* at = first + ptrdiff_t(kRingQuantile * double(last - first - 1));
+      std::nth_element(first, at, last);
+      running = std::min(running, double(*at));
+      profile[size_t(k)] = running;
+    }
+    if (!std::isfinite(running)) return;
+    for (int k = 2; k < R; ++k) {  // a ring too thin to measure reads as the one inside it
+      if (profile[size_t(k)] < 0.0) profile[size_t(k)] = profile[size_t(k - 1)];
+    }
+    // The halo ends where the profile stops falling (by less than the noise over the next
+    // kFlatRings rings): there it meets the surround's own level. A profile flat from ring 1
+    // (texture, a clipped surface that does not bloom) has no halo.
+    int end = 1;
+    while (end < R - 1 && !(profile[size_t(end)] >= 0.0 &&
+                            profile[size_t(end)] - profile[size_t(std::min(end + kFlatRings, R - 1))] <
+                                0.5 * kNoise)) {
+      ++end;
+    }
+    // The tail still falls there a little: the level kFlatRings further out is the surround.
+    const double surround = profile[size_t(std::min(end + kFlatRings, R - 1))];
+    for (int k = 1; k < end; ++k) {
+      const double bloom = profile[size_t(k)] - surround;
+      if (profile[size_t(k)] >= 0.0 && bloom > kNoise) ring_bloom[ring_begin[b] + size_t(k)] = float(bloom);
+    }
+  });
+
+  out.conf.width_px = W;
+  out.conf.height_px = H;
+  out.conf.channels = 1;
+  out.conf.pixels.assign(n, 1.0f);
+  for (size_t p = 0; p < n; ++p) {
+    if (clipped[p]) out.conf.pixels[p] = 0.0f;
+  }
+  std::vector<int> halo_radius(area.size(), 0);
+  for (int j = 0; j < bh; ++j) {
+    for (int i = 0; i < bw; ++i) {
+      const size_t o = size_t(j) * bw + i;
+      const int64_t r = ring_of(o);
+      if (r < 0 || !(ring_bloom[size_t(r)] > 0.0f)) continue;
+      // Bloom at the pixel's own distance: geometric between the centres of its ring and the
+      // neighbouring one (bloom falls by a large factor across one ring), toward 0 past the
+      // halo's last ring; the innermost ring keeps its own.
+      const int k = int(dist[o]);
+      const double t = double(dist[o]) - (k + 0.5);
+      const size_t b = size_t(nearest[o]);
+      const bool outward = t >= 0.0;
+      const double here = ring_bloom[size_t(r)];
+      double bloom = here;
+      if (outward || k > 1) {
+        const int kn = outward ? k + 1 : k - 1;
+        const double next = kn < reach[b] ? double(ring_bloom[ring_begin[b] + size_t(kn)]) : 0.0;
+        bloom = next > 0.0 ? here * std::pow(next / here, std::abs(t)) : here * (1.0 - std::abs(t));
+      }
+      // The share of the pixel's light that is its surface's: 1 − Δ / L(p).
+      const size_t p = size_t(y0 + j) * W + x0 + i;
+      const double own = 1.0 - bloom / std::max(double(level(p)), 1e-6);
+      if (own >= 1.0 / (1.0 + kHaloShare)) continue;
+      out.conf.pixels[p] = float(std::max(0.0, own));
+      ++out.halo_pixels;
+      halo_radius[b] = std::max(halo_radius[b], int(dist[o]) + 1);
+    }
+  }
+  for (int r : halo_radius) out.max_halo_radius_px = std::max(out.max_halo_radius_px, r);
+  return out;
+}
+
+}  // namespace vasl::ingest
