@@ -279,6 +279,15 @@ absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> Engine::GetVi
   return flows::VisualReference(*(*p)->store, *scans, project, scan, name);
 }
 
+absl::StatusOr<std::vector<flows::SourceConfidence>> Engine::ScanConfidence(
+    const std::string& project, const std::string& scan) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  auto scans = (*p)->store->ListScans();
+  if (!scans.ok()) return scans.status();
+  return flows::ScanConfidence(*(*p)->store, *scans, project, scan, impl_->limits.max_image_pixels);
+}
+
 absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, const ScanInput& scan,
                                                 const ProgressFn& progress) {
   const auto t0 = Clock::now();

@@ -128,6 +128,10 @@ class Engine {
   /// naming the scan, or the reference and the ones the scan has.
   absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> GetVisualReference(
       const std::string& project, const std::string& scan, const std::string& name);
+  /// The confidence maps of a scan's cameras (VASL-MODEL §9: what each artefact lowered and
+  /// where), found again from the stored images as their ingest found them.
+  absl::StatusOr<std::vector<flows::SourceConfidence>> ScanConfidence(const std::string& project,
+                                                                      const std::string& scan);
 
   /// The ingest flow: validate (nothing is stored if this fails) → store blobs → voxelise →
   /// normals → visibility → records → fuse → atomic commit. `progress` may be empty.

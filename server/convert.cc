@@ -369,6 +369,29 @@ absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
   return formats;
 }
 
+void ScanConfidenceToProto(const std::string& scan,
+                           const std::vector<flows::SourceConfidence>& cameras,
+                           v1::ScanConfidence* out) {
+  out->set_scan(scan);
+  for (const flows::SourceConfidence& c : cameras) {
+    v1::CameraConfidence* cam = out->add_cameras();
+    cam->set_source_id(c.source_id);
+    cam->set_source(c.source);
+    cam->set_width_px(c.width_px);
+    cam->set_height_px(c.height_px);
+    for (const flows::ArtefactMap& m : c.artefacts) {
+      v1::ArtefactCoverage* a = cam->add_artefacts();
+      a->set_artefact(m.artefact);
+      a->set_covered_fraction(m.covered_fraction);
+      a->set_flagged_pixels(m.flagged_pixels);
+      a->set_soft_pixels(m.soft_pixels);
+      a->set_regions(m.regions);
+      a->set_max_extent_px(m.max_extent_px);
+      a->set_map_size_bytes(int64_t(m.png.size()));
+    }
+  }
+}
+
 render::ImageFormat ImageFormatFromProto(v1::ImageFormat format) {
   switch (format) {
     case v1::IMAGE_FORMAT_PNG:

@@ -69,6 +69,10 @@ void RecordRowToProto(const flows::RecordRow& row, v1::RecordRow* out);
 
 absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(
     const v1::RenderRequest& request);
+/// A scan's confidence maps' summary (VASL-MODEL §9); the maps' bytes are streamed apart.
+void ScanConfidenceToProto(const std::string& scan,
+                           const std::vector<flows::SourceConfidence>& cameras,
+                           v1::ScanConfidence* out);
 /// The encoder of a format RenderFormatsFromProto accepted.
 render::ImageFormat ImageFormatFromProto(v1::ImageFormat format);
 

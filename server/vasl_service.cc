@@ -814,6 +814,44 @@ class VisualReferenceReactor final : public ChunkStreamReactor<v1::GetVisualRefe
   v1::GetVisualReferenceRequest request_;
 };
 
+// GetConfidence: a scan's cameras' confidence maps (VASL-MODEL §9), the summary then the PNGs.
+class ConfidenceReactor final : public ChunkStreamReactor<v1::GetConfidenceResponse> {
+ public:
+  ConfidenceReactor(VaslServiceImpl* service, grpc::CallbackServerContext* context,
+                    const v1::GetConfidenceRequest* request)
+      : ChunkStreamReactor(service, context, "GetConfidence", request->project()),
+        request_(*request) {
+    Start(request_);
+  }
+
+ private:
+  static constexpr int kArtefacts = 1 << 8;  ///< tag = camera · kArtefacts + artefact
+
+  grpc::Status Produce() override {
+    auto found = service_->engine()->ScanConfidence(request_.project(), request_.scan());
+    if (!found.ok()) return ToGrpcStatus(found.status());
+    v1::GetConfidenceResponse first;
+    ScanConfidenceToProto(request_.scan(), *found, first.mutable_summary());
+    absl::Status sent = Send(std::move(first));
+    for (size_t c = 0; c < found->size() && sent.ok(); ++c) {
+      const std::vector<flows::ArtefactMap>& maps = (*found)[c].artefacts;
+      for (size_t a = 0; a < maps.size() && sent.ok(); ++a) {
+        sent = SendBytes(int(c) * kArtefacts + int(a), 0, maps[a].png);
+      }
+    }
+    return ToGrpcStatus(sent);
+  }
+
+  void FillChunk(v1::GetConfidenceResponse& out, int tag, int64_t offset, const char* data,
+                 size_t n) override {
+    ChunkStreamReactor::FillChunk(out, tag, offset, data, n);
+    out.mutable_chunk()->set_camera_index(tag / kArtefacts);
+    out.mutable_chunk()->set_artefact_index(tag % kArtefacts);
+  }
+
+  v1::GetConfidenceRequest request_;
+};
+
 }  // namespace
 
 std::filesystem::path VaslServiceImpl::ExportStagingPath() const {
@@ -1338,6 +1376,11 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListVersions(grpc::CallbackServerCont
     for (const store::VersionInfo* v : *page) VersionToProto(*v, response->add_versions());
     return grpc::Status::OK;
   });
+}
+
+grpc::ServerWriteReactor<v1::GetConfidenceResponse>* VaslServiceImpl::GetConfidence(
+    grpc::CallbackServerContext* context, const v1::GetConfidenceRequest* request) {
+  return new ConfidenceReactor(this, context, request);
 }
 
 grpc::ServerWriteReactor<v1::GetVisualReferenceResponse>* VaslServiceImpl::GetVisualReference(

@@ -147,6 +147,8 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
       grpc::CallbackServerContext* context, const v1::ExportRequest* request) override;
   grpc::ServerWriteReactor<v1::GetVisualReferenceResponse>* GetVisualReference(
       grpc::CallbackServerContext* context, const v1::GetVisualReferenceRequest* request) override;
+  grpc::ServerWriteReactor<v1::GetConfidenceResponse>* GetConfidence(
+      grpc::CallbackServerContext* context, const v1::GetConfidenceRequest* request) override;
 
   // Used by the reactors (vasl_service.cc).
   /// A progress callback for a long engine call: it updates the progress board of `project`

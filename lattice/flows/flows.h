@@ -252,6 +252,34 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
                                                 const fusion::WeightingProfile& profile,
                                                 int64_t limit);
 
+/// One artefact's confidence map of a camera image (VASL-MODEL §9) and how much of the image
+/// it covers.
+struct ArtefactMap {
+  std::string artefact;          ///< "saturation": saturation and blooming (DetectSaturation)
+  int64_t flagged_pixels = 0;    ///< confidence 0 (clipped)
+  int64_t soft_pixels = 0;       ///< 0 < confidence < 1 (a halo)
+  int regions = 0;               ///< connected flagged regions
+  int max_extent_px = 0;         ///< the widest soft band around a region, pixels
+  double covered_fraction = 0.0; ///< share of the image's pixels below 1
+  std::string png;               ///< the map, ingest::EncodeConfidencePng
+};
+
+/// The confidence maps of one camera of a scan.
+struct SourceConfidence {
+  int32_t source_id = 0;
+  std::string source;  ///< the camera's name in its scan
+  int width_px = 0;
+  int height_px = 0;
+  std::vector<ArtefactMap> artefacts;
+};
+
+/// The confidence maps of every camera of scan `scan` among `scans`, in source order: each
+/// stored image decoded again (at most `max_pixels`) and its artefacts found as its ingest
+/// found them. NOT_FOUND naming the scan; DATA_LOSS when a stored image cannot be read.
+absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
+    const store::ProjectStore& store, const std::vector<store::ScanInfo>& scans,
+    const std::string& project, const std::string& scan, int64_t max_pixels);
+
 /// A visual reference of a scan among `scans` (their poses as the caller wants them) and its
 /// image bytes as sent. NOT_FOUND naming the scan, or the reference and the ones it has.
 absl::StatusOr<std::pair<store::VisualReferenceInfo, std::string>> VisualReference(

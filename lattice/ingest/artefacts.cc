@@ -5,11 +5,17 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <vector>
 
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
 
 namespace vasl::ingest {
 namespace {
@@ -25,10 +31,12 @@ constexpr double kNoise = 0.01;
 /// The ring quantile that measures bloom: a ring's darkest pixels carry its bloom as much as
 /// its brightest, while texture leaves them at the surround's darkest level.
 constexpr double kRingQuantile = 0.1;
+/// Directions around a blob in which its rings are measured apart.
+constexpr int kSectors = 8;
 /// Rings over which a profile that falls by less than kNoise has met the surround.
 constexpr int kFlatRings = 3;
-/// A ring's quantile needs this many pixels.
-constexpr size_t kMinRingPixels = 4;
+/// A ring's quantile, in one direction, needs this many pixels.
+constexpr size_t kMinRingPixels = 3;
 
 /// Felzenszwalb–Huttenlocher 1D squared distance transform of f over n samples: d[q] =
 /// min_p (q − p)² + f[p], and arg[q] the p that attains it.
@@ -160,6 +168,7 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   });
   std::vector<float> dist(size_t(bw) * bh);
   std::vector<int32_t> nearest(size_t(bw) * bh);  // the blob of the nearest clipped pixel
+  std::vector<uint8_t> sector(size_t(bw) * bh);   // the direction from it, of kSectors
   tbb::parallel_for(tbb::blocked_range<int>(0, bh), [&](const tbb::blocked_range<int>& rows) {
     std::vector<double> d(bw), z(bw + 1);
     std::vector<int> arg(bw), v(bw);
@@ -172,6 +181,8 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
         dist[o] = found ? float(std::sqrt(d[i])) : std::numeric_limits<float>::infinity();
         const int sx = x0 + arg[i], sy = y0 + col_arg[size_t(j) * bw + arg[i]];
         nearest[o] = found ? label[size_t(sy) * W + sx] : -1;
+        const double angle = std::atan2(double(y0 + j - sy), double(x0 + i - sx));  // [−π, π]
+        sector[o] = uint8_t(int(std::floor((angle + M_PI) / (2.0 * M_PI) * kSectors)) % kSectors);
       }
     }
   });
@@ -179,63 +190,95 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   // Each blob's rings: the pixels at ⌊distance⌋ = k from it, k = 1 .. R_b − 1.
   std::vector<size_t> ring_begin(area.size() + 1, 0);
   for (size_t b = 0; b < area.size(); ++b) ring_begin[b + 1] = ring_begin[b] + size_t(reach[b]);
-  std::vector<size_t> ring_count(ring_begin.back() + 1, 0);
+  std::vector<size_t> bin_count(ring_begin.back() * kSectors + 1, 0);
   auto ring_of = [&](size_t o) -> int64_t {  // index into the rings, or −1
     const int32_t b = nearest[o];
     if (b < 0 || !(dist[o] >= 1.0f)) return -1;  // no blob, or clipped itself
     const int k = int(dist[o]);
     return k < reach[size_t(b)] ? int64_t(ring_begin[size_t(b)] + size_t(k)) : -1;
   };
+  auto bin_of = [&](size_t o) -> int64_t {  // index into the (ring, sector) bins, or −1
+    const int64_t r = ring_of(o);
+    return r < 0 ? -1 : r * kSectors + sector[o];
+  };
   for (size_t o = 0; o < dist.size(); ++o) {
-    if (const int64_t r = ring_of(o); r >= 0) ++ring_count[size_t(r)];
+    if (const int64_t r = bin_of(o); r >= 0) ++bin_count[size_t(r)];
   }
-  std::vector<size_t> value_begin(ring_count.size() + 1, 0);
-  for (size_t r = 0; r < ring_count.size(); ++r) value_begin[r + 1] = value_begin[r] + ring_count[r];
+  std::vector<size_t> value_begin(bin_count.size() + 1, 0);
+  for (size_t r = 0; r < bin_count.size(); ++r) value_begin[r + 1] = value_begin[r] + bin_count[r];
   std::vector<float> values(value_begin.back());
   std::vector<size_t> fill(value_begin.begin(), value_begin.end() - 1);
   for (int j = 0; j < bh; ++j) {
     for (int i = 0; i < bw; ++i) {
       const size_t o = size_t(j) * bw + i;
-      if (const int64_t r = ring_of(o); r >= 0) {
+      if (const int64_t r = bin_of(o); r >= 0) {
         values[fill[size_t(r)]++] = level(size_t(y0 + j) * W + x0 + i);
       }
     }
   }
-  // Per blob: each ring's low quantile, made non-increasing outward; its excess over the
-  // lowest (the surround's own level) is the ring's bloom Δ_k.
-  std::vector<float> ring_bloom(ring_count.size(), 0.0f);
+  // Per blob and direction: each ring's low quantile, made non-increasing outward, falls to
+  // the surround's own level in that direction; its excess there is that direction's bloom.
+  // Bloom spreads alike in every direction and scene content does not, so a ring's bloom Δ_k
+  // is the median over the directions.
+  std::vector<float> ring_bloom(ring_begin.back(), 0.0f);
   tbb::parallel_for(size_t{0}, area.size(), [&](size_t b) {
     const int R = reach[b];
-    std::vector<double> profile(size_t(R), -1.0);  // −1: too few pixels
-    double running = std::numeric_limits<double>::infinity();
+    std::vector<std::vector<double>> excess(kSectors, std::vector<double>(size_t(R), -1.0));
+    for (int s = 0; s < kSectors; ++s) {
+      std::vector<double> profile(size_t(R), -1.0);  // −1: too few pixels
+      double running = std::numeric_limits<double>::infinity();
+      for (int k = 1; k < R; ++k) {
+        const size_t r = (ring_begin[b] + size_t(k)) * kSectors + size_t(s);
+        float* first = values.data() + value_begin[r];
+        float* last = values.data() + value_begin[r + 1];
+        if (size_t(last - first) < kMinRingPixels) continue;
+        float* at = first + ptrdiff_t(kRingQuantile * double(last - first - 1));
+        std::nth_element(first, at, last);
+        running = std::min(running, double(*at));
+        profile[size_t(k)] = running;
+      }
+      if (!std::isfinite(running)) continue;
+      int k0 = 1;
+      while (profile[size_t(k0)] < 0.0) ++k0;
+      for (int k = k0 + 1; k < R; ++k) {  // a bin too thin to measure reads as the one inside
+        if (profile[size_t(k)] < 0.0) profile[size_t(k)] = profile[size_t(k - 1)];
+      }
+      // What the scene itself does there: its slope g per ring, the median fall of the outer
+      // half of the rings (a surface lit more brightly toward a lamp falls slowly and evenly;
+      // bloom falls fast and ever more slowly).
+      std::vector<double> fall;
+      for (int k = std::max(k0, R / 2); k + 1 < R; ++k) {
+        fall.push_back(profile[size_t(k)] - profile[size_t(k + 1)]);
+      }
+      double g = 0.0;
+      if (!fall.empty()) {
+        std::nth_element(fall.begin(), fall.begin() + fall.size() / 2, fall.end());
+        g = fall[fall.size() / 2];
+      }
+      // The halo ends where the profile falls no faster than the scene (by less than half the
+      // noise beyond g·kFlatRings over the next kFlatRings rings). The surround inside it is
+      // the scene's level carried in along g from kFlatRings further out, where the tail has
+      // faded. A profile that falls like the scene from its first ring (texture, a clipped
+      // surface that does not bloom, a lit wall) has no halo.
+      auto at = [&](int k) { return profile[size_t(std::min(k, R - 1))]; };
+      int end = k0;
+      while (end < R - 1 && at(end) - at(end + kFlatRings) - g * kFlatRings >= 0.5 * kNoise) ++end;
+      const int far_ring = std::min(end + kFlatRings, R - 1);
+      for (int k = k0; k < R; ++k) {
+        const double surround = at(far_ring) + g * double(far_ring - k);
+        excess[size_t(s)][size_t(k)] = k < end ? std::max(0.0, profile[size_t(k)] - surround) : 0.0;
+      }
+    }
+    std::vector<double> at_k;
     for (int k = 1; k < R; ++k) {
-      const size_t r = ring_begin[b] + size_t(k);
-      float* first = values.data() + value_begin[r];
-      float* last = values.data() + value_begin[r + 1];
-      if (size_t(last - first) < kMinRingPixels) continue;
-      float* at = first + ptrdiff_t(kRingQuantile * double(last - first - 1));
-      std::nth_element(first, at, last);
-      running = std::min(running, double(*at));
-      profile[size_t(k)] = running;
-    }
-    if (!std::isfinite(running)) return;
-    for (int k = 2; k < R; ++k) {  // a ring too thin to measure reads as the one inside it
-      if (profile[size_t(k)] < 0.0) profile[size_t(k)] = profile[size_t(k - 1)];
-    }
-    // The halo ends where the profile stops falling (by less than the noise over the next
-    // kFlatRings rings): there it meets the surround's own level. A profile flat from ring 1
-    // (texture, a clipped surface that does not bloom) has no halo.
-    int end = 1;
-    while (end < R - 1 && !(profile[size_t(end)] >= 0.0 &&
-                            profile[size_t(end)] - profile[size_t(std::min(end + kFlatRings, R - 1))] <
-                                0.5 * kNoise)) {
-      ++end;
-    }
-    // The tail still falls there a little: the level kFlatRings further out is the surround.
-    const double surround = profile[size_t(std::min(end + kFlatRings, R - 1))];
-    for (int k = 1; k < end; ++k) {
-      const double bloom = profile[size_t(k)] - surround;
-      if (profile[size_t(k)] >= 0.0 && bloom > kNoise) ring_bloom[ring_begin[b] + size_t(k)] = float(bloom);
+      at_k.clear();
+      for (int s = 0; s < kSectors; ++s) {
+        if (excess[size_t(s)][size_t(k)] >= 0.0) at_k.push_back(excess[size_t(s)][size_t(k)]);
+      }
+      if (int(at_k.size()) < kSectors / 2) continue;  // a ring seen from too few directions
+      std::nth_element(at_k.begin(), at_k.begin() + at_k.size() / 2, at_k.end());
+      const double bloom = at_k[at_k.size() / 2];
+      if (bloom > kNoise) ring_bloom[ring_begin[b] + size_t(k)] = float(bloom);
     }
   });
 
@@ -277,6 +320,32 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   }
   for (int r : halo_radius) out.max_halo_radius_px = std::max(out.max_halo_radius_px, r);
   return out;
+}
+
+absl::StatusOr<std::string> EncodeConfidencePng(const geometry::LinearImage& conf, int width_px,
+                                                int height_px) {
+  const size_t n = size_t(std::max(0, width_px)) * size_t(std::max(0, height_px));
+  if (n == 0 || (!conf.pixels.empty() && conf.pixels.size() != n)) {
+    return absl::InvalidArgumentError(absl::StrCat("a confidence map of ", conf.pixels.size(),
+                                                   " values for a ", width_px, "x", height_px,
+                                                   " image"));
+  }
+  std::vector<uint8_t> grey(n, 255);
+  for (size_t p = 0; p < conf.pixels.size(); ++p) {
+    grey[p] = uint8_t(std::lround(255.0f * std::clamp(conf.pixels[p], 0.0f, 1.0f)));
+  }
+  std::vector<unsigned char> bytes;
+  OIIO::Filesystem::IOVecOutput proxy(bytes);
+  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create("png");
+  if (!out || !out->set_ioproxy(&proxy)) {
+    return absl::InternalError("OpenImageIO cannot write a PNG to memory");
+  }
+  const OIIO::ImageSpec spec(width_px, height_px, 1, OIIO::TypeDesc::UINT8);
+  if (!out->open("confidence.png", spec) || !out->write_image(OIIO::TypeDesc::UINT8, grey.data()) ||
+      !out->close()) {
+    return absl::InternalError(absl::StrCat("OpenImageIO failed to write the map: ", out->geterror()));
+  }
+  return std::string(bytes.begin(), bytes.end());
 }
 
 }  // namespace vasl::ingest

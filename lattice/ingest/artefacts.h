@@ -4,6 +4,9 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
+
+#include "absl/status/statusor.h"
 
 #include "lattice/geometry/linear_image.h"
 
@@ -45,5 +48,11 @@ struct SaturationMap {
 ///          smear is not modelled.
 /// Parallel over rows and columns (TBB).
 SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap);
+
+/// A confidence map (one channel in [0, 1]; empty: 1 everywhere) of a width_px × height_px
+/// image as an 8-bit grey PNG for a person to look at: 255 where the confidence is 1, 0 where
+/// it is 0.
+absl::StatusOr<std::string> EncodeConfidencePng(const geometry::LinearImage& conf, int width_px,
+                                                int height_px);
 
 }  // namespace vasl::ingest

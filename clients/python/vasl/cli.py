@@ -303,6 +303,24 @@ def _cmd_reference(client: Client, args) -> int:
     return 0
 
 
+def _cmd_confidence(client: Client, args) -> int:
+    cameras = client.scan_confidence(args.project, args.scan)
+    os.makedirs(args.output, exist_ok=True)
+    if not cameras:
+        print(f"scan {args.scan} has no camera: no confidence maps")
+    for cam in cameras:
+        for a in cam.artefacts:
+            path = os.path.join(args.output, f"{cam.source}-{a.artefact}.png")
+            with open(path, "wb") as f:
+                f.write(a.map_png)
+            found = (f"{a.regions} regions, {100.0 * a.covered_fraction:.3f}% of the image "
+                     f"({a.flagged_pixels} pixels at 0, {a.soft_pixels} lowered, widest band "
+                     f"{a.max_extent_px} px)") if a.covered_fraction > 0 else "none found"
+            print(f"{cam.source} ({cam.width_px}x{cam.height_px}) {a.artefact}: {found}; "
+                  f"wrote {path}")
+    return 0
+
+
 def _cmd_inspect(client: Client, args) -> int:
     r = client.inspect_records(args.project, args.version)
     if args.json:
@@ -768,6 +786,15 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--render", type=int, default=0, metavar="ID", help="the render it came from")
     bp.add_argument("--name", default="", help="the batch's name (default backproject-<batch>)")
 
+    confidence = sub.add_parser("confidence", help="sensor artefacts as confidence (§9)")
+    csub = confidence.add_subparsers(dest="confidence_cmd", required=True)
+    cshow = csub.add_parser("show", help="write a scan's cameras' confidence maps as images "
+                                         "and say what each artefact covers")
+    cshow.add_argument("--project", required=True)
+    cshow.add_argument("--scan", required=True)
+    cshow.add_argument("-o", "--output", required=True, metavar="DIR",
+                       help="directory for CAMERA-ARTEFACT.png (grey: white is confidence 1)")
+
     batch = sub.add_parser("batch", help="derived batches: list, roll back")
     bsub = batch.add_subparsers(dest="batch_cmd", required=True)
     blist = bsub.add_parser("list", help="list derived batches")
@@ -801,7 +828,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
                 "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,
                 "backproject": _cmd_backproject, "batch": _cmd_batch, "token": _cmd_token,
-                "operation": _cmd_operation}
+                "operation": _cmd_operation, "confidence": _cmd_confidence}
     try:
         token = None
         if args.token_file:

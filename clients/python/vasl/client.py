@@ -20,10 +20,10 @@ from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
 from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_las,
                       pinhole_from_json, read_e57, read_las, read_manifest, read_ply)
-from .types import (CONFIDENCE_FACTORS, CalibrationHealth, ChangeResult, ChangeStats,
-                    ExportResult, Inspection, IngestResult, NormaliseResult, Pose, Project,
-                    RecordAttribute, RecordsQuery, RenderResult, ReweightResult, Scan, Source,
-                    Version, VisualReference)
+from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, CameraConfidence,
+                    ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult,
+                    NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
+                    ReweightResult, Scan, Source, Version, VisualReference)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
@@ -565,6 +565,44 @@ class Client:
                             f"the stream ended after {len(data)} bytes of "
                             f"{ref.size_bytes if ref else '?'}", "GetVisualReference")
         return ref, data
+
+    def scan_confidence(self, project: str, scan: str) -> List[CameraConfidence]:
+        """The confidence maps of a scan's cameras (VASL-MODEL §9): per camera, each artefact
+        found, how much of the image it covers, and its map as a grey PNG."""
+        self._check_name(project)
+        summary, parts = None, {}
+        try:
+            for r in self.stub.GetConfidence(pb.GetConfidenceRequest(project=project, scan=scan),
+                                             timeout=self.timeout_s):
+                if r.HasField("summary"):
+                    summary = r.summary
+                else:
+                    c = r.chunk
+                    buf = parts.setdefault((c.camera_index, c.artefact_index), bytearray())
+                    if c.offset_bytes != len(buf):
+                        raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                        "confidence map chunks arrived out of order",
+                                        "GetConfidence")
+                    buf.extend(c.data)
+        except grpc.RpcError as e:
+            raise _wrap("GetConfidence", e) from None
+        if summary is None:
+            raise VaslError(grpc.StatusCode.DATA_LOSS, "the stream had no summary", "GetConfidence")
+        cameras = []
+        for i, cam in enumerate(summary.cameras):
+            artefacts = []
+            for j, a in enumerate(cam.artefacts):
+                data = bytes(parts.get((i, j), b""))
+                if len(data) != a.map_size_bytes:
+                    raise VaslError(grpc.StatusCode.DATA_LOSS,
+                                    f"{cam.source} {a.artefact}: got {len(data)} of "
+                                    f"{a.map_size_bytes} bytes", "GetConfidence")
+                artefacts.append(ArtefactCoverage(a.artefact, a.covered_fraction,
+                                                  a.flagged_pixels, a.soft_pixels, a.regions,
+                                                  a.max_extent_px, data))
+            cameras.append(CameraConfidence(cam.source_id, cam.source, cam.width_px,
+                                            cam.height_px, artefacts))
+        return cameras
 
     # -- ingest --------------------------------------------------------------------------
     def ingest_progress(self, project: str) -> pb.IngestProgress:

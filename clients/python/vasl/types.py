@@ -139,6 +139,30 @@ class VisualReference:
 
 
 @dataclass
+class ArtefactCoverage:
+    """One artefact's confidence map of a camera image (VASL-MODEL §9)."""
+
+    artefact: str  #: "saturation": saturation and blooming
+    covered_fraction: float  #: share of the image's pixels with confidence below 1
+    flagged_pixels: int  #: confidence 0 (clipped)
+    soft_pixels: int  #: between 0 and 1 (a halo)
+    regions: int  #: connected flagged regions
+    max_extent_px: int  #: widest soft band around one
+    map_png: bytes = b""  #: 8-bit grey PNG of the image's size, 255 at confidence 1
+
+
+@dataclass
+class CameraConfidence:
+    """The confidence maps of one camera of a scan."""
+
+    source_id: int
+    source: str
+    width_px: int
+    height_px: int
+    artefacts: List[ArtefactCoverage] = field(default_factory=list)
+
+
+@dataclass
 class Scan:
     id: int
     name: str

@@ -1,0 +1,147 @@
+"""Sensor artefacts as confidence through a real vasld (VASL-MODEL §9): a panorama with bright
+sources planted at known pixels, with a known bloom, is ingested as a rig sends it;
+`vasl confidence show` writes its saturation map, which finds the planted halos (recall) and
+leaves the image away from the sources at 1, and says what it covers; a clean panorama's map
+stays at 1. (Precision is printed, not asserted: around a source lying on a patch brighter
+than its surround the map also lowers that patch, which the room's render has; the planted
+textures of tests/ingest/artefacts_test.cc assert it.)"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import struct
+import zlib
+
+import numpy as np
+
+from conftest import VOSSEL_M, manifests, run_cli
+from vasl import read_manifest
+
+PROJECT = "confidence"
+
+
+def _srgb8(linear):
+    c = np.clip(linear, 0.0, 1.0)
+    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+    return np.round(s * 255.0).astype(np.uint8)
+
+
+def _write_png(path, rgb8):
+    """An 8-bit RGB PNG, every row unfiltered."""
+    h, w, _ = rgb8.shape
+    raw = b"".join(b"\x00" + rgb8[j].tobytes() for j in range(h))
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(
+            ">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    with open(path, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+                + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def _read_grey_png(data):
+    """An 8-bit grey PNG's pixels (any of the five row filters)."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat = 8, b""
+    w = h = 0
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + n]
+        if kind == b"IHDR":
+            w, h, depth, colour = struct.unpack(">IIBB", body[:10])
+            assert (depth, colour) == (8, 0), (depth, colour)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    raw = zlib.decompress(idat)
+    out = np.zeros((h, w), np.int32)
+    prev = np.zeros(w, np.int32)
+    for j in range(h):
+        f, row = raw[j * (w + 1)], np.frombuffer(raw[j * (w + 1) + 1:(j + 1) * (w + 1)], np.uint8)
+        row = row.astype(np.int32)
+        if f in (0, 1, 2):  # none, sub (a running sum), up
+            cur = (np.cumsum(row) if f == 1 else row + (prev if f == 2 else 0)) & 0xFF
+            out[j], prev = cur, cur
+            continue
+        cur = np.zeros(w, np.int32)
+        for i in range(w):
+            a = cur[i - 1] if i else 0
+            b, c = prev[i], (prev[i - 1] if i else 0)
+            if f == 3:
+                pred = (a + b) // 2
+            else:
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
+            cur[i] = (row[i] + pred) & 0xFF
+        out[j], prev = cur, cur
+    return out
+
+
+def test_confidence_maps_find_planted_blooming(client, server, scene_dir, views, tmp_path):
+    client.create_project(PROJECT, vossel_size_m=VOSSEL_M)
+    for i, m in enumerate(manifests(scene_dir)):  # the first station with its clean panorama
+        scan = read_manifest(m)
+        client.ingest(PROJECT, scan if i == 0 else dataclasses.replace(scan, panoramas=[]))
+    first = read_manifest(manifests(scene_dir)[0]).scan
+
+    v = views["novel-1"]
+    surface = np.load(os.path.join(scene_dir, "truth", v["rgb"])).astype(np.float64)
+    h, w = surface.shape[:2]
+    sources = [(0.12 * w, 0.45 * h, 4, 2.0, 3.0), (0.35 * w, 0.5 * h, 6, 8.0, 3.0),
+               (0.6 * w, 0.42 * h, 5, 16.0, 3.5), (0.85 * w, 0.55 * h, 7, 32.0, 3.0)]
+    jj, ii = np.mgrid[0:h, 0:w] + 0.5
+    bloom = np.zeros((h, w))
+    for u, vv, r, brightness, lam in sources:
+        d = np.hypot(ii - u, jj - vv) - r
+        bloom += np.where(d <= 0, brightness, brightness * np.exp(-np.maximum(d, 0) / lam))
+    image = _srgb8(surface + bloom[..., None])
+    _write_png(tmp_path / "bloomed.png", image)
+    manifest = {"scan": "bloomed", "rig": "handheld",
+                "pose": {"position": list(v["position"]), "quaternion": list(v["quaternion"])},
+                "panoramas": [{"name": "pano", "image": "bloomed.png", "modality": "rgb",
+                               "pose": {"position": list(v["position"]),
+                                        "quaternion": list(v["quaternion"])}}]}
+    (tmp_path / "bloomed.json").write_text(json.dumps(manifest))
+    run_cli(server, "ingest", "--project", PROJECT, str(tmp_path / "bloomed.json"))
+
+    out = tmp_path / "maps"
+    r = run_cli(server, "confidence", "show", "--project", PROJECT, "--scan", "bloomed",
+                "-o", str(out))
+    print("\n" + r.stdout)
+    found = re.search(r"pano \((\d+)x(\d+)\) saturation: (\d+) regions, ([\d.]+)% of the image",
+                      r.stdout)
+    assert found and (int(found.group(1)), int(found.group(2))) == (w, h), r.stdout
+    assert int(found.group(3)) == len(sources)
+    grey = _read_grey_png((out / "pano-saturation.png").read_bytes())
+    assert grey.shape == (h, w)
+
+    # The planted halos, on the pixels the PNG did not clip: bloom adding more than a tenth of
+    # the surface's light (and more than 2.5 codes).
+    clipped = (image >= 255).any(axis=-1)
+    level = surface.max(axis=-1)
+    truth = (bloom > 0.1 * level) & (bloom > 0.01) & ~clipped
+    said = (grey < 255) & ~clipped
+    precision = (truth & said).sum() / max(1, said.sum())
+    recall = (truth & said).sum() / max(1, truth.sum())
+    far = np.ones((h, w), bool)
+    for u, vv, rad, _, lam in sources:
+        far &= np.hypot(ii - u, jj - vv) - rad > 15 * lam
+    print(f"planted halo {int(truth.sum())} px, found {int(said.sum())}: precision "
+          f"{precision:.3f}, recall {recall:.3f}; clipped {int(clipped.sum())} px, all at 0: "
+          f"{bool((grey[clipped] == 0).all())}; far from the sources at 1: "
+          f"{100.0 * (grey[far] == 255).mean():.3f}%")
+    assert truth.sum() > 500
+    assert recall >= 0.85
+    assert (grey[clipped] == 0).all()
+    assert (grey[far] == 255).mean() >= 0.999
+
+    cameras = client.scan_confidence(PROJECT, first)
+    assert len(cameras) == 1 and cameras[0].artefacts[0].artefact == "saturation"
+    clean = cameras[0].artefacts[0]
+    print(f"clean panorama of {first}: {100.0 * clean.covered_fraction:.3f}% below 1")
+    assert clean.covered_fraction <= 0.01
+    assert (_read_grey_png(clean.map_png) == 255).mean() >= 0.99
