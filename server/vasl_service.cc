@@ -553,7 +553,8 @@ class ChunkStreamReactor : public grpc::ServerWriteReactor<Response> {
     const size_t chunk = static_cast<size_t>(service_->options().render_chunk_bytes);
     for (size_t at = 0; at < bytes.size(); at += chunk) {
       Response out;
-      FillChunk(out, tag, offset + int64_t(at), bytes.data() + at, std::min(chunk, bytes.size() - at));
+      FillChunk(out, tag, offset + int64_t(at), bytes.data() + at,
+                std::min(chunk, bytes.size() - at));
       if (absl::Status s = Send(std::move(out)); !s.ok()) return s;
     }
     return absl::OkStatus();

@@ -11,6 +11,7 @@
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
@@ -96,9 +97,12 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
       [](int64_t a, int64_t b) { return a + b; });
   if (out.clipped_pixels == 0) return out;
   std::vector<uint8_t> clipped(n, 0);
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16), [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t p = r.begin(); p != r.end(); ++p) clipped[p] = level(p) >= kClipFraction;
-  });
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t p = r.begin(); p != r.end(); ++p) {
+                        clipped[p] = level(p) >= kClipFraction;
+                      }
+                    });
 
   // Blobs: 8-connected clipped regions (columns wrap on a panorama).
   std::vector<int32_t> label(n, -1);
@@ -181,8 +185,10 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
         dist[o] = found ? float(std::sqrt(d[i])) : std::numeric_limits<float>::infinity();
         const int sx = x0 + arg[i], sy = y0 + col_arg[size_t(j) * bw + arg[i]];
         nearest[o] = found ? label[size_t(sy) * W + sx] : -1;
-        const double angle = std::atan2(double(y0 + j - sy), double(x0 + i - sx));  // [−π, π]
-        sector[o] = uint8_t(int(std::floor((angle + M_PI) / (2.0 * M_PI) * kSectors)) % kSectors);
+        if (found && dist[o] < float(reach[size_t(nearest[o])])) {  // on one of its rings
+          const double angle = std::atan2(double(y0 + j - sy), double(x0 + i - sx));  // [−π, π]
+          sector[o] = uint8_t(int(std::floor((angle + M_PI) / (2.0 * M_PI) * kSectors)) % kSectors);
+        }
       }
     }
   });
@@ -285,40 +291,58 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   out.conf.width_px = W;
   out.conf.height_px = H;
   out.conf.channels = 1;
-  out.conf.pixels.assign(n, 1.0f);
-  for (size_t p = 0; p < n; ++p) {
-    if (clipped[p]) out.conf.pixels[p] = 0.0f;
-  }
-  std::vector<int> halo_radius(area.size(), 0);
-  for (int j = 0; j < bh; ++j) {
-    for (int i = 0; i < bw; ++i) {
-      const size_t o = size_t(j) * bw + i;
-      const int64_t r = ring_of(o);
-      if (r < 0 || !(ring_bloom[size_t(r)] > 0.0f)) continue;
-      // Bloom at the pixel's own distance: geometric between the centres of its ring and the
-      // neighbouring one (bloom falls by a large factor across one ring), toward 0 past the
-      // halo's last ring; the innermost ring keeps its own.
-      const int k = int(dist[o]);
-      const double t = double(dist[o]) - (k + 0.5);
-      const size_t b = size_t(nearest[o]);
-      const bool outward = t >= 0.0;
-      const double here = ring_bloom[size_t(r)];
-      double bloom = here;
-      if (outward || k > 1) {
-        const int kn = outward ? k + 1 : k - 1;
-        const double next = kn < reach[b] ? double(ring_bloom[ring_begin[b] + size_t(kn)]) : 0.0;
-        bloom = next > 0.0 ? here * std::pow(next / here, std::abs(t)) : here * (1.0 - std::abs(t));
+  out.conf.pixels.resize(n);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t p = r.begin(); p != r.end(); ++p) {
+                        out.conf.pixels[p] = clipped[p] ? 0.0f : 1.0f;
+                      }
+                    });
+  // Per thread: halo pixels and each blob's widest halo.
+  struct HaloCount {
+    int64_t pixels = 0;
+    std::vector<int> radius;
+  };
+  tbb::enumerable_thread_specific<HaloCount> counts([&] {
+    return HaloCount{0, std::vector<int>(area.size(), 0)};
+  });
+  tbb::parallel_for(tbb::blocked_range<int>(0, bh), [&](const tbb::blocked_range<int>& rows) {
+    HaloCount& count = counts.local();
+    std::vector<int>& halo_radius = count.radius;
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      for (int i = 0; i < bw; ++i) {
+        const size_t o = size_t(j) * bw + i;
+        const int64_t r = ring_of(o);
+        if (r < 0 || !(ring_bloom[size_t(r)] > 0.0f)) continue;
+        // Bloom at the pixel's own distance: geometric between the centres of its ring and the
+        // neighbouring one (bloom falls by a large factor across one ring), toward 0 past the
+        // halo's last ring; the innermost ring keeps its own.
+        const int k = int(dist[o]);
+        const double t = double(dist[o]) - (k + 0.5);
+        const size_t b = size_t(nearest[o]);
+        const bool outward = t >= 0.0;
+        const double here = ring_bloom[size_t(r)];
+        double bloom = here;
+        if (outward || k > 1) {
+          const int kn = outward ? k + 1 : k - 1;
+          const double next = kn < reach[b] ? double(ring_bloom[ring_begin[b] + size_t(kn)]) : 0.0;
+          bloom = next > 0.0 ? here * std::pow(next / here, std::abs(t))
+                             : here * (1.0 - std::abs(t));
+        }
+        // The share of the pixel's light that is its surface's: 1 − Δ / L(p).
+        const size_t p = size_t(y0 + j) * W + x0 + i;
+        const double own = 1.0 - bloom / std::max(double(level(p)), 1e-6);
+        if (own >= 1.0 / (1.0 + kHaloShare)) continue;
+        out.conf.pixels[p] = float(std::max(0.0, own));
+        ++count.pixels;
+        halo_radius[b] = std::max(halo_radius[b], int(dist[o]) + 1);
       }
-      // The share of the pixel's light that is its surface's: 1 − Δ / L(p).
-      const size_t p = size_t(y0 + j) * W + x0 + i;
-      const double own = 1.0 - bloom / std::max(double(level(p)), 1e-6);
-      if (own >= 1.0 / (1.0 + kHaloShare)) continue;
-      out.conf.pixels[p] = float(std::max(0.0, own));
-      ++out.halo_pixels;
-      halo_radius[b] = std::max(halo_radius[b], int(dist[o]) + 1);
     }
+  });
+  for (const HaloCount& count : counts) {
+    out.halo_pixels += count.pixels;
+    for (int r : count.radius) out.max_halo_radius_px = std::max(out.max_halo_radius_px, r);
   }
-  for (int r : halo_radius) out.max_halo_radius_px = std::max(out.max_halo_radius_px, r);
   return out;
 }
 
@@ -343,7 +367,8 @@ absl::StatusOr<std::string> EncodeConfidencePng(const geometry::LinearImage& con
   const OIIO::ImageSpec spec(width_px, height_px, 1, OIIO::TypeDesc::UINT8);
   if (!out->open("confidence.png", spec) || !out->write_image(OIIO::TypeDesc::UINT8, grey.data()) ||
       !out->close()) {
-    return absl::InternalError(absl::StrCat("OpenImageIO failed to write the map: ", out->geterror()));
+    return absl::InternalError(
+        absl::StrCat("OpenImageIO failed to write the map: ", out->geterror()));
   }
   return std::string(bytes.begin(), bytes.end());
 }

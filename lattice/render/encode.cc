@@ -105,7 +105,11 @@ class SinkIOProxy : public OIIO::Filesystem::IOProxy {
     return n;
   }
   size_t pwrite(const void* buf, size_t size, int64_t offset) override {
-    if (!buffer_->Write(offset, static_cast<const char*>(buf), size)) return 0;
+    // Refused only while the sink is open and failed; a closed encoder's last bytes go nowhere
+    // quietly (libpng must not fail inside a destructor).
+    if (!buffer_->Write(offset, static_cast<const char*>(buf), size) && !buffer_->closed()) {
+      return 0;
+    }
     end_ = std::max(end_, offset + int64_t(size));
     return size;
   }
@@ -334,7 +338,8 @@ class DeepExrEncoder final : public EncoderBase {
                    sizeof(unsigned int), sizeof(unsigned int) * w));
     for (size_t c = 0; c < std::size(kChannels); ++c) {
       frame.insert(kChannels[c],
-                   Imf::DeepSlice(Imf::FLOAT, BandBase(pointers_[c].data(), row_begin, sizeof(char*) * w),
+                   Imf::DeepSlice(Imf::FLOAT,
+                                  BandBase(pointers_[c].data(), row_begin, sizeof(char*) * w),
                                   sizeof(char*), sizeof(char*) * w, sizeof(float)));
     }
     try {

@@ -61,7 +61,9 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
     for (int x = 0; x < kPanoW; ++x) {
       const size_t p = size_t(y) * kPanoW + x;
       for (const Source& s : sources) bloom[p] += float(s.Bloom(x + 0.5, y + 0.5));
-      for (int c = 0; c < 3; ++c) pano.rgb[3 * p + c] = std::min(1.0f, pano.rgb[3 * p + c] + bloom[p]);
+      for (int c = 0; c < 3; ++c) {
+        pano.rgb[3 * p + c] = std::min(1.0f, pano.rgb[3 * p + c] + bloom[p]);
+      }
     }
   }
   ingest::ScanInput bloomed;
@@ -101,8 +103,10 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
       b += s.Bloom(u, v);
     }
     const Eigen::Vector3d x = g.FrameCentroid(size_t(rec.vossel[i])).cast<double>();
-    const scenes::SceneHit hit = room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
-    const Eigen::Vector3f albedo_rgb = hit.valid ? hit.albedo_linear : Eigen::Vector3f::Constant(0.5f);
+    const scenes::SceneHit hit =
+        room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
+    const Eigen::Vector3f albedo_rgb =
+        hit.valid ? hit.albedo_linear : Eigen::Vector3f::Constant(0.5f);
     const double surface = std::max(0.02f, albedo_rgb.maxCoeff());
     if (nearest < -0.5) {  // well inside a source's disk
       ++on_source;
@@ -139,7 +143,8 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
     for (size_t k = 0; k < g.size(); ++k) {
       if (!affected[k] || !(rgb.weight[k] > 0.0f)) continue;
       const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-      const scenes::SceneHit hit = room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
+      const scenes::SceneHit hit =
+          room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
       if (!hit.valid || std::abs(hit.t_m - (x - pose.o_world).norm()) > kVosselM) continue;
       const Eigen::Vector3f& albedo = hit.albedo_linear;
       for (int c = 0; c < 3; ++c) err += std::abs(rgb.value[3 * k + c] - albedo[c]) / 3.0;

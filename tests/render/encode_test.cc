@@ -347,14 +347,17 @@ RenderImage MakeLargeImage(int w, int h, int layers) {
       img.rgb[3 * p + c] = hit ? 0.5f + 0.5f * std::sin(17.0f * x + 5.0f * y * (c + 1)) : 0.0f;
       img.normal[3 * p + c] = hit ? std::cos(3.0f * x + c) : 0.0f;
     }
-    img.depth_m[p] = hit ? 2.0f + x + 0.3f * std::sin(40.0f * y) : std::numeric_limits<float>::infinity();
+    img.depth_m[p] = hit ? 2.0f + x + 0.3f * std::sin(40.0f * y)
+                         : std::numeric_limits<float>::infinity();
     img.uncertainty[p] = hit ? 0.01f + 0.001f * float(p % 7) : 0.0f;
     img.alpha[p] = hit && p % 5 != 0 ? 1.0f : 0.0f;
     img.layer_count[p] = hit ? uint8_t(1 + p % L) : 0;
     for (size_t l = 0; l < img.layer_count[p]; ++l) {
       img.deep_depth_m[p * L + l] = img.depth_m[p] + 0.5f * float(l);
       img.deep_alpha[p * L + l] = l == 0 ? img.alpha[p] : 1.0f;
-      for (int c = 0; c < 3; ++c) img.deep_rgb[3 * (p * L + l) + c] = img.rgb[3 * p + c] / float(l + 1);
+      for (int c = 0; c < 3; ++c) {
+        img.deep_rgb[3 * (p * L + l) + c] = img.rgb[3 * p + c] / float(l + 1);
+      }
     }
   }
   return img;
