@@ -34,6 +34,8 @@ constexpr double kNoise = 0.01;
 constexpr double kRingQuantile = 0.1;
 /// Directions around a blob in which its rings are measured apart.
 constexpr int kSectors = 8;
+/// Most (ring, direction) bins measured per image: blobs beyond them, the smallest, get no halo.
+constexpr size_t kMaxBins = size_t{16} << 20;
 /// Rings over which a profile that falls by less than kNoise has met the surround.
 constexpr int kFlatRings = 3;
 /// A ring's quantile, in one direction, needs this many pixels.
@@ -143,16 +145,26 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   }
   out.blobs = int(area.size());
   const int cap = std::max(8, H / 4);
-  std::vector<int> reach(area.size());  // R_b, pixels
+  // R_b, pixels; the largest blobs first while their rings fit kMaxBins (an image speckled
+  // with millions of clipped specks keeps its specks at 0, without halos, in bounded memory).
+  std::vector<int> reach(area.size(), 0);
+  std::vector<size_t> by_area(area.size());
+  for (size_t b = 0; b < by_area.size(); ++b) by_area[b] = b;
+  std::stable_sort(by_area.begin(), by_area.end(),
+                   [&](size_t a, size_t b) { return area[a] > area[b]; });
+  size_t bins = 0;
   int x0 = W, x1 = -1, y0 = H, y1 = -1;  // the region every blob's rings lie in
-  for (size_t b = 0; b < area.size(); ++b) {
+  for (size_t b : by_area) {
     const double r_b = std::sqrt(double(area[b]) / M_PI);
-    reach[b] = std::min(cap, int(std::ceil(4.0 * r_b)) + 8);
-    x0 = std::min(x0, box_x0[b] - reach[b]), x1 = std::max(x1, box_x1[b] + reach[b]);
-    y0 = std::min(y0, box_y0[b] - reach[b]), y1 = std::max(y1, box_y1[b] + reach[b]);
+    const int R = std::min(cap, int(std::ceil(4.0 * r_b)) + 8);
+    if (bins + size_t(R) * kSectors > kMaxBins) break;
+    bins += size_t(R) * kSectors;
+    reach[b] = R;
+    x0 = std::min(x0, box_x0[b] - R), x1 = std::max(x1, box_x1[b] + R);
+    y0 = std::min(y0, box_y0[b] - R), y1 = std::max(y1, box_y1[b] + R);
   }
   x0 = std::max(0, x0), x1 = std::min(W - 1, x1), y0 = std::max(0, y0), y1 = std::min(H - 1, y1);
-  const int bw = x1 - x0 + 1, bh = y1 - y0 + 1;
+  const int bw = std::max(0, x1 - x0 + 1), bh = std::max(0, y1 - y0 + 1);
 
   // Exact Euclidean distance to the nearest clipped pixel over that region: columns, then rows.
   const double far = 1e20;
@@ -196,7 +208,7 @@ SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap) {
   // Each blob's rings: the pixels at ⌊distance⌋ = k from it, k = 1 .. R_b − 1.
   std::vector<size_t> ring_begin(area.size() + 1, 0);
   for (size_t b = 0; b < area.size(); ++b) ring_begin[b + 1] = ring_begin[b] + size_t(reach[b]);
-  std::vector<size_t> bin_count(ring_begin.back() * kSectors + 1, 0);
+  std::vector<uint32_t> bin_count(ring_begin.back() * kSectors + 1, 0);
   auto ring_of = [&](size_t o) -> int64_t {  // index into the rings, or −1
     const int32_t b = nearest[o];
     if (b < 0 || !(dist[o] >= 1.0f)) return -1;  // no blob, or clipped itself

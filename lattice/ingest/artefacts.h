@@ -42,6 +42,9 @@ struct SaturationMap {
 ///          off around a blob is not taken for bloom, and the halo grows with how far the
 ///          source is over the clip level, as the image shows it. A pixel whose bloom adds more
 ///          than a tenth to its own light (1 − Δ/L < 1/1.1) is halo, with confidence 1 − Δ/L.
+///          At most 16 M (ring, direction) bins are measured, the largest blobs first: an
+///          image speckled with clipped specks beyond them keeps those specks at 0, without
+///          halos, in bounded memory.
 ///          Columns wrap across a panorama's seam for the blobs (`wrap`); the distance
 ///          transform does not (a halo cut at the seam is measured on its own side).
 ///          Exposure (a halo's growth with exposure time) is in the image already; column
