@@ -675,12 +675,10 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
       out.format = (*formats)[f];
       auto encoder = render::RowEncoder::Create(
           ImageFormatFromProto(out.format), request->width_px, request->height_px,
-          [this, &out, streamed](int64_t offset, std::string_view run) {
+          [this, &out, streamed, gather = render::AssembleInto(&out.bytes)](
+              int64_t offset, std::string_view run) {
             out.size = std::max(out.size, offset + int64_t(run.size()));
-            if (streamed) return SendBytes(out.format, offset, run);
-            if (out.size > int64_t(out.bytes.size())) out.bytes.resize(size_t(out.size));
-            std::copy(run.begin(), run.end(), out.bytes.begin() + offset);
-            return absl::OkStatus();
+            return streamed ? SendBytes(out.format, offset, run) : gather(offset, run);
           });
       if (!encoder.ok()) return ToGrpcStatus(encoder.status());
       out.encoder = std::move(*encoder);

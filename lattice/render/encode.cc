@@ -11,6 +11,7 @@
 #include <memory>
 #include <stdexcept>
 #include <thread>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -205,27 +206,68 @@ class EncoderBase : public RowEncoder {
   SinkBuffer buffer_;
 };
 
-/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; ZIP compression, row 0 on top.
-class ExrEncoder final : public EncoderBase {
+/// What the flat and the deep EXR encoders share: the stream into the sink, the OpenEXR file
+/// (Imf::OutputFile or Imf::DeepScanLineOutputFile) whose header Open writes and whose offset
+/// table Finish writes, and the write of one band's frame.
+template <typename File>
+class OpenExrEncoder : public EncoderBase {
  public:
   using EncoderBase::EncoderBase;
-  ~ExrEncoder() override {
+  ~OpenExrEncoder() override {
     buffer_.Close();  // an unfinished file's offset table goes nowhere
     file_.reset();
   }
 
-  absl::Status Open() {
+  absl::Status Finish() override {
+    if (absl::Status s = CheckComplete(); !s.ok()) return s;
+    stream_.set_quiet();  // the destructor writes the offset table and must not throw
+    file_.reset();
+    buffer_.Flush();
+    return buffer_.status();
+  }
+
+ protected:
+  /// Writes the header: the FLOAT `channels` over the whole image, rows top to bottom.
+  template <size_t N>
+  absl::Status OpenFile(Imf::Compression compression, const char* const (&channels)[N]) {
     try {
       Imf::Header header(width_, height_);  // data window (0,0)-(w-1,h-1)
-      header.compression() = Imf::ZIP_COMPRESSION;
+      if constexpr (std::is_same_v<File, Imf::DeepScanLineOutputFile>) {
+        header.setType(Imf::DEEPSCANLINE);
+      }
+      header.compression() = compression;
       header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
-      for (const char* name : kChannels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
-      file_ = std::make_unique<Imf::OutputFile>(stream_, header, ExrThreads());
+      for (const char* name : channels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
+      file_ = std::make_unique<File>(stream_, header, ExrThreads());
     } catch (const std::exception& e) {
       return Failed("OpenEXR", e.what());
     }
     return Sent(0);
   }
+  /// Writes rows [row_begin, row_end) from `frame` (OpenEXR copies them: the band's buffers
+  /// may change after) and sends their bytes.
+  template <typename Frame>
+  absl::Status WriteFrame(const Frame& frame, int row_begin, int row_end) {
+    try {
+      file_->setFrameBuffer(frame);
+      file_->writePixels(row_end - row_begin);
+    } catch (const std::exception& e) {
+      return Failed("OpenEXR", e.what());
+    }
+    return Sent(row_end);
+  }
+
+ private:
+  SinkOStream stream_{&buffer_};
+  std::unique_ptr<File> file_;
+};
+
+/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; ZIP compression, row 0 on top.
+class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
+ public:
+  using OpenExrEncoder::OpenExrEncoder;
+
+  absl::Status Open() { return OpenFile(Imf::ZIP_COMPRESSION, kChannels); }
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
     if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
@@ -247,52 +289,20 @@ class ExrEncoder final : public EncoderBase {
     }
     frame.insert("A", Imf::Slice(Imf::FLOAT, BandBase(alpha_.data(), row_begin, sizeof(float) * w),
                                  sizeof(float), sizeof(float) * w));
-    try {
-      file_->setFrameBuffer(frame);
-      file_->writePixels(row_end - row_begin);  // copies the rows: alpha_ may change after
-    } catch (const std::exception& e) {
-      return Failed("OpenEXR", e.what());
-    }
-    return Sent(row_end);
-  }
-
-  absl::Status Finish() override {
-    if (absl::Status s = CheckComplete(); !s.ok()) return s;
-    stream_.set_quiet();  // the destructor writes the offset table and must not throw
-    file_.reset();
-    buffer_.Flush();
-    return buffer_.status();
+    return WriteFrame(frame, row_begin, row_end);
   }
 
  private:
   static constexpr const char* kChannels[] = {"R", "G", "B", "Z", "N.x", "N.y", "N.z", "U", "A"};
-  SinkOStream stream_{&buffer_};
-  std::unique_ptr<Imf::OutputFile> file_;
   std::vector<float> alpha_;  ///< the band's coverage
 };
 
 /// Deep EXR: per pixel its surface hits front to back as samples R, G, B, A, Z; ZIPS.
-class DeepExrEncoder final : public EncoderBase {
+class DeepExrEncoder final : public OpenExrEncoder<Imf::DeepScanLineOutputFile> {
  public:
-  using EncoderBase::EncoderBase;
-  ~DeepExrEncoder() override {
-    buffer_.Close();
-    file_.reset();
-  }
+  using OpenExrEncoder::OpenExrEncoder;
 
-  absl::Status Open() {
-    try {
-      Imf::Header header(width_, height_);
-      header.setType(Imf::DEEPSCANLINE);
-      header.compression() = Imf::ZIPS_COMPRESSION;
-      header.lineOrder() = Imf::INCREASING_Y;
-      for (const char* name : kChannels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
-      file_ = std::make_unique<Imf::DeepScanLineOutputFile>(stream_, header, ExrThreads());
-    } catch (const std::exception& e) {
-      return Failed("OpenEXR", e.what());
-    }
-    return Sent(0);
-  }
+  absl::Status Open() { return OpenFile(Imf::ZIPS_COMPRESSION, kChannels); }
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
     if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
@@ -342,27 +352,11 @@ class DeepExrEncoder final : public EncoderBase {
                                   BandBase(pointers_[c].data(), row_begin, sizeof(char*) * w),
                                   sizeof(char*), sizeof(char*) * w, sizeof(float)));
     }
-    try {
-      file_->setFrameBuffer(frame);
-      file_->writePixels(row_end - row_begin);
-    } catch (const std::exception& e) {
-      return Failed("OpenEXR", e.what());
-    }
-    return Sent(row_end);
-  }
-
-  absl::Status Finish() override {
-    if (absl::Status s = CheckComplete(); !s.ok()) return s;
-    stream_.set_quiet();
-    file_.reset();
-    buffer_.Flush();
-    return buffer_.status();
+    return WriteFrame(frame, row_begin, row_end);
   }
 
  private:
   static constexpr const char* kChannels[] = {"R", "G", "B", "A", "Z"};
-  SinkOStream stream_{&buffer_};
-  std::unique_ptr<Imf::DeepScanLineOutputFile> file_;
   std::vector<unsigned int> count_;     ///< the band's samples per pixel
   std::vector<float> values_[5];        ///< the band's samples, per channel
   std::vector<char*> pointers_[5];      ///< per channel and pixel: its first sample
@@ -472,16 +466,19 @@ absl::Status WriteRows(const std::vector<RowEncoder*>& encoders, const RenderIma
   return absl::OkStatus();
 }
 
+ByteSink AssembleInto(std::string* file) {
+  return [file](int64_t offset, std::string_view run) {
+    const size_t end = size_t(offset) + run.size();
+    if (end > file->size()) file->resize(end);
+    std::memcpy(file->data() + offset, run.data(), run.size());
+    return absl::OkStatus();
+  };
+}
+
 absl::StatusOr<std::string> Encode(ImageFormat format, const RenderImage& image) {
-  if (absl::Status s = ValidateImage(image); !s.ok()) return s;
-  std::string bytes;
-  auto encoder = RowEncoder::Create(
-      format, image.width_px, image.height_px, [&bytes](int64_t offset, std::string_view run) {
-        const size_t end = size_t(offset) + run.size();
-        if (end > bytes.size()) bytes.resize(end);
-        std::memcpy(bytes.data() + offset, run.data(), run.size());
-        return absl::OkStatus();
-      });
+  std::string bytes;  // Create and WriteRows check the image
+  auto encoder =
+      RowEncoder::Create(format, image.width_px, image.height_px, AssembleInto(&bytes));
   if (!encoder.ok()) return encoder.status();
   if (absl::Status s = (*encoder)->WriteRows(image, 0, image.height_px); !s.ok()) return s;
   if (absl::Status s = (*encoder)->Finish(); !s.ok()) return s;

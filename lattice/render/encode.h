@@ -29,6 +29,9 @@ enum class ImageFormat {
 /// that status (the reader went away).
 using ByteSink = std::function<absl::Status(int64_t offset, std::string_view bytes)>;
 
+/// A ByteSink that assembles the file into `*file` (each run written at its offset).
+ByteSink AssembleInto(std::string* file);
+
 /// Encodes a render's rows as they become final, so that a large render's file streams while
 /// the rest is still marched (§8 outputs). The bytes equal those of EncodeExr, EncodeDeepExr or
 /// EncodePng of the whole image, however the rows are split.
