@@ -1,16 +1,36 @@
 """Synthetic scans written as real files, for the streaming, LAS/LAZ and memory tests: points
 on the walls, floor and ceiling of a box room seen from a scanner inside it (so every point's
 range from the scanner is known), written chunk by chunk as E57 (pye57's libe57 bindings) or
-LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole."""
+LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole; and the
+two image helpers several tests share (sRGB encoding, PNG bytes around raw rows)."""
 from __future__ import annotations
 
+import struct
 import uuid
+import zlib
 from typing import Dict, Iterator, Optional, Sequence, Tuple
 
 import numpy as np
 
 #: Half extents of the room around the scanner, metres (x, y, then z down and up).
 ROOM = (6.0, 4.5, 1.5, 1.8)
+
+
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear -> sRGB-encoded (IEC 61966-2-1), in [0, 1]."""
+    c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
+def png_bytes(width: int, height: int, raw_rows: bytes, colour_type: int = 2) -> bytes:
+    """An 8-bit PNG (colour type 2: RGB) of `raw_rows`, each row its filter byte then its
+    pixels. The header says width x height whatever the rows hold (a pixel bomb can lie)."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + \
+            struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    header = struct.pack(">IIBBBBB", width, height, 8, colour_type, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
+            + chunk(b"IDAT", zlib.compress(raw_rows, 9)) + chunk(b"IEND", b""))
 
 
 def room_points(n: int, seed: int, room: Sequence[float] = ROOM) -> np.ndarray:

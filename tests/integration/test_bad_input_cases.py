@@ -6,14 +6,13 @@ from __future__ import annotations
 import hashlib
 import os
 import sqlite3
-import struct
-import zlib
 
 import grpc
 import numpy as np
 import pytest
 
 from conftest import E2E_PROJECT
+from synth_scans import png_bytes
 from vasl import pack_points
 from vasl._proto import vasl_pb2 as pb
 from vasl.client import ingest_requests, pose_to_pb
@@ -57,13 +56,7 @@ def _points(n=4, bad=None):
 
 def _png(width, height, rows=1):
     """A PNG whose header claims width x height, with `rows` rows of data (a pixel bomb)."""
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + \
-            struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-    raw = b"".join(b"\0" + b"\0" * (3 * width) for _ in range(rows))
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0,
-                                                               0, 0))
-            + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b""))
+    return png_bytes(width, height, b"".join(b"\0" + b"\0" * (3 * width) for _ in range(rows)))
 
 
 def _ingest(header, point_bytes, images=()):

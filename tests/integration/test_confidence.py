@@ -17,29 +17,17 @@ import zlib
 import numpy as np
 
 from conftest import VOSSEL_M, manifests, run_cli
+from synth_scans import linear_to_srgb, png_bytes
 from vasl import read_manifest
 
 PROJECT = "confidence"
 
 
-def _srgb8(linear):
-    c = np.clip(linear, 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)
-
-
 def _write_png(path, rgb8):
     """An 8-bit RGB PNG, every row unfiltered."""
     h, w, _ = rgb8.shape
-    raw = b"".join(b"\x00" + rgb8[j].tobytes() for j in range(h))
-
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(
-            ">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
     with open(path, "wb") as f:
-        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-                + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+        f.write(png_bytes(w, h, b"".join(b"\x00" + rgb8[j].tobytes() for j in range(h))))
 
 
 def _read_grey_png(data):
@@ -98,7 +86,7 @@ def test_confidence_maps_find_planted_blooming(client, server, scene_dir, views,
     for u, vv, r, brightness, lam in sources:
         d = np.hypot(ii - u, jj - vv) - r
         bloom += np.where(d <= 0, brightness, brightness * np.exp(-np.maximum(d, 0) / lam))
-    image = _srgb8(surface + bloom[..., None])
+    image = np.round(linear_to_srgb(surface + bloom[..., None]) * 255.0).astype(np.uint8)
     _write_png(tmp_path / "bloomed.png", image)
     manifest = {"scan": "bloomed", "rig": "handheld",
                 "pose": {"position": list(v["position"]), "quaternion": list(v["quaternion"])},

@@ -15,7 +15,7 @@ import pytest
 from vasl.readers import read_e57
 
 from conftest import REPO
-from synth_scans import equirect_pixels
+from synth_scans import equirect_pixels, linear_to_srgb
 
 DATA = os.environ.get("VASL_DATA_DIR", os.path.join(REPO, "..", "shared", "data"))
 E57 = os.path.join(DATA, "e57")
@@ -171,19 +171,13 @@ def test_real_e57_render_from_scanner_reproduces_ranges(server, client, tmp_path
     assert sorted(s.name for s in sources) == ["lidar", "point-colour"]
     assert cloud.rgb is not None
     at = hit & close
-    shown = _srgb(render.rgb[v[at], u[at]])
-    truth = _srgb(cloud.rgb[at])
+    shown = linear_to_srgb(render.rgb[v[at], u[at]])
+    truth = linear_to_srgb(cloud.rgb[at])
     psnr = 10 * math.log10(1.0 / float(np.mean((shown - truth) ** 2)))
     delta_e = np.linalg.norm(_lab(render.rgb[v[at], u[at]]) - _lab(cloud.rgb[at]), axis=1)
     print(f"pump colour at {int(at.sum())} points: PSNR {psnr:.2f} dB (sRGB), mean ΔE "
           f"{float(delta_e.mean()):.2f}, median ΔE {float(np.median(delta_e)):.2f}")
     assert psnr >= 28.0
-
-
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    """Linear -> sRGB-encoded (IEC 61966-2-1), in [0, 1]."""
-    c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
 
 
 def _lab(linear: np.ndarray) -> np.ndarray:
