@@ -11,6 +11,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_format.h"
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/artefacts.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/ingest/sample.h"
 
@@ -173,12 +174,14 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
     const store::SourceInfo& src = *chosen[c];
     std::shared_ptr<const geometry::LinearImage> img = caches.images->Find(src.blob_sha256);
     if (!img) {
-      absl::StatusOr<ingest::LinearImage> decoded =
-          StoredCamera(store, src, 0, caches.max_image_pixels).load();
+      const ingest::CameraSource cam = StoredCamera(store, src, 0, caches.max_image_pixels);
+      absl::StatusOr<ingest::LinearImage> decoded = cam.load();
       if (!decoded.ok()) {
         status[c] = decoded.status();
         return;
       }
+      // As its records read it (ingest::CameraRecords): fringing corrected (§9).
+      ingest::CorrectChannelShift(*decoded, ingest::EstimateChannelShift(*decoded, !cam.pinhole));
       img = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
       caches.images->Put(src.blob_sha256, img);
     }

@@ -4,10 +4,22 @@
 ///        samplers (§4) and the render's colour detail (§8).
 #pragma once
 
+#include <array>
 #include <cstddef>
+#include <cstdint>
+#include <memory>
 #include <vector>
 
 namespace vasl::geometry {
+
+/// How a block-transform codec (baseline or progressive JPEG) coded an image: its quantisation
+/// tables and its chroma subsampling, as the file declares them (VASL-MODEL §9 codec).
+struct BlockCoding {
+  std::array<uint16_t, 64> luma_q{};    ///< luma quantisation steps, row-major 8×8 (u fastest)
+  std::array<uint16_t, 64> chroma_q{};  ///< chroma's; equal to luma's when the file has one table
+  int chroma_step_x = 1;                ///< luma pixels per chroma sample across (2: 4:2:0, 4:2:2)
+  int chroma_step_y = 1;                ///< and down (2: 4:2:0)
+};
 
 /// A decoded image, row-major, row 0 at the top, linear radiometry.
 struct LinearImage {
@@ -16,6 +28,8 @@ struct LinearImage {
   int channels = 0;            ///< 1 or 3
   std::vector<float> pixels;   ///< width·height·channels values
   float clip_value = 0.0f;     ///< linear value at which the encoding clips (1 for 8/16-bit); 0: none
+  /// The block codec that coded it, decoded from 8-bit sRGB codes (a JPEG); null: none.
+  std::shared_ptr<const BlockCoding> coding;
 
   /// Bytes its pixels take.
   std::size_t ByteSize() const { return pixels.size() * sizeof(float); }

@@ -5,6 +5,8 @@
 
 #include <cstdint>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "absl/status/statusor.h"
 
@@ -51,6 +53,142 @@ struct SaturationMap {
 ///          smear is not modelled.
 /// Parallel over rows and columns (TBB).
 SaturationMap DetectSaturation(const geometry::LinearImage& image, bool wrap);
+
+/// Flare (§9): the veiling glare bright sources spread over the image.
+struct FlareMap {
+  /// Per pixel, the confidence that its value is its surface's own light: 0 where the glare is
+  /// at least half the pixel's light (invalid: no record takes colour from it), 1 − G/L where
+  /// it adds more than a tenth (G the glare, L the pixel's brightest channel over the clip
+  /// level), 1 elsewhere and on the clipped sources themselves (saturation's); one channel.
+  /// No pixels: 1 everywhere (no source with a measurable veil).
+  geometry::LinearImage conf;
+  int sources = 0;               ///< bright sources whose veil was measured
+  int64_t invalid_pixels = 0;    ///< pixels at 0
+  int64_t soft_pixels = 0;       ///< pixels in (0, 1)
+  int max_radius_px = 0;         ///< farthest affected pixel from its nearest source
+
+  /// Share of the image's pixels with confidence < 1.
+  double CoveredFraction(int width_px, int height_px) const;
+};
+
+/// A flare confidence map's value at and below which a pixel is invalid (its soft values are
+/// at least 1/2): a sampling kernel's point reading below this half of 1/2 takes no colour.
+inline constexpr float kFlareInvalidBelow = 0.25f;
+
+/// Finds flare (§9) in `image` (linear, with its clip level): bright sources and the veiling
+/// glare around each, measured from the image and modelled.
+/// @details The sources are the clipped blobs (DetectSaturation's), the largest
+///          kMaxFlareSources first. Around each, from its bloom reach R_b (4·r_b + 8 px) out to
+///          8·R_b (at most half the image height), the pixels fall into 24 rings spaced evenly in
+///          log distance from the blob's centroid, in 8 directions; each (ring, direction) bin
+///          gives its dark floor (10% quantile) and its contrast (90% − 10% quantile). A bin
+///          whose 90% quantile is at half the clip level or more is not measured (a bright
+///          region, where the clip cuts the contrast).
+///          - Per direction, the floor's fall from ring to ring, each the median of the falls
+///            within two rings (a veil falls smoothly; the scene's edges step at one ring or
+///            two). Per ring, the median over the directions (a veil falls alike in all of
+///            them), summed from the outermost ring inward: the floor's excess q(d), and the
+///            contrast's c(d) the same way.
+///          - A veil lifts the floor without lifting the contrast, while a surface lit more
+///            brightly toward the source lifts both in proportion, and a scene may brighten
+///            slowly toward it: q(d) is fitted by k·c(d) + s·ln(d_far/d) + a·(f(d) − f(d_far))
+///            with k, s, a ≥ 0 and f(d) = (1 + (d/α)²)^−β a Moffat profile (α from R_b/16
+///            to 4·R_b, β from 1 to 3: glare falls at least as the inverse square of the
+///            distance beyond a core, as the CIE glare equation's 1/θ²), by least squares of
+///            relative errors. The veil a·f(d) is cut to the darkest direction's floor at every ring
+///            (the veil is light every pixel holds). Of the (α, β) whose fit is within a
+///            quarter of the best, the one of lowest β is kept (the slower tail).
+///          - A source whose surround is measured in under 3/4 of the directions (a window,
+///            the sky), whose fit leaves over 5% of the excess unexplained (the scene's own
+///            falloff), or whose veil at R_b is under the noise (0.01 of the clip level) has no
+///            flare; a smaller blob within a kept source's R_b is a fragment of it.
+///          The glare G at a pixel is the sum of its sources' veils at max(d, R_b/2) (the core
+///          within R_b/2 is not extrapolated), out to where each falls under half the noise (at
+///          most the image height away). A pixel whose glare is at least half its light is
+///          invalid (confidence 0); one where it adds more than a tenth gets 1 − G/L.
+///          Columns wrap across a panorama's seam (`wrap`). Bounded work: at most 1 M pixels
+///          per source are measured (a stride over larger discs).
+/// Parallel over sources and rows (TBB).
+FlareMap DetectFlare(const geometry::LinearImage& image, bool wrap);
+
+/// Chromatic fringing (§9): where each channel's edges lie against green's, over the image.
+struct ChannelShift {
+  bool found = false;      ///< an offset of at least 0.2 px somewhere: the correction applies
+  int64_t edges = 0;       ///< edge samples measured (both axes)
+  int width_px = 0, height_px = 0;
+  bool wrap = false;       ///< a panorama: columns wrap
+  /// Image-wide median offsets (pixels) by channel R, G, B (green's 0): channel c's edges lie
+  /// at green's + (dx[c], dy[c]).
+  double dx[3] = {0.0, 0.0, 0.0}, dy[3] = {0.0, 0.0, 0.0};
+  /// The field: per tile of a tiles_x × tiles_y grid, red's and blue's (dx, dy); a tile with
+  /// too few edges holds the image-wide median.
+  int tiles_x = 0, tiles_y = 0;
+  std::vector<float> tile_dx, tile_dy;  ///< 2 per tile (red, blue), row-major tiles
+  double max_offset_px = 0.0;           ///< the largest tile offset's length
+
+  /// Channel c's offset at pixel coordinates (x, y), bilinear between tile centres; (0, 0)
+  /// for green or when nothing was found.
+  std::pair<double, double> Offset(int channel, double x, double y) const;
+};
+
+/// Estimates chromatic fringing (§9) in a linear RGB image.
+/// @details At high-contrast edges (green's central difference along x or y at least 0.08 of
+///          the clip level, twice that along the other axis, a local maximum along its own,
+///          and red and blue changing the same way by at least a quarter of it), each channel's
+///          centroid of its gradient over ±3 px along the axis; red's and blue's offsets against
+///          green's are the medians per tile of an 8 × 4 grid (the image-wide median for a tile
+///          with under 100 edges), along x from vertical edges and along y from horizontal ones.
+///          Fewer than 200 edges on an axis, or offsets all under 0.2 px, are no fringing.
+///          Parallel over rows (TBB).
+ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap);
+
+/// Applies `shift` to `image` (a correction, §9): red and blue are resampled (bilinear) at each
+/// pixel plus their offset, so their edges land on green's. Returns the pixels whose colour the
+/// correction moved by more than a tenth of their light; with `changed`, a map of them for a
+/// person to look at (1 − the share moved where over a tenth, 1 elsewhere; empty when nothing
+/// was found). Does nothing unless shift.found and the sizes agree. Parallel over rows (TBB).
+int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& shift,
+                            geometry::LinearImage* changed = nullptr);
+
+/// Codec artefacts (§9): what a JPEG's coding left in the image.
+struct CodecMap {
+  /// Per pixel, the confidence that its value is its surface's own light: 1 − e/L where the
+  /// codec's expected error e adds more than a tenth to the pixel's light L, 1 elsewhere; one
+  /// channel. No pixels: 1 everywhere (not a JPEG).
+  geometry::LinearImage conf;
+  bool jpeg = false;               ///< the image came from a JPEG whose tables were read
+  double quality = 0.0;            ///< the IJG quality its luma table corresponds to, 1..100
+  bool chroma_subsampled = false;  ///< its chroma was coded at a lower resolution (4:2:0, 4:2:2)
+  int64_t soft_pixels = 0;         ///< pixels below 1
+
+  /// Share of the image's pixels with confidence < 1.
+  double CoveredFraction(int width_px, int height_px) const;
+};
+
+/// Finds codec artefacts (§9) in an image decoded from a JPEG (LinearImage::coding).
+/// @details In the codec's own domain (8-bit sRGB codes as JFIF Y'CbCr, 8×8 blocks from the
+///          corner), each block's luma coefficients are taken again: a coefficient that
+///          survived quantisation carries an error of q²/12 (q its step in the file's table);
+///          one quantised to 0 lost E[F² | |F| < q/2] under a Laplacian whose scale the share of
+///          that frequency's coefficients that survived names, among blocks of as much detail
+///          (surviving AC coefficients 0, 1-2, 3-5, 6-11, 12+: a block with an edge rings more
+///          than a smooth one). Their sum over 64 is the block's mean square error (blocking
+///          and ringing). Under subsampled chroma, half the chroma's range within a chroma sample's
+///          reach adds the colour an edge lost to the averaging. The largest channel's error,
+///          in linear terms at the pixel's level, over its light is the share; a pixel where it
+///          is over a tenth gets 1 − share. Not a JPEG: empty. Parallel over blocks (TBB).
+CodecMap DetectCodec(const geometry::LinearImage& image);
+
+/// Every §9 map of one image, as ingest samples them into a record's confidence factors.
+struct ArtefactMaps {
+  SaturationMap saturation;  ///< conf[saturation]
+  FlareMap flare;            ///< conf[flare], and hard invalidation
+  CodecMap codec;            ///< conf[codec]
+  ChannelShift fringing;     ///< a correction of the image before sampling (CorrectChannelShift)
+};
+
+/// Runs every detector over `image` (the clipped blobs found once). Parallel (TBB).
+ArtefactMaps DetectArtefacts(const geometry::LinearImage& image, bool wrap);
 
 /// A confidence map (one channel in [0, 1]; empty: 1 everywhere) of a width_px × height_px
 /// image as an 8-bit grey PNG for a person to look at: 255 where the confidence is 1, 0 where

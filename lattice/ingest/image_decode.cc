@@ -3,6 +3,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <random>
 
 #include <OpenImageIO/filesystem.h>
@@ -34,7 +35,83 @@ const char* SniffExtension(std::string_view b) {
   return nullptr;
 }
 
+/// The JPEG zigzag order: the natural (row-major) index of the k-th coefficient a file lists.
+constexpr int kZigzag[64] = {0,  1,  8,  16, 9,  2,  3,  10, 17, 24, 32, 25, 18, 11, 4,  5,
+                             12, 19, 26, 33, 40, 48, 41, 34, 27, 20, 13, 6,  7,  14, 21, 28,
+                             35, 42, 49, 56, 57, 50, 43, 36, 29, 22, 15, 23, 30, 37, 44, 51,
+                             58, 59, 52, 45, 38, 31, 39, 46, 53, 60, 61, 54, 47, 55, 62, 63};
+
 }  // namespace
+
+std::shared_ptr<const geometry::BlockCoding> ReadJpegCoding(std::string_view b) {
+  if (b.size() < 4 || uint8_t(b[0]) != 0xFF || uint8_t(b[1]) != 0xD8) return nullptr;
+  std::array<std::array<uint16_t, 64>, 4> tables{};
+  std::array<bool, 4> have{};
+  int luma_table = -1, chroma_table = -1, h_max = 1, v_max = 1, h_c = 1, v_c = 1;
+  size_t at = 2;
+  auto byte = [&](size_t i) { return int(uint8_t(b[i])); };
+  while (at + 4 <= b.size()) {
+    if (byte(at) != 0xFF) return nullptr;  // not a marker where one must be
+    const int marker = byte(at + 1);
+    if (marker == 0xFF) {  // fill byte
+      ++at;
+      continue;
+    }
+    if (marker == 0xD8 || marker == 0x01 || (marker >= 0xD0 && marker <= 0xD7)) {
+      at += 2;
+      continue;
+    }
+    const size_t length = size_t(byte(at + 2) << 8 | byte(at + 3));
+    if (length < 2 || at + 2 + length > b.size()) return nullptr;
+    const size_t body = at + 4, end = at + 2 + length;
+    if (marker == 0xDB) {  // DQT: tables of 64 steps in zigzag order, 8- or 16-bit
+      for (size_t i = body; i < end;) {
+        const int precision = byte(i) >> 4, id = byte(i) & 0x0F;
+        const size_t size = precision ? 128 : 64;
+        if (id > 3 || i + 1 + size > end) return nullptr;
+        for (int k = 0; k < 64; ++k) {
+          tables[size_t(id)][size_t(kZigzag[k])] = uint16_t(
+              precision ? byte(i + 1 + 2 * size_t(k)) << 8 | byte(i + 2 + 2 * size_t(k))
+                        : byte(i + 1 + size_t(k)));
+        }
+        have[size_t(id)] = true;
+        i += 1 + size;
+      }
+    } else if (marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
+               marker != 0xCC) {  // SOFn: components, their sampling and tables
+      if (marker != 0xC0 && marker != 0xC1 && marker != 0xC2) return nullptr;  // DCT, Huffman
+      if (body + 6 > end) return nullptr;
+      const int components = byte(body + 5);
+      if (body + 6 + 3 * size_t(components) > end) return nullptr;
+      for (int c = 0; c < components; ++c) {
+        const size_t o = body + 6 + 3 * size_t(c);
+        const int h = byte(o + 1) >> 4, v = byte(o + 1) & 0x0F, table = byte(o + 2) & 0x03;
+        h_max = std::max(h_max, h), v_max = std::max(v_max, v);
+        if (c == 0) luma_table = table;
+        if (c == 1) chroma_table = table, h_c = std::max(1, h), v_c = std::max(1, v);
+      }
+      if (components == 1) chroma_table = luma_table;
+    } else if (marker == 0xDA) {  // SOS: the tables in force are known
+      break;
+    }
+    at = end;
+  }
+  if (luma_table < 0 || !have[size_t(luma_table)]) return nullptr;
+  auto coding = std::make_shared<geometry::BlockCoding>();
+  coding->luma_q = tables[size_t(luma_table)];
+  coding->chroma_q = chroma_table >= 0 && have[size_t(chroma_table)]
+                         ? tables[size_t(chroma_table)]
+                         : coding->luma_q;
+  coding->chroma_step_x = std::max(1, h_max / h_c);
+  coding->chroma_step_y = std::max(1, v_max / v_c);
+  for (uint16_t q : coding->luma_q) {
+    if (q == 0) return nullptr;
+  }
+  for (uint16_t q : coding->chroma_q) {
+    if (q == 0) return nullptr;
+  }
+  return coding;
+}
 
 namespace internal {
 
@@ -136,6 +213,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   out.height_px = spec.height;
   out.channels = single_channel ? 1 : 3;
   out.clip_value = is_float ? 0.0f : 1.0f;
+  if (int8) out.coding = ReadJpegCoding(bytes);  // §9 codec: what the JPEG's coding did
   out.pixels.resize(n * out.channels);
   const int oc = out.channels;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 14), [&](const tbb::blocked_range<size_t>& r) {

@@ -27,7 +27,7 @@ using records::RecordSet;
 void PushRecord(RecordSet& s, int32_t vossel, int32_t scan, records::Modality m,
                 const float* value, int channels, double range, double cos_inc,
                 const geometry::SurfaceFootprint& foot, const Eigen::Vector2d& uv, float vis,
-                float conf_saturation, int32_t batch) {
+                const float* conf, uint8_t flags, int32_t batch) {
   s.vossel.push_back(vossel);
   s.scan.push_back(scan);
   s.modality.push_back(int8_t(m));
@@ -39,9 +39,8 @@ void PushRecord(RecordSet& s, int32_t vossel, int32_t scan, records::Modality m,
   s.uv_px.push_back(float(uv.x()));
   s.uv_px.push_back(float(uv.y()));
   s.vis.push_back(vis);
-  s.conf.push_back(conf_saturation);
-  for (int f = 1; f < records::kConfidenceCount; ++f) s.conf.push_back(1.0f);
-  s.flags.push_back(0);
+  for (int f = 0; f < records::kConfidenceCount; ++f) s.conf.push_back(conf[f]);
+  s.flags.push_back(flags);
   s.batch.push_back(batch);
 }
 
@@ -69,15 +68,18 @@ ImageProjection ProjectionOf(const CameraSource& cam, int width_px, int height_p
 }
 
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
-                       const std::vector<float>& vis, const LinearImage& saturation) {
+                       const std::vector<float>& vis, const ArtefactMaps& artefacts) {
   const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
   const bool wrap = !cam.pinhole;
-  auto confidence = [&](double u, double v) {  // §9: the saturation map at (u, v)
-    if (saturation.pixels.empty()) return 1.0f;
+  auto read = [&](const LinearImage& map, double u, double v) {  // §9: a map at (u, v)
+    if (map.pixels.empty()) return 1.0f;
     float c;
-    SampleBilinear(saturation, u, v, wrap, &c);
+    SampleBilinear(map, u, v, wrap, &c);
     return c;
   };
+  const LinearImage& saturation = artefacts.saturation.conf;
+  const LinearImage& flare = artefacts.flare.conf;
+  const LinearImage& codec = artefacts.codec.conf;
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
@@ -104,16 +106,22 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
       const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
       float value[3] = {0, 0, 0};
-      double conf = 0.0;
+      float conf[records::kConfidenceCount] = {1.0f, 1.0f, 1.0f, 1.0f};
+      uint8_t flags = 0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
         SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value);
-        conf = confidence(uv.x(), uv.y());
+        conf[records::kConfSaturation] = read(saturation, uv.x(), uv.y());
+        conf[records::kConfFlare] = read(flare, uv.x(), uv.y());
+        conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
+        if (conf[records::kConfFlare] < kFlareInvalidBelow) flags |= records::kFlagInvalidated;
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
         Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;
         t_major = t_major.squaredNorm() < 1e-12 ? geometry::AnyTangent(n) : t_major.normalized();
         const Eigen::Vector3d t_minor = n.cross(t_major);
-        double acc[3] = {0, 0, 0};
+        // §9 flare: the kernel's points on invalid pixels give no colour and no confidence;
+        // a record whose kernel lies mostly on them is invalidated.
+        double acc[3] = {0, 0, 0}, valid = 0.0, sat = 0.0, flare_conf = 0.0, codec_conf = 0.0;
         for (int a = 0; a < 3; ++a) {
           for (int b = 0; b < 3; ++b) {
             const Eigen::Vector3d p = x + node[a] * sk_major * t_major + node[b] * sk_minor * t_minor;
@@ -121,17 +129,30 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             // reads the centre's pixel.
             const Eigen::Vector2d q =
                 proj.Project(R_cam_world * (p - cam.pose.o_world)).value_or(uv);
+            const double w = weight[a] * weight[b];
+            sat += w * read(saturation, q.x(), q.y());
+            codec_conf += w * read(codec, q.x(), q.y());
+            const float f = read(flare, q.x(), q.y());
+            if (f < kFlareInvalidBelow) continue;
             float s[3];
             SampleBilinear(cam.image, q.x(), q.y(), wrap, s);
-            const double w = weight[a] * weight[b];
             for (int c = 0; c < cam.image.channels; ++c) acc[c] += w * s[c];
-            conf += w * confidence(q.x(), q.y());
+            valid += w;
+            flare_conf += w * f;
           }
         }
-        for (int c = 0; c < 3; ++c) value[c] = float(acc[c]);
+        if (valid < 0.5) flags |= records::kFlagInvalidated;
+        if (valid > 0.0) {
+          for (int c = 0; c < 3; ++c) value[c] = float(acc[c] / valid);
+          conf[records::kConfFlare] = float(flare_conf / valid);
+        } else {
+          conf[records::kConfFlare] = 0.0f;
+        }
+        conf[records::kConfSaturation] = float(sat);
+        conf[records::kConfCodec] = float(codec_conf);
       }
       PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.image.channels, range, cos_inc,
-                 foot, uv, vis[k], float(conf), cam.batch);
+                 foot, uv, vis[k], conf, flags, cam.batch);
     }
   });
   return Concatenate(parts);
@@ -236,9 +257,10 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
       for (int ch = 0; ch < C && ch < records::kValueChannels; ++ch) {
         value[ch] = float(sum[k * C + ch] / count[k]);
       }
-      const float conf = 1.0f - float(clipped[k]) / float(count[k]);
+      float conf[records::kConfidenceCount] = {1.0f, 1.0f, 1.0f, 1.0f};
+      conf[records::kConfSaturation] = 1.0f - float(clipped[k]) / float(count[k]);
       PushRecord(out, int32_t(k), source_id, modality, value, C, range, cos_inc, foot, uv, vis[k],
-                 conf, lidar.batch);
+                 conf, 0, lidar.batch);
     }
   });
   return Concatenate(parts);
@@ -376,9 +398,23 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
                                         : std::pair<int, int>{0, depth.size.height_px};
   DilateDepthPanorama(depth, kCameraSampleRadiusPx, row_begin, row_end);
   SourceRecords out;
+  // §9: the artefacts of the image as recorded; then its channels' fringing corrected before
+  // any colour is read from it.
+  const ArtefactMaps artefacts = DetectArtefacts(cam.image, /*wrap=*/!cam.pinhole);
+  const CameraSource* sampled = &cam;
+  CameraSource corrected;
+  if (artefacts.fringing.found) {
+    if (&cam == &loaded) {
+      CorrectChannelShift(loaded.image, artefacts.fringing);
+    } else {
+      corrected = cam;
+      CorrectChannelShift(corrected.image, artefacts.fringing);
+      sampled = &corrected;
+    }
+  }
   out.records = SampleCamera(
-      g, cam, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx),
-      DetectSaturation(cam.image, /*wrap=*/!cam.pinhole).conf);
+      g, *sampled, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx),
+      artefacts);
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   if (cam.pinhole) {
     // Nothing outside a pinhole photo's field is recorded, so no change there can alter its

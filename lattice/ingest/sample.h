@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "lattice/geometry/image_projection.h"
+#include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/ingest/visibility.h"
 #include "lattice/records/records.h"
@@ -24,11 +25,14 @@ ImageProjection ProjectionOf(const CameraSource& camera, int width_px, int heigh
 /// tangent plane, σ_K² = s*² − s² per axis, evaluated by 3×3 Gauss–Hermite quadrature whose
 /// points are projected into the image and read bilinearly with seam wrap; weights sum to 1),
 /// else a bilinear point sample (the §4.2 range weight K_range discounts it at fusion).
-/// conf[saturation] = the kernel's weighted read of `saturation` (§9 saturation and blooming,
-/// DetectSaturation's map of the camera's image; empty: 1); other factors 1.
+/// §9 from `artefacts` (DetectArtefacts of the camera's image): conf[saturation] is the
+/// kernel's weighted read of the saturation map, conf[flare] that of the flare map over the
+/// kernel's points on valid pixels; points on invalid pixels (flare map < kFlareInvalidBelow)
+/// give no colour, and a record with less than half its kernel's weight on valid pixels (a
+/// point sample on an invalid one) is flagged kFlagInvalidated; conf[codec] is the kernel's
+/// read of the codec map; conf[dirt] is 1.
 records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const CameraSource& camera,
-                                const std::vector<float>& vis,
-                                const geometry::LinearImage& saturation);
+                                const std::vector<float>& vis, const ArtefactMaps& artefacts);
 
 /// Records of one LiDAR: one per vossel that holds returns of this LiDAR and has V > 0; the
 /// sample is the mean intensity of those returns (1 when the scan has no intensity).

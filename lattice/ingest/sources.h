@@ -30,6 +30,12 @@ using geometry::LinearImage;
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
                                         int64_t max_pixels);
 
+/// The quantisation tables and chroma subsampling of JPEG bytes (baseline, extended or
+/// progressive DCT with Huffman coding), read from their DQT and SOF markers; null for other
+/// bytes, other JPEG processes (lossless, arithmetic) or a damaged header. DecodeImage sets it
+/// as a decoded JPEG's LinearImage::coding.
+std::shared_ptr<const geometry::BlockCoding> ReadJpegCoding(std::string_view bytes);
+
 /// What an image's header says, read without decoding its pixels.
 struct ImageHeader {
   int width_px = 0;

@@ -66,18 +66,9 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
       }
     }
   }
-  ingest::ScanInput bloomed;
-  bloomed.scan_name = "bloomed";
-  bloomed.rig = "handheld";
-  bloomed.pose = pose;
-  ingest::PanoramaData data;
-  data.name = "pano";
-  data.pose = pose;
-  auto png = scenes::EncodePng(pano);
-  ASSERT_TRUE(png.ok()) << png.status();
-  data.encoded_image = std::move(*png);
-  bloomed.panoramas = {std::move(data)};
-  ASSERT_TRUE((*engine)->IngestScan("room", bloomed).ok());
+  auto bloomed = scenes::PanoramaScan("bloomed", pose, pano);
+  ASSERT_TRUE(bloomed.ok()) << bloomed.status();
+  ASSERT_TRUE((*engine)->IngestScan("room", *bloomed).ok());
 
   auto st = store::ProjectStore::Open(dir / "room");
   ASSERT_TRUE(st.ok()) << st.status();

@@ -239,16 +239,28 @@ Vector3f SyntheticRoom::Albedo(const Vector3d& x_world, int face) const {
   const Eigen::Vector2d st = FaceCoords(x_world, face);
   // Sinusoid field in [0.1, 1.0]; soft band weight in [0, 0.8]; value in [0, 1] → [0.05, 0.95].
   const double field =
-      0.55 + 0.30 * std::sin(2.0 * M_PI * st[0] / tex.lambda_s_m + tex.phase_s_rad) +
-      0.15 * std::cos(2.0 * M_PI * st[1] / tex.lambda_t_m + tex.phase_t_rad);
+      plain_ ? 0.55
+             : 0.55 + 0.30 * std::sin(2.0 * M_PI * st[0] / tex.lambda_s_m + tex.phase_s_rad) +
+                   0.15 * std::cos(2.0 * M_PI * st[1] / tex.lambda_t_m + tex.phase_t_rad);
   const double z = (st[tex.band_axis] - tex.band_centre_m) / tex.band_sigma_m;
-  const double b = 0.8 * std::exp(-z * z);
+  const double b = plain_ ? 0.0 : 0.8 * std::exp(-z * z);
+  const double tile =
+      tile_m_ > 0.0 && (int(std::floor(st[0] / tile_m_)) + int(std::floor(st[1] / tile_m_))) % 2
+          ? 0.55
+          : 1.0;
   Vector3f rgb;
   for (int c = 0; c < 3; ++c) {
     const double v = (1.0 - b) * tex.base[c] * field + b * tex.band[c];
-    rgb[c] = static_cast<float>(0.05 + 0.9 * std::clamp(v, 0.0, 1.0));
+    rgb[c] = static_cast<float>(tile * (0.05 + 0.9 * std::clamp(v, 0.0, 1.0)));
   }
   return rgb;
+}
+
+SyntheticRoom SyntheticRoom::WithTiles(double tile_m, bool plain) const {
+  SyntheticRoom room = *this;
+  room.tile_m_ = tile_m;
+  room.plain_ = plain;
+  return room;
 }
 
 SceneHit SyntheticRoom::Intersect(const Vector3d& o, const Vector3d& d, double t_max_m) const {
@@ -681,6 +693,22 @@ absl::StatusOr<ingest::ScanInput> MakeCameraOnlyScan(const Scene& scene, const s
   if (!pano_png.ok()) return pano_png.status();
   pano.encoded_image = std::move(*pano_png);
   scan.panoramas = {std::move(photo), std::move(pano)};
+  return scan;
+}
+
+absl::StatusOr<ingest::ScanInput> PanoramaScan(const std::string& name, const geometry::Pose& pose,
+                                               const Panorama& pano) {
+  ingest::ScanInput scan;
+  scan.scan_name = name;
+  scan.rig = "handheld";
+  scan.pose = pose;
+  ingest::PanoramaData data;
+  data.name = "pano";
+  data.pose = pose;
+  absl::StatusOr<std::string> png = EncodePng(pano);
+  if (!png.ok()) return png.status();
+  data.encoded_image = std::move(*png);
+  scan.panoramas = {std::move(data)};
   return scan;
 }
 

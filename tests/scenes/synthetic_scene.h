@@ -179,6 +179,13 @@ class SyntheticRoom final : public Scene {
   /// not see it).
   SyntheticRoom WithExtraBox(const Aabb& box) const;
 
+  /// A copy of this room whose every face is tiled: its albedo times a checker of `tile_m`
+  /// squares on the face's own coordinates, 1 and 0.55 (a sharp texture, for the detectors
+  /// that read a scene's darkest and brightest pixels, VASL-MODEL §9); `plain`: each face's
+  /// base colour alone under the tiles (no sinusoid field or band). Not smooth: for tests
+  /// that render it at a resolution that resolves the tiles.
+  SyntheticRoom WithTiles(double tile_m, bool plain = false) const;
+
   /// Face id of side `side` (kBoxSide*) of extra box k.
   static int ExtraBoxFace(size_t k, int side) {
     return kFaceCount + kBoxSideCount * static_cast<int>(k) + side;
@@ -209,8 +216,8 @@ class SyntheticRoom final : public Scene {
   const std::vector<geometry::Pose>& NovelViews() const override { return novel_views_; }
 
   /// Linear RGB albedo of point x on face `face`, each channel in [0.05, 0.95]. Smooth: the
-  /// finest feature (sinusoid wavelength, band edge width) is ≥ 0.3 m. Faces of extra boxes
-  /// that do not exist, and other ids, give 0.05.
+  /// finest feature (sinusoid wavelength, band edge width) is ≥ 0.3 m (unless WithTiles).
+  /// Faces of extra boxes that do not exist, and other ids, give 0.05.
   Eigen::Vector3f Albedo(const Eigen::Vector3d& x_world, int face) const override;
 
   /// Unit normal of a face, pointing into the free space of the room (room faces inward, box
@@ -241,6 +248,8 @@ class SyntheticRoom final : public Scene {
   Aabb room_;                               ///< interior of the room, world, metres
   Aabb box_;                                ///< the occluder, world, metres
   std::vector<Aabb> extra_boxes_;           ///< boxes added by WithExtraBox, world, metres
+  double tile_m_ = 0.0;                     ///< WithTiles' square, metres; 0: no tiles
+  bool plain_ = false;                      ///< WithTiles' plain faces
   std::vector<geometry::Pose> stations_;    ///< T_world_scanner per station
   std::vector<geometry::Pose> novel_views_; ///< render-test viewpoints
 };
@@ -349,6 +358,11 @@ absl::Status WriteNpy(const std::vector<float>& data, const std::vector<size_t>&
 absl::StatusOr<ingest::ScanInput> MakeScanInput(const Scene& scene, size_t station,
                                                 const LidarSettings& lidar, int pano_width_px,
                                                 int supersample = 4, bool point_colour = false);
+
+/// A camera-only scan of one equirect panorama (rig "handheld"): `pano`, encoded as PNG, named
+/// "pano", at `pose` (the scan's pose too), the scan named `name`.
+absl::StatusOr<ingest::ScanInput> PanoramaScan(const std::string& name, const geometry::Pose& pose,
+                                               const Panorama& pano);
 
 /// A camera-only scan (no LiDAR points) named `name`, posed at `photo_pose`: a pinhole photo
 /// "photo" (SurveyPhotoIntrinsics) at `photo_pose` and an equirect panorama "pano" of
