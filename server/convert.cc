@@ -388,6 +388,9 @@ void ScanConfidenceToProto(const std::string& scan,
       a->set_regions(m.regions);
       a->set_max_extent_px(m.max_extent_px);
       a->set_map_size_bytes(int64_t(m.png.size()));
+      for (double o : m.channel_offsets_px) a->add_channel_offsets_px(o);
+      a->set_jpeg_quality(m.jpeg_quality);
+      a->set_chroma_subsampled(m.chroma_subsampled);
     }
   }
 }

@@ -1,7 +1,9 @@
 /// @file confidence_flow.cc
 /// @brief The confidence maps of a scan's cameras (VASL-MODEL §9), for a person to look at:
 ///        each camera's stored image decoded again and its artefacts found as at ingest.
+#include <cmath>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -25,23 +27,51 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
       absl::StatusOr<ingest::LinearImage> image = cam.load();
       if (!image.ok()) return image.status();
       // As at ingest (ingest::CameraRecords): a panorama's columns wrap, a photo's do not.
-      const ingest::SaturationMap saturation = ingest::DetectSaturation(*image, !cam.pinhole);
+      const ingest::ArtefactMaps maps = ingest::DetectArtefacts(*image, !cam.pinhole);
       SourceConfidence& c = out.emplace_back();
       c.source_id = src.id;
       c.source = src.name;
       c.width_px = image->width_px;
       c.height_px = image->height_px;
-      ArtefactMap& map = c.artefacts.emplace_back();
-      map.artefact = "saturation";
-      map.flagged_pixels = saturation.clipped_pixels;
-      map.soft_pixels = saturation.halo_pixels;
-      map.regions = saturation.blobs;
-      map.max_extent_px = saturation.max_halo_radius_px;
-      map.covered_fraction = saturation.CoveredFraction(image->width_px, image->height_px);
-      absl::StatusOr<std::string> png =
-          ingest::EncodeConfidencePng(saturation.conf, image->width_px, image->height_px);
-      if (!png.ok()) return png.status();
-      map.png = std::move(*png);
+      const int w = image->width_px, h = image->height_px;
+      // Each map's coverage: pixels at 0 and in (0, 1), regions, widest reach.
+      auto coverage = [&](const char* artefact, int64_t flagged, int64_t soft, int regions,
+                          int extent_px) {
+        ArtefactMap map;
+        map.artefact = artefact;
+        map.flagged_pixels = flagged;
+        map.soft_pixels = soft;
+        map.regions = regions;
+        map.max_extent_px = extent_px;
+        map.covered_fraction = double(flagged + soft) / (double(w) * double(h));
+        return map;
+      };
+      ArtefactMap saturation =
+          coverage("saturation", maps.saturation.clipped_pixels, maps.saturation.halo_pixels,
+                   maps.saturation.blobs, maps.saturation.max_halo_radius_px);
+      ArtefactMap flare = coverage("flare", maps.flare.invalid_pixels, maps.flare.soft_pixels,
+                                   maps.flare.sources, maps.flare.max_radius_px);
+      ArtefactMap codec = coverage("codec", 0, maps.codec.soft_pixels, 0, 0);
+      codec.jpeg_quality = maps.codec.jpeg ? maps.codec.quality : 0.0;
+      codec.chroma_subsampled = maps.codec.chroma_subsampled;
+      // Fringing is a correction: its map shows where the correction moved a pixel's colour.
+      geometry::LinearImage corrected = *image, moved;
+      ArtefactMap fringing =
+          coverage("fringing", 0, ingest::CorrectChannelShift(corrected, maps.fringing, &moved),
+                   0, int(std::ceil(maps.fringing.max_offset_px)));
+      if (maps.fringing.found) {
+        fringing.channel_offsets_px = {maps.fringing.dx[0], maps.fringing.dy[0],
+                                       maps.fringing.dx[2], maps.fringing.dy[2]};
+      }
+      const std::pair<ArtefactMap*, const geometry::LinearImage*> found[] = {
+          {&saturation, &maps.saturation.conf}, {&flare, &maps.flare.conf},
+          {&codec, &maps.codec.conf}, {&fringing, &moved}};
+      for (const auto& [map, conf] : found) {
+        absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(*conf, w, h);
+        if (!png.ok()) return png.status();
+        map->png = std::move(*png);
+        c.artefacts.push_back(std::move(*map));
+      }
     }
     return out;
   }

@@ -255,12 +255,22 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
 /// One artefact's confidence map of a camera image (VASL-MODEL §9) and how much of the image
 /// it covers.
 struct ArtefactMap {
-  std::string artefact;          ///< "saturation": saturation and blooming (DetectSaturation)
-  int64_t flagged_pixels = 0;    ///< confidence 0 (clipped)
-  int64_t soft_pixels = 0;       ///< 0 < confidence < 1 (a halo)
-  int regions = 0;               ///< connected flagged regions
-  int max_extent_px = 0;         ///< the widest soft band around a region, pixels
+  /// "saturation": saturation and blooming (DetectSaturation); "flare": veiling glare
+  /// (DetectFlare); "codec": a JPEG's blocking, ringing and chroma (DetectCodec); "fringing":
+  /// chromatic fringing, corrected (EstimateChannelShift), whose soft pixels are those the
+  /// correction moved by more than a tenth of their light.
+  std::string artefact;
+  int64_t flagged_pixels = 0;    ///< confidence 0 (clipped; flare: invalid)
+  int64_t soft_pixels = 0;       ///< 0 < confidence < 1 (a halo; flare: lowered by a veil)
+  int regions = 0;               ///< connected clipped regions; flare: sources with a veil
+  int max_extent_px = 0;         ///< the widest soft band around a region (flare: the farthest
+                                 ///< affected pixel from its source), pixels
   double covered_fraction = 0.0; ///< share of the image's pixels below 1
+  /// Fringing when found: red's (dx, dy) then blue's against green's, pixels (image-wide).
+  std::vector<double> channel_offsets_px;
+  /// Codec: the IJG quality of a JPEG's luma table (0: not a JPEG), and its chroma subsampling.
+  double jpeg_quality = 0.0;
+  bool chroma_subsampled = false;
   std::string png;               ///< the map, ingest::EncodeConfidencePng
 };
 

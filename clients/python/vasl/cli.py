@@ -313,9 +313,24 @@ def _cmd_confidence(client: Client, args) -> int:
             path = os.path.join(args.output, f"{cam.source}-{a.artefact}.png")
             with open(path, "wb") as f:
                 f.write(a.map_png)
-            found = (f"{a.regions} regions, {100.0 * a.covered_fraction:.3f}% of the image "
-                     f"({a.flagged_pixels} pixels at 0, {a.soft_pixels} lowered, widest band "
-                     f"{a.max_extent_px} px)") if a.covered_fraction > 0 else "none found"
+            if a.artefact == "codec":
+                found = ("not a JPEG" if not a.jpeg_quality else
+                         f"JPEG quality {a.jpeg_quality:.0f}"
+                         + (", chroma subsampled" if a.chroma_subsampled else "")
+                         + f"; {a.soft_pixels} pixels lowered "
+                         f"({100.0 * a.covered_fraction:.3f}% of the image)")
+            elif a.artefact == "fringing":
+                found = ("none found" if not a.channel_offsets_px else
+                         "red offset ({:+.2f}, {:+.2f}) px, blue ({:+.2f}, {:+.2f}) px against "
+                         "green, corrected; ".format(*a.channel_offsets_px)
+                         + f"{a.soft_pixels} pixels moved by over a tenth "
+                         f"({100.0 * a.covered_fraction:.3f}% of the image)")
+            else:
+                what = "sources with a veil" if a.artefact == "flare" else "regions"
+                reach = "farthest" if a.artefact == "flare" else "widest band"
+                found = (f"{a.regions} {what}, {100.0 * a.covered_fraction:.3f}% of the image "
+                         f"({a.flagged_pixels} pixels at 0, {a.soft_pixels} lowered, {reach} "
+                         f"{a.max_extent_px} px)") if a.covered_fraction > 0 else "none found"
             print(f"{cam.source} ({cam.width_px}x{cam.height_px}) {a.artefact}: {found}; "
                   f"wrote {path}")
     return 0

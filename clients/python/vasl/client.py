@@ -599,7 +599,9 @@ class Client:
                                     f"{a.map_size_bytes} bytes", "GetConfidence")
                 artefacts.append(ArtefactCoverage(a.artefact, a.covered_fraction,
                                                   a.flagged_pixels, a.soft_pixels, a.regions,
-                                                  a.max_extent_px, data))
+                                                  a.max_extent_px, data,
+                                                  list(a.channel_offsets_px), a.jpeg_quality,
+                                                  a.chroma_subsampled))
             cameras.append(CameraConfidence(cam.source_id, cam.source, cam.width_px,
                                             cam.height_px, artefacts))
         return cameras

@@ -142,13 +142,20 @@ class VisualReference:
 class ArtefactCoverage:
     """One artefact's confidence map of a camera image (VASL-MODEL §9)."""
 
-    artefact: str  #: "saturation": saturation and blooming
+    #: "saturation": saturation and blooming; "flare": veiling glare; "codec": a JPEG's
+    #: blocking, ringing and chroma; "fringing": chromatic fringing, corrected before sampling
+    #: (its soft pixels: those the correction moved)
+    artefact: str
     covered_fraction: float  #: share of the image's pixels with confidence below 1
-    flagged_pixels: int  #: confidence 0 (clipped)
-    soft_pixels: int  #: between 0 and 1 (a halo)
-    regions: int  #: connected flagged regions
-    max_extent_px: int  #: widest soft band around one
+    flagged_pixels: int  #: confidence 0 (clipped; flare: invalid)
+    soft_pixels: int  #: between 0 and 1 (a halo; a veil)
+    regions: int  #: connected clipped regions (flare: sources with a veil)
+    max_extent_px: int  #: widest soft band around one (flare: farthest pixel from its source)
     map_png: bytes = b""  #: 8-bit grey PNG of the image's size, 255 at confidence 1
+    #: fringing, when found: red's (dx, dy) then blue's against green's, pixels
+    channel_offsets_px: List[float] = field(default_factory=list)
+    jpeg_quality: float = 0.0  #: codec: the IJG quality of a JPEG's luma table (0: not a JPEG)
+    chroma_subsampled: bool = False  #: codec: its chroma was coded at a lower resolution
 
 
 @dataclass
