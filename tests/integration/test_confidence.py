@@ -30,6 +30,18 @@ def _write_png(path, rgb8):
         f.write(png_bytes(w, h, b"".join(b"\x00" + rgb8[j].tobytes() for j in range(h))))
 
 
+def _ingest_panorama(server, project, tmp_path, name, image, view):
+    """Writes `image` (8-bit RGB) as a PNG and ingests it through the CLI, as a rig sends it,
+    as scan `name` of one panorama "pano" at the view's pose."""
+    _write_png(tmp_path / f"{name}.png", image)
+    pose = {"position": list(view["position"]), "quaternion": list(view["quaternion"])}
+    manifest = {"scan": name, "rig": "handheld", "pose": pose,
+                "panoramas": [{"name": "pano", "image": f"{name}.png", "modality": "rgb",
+                               "pose": pose}]}
+    (tmp_path / f"{name}.json").write_text(json.dumps(manifest))
+    run_cli(server, "ingest", "--project", project, str(tmp_path / f"{name}.json"))
+
+
 def _read_grey_png(data):
     """An 8-bit grey PNG's pixels (any of the five row filters)."""
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
@@ -87,14 +99,7 @@ def test_confidence_maps_find_planted_blooming(client, server, scene_dir, views,
         d = np.hypot(ii - u, jj - vv) - r
         bloom += np.where(d <= 0, brightness, brightness * np.exp(-np.maximum(d, 0) / lam))
     image = np.round(linear_to_srgb(surface + bloom[..., None]) * 255.0).astype(np.uint8)
-    _write_png(tmp_path / "bloomed.png", image)
-    manifest = {"scan": "bloomed", "rig": "handheld",
-                "pose": {"position": list(v["position"]), "quaternion": list(v["quaternion"])},
-                "panoramas": [{"name": "pano", "image": "bloomed.png", "modality": "rgb",
-                               "pose": {"position": list(v["position"]),
-                                        "quaternion": list(v["quaternion"])}}]}
-    (tmp_path / "bloomed.json").write_text(json.dumps(manifest))
-    run_cli(server, "ingest", "--project", PROJECT, str(tmp_path / "bloomed.json"))
+    _ingest_panorama(server, PROJECT, tmp_path, "bloomed", image, v)
 
     out = tmp_path / "maps"
     r = run_cli(server, "confidence", "show", "--project", PROJECT, "--scan", "bloomed",
@@ -171,14 +176,7 @@ def test_confidence_maps_find_planted_flare(client, server, scene_dir, views, tm
         nearest = np.minimum(nearest, d)
     linear = np.where(disc[..., None], 1.0, surface + glare[..., None])
     image = np.round(linear_to_srgb(np.clip(linear, 0.0, 1.0)) * 255.0).astype(np.uint8)
-    _write_png(tmp_path / "flared.png", image)
-    manifest = {"scan": "flared", "rig": "handheld",
-                "pose": {"position": list(v["position"]), "quaternion": list(v["quaternion"])},
-                "panoramas": [{"name": "pano", "image": "flared.png", "modality": "rgb",
-                               "pose": {"position": list(v["position"]),
-                                        "quaternion": list(v["quaternion"])}}]}
-    (tmp_path / "flared.json").write_text(json.dumps(manifest))
-    run_cli(server, "ingest", "--project", project, str(tmp_path / "flared.json"))
+    _ingest_panorama(server, project, tmp_path, "flared", image, v)
 
     out = tmp_path / "maps"
     r = run_cli(server, "confidence", "show", "--project", project, "--scan", "flared",
