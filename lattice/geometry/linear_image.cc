@@ -8,6 +8,17 @@
 
 namespace vasl::geometry {
 
+float SrgbToLinear(float c) {
+  return c <= 0.04045f ? c / 12.92f : std::pow((c + 0.055f) / 1.055f, 2.4f);
+}
+
+float LinearToSrgb(float linear) {
+  if (!(linear > 0.0f)) return 0.0f;  // also NaN
+  if (linear >= 1.0f) return 1.0f;
+  if (linear <= 0.0031308f) return 12.92f * linear;
+  return 1.055f * std::pow(linear, 1.0f / 2.4f) - 0.055f;
+}
+
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
   const double x = u - 0.5, y = v - 0.5;
   const int i0 = int(std::floor(x)), j0 = int(std::floor(y));

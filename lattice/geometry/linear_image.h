@@ -35,6 +35,14 @@ struct LinearImage {
   std::size_t ByteSize() const { return pixels.size() * sizeof(float); }
 };
 
+/// The standard sRGB EOTF (IEC 61966-2-1): encoded [0, 1] → linear, c/12.92 up to 0.04045,
+/// else ((c + 0.055)/1.055)^2.4. How integer images are linearised (ingest::DecodeImage).
+float SrgbToLinear(float encoded);
+/// The standard sRGB OETF: linear [0, 1] → encoded [0, 1], piecewise 12.92·c below 0.0031308,
+/// else 1.055·c^(1/2.4) − 0.055. Input clamped to [0, 1]; NaN → 0. How renders are written
+/// (render::EncodePng) and a JPEG's codes are recovered (ingest::DetectCodec).
+float LinearToSrgb(float linear);
+
 /// Bilinear read of `img` at continuous pixel coordinates (u, v): `img.channels` values into
 /// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation
 /// is read from its own map, ingest::DetectSaturation.)

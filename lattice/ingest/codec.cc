@@ -28,15 +28,8 @@ constexpr int kIjgLuma[64] = {16, 11, 10, 16, 24,  40,  51,  61,  12, 12, 14,  1
                               77, 24, 35, 55, 64, 81,  104, 113, 92, 49, 64,  78,  87,
                               103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99};
 
-/// The sRGB OETF (linear → encoded [0, 1]) and its inverse's slope dL/dV at an encoded value.
-double LinearToSrgb(double l) {
-  l = std::clamp(l, 0.0, 1.0);
-  return l <= 0.0031308 ? 12.92 * l : 1.055 * std::pow(l, 1.0 / 2.4) - 0.055;
-}
-double SrgbToLinear(double v) {
-  return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4);
-}
-double LinearPerCode(double v) {  // dL/dV, V in [0, 1]
+/// The slope dL/dV of the sRGB EOTF (geometry::SrgbToLinear) at an encoded value V in [0, 1].
+double LinearPerCode(double v) {
   return v <= 0.04045 ? 1.0 / 12.92 : 2.4 / 1.055 * std::pow((v + 0.055) / 1.055, 1.4);
 }
 
@@ -88,7 +81,7 @@ CodecMap DetectCodec(const geometry::LinearImage& image) {
                         double v[3];
                         for (int c = 0; c < 3; ++c) {
                           const float l = image.pixels[p * size_t(C) + size_t(C == 3 ? c : 0)];
-                          v[c] = 255.0 * LinearToSrgb(double(l * inv_clip));
+                          v[c] = 255.0 * geometry::LinearToSrgb(l * inv_clip);
                         }
                         luma[p] = float(0.299 * v[0] + 0.587 * v[1] + 0.114 * v[2]);
                         cb[p] = float(-0.168736 * v[0] - 0.331264 * v[1] + 0.5 * v[2]);
@@ -204,7 +197,7 @@ CodecMap DetectCodec(const geometry::LinearImage& image) {
           err2 += e * e;
         }
         const double v = code_max[p] / 255.0;
-        const double level = std::max(1e-6, SrgbToLinear(v));
+        const double level = std::max(1e-6, double(geometry::SrgbToLinear(float(v))));
         const double share = std::sqrt(err2) / 255.0 * LinearPerCode(v) / level;
         if (1.0 - share >= 1.0 / (1.0 + kAffectedShare)) continue;
         out.conf.pixels[p] = float(std::max(0.0, 1.0 - share));

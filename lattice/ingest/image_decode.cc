@@ -18,11 +18,6 @@
 namespace vasl::ingest {
 namespace {
 
-// The sRGB EOTF (IEC 61966-2-1), encoded [0,1] → linear.
-float SrgbToLinear(float c) {
-  return c <= 0.04045f ? c / 12.92f : std::pow((c + 0.055f) / 1.055f, 2.4f);
-}
-
 // A file-name extension OpenImageIO can pick a reader by, from the magic bytes.
 const char* SniffExtension(std::string_view b) {
   auto starts = [&b](std::string_view magic) {
@@ -205,7 +200,9 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   if (!linear_already) {
     const int codes = int8 ? 256 : 65536;
     table.resize(size_t(codes));
-    for (int i = 0; i < codes; ++i) table[size_t(i)] = SrgbToLinear(float(i) / float(codes - 1));
+    for (int i = 0; i < codes; ++i) {
+      table[size_t(i)] = geometry::SrgbToLinear(float(i) / float(codes - 1));
+    }
   }
 
   LinearImage out;

@@ -430,13 +430,6 @@ absl::StatusOr<std::unique_ptr<RowEncoder>> Opened(int width_px, int height_px, 
 
 }  // namespace
 
-float LinearToSrgb(float linear) {
-  if (!(linear > 0.0f)) return 0.0f;  // also NaN
-  if (linear >= 1.0f) return 1.0f;
-  if (linear <= 0.0031308f) return 12.92f * linear;
-  return 1.055f * std::pow(linear, 1.0f / 2.4f) - 0.055f;
-}
-
 absl::StatusOr<std::unique_ptr<RowEncoder>> RowEncoder::Create(ImageFormat format, int width_px,
                                                                int height_px, ByteSink sink) {
   if (width_px <= 0 || height_px <= 0) {

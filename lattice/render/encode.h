@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/geometry/linear_image.h"
 #include "lattice/render/render.h"
 
 namespace vasl::render {
@@ -72,8 +73,7 @@ absl::StatusOr<std::string> EncodePng(const RenderImage& image);
 /// The whole image in `format` (one RowEncoder over every row).
 absl::StatusOr<std::string> Encode(ImageFormat format, const RenderImage& image);
 
-/// The standard sRGB OETF (IEC 61966-2-1): linear [0, 1] → encoded [0, 1], piecewise
-/// 12.92·c below 0.0031308, else 1.055·c^(1/2.4) − 0.055. Input clamped to [0, 1]; NaN → 0.
-float LinearToSrgb(float linear);
+/// The standard sRGB OETF (geometry::LinearToSrgb), as PNG renders are written.
+using geometry::LinearToSrgb;
 
 }  // namespace vasl::render
