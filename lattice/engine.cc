@@ -532,6 +532,36 @@ absl::StatusOr<reweight::NormaliseOutcome> Engine::Normalise(const std::string& 
   return reweight::NormaliseProfile(*(*p)->store, **snap, profile->profile, name);
 }
 
+absl::StatusOr<reweight::LensOutcome> Engine::EstimateLens(const std::string& project,
+                                                           const std::string& base,
+                                                           const reweight::LensRequest& request) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  if ((*p)->store->head_version() == 0) {
+    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
+  }
+  auto profile = impl_->Profile(**p, base, 0);
+  if (!profile.ok()) return profile.status();
+  auto snap = impl_->Snapshot(**p, 0);
+  if (!snap.ok()) return snap.status();
+  return reweight::EstimateLensProfile(*(*p)->store, **snap, profile->profile, request);
+}
+
+absl::StatusOr<std::vector<fusion::LensMap>> Engine::ListLensMaps(const std::string& project) {
+  auto p = impl_->Find(project);
+  if (!p.ok()) return p.status();
+  absl::StatusOr<std::vector<store::StoredLensMap>> stored = (*p)->store->ListLensMaps();
+  if (!stored.ok()) return stored.status();
+  std::vector<fusion::LensMap> out;
+  for (const store::StoredLensMap& s : *stored) {
+    absl::StatusOr<fusion::LensMap> m = fusion::LensMapFromText(s.text);
+    if (!m.ok()) return m.status();
+    m->id = s.id;
+    out.push_back(std::move(*m));
+  }
+  return out;
+}
+
 absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
     const std::string& project, int64_t version, const Eigen::Vector3d& min_m,
     const Eigen::Vector3d& max_m, const std::string& profile_name, int64_t limit) {

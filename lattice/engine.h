@@ -27,6 +27,7 @@
 #include "lattice/ingest/scan_input.h"
 #include "lattice/records/records.h"
 #include "lattice/render/render.h"
+#include "lattice/reweight/lens_flow.h"
 #include "lattice/reweight/normalise_flow.h"
 #include "lattice/reweight/profiles.h"
 #include "lattice/reweight/reweight_flow.h"
@@ -207,6 +208,16 @@ class Engine {
   absl::StatusOr<reweight::NormaliseOutcome> Normalise(const std::string& project,
                                                        const std::string& base,
                                                        const std::string& name);
+
+  /// Lens dirt and fog (§9) of a rig's camera, found from its frames in HEAD's period
+  /// (reweight::EstimateLensProfile) under profile `base` (empty: active): the map is kept in
+  /// the catalog and a new revision of profile `request.name` applies it. Reweight under it to
+  /// store its fused tiles.
+  absl::StatusOr<reweight::LensOutcome> EstimateLens(const std::string& project,
+                                                     const std::string& base,
+                                                     const reweight::LensRequest& request);
+  /// The project's lens maps, by id.
+  absl::StatusOr<std::vector<fusion::LensMap>> ListLensMaps(const std::string& project);
 
   /// Provenance query on version `version` (0: HEAD): the records of the vossels whose cells
   /// meet the world box, with their weights under profile `profile` (empty: active).

@@ -15,10 +15,6 @@ namespace vasl::fusion {
 
 using records::Modality;
 
-namespace {
-constexpr std::array<float, records::kValueChannels> kUnitGain = {1.0f, 1.0f, 1.0f};
-}  // namespace
-
 absl::Status ValidateProfile(const WeightingProfile& p) {
   const auto bad = [&p](const char* what) {
     return absl::InvalidArgumentError(
@@ -38,6 +34,9 @@ absl::Status ValidateProfile(const WeightingProfile& p) {
     for (double g : a) {
       if (!std::isfinite(g) || g <= 0.0) return bad("channel gains a_{m,c} must be finite and > 0");
     }
+  }
+  for (int64_t id : p.lens_maps) {
+    if (id <= 0) return bad("lens map ids must be > 0");
   }
   if (p.name.empty() || p.name.size() > 63) return bad("the name must have 1 to 63 characters");
   for (char ch : p.name) {
@@ -62,6 +61,47 @@ std::vector<std::array<float, records::kValueChannels>> DenseChannelGains(
   return out;
 }
 
+absl::StatusOr<RecordValues> RecordValues::Of(const WeightingProfile& profile,
+                                              const records::RecordSet& recs) {
+  if (!profile.lens_maps.empty() && profile.lens == nullptr) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "weighting profile '", profile.name, "' applies lens maps that were not loaded"));
+  }
+  RecordValues out(recs);
+  out.gain_ = DenseChannelGains(profile, recs);
+  out.lens_.assign(out.gain_.size(), nullptr);
+  if (profile.lens != nullptr) {
+    for (const auto& [source, index] : profile.lens->by_source) {
+      if (source >= 0 && size_t(source) < out.lens_.size()) {
+        out.lens_[size_t(source)] = profile.lens->maps[index].get();
+      }
+    }
+  }
+  return out;
+}
+
+float RecordValues::Read(size_t i, double* out) const {
+  const int32_t s = recs_->scan[i];
+  float v[records::kValueChannels];
+  std::copy_n(&recs_->value[i * records::kValueChannels], records::kValueChannels, v);
+  float conf = 1.0f;
+  if (s >= 0 && lens_[size_t(s)] != nullptr) {
+    const LensMap& map = *lens_[size_t(s)];
+    conf = AdjustForLens(map, map.source_gain.at(s), &recs_->uv_px[2 * i], v);
+  }
+  for (int c = 0; c < records::kValueChannels; ++c) {
+    out[c] = (s >= 0 ? double(gain_[size_t(s)][c]) : 1.0) * v[c];
+  }
+  return conf;
+}
+
+float RecordValues::LensConfidence(size_t i) const {
+  const int32_t s = recs_->scan[i];
+  if (s < 0 || lens_[size_t(s)] == nullptr) return 1.0f;
+  double value[records::kValueChannels];
+  return Read(i, value);
+}
+
 absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& recs,
                                                   size_t vossel_count) {
   std::vector<size_t> begin(vossel_count + 1, 0);
@@ -84,6 +124,8 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
   RecordWeightsResult out;
   out.begin = std::move(*begin);
   out.weight.assign(recs.size(), 0.0f);
+  absl::StatusOr<RecordValues> values = RecordValues::Of(profile, recs);
+  if (!values.ok()) return values.status();
   const double target_m = geometry::TargetResolutionM(vossel_size_m);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
                     [&](const tbb::blocked_range<size_t>& range) {
@@ -101,7 +143,13 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
         if (recs.flags[i] & records::kFlagInvalidated) continue;
         const int c = int(FusedChannelOf(Modality(recs.modality[i])));
         const auto g = profile.scan_gain.find(recs.scan[i]);
-        const WeightInputs in = WeightInputsOf(recs, i, float(range_min[c]));
+        WeightInputs in = WeightInputsOf(recs, i, float(range_min[c]));
+        float conf[records::kConfidenceCount];
+        if (const float lens = values->LensConfidence(i); lens != 1.0f) {  // §9 dirt and fog
+          std::copy(in.conf, in.conf + records::kConfidenceCount, conf);
+          conf[records::kConfDirt] *= lens;
+          in.conf = conf;
+        }
         out.weight[i] = float(RecordWeight(profile, in, target_m,
                                            g == profile.scan_gain.end() ? 1.0 : g->second));
       }
@@ -132,9 +180,8 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
     channel[m] = &f;
   }
 
-  // a_{m,c} per source id, dense: the hot loop reads an array, not a map.
-  const std::vector<std::array<float, records::kValueChannels>> gain =
-      DenseChannelGains(profile, recs);
+  absl::StatusOr<RecordValues> values = RecordValues::Of(profile, recs);
+  if (!values.ok()) return values.status();
 
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
                     [&](const tbb::blocked_range<size_t>& range) {
@@ -150,11 +197,11 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
         const double w = weight[i];
         if (!(w > 0.0)) continue;
         const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-        const float* v = &recs.value[i * records::kValueChannels];
-        const float* a = recs.scan[i] >= 0 ? gain[size_t(recs.scan[i])].data() : kUnitGain.data();
+        double v[records::kValueChannels];
+        values->Read(i, v);
         sum_w[c] += w;
         for (int ch = 0; ch < records::kValueChannels; ++ch) {
-          const double x = double(a[ch]) * v[ch];
+          const double x = v[ch];
           sum_wc[c][ch] += w * x;
           sum_wcc[c][ch] += w * x * x;
         }
@@ -170,11 +217,10 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
         for (int ch = 0; ch < f.channels; ++ch) {
           const double mean = sum_wc[c][ch] / sum_w[c];
           variance += std::max(0.0, sum_wcc[c][ch] / sum_w[c] - mean * mean);
-          f.value[k * f.channels + ch] = float(
-              profile.mode == FusionMode::kNearest
-                  ? double(recs.scan[best_i[c]] >= 0 ? gain[size_t(recs.scan[best_i[c]])][ch] : 1.0f) *
-                        recs.value[best_i[c] * records::kValueChannels + ch]
-                  : mean);
+          double nearest[records::kValueChannels];
+          if (profile.mode == FusionMode::kNearest) values->Read(best_i[c], nearest);
+          f.value[k * f.channels + ch] =
+              float(profile.mode == FusionMode::kNearest ? nearest[ch] : mean);
         }
         variance /= f.channels;
         f.weight[k] = float(sum_w[c]);

@@ -18,6 +18,27 @@ using records::FusedChannelOf;
 std::vector<std::array<float, records::kValueChannels>> DenseChannelGains(
     const WeightingProfile& profile, const records::RecordSet& records);
 
+/// How fusion reads each record's value under a profile: the §9 lens map of its source, if
+/// the profile applies one (AdjustForLens), then a_{m,c} (§7). Dense by source id, so that the
+/// hot loops look up arrays, not maps.
+class RecordValues {
+ public:
+  /// FAILED_PRECONDITION when the profile lists lens maps it has not resolved.
+  static absl::StatusOr<RecordValues> Of(const WeightingProfile& profile,
+                                         const records::RecordSet& records);
+  /// Record i's value as fused, into out[kValueChannels]; returns the factor its conf[dirt]
+  /// takes from the lens map (1 for a source without one).
+  float Read(size_t i, double* out) const;
+  /// The conf[dirt] factor alone.
+  float LensConfidence(size_t i) const;
+
+ private:
+  RecordValues(const records::RecordSet& records) : recs_(&records) {}
+  const records::RecordSet* recs_;
+  std::vector<std::array<float, records::kValueChannels>> gain_;
+  std::vector<const LensMap*> lens_;  ///< per source id; null: none
+};
+
 /// Offsets of each vossel's records in a RecordSet sorted by vossel: vossel k's records are
 /// [begin[k], begin[k+1]). INTERNAL when the records are not sorted by a valid index.
 absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& records,

@@ -31,6 +31,11 @@ std::string ProfileToText(const WeightingProfile& p) {
     for (double g : a) absl::StrAppend(&s, " ", Num(g));
     absl::StrAppend(&s, "\n");
   }
+  if (!p.lens_maps.empty()) {
+    absl::StrAppend(&s, "lens_maps");
+    for (int64_t id : p.lens_maps) absl::StrAppend(&s, " ", id);
+    absl::StrAppend(&s, "\n");
+  }
   return s;
 }
 
@@ -82,6 +87,8 @@ absl::StatusOr<WeightingProfile> ProfileFromText(const std::string& text) {
       std::array<double, records::kValueChannels> a{};
       for (int c = 0; c < records::kValueChannels; ++c) a[c] = v[1 + c];
       p.channel_gain[int32_t(v[0])] = a;
+    } else if (key == "lens_maps" && !v.empty()) {
+      for (double id : v) p.lens_maps.push_back(int64_t(id));
     } else {
       return bad("unknown key or wrong number of values");
     }

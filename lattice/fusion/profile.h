@@ -8,8 +8,12 @@
 #include <string>
 
 
+#include <memory>
+#include <vector>
+
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "lattice/fusion/lens.h"
 #include "lattice/records/records.h"
 
 namespace vasl::fusion {
@@ -34,6 +38,12 @@ struct WeightingProfile {
   /// multi-scan normalisation); C_{k,m,c} is fused as a_{m,c}·C_{k,m,c}. Missing: 1.
   std::map<int32_t, std::array<double, records::kValueChannels>> channel_gain;
   FusionMode mode = FusionMode::kBlend;
+  /// §9 lens dirt and fog: catalog ids of the LensMaps the profile applies (a later map wins
+  /// for a source two maps list). Stored with the profile.
+  std::vector<int64_t> lens_maps;
+  /// `lens_maps` resolved (reweight::LoadProfile does it); fusion refuses a profile whose maps
+  /// are listed but not resolved. Not stored.
+  std::shared_ptr<const LensTable> lens;
 };
 
 /// The built-in profile every project starts with: the model's defaults, name "default",

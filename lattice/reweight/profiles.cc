@@ -5,6 +5,24 @@
 
 namespace vasl::reweight {
 
+absl::Status ResolveLensMaps(const store::ProjectStore& store, fusion::WeightingProfile& profile) {
+  if (profile.lens_maps.empty()) {
+    profile.lens = nullptr;
+    return absl::OkStatus();
+  }
+  std::vector<std::shared_ptr<const fusion::LensMap>> maps;
+  for (int64_t id : profile.lens_maps) {
+    absl::StatusOr<store::StoredLensMap> stored = store.GetLensMap(id);
+    if (!stored.ok()) return stored.status();
+    absl::StatusOr<fusion::LensMap> map = fusion::LensMapFromText(stored->text);
+    if (!map.ok()) return map.status();
+    map->id = id;
+    maps.push_back(std::make_shared<const fusion::LensMap>(std::move(*map)));
+  }
+  profile.lens = fusion::LensTable::Of(std::move(maps));
+  return absl::OkStatus();
+}
+
 absl::StatusOr<NamedProfile> LoadProfile(const store::ProjectStore& store, const std::string& name,
                                          int32_t revision) {
   if (name == fusion::kDefaultProfileName) {
@@ -19,6 +37,7 @@ absl::StatusOr<NamedProfile> LoadProfile(const store::ProjectStore& store, const
   if (!p.ok()) return p.status();
   p->name = stored->name;
   p->version = stored->revision;
+  if (absl::Status s = ResolveLensMaps(store, *p); !s.ok()) return s;
   return NamedProfile{std::move(*p), stored->created_utc};
 }
 
@@ -30,6 +49,7 @@ absl::StatusOr<NamedProfile> CreateProfile(store::ProjectStore& store,
         "another name");
   }
   if (absl::Status s = fusion::ValidateProfile(profile); !s.ok()) return s;
+  if (absl::Status s = ResolveLensMaps(store, profile); !s.ok()) return s;
   absl::StatusOr<store::StoredProfile> stored =
       store.PutProfile(profile.name, [&profile](int32_t revision) {
         profile.version = revision;

@@ -20,7 +20,11 @@ struct NamedProfile {
   std::string created_utc;  ///< empty for the built-in default
 };
 
-/// Profile `name` at `revision` (0: the latest). "default" is built in (the model's
+/// Loads the §9 lens maps `profile.lens_maps` names from the catalog into `profile.lens`
+/// (null when it names none). NOT_FOUND for an id the catalog lacks.
+absl::Status ResolveLensMaps(const store::ProjectStore& store, fusion::WeightingProfile& profile);
+
+/// Profile `name` at `revision` (0: the latest), its lens maps resolved. "default" is built in (the model's
 /// defaults, revision 1). NOT_FOUND for an unknown name or revision.
 absl::StatusOr<NamedProfile> LoadProfile(const store::ProjectStore& store, const std::string& name,
                                          int32_t revision = 0);

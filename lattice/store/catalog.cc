@@ -175,6 +175,16 @@ CREATE TABLE visual_references(
   PRIMARY KEY (scan_id, name));
 )sql";
 
+// §9 lens dirt and fog maps of a rig's camera (text: fusion::LensMapToText). Project data, as
+// profiles: not versioned, kept through rollbacks.
+constexpr char kLensMapsTable[] = R"sql(CREATE TABLE lens_maps(
+  id INTEGER PRIMARY KEY,
+  rig TEXT NOT NULL,
+  camera TEXT NOT NULL,
+  body TEXT NOT NULL,
+  created_utc TEXT NOT NULL);
+)sql";
+
 }  // namespace
 
 absl::Status CreateSchema(Db& db) {
@@ -253,7 +263,7 @@ CREATE TABLE sources(
 CREATE INDEX sources_by_scan ON sources(scan_id);
 )sql",
                               kScanLivesTable, kProfilesTable, kRendersTable, kOperationsTable,
-                              kCalibrationTable,
+                              kCalibrationTable, kLensMapsTable,
                               R"sql(
 CREATE TABLE batches(
   id INTEGER PRIMARY KEY,
@@ -293,7 +303,9 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       "ALTER TABLE project ADD COLUMN origin_z REAL NOT NULL DEFAULT 0;\n"
       "UPDATE project SET origin_fixed = 1 WHERE EXISTS (SELECT 1 FROM scans);\n",
       // 8 → 9: calibration health of cameras, visual references of scans.
-      kCalibrationTable};
+      kCalibrationTable,
+      // 9 → 10: lens dirt and fog maps.
+      kLensMapsTable};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");

@@ -24,7 +24,7 @@ struct sqlite3_stmt;
 namespace vasl::store::internal {
 
 /// 2: tiled versions (manifest, reach, source_tiles), scan deletion, made_by and pins.
-inline constexpr int kCatalogSchemaVersion = 9;
+inline constexpr int kCatalogSchemaVersion = 10;
 
 /// One prepared statement; Bind* take 1-based parameter indices, Column* 0-based columns.
 class Stmt {
@@ -85,7 +85,9 @@ absl::Status CreateSchema(Db& db);
 /// every render (renders), so that what comes back can cite it; 5 → 6 keeps a source's
 /// projection (sources.camera) for images sent back as derived data; 6 → 7 records the changes
 /// clients asked for under a request id (operations), so that a retry finds its answer; 7 → 8
-/// keeps the project's origin (VASL-MODEL §1), fixed at 0 for a project that has scans.
+/// keeps the project's origin (VASL-MODEL §1), fixed at 0 for a project that has scans; 8 → 9
+/// keeps cameras' calibration health and scans' visual references; 9 → 10 keeps lens dirt and
+/// fog maps (§9).
 absl::Status MigrateSchema(Db& db, int64_t from);
 
 /// Deletes catalog rows of versions newer than `head` (versions, manifests, reach, source tiles,

@@ -849,6 +849,53 @@ absl::StatusOr<std::vector<StoredProfile>> ProjectStore::ListProfiles() const {
   return out;
 }
 
+absl::StatusOr<StoredLensMap> ProjectStore::PutLensMap(const std::string& rig,
+                                                       const std::string& camera,
+                                                       const std::string& text) {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  StoredLensMap out{0, rig, camera, text, internal::UtcNowIso8601()};
+  absl::Status s = RunSql(
+      impl_->db, "INSERT INTO lens_maps(rig, camera, body, created_utc) VALUES (?1, ?2, ?3, ?4)",
+      [&](Stmt& st) { st.Bind(1, rig).Bind(2, camera).Bind(3, text).Bind(4, out.created_utc); });
+  if (!s.ok()) return s;
+  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT last_insert_rowid()");
+  if (!st.ok()) return st.status();
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  out.id = st->Int(0);
+  return out;
+}
+
+absl::StatusOr<StoredLensMap> ProjectStore::GetLensMap(int64_t id) const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT rig, camera, body, created_utc FROM lens_maps WHERE id = ?1");
+  if (!st.ok()) return st.status();
+  st->Bind(1, id);
+  absl::StatusOr<bool> row = st->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) {
+    return absl::NotFoundError(
+        absl::StrCat("project ", impl_->name, " has no lens map ", id));
+  }
+  return StoredLensMap{id, st->Text(0), st->Text(1), st->Text(2), st->Text(3)};
+}
+
+absl::StatusOr<std::vector<StoredLensMap>> ProjectStore::ListLensMaps() const {
+  std::lock_guard<std::mutex> lock(impl_->db_mu);
+  absl::StatusOr<Stmt> st = impl_->db.Prepare(
+      "SELECT id, rig, camera, body, created_utc FROM lens_maps ORDER BY id");
+  if (!st.ok()) return st.status();
+  std::vector<StoredLensMap> out;
+  for (;;) {
+    absl::StatusOr<bool> row = st->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out.push_back({st->Int(0), st->Text(1), st->Text(2), st->Text(3), st->Text(4)});
+  }
+  return out;
+}
+
 absl::StatusOr<int64_t> ProjectStore::RecordRender(const RenderRecord& r) {
   std::lock_guard<std::mutex> lock(impl_->db_mu);
   absl::Status s = RunSql(

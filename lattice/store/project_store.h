@@ -224,6 +224,16 @@ struct StoredProfile {
   std::string created_utc;
 };
 
+/// A lens dirt and fog map (VASL-MODEL §9) as the catalog keeps it; its text is
+/// fusion::LensMapToText's.
+struct StoredLensMap {
+  int64_t id = 0;
+  std::string rig;
+  std::string camera;
+  std::string text;
+  std::string created_utc;
+};
+
 class ProjectStore {
  public:
   /// Creates `dir` (must not exist) with an empty catalog and HEAD = 0.
@@ -286,6 +296,14 @@ class ProjectStore {
   absl::StatusOr<StoredProfile> GetProfile(const std::string& name, int32_t revision = 0) const;
   /// The latest revision of every stored profile, by name.
   absl::StatusOr<std::vector<StoredProfile>> ListProfiles() const;
+  /// Stores a lens map of `rig`'s `camera` and returns it with its id (1 + the largest).
+  /// Lens maps are project metadata, as profiles: no version holds them.
+  absl::StatusOr<StoredLensMap> PutLensMap(const std::string& rig, const std::string& camera,
+                                           const std::string& text);
+  /// Lens map `id`; NOT_FOUND when there is none.
+  absl::StatusOr<StoredLensMap> GetLensMap(int64_t id) const;
+  /// Every lens map, by id.
+  absl::StatusOr<std::vector<StoredLensMap>> ListLensMaps() const;
   /// The profile renders, queries and ingest fusion use when none is named ("default" until set).
   absl::StatusOr<std::string> ActiveProfile() const;
   absl::Status SetActiveProfile(const std::string& name);

@@ -603,6 +603,7 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
     const int rc = sqlite3_exec(db,
         "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; DROP TABLE renders; "
         "DROP TABLE operations; DROP TABLE calibration; DROP TABLE visual_references; "
+        "DROP TABLE lens_maps; "
         "ALTER TABLE sources DROP COLUMN camera; "
         "ALTER TABLE project DROP COLUMN active_profile; "
         "ALTER TABLE project DROP COLUMN origin_fixed; ALTER TABLE project DROP COLUMN origin_x; "
@@ -626,6 +627,9 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
   auto put = (*store)->PutProfile("p1", [](int32_t r) { return absl::StrCat("revision ", r); });
   ASSERT_TRUE(put.ok()) << put.status();
   EXPECT_EQ(put->revision, 1);
+  auto lens = (*store)->PutLensMap("rig", "pano", "text");
+  ASSERT_TRUE(lens.ok()) << lens.status();
+  EXPECT_EQ((*store)->GetLensMap(lens->id)->text, "text");
   CommitPlan back;
   back.made_by = "rollback to version 1";
   back.rollback_to = 1;
