@@ -557,6 +557,7 @@ absl::StatusOr<std::vector<fusion::LensMap>> Engine::ListLensMaps(const std::str
     absl::StatusOr<fusion::LensMap> m = fusion::LensMapFromText(s.text);
     if (!m.ok()) return m.status();
     m->id = s.id;
+    m->created_utc = s.created_utc;
     out.push_back(std::move(*m));
   }
   return out;

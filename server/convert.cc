@@ -297,6 +297,7 @@ absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingPro
     for (int c = 0; c < records::kValueChannels; ++c) a[size_t(c)] = cg.gain(std::min(c, cg.gain_size() - 1));
     out.channel_gain[cg.source()] = a;
   }
+  out.lens_maps.assign(p.lens_maps().begin(), p.lens_maps().end());
   if (absl::Status s = fusion::ValidateProfile(out); !s.ok()) return s;
   return out;
 }
@@ -321,7 +322,31 @@ void ProfileToProto(const fusion::WeightingProfile& p, const std::string& create
     cg->set_source(source);
     for (double g : a) cg->add_gain(g);
   }
+  for (int64_t id : p.lens_maps) out->add_lens_maps(id);
   if (!created_utc.empty()) TimestampFromIso(created_utc, out->mutable_create_time());
+}
+
+void LensMapToProto(const fusion::LensMap& m, bool summary, v1::LensMap* out) {
+  out->set_id(m.id);
+  out->set_rig(m.rig);
+  out->set_camera(m.camera);
+  out->set_period(m.period);
+  out->set_image_width_px(m.image_w);
+  out->set_image_height_px(m.image_h);
+  out->set_grid_width(m.grid_w);
+  out->set_grid_height(m.grid_h);
+  if (!summary) {
+    out->mutable_transmission()->Add(m.transmission.begin(), m.transmission.end());
+    out->mutable_veil()->Add(m.veil.begin(), m.veil.end());
+  }
+  for (const auto& [source, g] : m.source_gain) {
+    v1::ChannelGain* cg = out->add_source_gain();
+    cg->set_source(source);
+    for (float x : g) cg->add_gain(x);
+  }
+  out->set_dirt_share(m.DirtShare());
+  out->set_veil_share(m.VeilShare());
+  if (!m.created_utc.empty()) TimestampFromIso(m.created_utc, out->mutable_create_time());
 }
 
 void RecordRowToProto(const flows::RecordRow& r, v1::RecordRow* out) {
@@ -390,6 +415,7 @@ void ScanConfidenceToProto(const std::string& scan,
       a->set_map_size_bytes(int64_t(m.png.size()));
       for (double o : m.channel_offsets_px) a->add_channel_offsets_px(o);
       a->set_jpeg_quality(m.jpeg_quality);
+      a->set_lens_map(m.lens_map);
       a->set_chroma_subsampled(m.chroma_subsampled);
     }
   }

@@ -65,6 +65,8 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
 absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingProfile& profile);
 void ProfileToProto(const fusion::WeightingProfile& profile, const std::string& created_utc,
                     v1::WeightingProfile* out);
+/// A lens map (VASL-MODEL §9); `summary` leaves its cells out.
+void LensMapToProto(const fusion::LensMap& map, bool summary, v1::LensMap* out);
 void RecordRowToProto(const flows::RecordRow& row, v1::RecordRow* out);
 
 absl::StatusOr<std::vector<v1::ImageFormat>> RenderFormatsFromProto(

@@ -1572,6 +1572,51 @@ grpc::ServerUnaryReactor* VaslServiceImpl::Normalise(grpc::CallbackServerContext
   });
 }
 
+grpc::ServerUnaryReactor* VaslServiceImpl::EstimateLens(grpc::CallbackServerContext* context,
+                                                        const v1::EstimateLensRequest* request,
+                                                        v1::EstimateLensResponse* response) {
+  return RunChangeUnary(context, *request, "EstimateLens", request->project(), Role::kWrite,
+                        [this, request, response] {
+    if (request->cell_px() < 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "cell_px must be >= 0");
+    }
+    reweight::LensRequest lens;
+    lens.rig = request->rig();
+    lens.camera = request->camera();
+    lens.from_utc = request->from_utc();
+    lens.to_utc = request->to_utc();
+    lens.name = request->name();
+    lens.options.cell_px = request->cell_px();
+    absl::StatusOr<reweight::LensOutcome> r =
+        engine_->EstimateLens(request->project(), request->base_profile(), lens);
+    if (!r.ok()) return ToGrpcStatus(r.status());
+    ProfileToProto(r->profile.profile, r->profile.created_utc, response->mutable_profile());
+    LensMapToProto(r->estimate.map, /*summary=*/false, response->mutable_map());
+    response->set_samples(r->estimate.samples);
+    response->set_cells(r->estimate.cells);
+    response->set_cells_fitted(r->estimate.cells_fitted);
+    response->set_cell_px(r->estimate.cell_px);
+    response->set_residual_before(r->estimate.residual_before);
+    response->set_residual_after(r->estimate.residual_after);
+    response->set_replaced_map(r->replaced_map);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* VaslServiceImpl::ListLensMaps(grpc::CallbackServerContext* context,
+                                                        const v1::ListLensMapsRequest* request,
+                                                        v1::ListLensMapsResponse* response) {
+  return RunUnary(context, *request, "ListLensMaps", request->project(), Role::kRead,
+                  [this, request, response] {
+    absl::StatusOr<std::vector<fusion::LensMap>> maps = engine_->ListLensMaps(request->project());
+    if (!maps.ok()) return ToGrpcStatus(maps.status());
+    for (const fusion::LensMap& m : *maps) {
+      LensMapToProto(m, request->summary(), response->add_maps());
+    }
+    return grpc::Status::OK;
+  });
+}
+
 grpc::ServerUnaryReactor* VaslServiceImpl::Rollback(grpc::CallbackServerContext* context,
                                                     const v1::RollbackRequest* request,
                                                     v1::ChangeResponse* response) {

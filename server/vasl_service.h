@@ -126,6 +126,12 @@ class VaslServiceImpl final : public v1::VaslService::CallbackService {
   grpc::ServerUnaryReactor* Normalise(grpc::CallbackServerContext* context,
                                       const v1::NormaliseRequest* request,
                                       v1::NormaliseResponse* response) override;
+  grpc::ServerUnaryReactor* EstimateLens(grpc::CallbackServerContext* context,
+                                         const v1::EstimateLensRequest* request,
+                                         v1::EstimateLensResponse* response) override;
+  grpc::ServerUnaryReactor* ListLensMaps(grpc::CallbackServerContext* context,
+                                         const v1::ListLensMapsRequest* request,
+                                         v1::ListLensMapsResponse* response) override;
   grpc::ServerUnaryReactor* Rollback(grpc::CallbackServerContext* context,
                                      const v1::RollbackRequest* request,
                                      v1::ChangeResponse* response) override;

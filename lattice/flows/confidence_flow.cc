@@ -2,6 +2,8 @@
 /// @brief The confidence maps of a scan's cameras (VASL-MODEL §9), for a person to look at:
 ///        each camera's stored image decoded again and its artefacts found as at ingest.
 #include <cmath>
+#include <map>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -9,6 +11,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
+#include "lattice/fusion/lens.h"
 #include "lattice/ingest/artefacts.h"
 
 namespace vasl::flows {
@@ -16,6 +19,17 @@ namespace vasl::flows {
 absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
     const store::ProjectStore& store, const std::vector<store::ScanInfo>& scans,
     const std::string& project, const std::string& scan, int64_t max_pixels) {
+  // §9 lens dirt and fog: the latest map that lists a source applies to it.
+  absl::StatusOr<std::vector<store::StoredLensMap>> stored = store.ListLensMaps();
+  if (!stored.ok()) return stored.status();
+  std::map<int32_t, std::shared_ptr<const fusion::LensMap>> lens_of;
+  for (const store::StoredLensMap& m : *stored) {
+    absl::StatusOr<fusion::LensMap> map = fusion::LensMapFromText(m.text);
+    if (!map.ok()) return map.status();
+    map->id = m.id;
+    auto shared = std::make_shared<const fusion::LensMap>(std::move(*map));
+    for (const auto& [source, gain] : shared->source_gain) lens_of[source] = shared;
+  }
   for (const store::ScanInfo& s : scans) {
     if (s.name != scan) continue;
     std::vector<SourceConfidence> out;
@@ -71,6 +85,39 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
         if (!png.ok()) return png.status();
         map->png = std::move(*png);
         c.artefacts.push_back(std::move(*map));
+      }
+      if (auto it = lens_of.find(src.id); it != lens_of.end()) {
+        // The factor fusion puts on conf[dirt] at each pixel (fusion::AdjustForLens), read at
+        // the image's own colours; the map's pixels are the image as sent.
+        const fusion::LensMap& lens = *it->second;
+        geometry::LinearImage conf;
+        conf.width_px = w;
+        conf.height_px = h;
+        conf.channels = 1;
+        conf.pixels.assign(size_t(w) * h, 1.0f);
+        int64_t flagged = 0, soft = 0;
+        const float sx = float(src.width_px > 0 ? src.width_px : w) / float(w);
+        const float sy = float(src.height_px > 0 ? src.height_px : h) / float(h);
+        for (int y = 0; y < h; ++y) {
+          for (int x = 0; x < w; ++x) {
+            const size_t p = size_t(y) * w + x;
+            float value[3] = {0, 0, 0};
+            for (int ch = 0; ch < std::min(3, image->channels); ++ch) {
+              value[ch] = image->pixels[p * image->channels + ch];
+            }
+            const float uv[2] = {(float(x) + 0.5f) * sx, (float(y) + 0.5f) * sy};
+            const float f = fusion::AdjustForLens(lens, lens.source_gain.at(src.id), uv, value);
+            conf.pixels[p] = f;
+            flagged += f == 0.0f;
+            soft += f > 0.0f && f < 1.0f;
+          }
+        }
+        ArtefactMap map = coverage("lens", flagged, soft, 0, 0);
+        map.lens_map = lens.id;
+        absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(conf, w, h);
+        if (!png.ok()) return png.status();
+        map.png = std::move(*png);
+        c.artefacts.push_back(std::move(map));
       }
     }
     return out;

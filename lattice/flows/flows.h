@@ -258,7 +258,9 @@ struct ArtefactMap {
   /// "saturation": saturation and blooming (DetectSaturation); "flare": veiling glare
   /// (DetectFlare); "codec": a JPEG's blocking, ringing and chroma (DetectCodec); "fringing":
   /// chromatic fringing, corrected (EstimateChannelShift), whose soft pixels are those the
-  /// correction moved by more than a tenth of their light.
+  /// correction moved by more than a tenth of their light; "lens": the rig camera's dirt and
+  /// fog map (fusion::LensMap), when a lens map applies to the camera, as the factor fusion puts
+  /// on conf[dirt] at the image's own colours.
   std::string artefact;
   int64_t flagged_pixels = 0;    ///< confidence 0 (clipped; flare: invalid)
   int64_t soft_pixels = 0;       ///< 0 < confidence < 1 (a halo; flare: lowered by a veil)
@@ -271,6 +273,8 @@ struct ArtefactMap {
   /// Codec: the IJG quality of a JPEG's luma table (0: not a JPEG), and its chroma subsampling.
   double jpeg_quality = 0.0;
   bool chroma_subsampled = false;
+  /// Lens dirt and fog ("lens"): the catalog id of the map that applies (fusion::LensMap).
+  int64_t lens_map = 0;
   std::string png;               ///< the map, ingest::EncodeConfidencePng
 };
 

@@ -50,6 +50,7 @@ struct LensMap {
   /// g_m per source id the map applies to, per channel: the period's frames.
   std::map<int32_t, std::array<float, records::kValueChannels>> source_gain;
   std::string period;        ///< what the period is, for people (e.g. the capture-time span)
+  std::string created_utc;   ///< when the catalog stored it (not in its text)
 
   /// D and v at continuous pixel coordinates (u, v), bilinear between cell centres.
   void Sample(float u, float v, float* d, float* veil_out) const;

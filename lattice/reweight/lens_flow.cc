@@ -112,6 +112,7 @@ absl::StatusOr<LensOutcome> EstimateLensProfile(store::ProjectStore& store,
       store.PutLensMap(map.rig, map.camera, fusion::LensMapToText(map));
   if (!stored.ok()) return stored.status();
   map.id = out.map_id = stored->id;
+  map.created_utc = stored->created_utc;
 
   fusion::WeightingProfile next = stripped;
   next.name = !request.name.empty() ? request.name

@@ -274,6 +274,32 @@ TEST(LensFlowTest, DirtAndFogOfARigAreFoundAndAReweightMendsItsEarlierScans) {
   ASSERT_EQ(listed->size(), 2u);
   EXPECT_EQ((*listed)[0].rig, "dusty");
   EXPECT_EQ((*listed)[0].transmission, map.transmission);
+
+  // A later estimate over part of the period replaces the map in the profile it extends.
+  request = {};
+  request.rig = "dusty";
+  request.from_utc = "2026-11-13";
+  request.to_utc = "2026-11-19";
+  auto again = (*engine)->EstimateLens("room", "lens", request);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->frames.size(), 7u);
+  EXPECT_EQ(again->replaced_map, dusty->map_id);
+  EXPECT_EQ(again->profile.profile.version, 2);
+  EXPECT_EQ(again->profile.profile.lens_maps, std::vector<int64_t>{again->map_id});
+  // What cannot be estimated says why.
+  auto code = [&](const std::string& rig, const std::string& from, const std::string& to) {
+    reweight::LensRequest r;
+    r.rig = rig;
+    r.from_utc = from;
+    r.to_utc = to;
+    return (*engine)->EstimateLens("room", "", r).status().code();
+  };
+  EXPECT_EQ(code("", "", ""), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(code("nope", "", ""), absl::StatusCode::kNotFound);
+  EXPECT_EQ(code("dusty", "yesterday", ""), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(code("dusty", "2027-01-01", ""), absl::StatusCode::kNotFound);
+  EXPECT_EQ(code("dusty", "2026-11-19", ""), absl::StatusCode::kFailedPrecondition);  // 1 frame
+  EXPECT_EQ(code("clean", "2026-01-01", ""), absl::StatusCode::kNotFound);  // no capture times
   engine->reset();
   fs::remove_all(dir);
 }

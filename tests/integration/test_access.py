@@ -112,6 +112,8 @@ def _matrix_requests():
         ("Reweight", "uu", lambda: pb.ReweightRequest(project=p, revision=-1), "write"),
         ("QueryRecords", "uu", lambda: pb.QueryRecordsRequest(project=p), "read"),
         ("Normalise", "uu", lambda: pb.NormaliseRequest(project=p, base_profile="nope"), "write"),
+        ("EstimateLens", "uu", lambda: pb.EstimateLensRequest(project=p, rig=""), "write"),
+        ("ListLensMaps", "uu", lambda: pb.ListLensMapsRequest(project=p), "read"),
         ("PinVersion", "uu", lambda: pb.PinVersionRequest(project=p, version=999), "admin"),
         ("Rollback", "uu", lambda: pb.RollbackRequest(project=p, version=999), "admin"),
         ("BackProject", "su", backproject, "write"),

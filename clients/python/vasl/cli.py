@@ -6,6 +6,7 @@ Exit status: 0 on success, 1 when the server reports an error (printed as CODE: 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -325,6 +326,10 @@ def _cmd_confidence(client: Client, args) -> int:
                          "green, corrected; ".format(*a.channel_offsets_px)
                          + f"{a.soft_pixels} pixels moved by over a tenth "
                          f"({100.0 * a.covered_fraction:.3f}% of the image)")
+            elif a.artefact == "lens":
+                found = (f"dirt and fog of lens map {a.lens_map}: "
+                         f"{100.0 * a.covered_fraction:.3f}% of the image lowered "
+                         f"({a.flagged_pixels} pixels at 0)")
             else:
                 what = "sources with a veil" if a.artefact == "flare" else "regions"
                 reach = "farthest" if a.artefact == "flare" else "widest band"
@@ -488,6 +493,45 @@ def _cmd_reweight(client: Client, args) -> int:
           f"{r.version}, {r.record_count} records in {r.tile_count} tiles, {r.seconds:.2f} s "
           f"({rate:.1f} M records/s), {r.bytes_written / 1e6:.1f} MB written")
     return 0
+
+
+def _cmd_lens(client: Client, args) -> int:
+    if args.lens_cmd == "list":
+        maps = client.list_lens_maps(args.project, summary=not args.json)
+        if args.json:
+            print(json.dumps([dataclasses.asdict(m) for m in maps], indent=2))
+            return 0
+        if not maps:
+            print(f"project {args.project} has no lens map yet: vasl lens estimate --project "
+                  f"{args.project} --rig RIG")
+        for m in maps:
+            print(f"lens map {m.id}: rig {m.rig}, camera {m.camera} ({m.image_width_px}x"
+                  f"{m.image_height_px}, {m.grid_width}x{m.grid_height} cells), {m.period}; "
+                  f"dirt on {100.0 * m.dirt_share:.2f}% of the cells, veil on "
+                  f"{100.0 * m.veil_share:.2f}%; sources {sorted(m.source_gain)}; "
+                  f"made {m.created_utc}")
+        return 0
+    r = client.estimate_lens(args.project, args.rig, camera=args.camera, from_utc=args.since,
+                             to_utc=args.until, base_profile=args.profile, name=args.name,
+                             cell_px=args.cell_px)
+    m, p = r.map, r.profile
+    print(f"lens map {m.id} of rig {m.rig}, camera {m.camera}: {m.period}; {r.samples} records "
+          f"compared, {r.cells_fitted} of {r.cells} cells of {r.cell_px:.1f} px fitted")
+    print(f"  dirt on {100.0 * m.dirt_share:.2f}% of the cells, veil on "
+          f"{100.0 * m.veil_share:.2f}%; RMS log residual {r.residual_before:.4f} -> "
+          f"{r.residual_after:.4f}")
+    for source, g in sorted(m.source_gain.items()):
+        print(f"  source {source}: exposure gain " + ", ".join(f"{x:.4f}" for x in g))
+    if r.replaced_map:
+        print(f"  replaces lens map {r.replaced_map} in the profile")
+    print(f"profile {p['name']} revision {p['revision']} applies lens maps {p['lens_maps']}")
+    if not args.reweight:
+        print(f"apply it: vasl reweight --project {args.project} --profile {p['name']}")
+        return 0
+    args.revision = p["revision"]
+    args.profile = p["name"]
+    args.request_id = None
+    return _cmd_reweight(client, args)
 
 
 def _cmd_normalise(client: Client, args) -> int:
@@ -781,6 +825,30 @@ def build_parser() -> argparse.ArgumentParser:
     normalise.add_argument("--profile", default="", help="profile whose weights the solve uses")
     normalise.add_argument("--name", default="", help="profile to store the gains in")
 
+    lens = sub.add_parser("lens", help="lens dirt and fog of a rig's camera (§9)")
+    lens_sub = lens.add_subparsers(dest="lens_cmd", required=True)
+    estimate = lens_sub.add_parser(
+        "estimate", help="find a rig camera's dirt and fog from its frames into a profile")
+    estimate.add_argument("--project", required=True)
+    estimate.add_argument("--rig", required=True, help="the rig, as its scans name it")
+    estimate.add_argument("--camera", default="", help="camera name (default: the rig's only one)")
+    estimate.add_argument("--since", default="", metavar="ISO8601",
+                          help="frames captured at or after this time")
+    estimate.add_argument("--until", default="", metavar="ISO8601",
+                          help="frames captured at or before (a date takes the whole day)")
+    estimate.add_argument("--profile", default="",
+                          help="profile whose weights the estimate uses and the new one extends")
+    estimate.add_argument("--name", default="", help="profile to store (default: the base's, "
+                                                      "'lens' for the default)")
+    estimate.add_argument("--cell-px", type=int, default=0,
+                          help="grid cell edge, pixels (0: from the samples)")
+    estimate.add_argument("--reweight", action="store_true",
+                          help="reweight under the new profile at once")
+    estimate.add_argument("--quiet", action="store_true", help="no progress display (--reweight)")
+    listing = lens_sub.add_parser("list", help="the project's lens maps")
+    listing.add_argument("--project", required=True)
+    listing.add_argument("--json", action="store_true", help="every map with its cells")
+
     recs = sub.add_parser("records", help="the records of a vossel or a box, with weights")
     recs.add_argument("--project", required=True)
     where = recs.add_mutually_exclusive_group(required=True)
@@ -841,6 +909,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "scans": _cmd_scans, "reference": _cmd_reference, "inspect": _cmd_inspect, "rebuild": _cmd_rebuild,
                 "scan": _cmd_scan, "versions": _cmd_versions, "export": _cmd_export,
                 "profile": _cmd_profile, "reweight": _cmd_reweight, "normalise": _cmd_normalise,
+                "lens": _cmd_lens,
                 "records": _cmd_records, "pin": _cmd_pin, "rollback": _cmd_rollback,
                 "backproject": _cmd_backproject, "batch": _cmd_batch, "token": _cmd_token,
                 "operation": _cmd_operation, "confidence": _cmd_confidence}

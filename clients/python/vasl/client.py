@@ -22,7 +22,7 @@ from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, 
                       pinhole_from_json, read_e57, read_las, read_manifest, read_ply)
 from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, CameraConfidence,
                     ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult,
-                    NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
+                    LensEstimate, LensMap, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
                     ReweightResult, Scan, Source, Version, VisualReference)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
@@ -157,14 +157,16 @@ def _project(p: pb.Project) -> Project:
 _PROFILE_NUMBERS = ("alpha", "beta", "rho", "v_min", "lambda_src", "theta_max_rad",
                     "proximity_m")
 _PROFILE_KEYS = set(_PROFILE_NUMBERS) | {"name", "kappa", "mode", "scan_gain", "channel_gain",
-                                         "theta_max_deg", "revision", "created_utc"}
+                                         "theta_max_deg", "revision", "created_utc",
+                                         "lens_maps"}
 
 
 def profile_to_pb(profile: dict) -> pb.WeightingProfile:
     """A weighting profile from a dict (as read from JSON or TOML): name, alpha, beta, rho,
     kappa (4 numbers, or a table by factor name), v_min, lambda_src, theta_max_rad or
     theta_max_deg, proximity_m, mode ("blend" or "nearest"), scan_gain {source id: g},
-    channel_gain {source id: [r, g, b]}. Unset fields take the model's defaults."""
+    channel_gain {source id: [r, g, b]}, lens_maps [lens map ids]. Unset fields take the
+    model's defaults."""
     if not isinstance(profile, dict):
         raise ValueError("a profile must be a table of parameters")
     unknown = set(profile) - _PROFILE_KEYS
@@ -197,6 +199,7 @@ def profile_to_pb(profile: dict) -> pb.WeightingProfile:
     for source, gains in (profile.get("channel_gain") or {}).items():
         gains = [float(g) for g in (gains if isinstance(gains, (list, tuple)) else [gains])]
         out.channel_gain.add(source=int(source), gain=gains)
+    out.lens_maps.extend(int(i) for i in (profile.get("lens_maps") or []))
     return out
 
 
@@ -209,7 +212,15 @@ def profile_from_pb(p: pb.WeightingProfile) -> dict:
             "mode": "nearest" if p.mode == pb.WeightingProfile.MODE_NEAREST else "blend",
             "scan_gain": {int(k): v for k, v in sorted(p.scan_gain.items())},
             "channel_gain": {int(c.source): list(c.gain) for c in p.channel_gain},
-            "created_utc": _iso(p, "create_time")}
+            "lens_maps": list(p.lens_maps), "created_utc": _iso(p, "create_time")}
+
+
+def lens_map_from_pb(m: pb.LensMap) -> LensMap:
+    """A lens map as the client returns it."""
+    return LensMap(m.id, m.rig, m.camera, m.period, m.image_width_px, m.image_height_px,
+                   m.grid_width, m.grid_height, list(m.transmission), list(m.veil),
+                   {int(g.source): list(g.gain) for g in m.source_gain}, m.dirt_share,
+                   m.veil_share, _iso(m, "create_time"))
 
 
 def _check_points(xyz_m: np.ndarray, intensity, rgb) -> np.ndarray:
@@ -601,7 +612,7 @@ class Client:
                                                   a.flagged_pixels, a.soft_pixels, a.regions,
                                                   a.max_extent_px, data,
                                                   list(a.channel_offsets_px), a.jpeg_quality,
-                                                  a.chroma_subsampled))
+                                                  a.chroma_subsampled, a.lens_map))
             cameras.append(CameraConfidence(cam.source_id, cam.source, cam.width_px,
                                             cam.height_px, artefacts))
         return cameras
@@ -1115,6 +1126,26 @@ class Client:
                                                         base_profile=base_profile, name=name))
         return NormaliseResult(profile_from_pb(r.profile), r.vossels_used, r.pairs_used,
                                list(r.cost_before), list(r.cost_after), list(r.unlinked_sources))
+
+    def estimate_lens(self, project: str, rig: str, *, camera: str = "", from_utc: str = "",
+                      to_utc: str = "", base_profile: str = "", name: str = "",
+                      cell_px: int = 0) -> LensEstimate:
+        """Finds the lens dirt and fog map of `rig`'s camera from its frames in HEAD captured
+        between `from_utc` and `to_utc` (ISO 8601; empty: open) and stores a new revision of
+        profile `name` that applies it; reweight under that profile to apply it."""
+        self._check_name(project)
+        r = self._call("EstimateLens", pb.EstimateLensRequest(
+            project=project, rig=rig, camera=camera, from_utc=from_utc, to_utc=to_utc,
+            base_profile=base_profile, name=name, cell_px=cell_px))
+        return LensEstimate(profile_from_pb(r.profile), lens_map_from_pb(r.map), r.samples,
+                            r.cells, r.cells_fitted, r.cell_px, r.residual_before,
+                            r.residual_after, r.replaced_map)
+
+    def list_lens_maps(self, project: str, summary: bool = False) -> List[LensMap]:
+        """The project's lens maps, oldest first (`summary`: without their cells)."""
+        self._check_name(project)
+        r = self._call("ListLensMaps", pb.ListLensMapsRequest(project=project, summary=summary))
+        return [lens_map_from_pb(m) for m in r.maps]
 
     def query_records(self, project: str, *, at=None, box=None, profile: str = "",
                       version: int = 0, limit: int = 0) -> RecordsQuery:

@@ -144,7 +144,8 @@ class ArtefactCoverage:
 
     #: "saturation": saturation and blooming; "flare": veiling glare; "codec": a JPEG's
     #: blocking, ringing and chroma; "fringing": chromatic fringing, corrected before sampling
-    #: (its soft pixels: those the correction moved)
+    #: (its soft pixels: those the correction moved); "lens": the rig camera's dirt and fog
+    #: (a lens map applies to it)
     artefact: str
     covered_fraction: float  #: share of the image's pixels with confidence below 1
     flagged_pixels: int  #: confidence 0 (clipped; flare: invalid)
@@ -156,6 +157,7 @@ class ArtefactCoverage:
     channel_offsets_px: List[float] = field(default_factory=list)
     jpeg_quality: float = 0.0  #: codec: the IJG quality of a JPEG's luma table (0: not a JPEG)
     chroma_subsampled: bool = False  #: codec: its chroma was coded at a lower resolution
+    lens_map: int = 0  #: lens: the id of the lens map that applies
 
 
 @dataclass
@@ -339,6 +341,42 @@ class NormaliseResult:
     cost_before: List[float]
     cost_after: List[float]
     unlinked_sources: List[int]
+
+
+@dataclass
+class LensMap:
+    """A rig camera's lens dirt and fog (VASL-MODEL §9): D and v per grid cell and channel."""
+
+    id: int
+    rig: str
+    camera: str
+    period: str  #: the frames and capture times it was found from
+    image_width_px: int
+    image_height_px: int
+    grid_width: int
+    grid_height: int
+    #: D per cell and channel, row-major (grid_height x grid_width x 3); 1: clean
+    transmission: List[float]
+    veil: List[float]  #: v per cell and channel, linear; 0: no veil
+    source_gain: Dict[int, List[float]]  #: the frames it applies to: source id -> g_m per channel
+    dirt_share: float  #: share of the cells with dirt
+    veil_share: float  #: share of the cells with a veil
+    created_utc: str = ""
+
+
+@dataclass
+class LensEstimate:
+    """A lens map found from a rig's frames, and the profile revision that applies it."""
+
+    profile: dict
+    map: LensMap
+    samples: int  #: records compared with their vossels' other records
+    cells: int
+    cells_fitted: int  #: cells with enough samples
+    cell_px: float
+    residual_before: float  #: RMS log ratio of the frames' records to their references, before
+    residual_after: float  #: ... and under the map and the frames' gains
+    replaced_map: int  #: the base profile's map of the same rig and camera, now replaced; 0: none
 
 
 @dataclass
