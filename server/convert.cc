@@ -416,6 +416,7 @@ void ScanConfidenceToProto(const std::string& scan,
       for (double o : m.channel_offsets_px) a->add_channel_offsets_px(o);
       a->set_jpeg_quality(m.jpeg_quality);
       a->set_lens_map(m.lens_map);
+      a->set_smear_offset(m.smear_offset);
       a->set_chroma_subsampled(m.chroma_subsampled);
     }
   }

@@ -63,6 +63,9 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
       ArtefactMap saturation =
           coverage("saturation", maps.saturation.clipped_pixels, maps.saturation.halo_pixels,
                    maps.saturation.blobs, maps.saturation.max_halo_radius_px);
+      // Smear is in conf[saturation] too; its own map shows it apart.
+      ArtefactMap smear = coverage("smear", 0, maps.smear.soft_pixels, maps.smear.columns, 0);
+      smear.smear_offset = maps.smear.max_offset;
       ArtefactMap flare = coverage("flare", maps.flare.invalid_pixels, maps.flare.soft_pixels,
                                    maps.flare.sources, maps.flare.max_radius_px);
       ArtefactMap codec = coverage("codec", 0, maps.codec.soft_pixels, 0, 0);
@@ -78,7 +81,8 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
                                        maps.fringing.dx[2], maps.fringing.dy[2]};
       }
       const std::pair<ArtefactMap*, const geometry::LinearImage*> found[] = {
-          {&saturation, &maps.saturation.conf}, {&flare, &maps.flare.conf},
+          {&saturation, &maps.saturation.conf}, {&smear, &maps.smear.conf},
+          {&flare, &maps.flare.conf},
           {&codec, &maps.codec.conf}, {&fringing, &moved}};
       for (const auto& [map, conf] : found) {
         absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(*conf, w, h);

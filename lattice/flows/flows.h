@@ -255,7 +255,8 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
 /// One artefact's confidence map of a camera image (VASL-MODEL §9) and how much of the image
 /// it covers.
 struct ArtefactMap {
-  /// "saturation": saturation and blooming (DetectSaturation); "flare": veiling glare
+  /// "saturation": saturation and blooming (DetectSaturation), readout smear multiplied in;
+  /// "smear": readout smear alone (DetectSmear); "flare": veiling glare
   /// (DetectFlare); "codec": a JPEG's blocking, ringing and chroma (DetectCodec); "fringing":
   /// chromatic fringing, corrected (EstimateChannelShift), whose soft pixels are those the
   /// correction moved by more than a tenth of their light; "lens": the rig camera's dirt and
@@ -273,6 +274,8 @@ struct ArtefactMap {
   /// Codec: the IJG quality of a JPEG's luma table (0: not a JPEG), and its chroma subsampling.
   double jpeg_quality = 0.0;
   bool chroma_subsampled = false;
+  /// Smear: the largest column lift, a fraction of the clip level (regions: the columns).
+  double smear_offset = 0.0;
   /// Lens dirt and fog ("lens"): the catalog id of the map that applies (fusion::LensMap).
   int64_t lens_map = 0;
   std::string png;               ///< the map, ingest::EncodeConfidencePng

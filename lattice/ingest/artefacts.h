@@ -179,9 +179,39 @@ struct CodecMap {
 ///          is over a tenth gets 1 − share. Not a JPEG: empty. Parallel over blocks (TBB).
 CodecMap DetectCodec(const geometry::LinearImage& image);
 
+/// Readout smear (§9): a CCD reading its columns out while a bright source shines adds the
+/// same light to every pixel of the source's columns.
+struct SmearMap {
+  /// Per pixel 1 − s/L in a smeared column where the smear s adds more than a tenth of the
+  /// pixel's light L (over the clip level), 1 elsewhere; one channel. Empty: 1 everywhere.
+  geometry::LinearImage conf;
+  int columns = 0;            ///< columns found smeared
+  std::vector<float> column_offset;  ///< per column its smear (0: none); empty: no column
+  int64_t soft_pixels = 0;    ///< pixels below 1
+  double max_offset = 0.0;    ///< the largest smear, a fraction of the clip level
+
+  double CoveredFraction(int width_px, int height_px) const;
+};
+
+/// Finds readout smear (§9) through the clipped blobs of `image`.
+/// @details For every column a clipped blob covers (blobs under an eighth of the image wide),
+///          the lift of each row over the mean of the nearest columns on either side that no
+///          blob covers (two pixels further out) is taken, on the rows away from every blob of
+///          the column and its bloom reach. Smear is uniform along the column: the lift's
+///          interquartile mean over the rows above the blobs and over the rows below each
+///          exceeds the noise (0.01 of the clip) and four of its standard errors, the two agree
+///          within a factor of two (a lamp on a pole lifts one side only), and the column's
+///          smear is the smaller. Texture lifts a column's rows as often up as down and leaves
+///          that mean at 0. Smear is measured, so a CMOS camera's images, which have none, stay
+///          at 1.
+///          Parallel over columns (TBB).
+SmearMap DetectSmear(const geometry::LinearImage& image, bool wrap);
+
 /// Every §9 map of one image, as ingest samples them into a record's confidence factors.
 struct ArtefactMaps {
-  SaturationMap saturation;  ///< conf[saturation]
+  /// conf[saturation]: blooming, with readout smear (`smear`) multiplied in.
+  SaturationMap saturation;
+  SmearMap smear;            ///< readout smear alone (in saturation.conf too)
   FlareMap flare;            ///< conf[flare], and hard invalidation
   CodecMap codec;            ///< conf[codec]
   ChannelShift fringing;     ///< a correction of the image before sampling (CorrectChannelShift)

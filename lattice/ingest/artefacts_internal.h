@@ -72,9 +72,12 @@ int BloomReachPx(int64_t area, int height_px);
 namespace vasl::ingest {
 struct SaturationMap;
 struct FlareMap;
-/// DetectSaturation and DetectFlare over blobs already found (DetectArtefacts).
+/// DetectSaturation, DetectFlare and DetectSmear over blobs already found (DetectArtefacts).
 SaturationMap DetectSaturation(const geometry::LinearImage& image,
                                const internal::ClippedBlobs& blobs);
 FlareMap DetectFlare(const geometry::LinearImage& image, const internal::ClippedBlobs& blobs,
+                     bool wrap);
+struct SmearMap;
+SmearMap DetectSmear(const geometry::LinearImage& image, const internal::ClippedBlobs& blobs,
                      bool wrap);
 }  // namespace vasl::ingest

@@ -178,6 +178,8 @@ TEST(ArtefactsTest, RealPanoramaThroughEveryDetector) {
               "image below 1, widest halo %d px\n",
               map.blobs, (long long)map.clipped_pixels, (long long)map.halo_pixels,
               100.0 * map.CoveredFraction(w, h), map.max_halo_radius_px);
+  std::printf("  smear: %d columns, largest lift %.3f of the clip, %lld pixels lowered\n",
+              maps.smear.columns, maps.smear.max_offset, (long long)maps.smear.soft_pixels);
   std::printf("  flare: %d sources with a veil, %lld invalid pixels, %lld soft, %.3f%% of the "
               "image below 1, farthest %d px\n",
               maps.flare.sources, (long long)maps.flare.invalid_pixels,
@@ -198,8 +200,8 @@ TEST(ArtefactsTest, RealPanoramaThroughEveryDetector) {
   EXPECT_EQ(clipped_zero, clipped);
   EXPECT_TRUE(maps.codec.jpeg);
   const std::pair<const char*, const geometry::LinearImage*> written[] = {
-      {"saturation", &map.conf}, {"flare", &maps.flare.conf}, {"codec", &maps.codec.conf},
-      {"fringing", &moved}};
+      {"saturation", &map.conf}, {"smear", &maps.smear.conf}, {"flare", &maps.flare.conf},
+      {"codec", &maps.codec.conf}, {"fringing", &moved}};
   for (const auto& [name, conf] : written) {
     auto png = EncodeConfidencePng(*conf, w, h);
     ASSERT_TRUE(png.ok()) << png.status();

@@ -134,7 +134,7 @@ def test_confidence_maps_find_planted_blooming(client, server, scene_dir, views,
 
     cameras = client.scan_confidence(PROJECT, first)
     assert len(cameras) == 1
-    assert [a.artefact for a in cameras[0].artefacts] == ["saturation", "flare", "codec",
+    assert [a.artefact for a in cameras[0].artefacts] == ["saturation", "smear", "flare", "codec",
                                                           "fringing"]
     for clean in cameras[0].artefacts:
         print(f"clean panorama of {first}, {clean.artefact}: "

@@ -326,6 +326,11 @@ def _cmd_confidence(client: Client, args) -> int:
                          "green, corrected; ".format(*a.channel_offsets_px)
                          + f"{a.soft_pixels} pixels moved by over a tenth "
                          f"({100.0 * a.covered_fraction:.3f}% of the image)")
+            elif a.artefact == "smear":
+                found = (f"{a.regions} columns lifted by up to {a.smear_offset:.3f} of the clip, "
+                         f"{a.soft_pixels} pixels lowered "
+                         f"({100.0 * a.covered_fraction:.3f}% of the image)"
+                         if a.regions else "none found")
             elif a.artefact == "lens":
                 found = (f"dirt and fog of lens map {a.lens_map}: "
                          f"{100.0 * a.covered_fraction:.3f}% of the image lowered "

@@ -612,7 +612,8 @@ class Client:
                                                   a.flagged_pixels, a.soft_pixels, a.regions,
                                                   a.max_extent_px, data,
                                                   list(a.channel_offsets_px), a.jpeg_quality,
-                                                  a.chroma_subsampled, a.lens_map))
+                                                  a.chroma_subsampled, a.lens_map,
+                                                  a.smear_offset))
             cameras.append(CameraConfidence(cam.source_id, cam.source, cam.width_px,
                                             cam.height_px, artefacts))
         return cameras

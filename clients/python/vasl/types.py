@@ -142,7 +142,8 @@ class VisualReference:
 class ArtefactCoverage:
     """One artefact's confidence map of a camera image (VASL-MODEL §9)."""
 
-    #: "saturation": saturation and blooming; "flare": veiling glare; "codec": a JPEG's
+    #: "saturation": saturation and blooming (with smear); "smear": readout smear alone
+    #: (regions: its columns); "flare": veiling glare; "codec": a JPEG's
     #: blocking, ringing and chroma; "fringing": chromatic fringing, corrected before sampling
     #: (its soft pixels: those the correction moved); "lens": the rig camera's dirt and fog
     #: (a lens map applies to it)
@@ -158,6 +159,7 @@ class ArtefactCoverage:
     jpeg_quality: float = 0.0  #: codec: the IJG quality of a JPEG's luma table (0: not a JPEG)
     chroma_subsampled: bool = False  #: codec: its chroma was coded at a lower resolution
     lens_map: int = 0  #: lens: the id of the lens map that applies
+    smear_offset: float = 0.0  #: smear: the largest column lift, a fraction of the clip level
 
 
 @dataclass
