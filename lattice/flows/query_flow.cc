@@ -5,6 +5,7 @@
 #include <map>
 #include <memory>
 
+#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
 #include "absl/strings/str_cat.h"
@@ -218,6 +219,7 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
   }
   const store::Snapshot& snapshot = *snap;
   render::ViewBlendInputs blend;
+  std::vector<float> lens_values;
   absl::StatusOr<fusion::RecordWeightsResult> weights;
   absl::StatusOr<std::unique_ptr<SourceTable>> sources;
   const bool detail = request.colour_detail == render::ColourDetail::kSourceImages;
@@ -230,6 +232,23 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
     blend.source_origin_m = (*sources)->origin_m;
     for (const auto& a : fusion::DenseChannelGains(profile, snapshot.records)) {
       blend.channel_gain.push_back(a);
+    }
+    if (profile.lens != nullptr) {  // §9: the records' values corrected as fusion reads them
+      absl::StatusOr<fusion::RecordValues> values =
+          fusion::RecordValues::Of(profile, snapshot.records);
+      if (!values.ok()) return values.status();
+      lens_values.resize(snapshot.records.size() * records::kValueChannels);
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, snapshot.records.size(), 4096),
+                        [&](const tbb::blocked_range<size_t>& r) {
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          double v[records::kValueChannels];
+          values->Read(i, v);
+          for (int c = 0; c < records::kValueChannels; ++c) {
+            lens_values[i * records::kValueChannels + c] = float(v[c]);
+          }
+        }
+      });
+      blend.value = &lens_values;
     }
     blend.records = &snapshot.records;
     blend.weight = &weights->weight;

@@ -292,16 +292,21 @@ bool BlendRecords(const ViewBlendInputs& blend, const records::VosselGeometry& g
     }
     float sample[3];
     const float* value = &recs.value[i * records::kValueChannels];
+    bool gained = size_t(src) < blend.channel_gain.size();
+    if (blend.value != nullptr) {  // the profile's values, lens and gains applied
+      value = &(*blend.value)[i * records::kValueChannels];
+      gained = false;
+    }
     if (x_hit != nullptr && size_t(src) < blend.images.size() && blend.images[size_t(src)].image &&
         blend.images[size_t(src)].image->channels == 3) {
       const DetailImage& img = blend.images[size_t(src)];
       if (const std::optional<Eigen::Vector2d> uv = ImagePixel(img, *x_hit)) {
         geometry::SampleBilinear(*img.image, uv->x(), uv->y(), img.projection.panorama(), sample);
         value = sample;
+        gained = size_t(src) < blend.channel_gain.size();
         if (used != nullptr) (*used)[size_t(src)] = 1;
       }
     }
-    const bool gained = size_t(src) < blend.channel_gain.size();
     sum_w += wv;
     for (int c = 0; c < 3; ++c) {
       const double a = gained ? blend.channel_gain[size_t(src)][c] : 1.0;
@@ -318,7 +323,9 @@ bool BlendConsistent(const ViewBlendInputs* blend, const records::VosselGeometry
   return blend != nullptr && blend->records != nullptr && blend->weight != nullptr &&
          blend->begin != nullptr && blend->weight->size() == blend->records->size() &&
          blend->begin->size() == geometry.size() + 1 &&
-         blend->begin->back() == blend->records->size();
+         blend->begin->back() == blend->records->size() &&
+         (blend->value == nullptr ||
+          blend->value->size() == blend->records->size() * records::kValueChannels);
 }
 
 /// The unit world ray through pixel (i, j)'s centre: the projection's inverse (§2.1 or §2.2)

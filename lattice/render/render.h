@@ -123,6 +123,9 @@ struct ViewBlendInputs {
   std::vector<Eigen::Vector3d> source_origin_m;
   /// a_{m,c} of the profile (§7) by source id (fusion::DenseChannelGains); empty or short: 1.
   std::vector<std::array<float, 3>> channel_gain;
+  /// Each record's value as fusion reads it under the profile (fusion::RecordValues: §9 lens
+  /// map applied, then a_{m,c}), 3 per record; null: the record's value times channel_gain.
+  const std::vector<float>* value = nullptr;
   /// kSourceImages: each source's image by source id; short or null image: none.
   std::vector<DetailImage> images;
 };

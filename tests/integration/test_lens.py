@@ -98,13 +98,16 @@ def test_lens_estimate_finds_planted_dirt_and_a_reweight_applies_it(client, serv
     pose = f"{','.join(map(str, v['position']))},{','.join(map(str, v['quaternion']))}"
     errs = {}
     for profile in ("default", "lens"):
-        exr = tmp_path / f"render-{profile}.exr"
-        run_cli(server, "render", "--project", PROJECT, "--pose", pose, "--width", str(w),
-                "--height", str(h), "--profile", profile, "-o", str(exr))
-        img = decode_exr(exr.read_bytes())
-        rgb = np.stack([img["R"], img["G"], img["B"]], axis=-1)
-        ok = core & np.isfinite(rgb).all(axis=-1) & (img["A"] > 0)
-        errs[profile] = float(np.abs(rgb[ok] - surface[ok]).mean())
-    print(f"render at dusty-0's pose, mean |error| on the spots against the truth: "
-          f"{errs['default']:.4f} under the default profile, {errs['lens']:.4f} under 'lens'")
-    assert errs["lens"] < 0.7 * errs["default"]
+        for eta in ("0", "2"):  # fused colours, and the view blend of the records (§8)
+            exr = tmp_path / f"render-{profile}-{eta}.exr"
+            run_cli(server, "render", "--project", PROJECT, "--pose", pose, "--width", str(w),
+                    "--height", str(h), "--profile", profile, "--eta", eta, "-o", str(exr))
+            img = decode_exr(exr.read_bytes())
+            rgb = np.stack([img["R"], img["G"], img["B"]], axis=-1)
+            ok = core & np.isfinite(rgb).all(axis=-1) & (img["A"] > 0)
+            errs[profile, eta] = float(np.abs(rgb[ok] - surface[ok]).mean())
+    for eta in ("0", "2"):
+        print(f"render at dusty-0's pose, eta {eta}, mean |error| on the spots against the "
+              f"truth: {errs['default', eta]:.4f} under the default profile, "
+              f"{errs['lens', eta]:.4f} under 'lens'")
+        assert errs["lens", eta] < 0.7 * errs["default", eta]
