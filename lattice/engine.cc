@@ -179,6 +179,28 @@ struct Engine::Impl {
     return reweight::LoadProfile(*p.store, resolved, revision);
   }
 
+  /// What a flow that derives a profile from HEAD's records reads (normalisation, lens maps):
+  /// the store, HEAD and base profile `base` (empty: active). FAILED_PRECONDITION before the
+  /// first version.
+  struct HeadAndBase {
+    store::ProjectStore* store = nullptr;
+    std::shared_ptr<const store::Snapshot> head;
+    fusion::WeightingProfile base;
+  };
+  absl::StatusOr<HeadAndBase> HeadUnder(const std::string& project, const std::string& base) {
+    auto p = Find(project);
+    if (!p.ok()) return p.status();
+    if ((*p)->store->head_version() == 0) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("project '", project, "' has no version yet"));
+    }
+    auto profile = Profile(**p, base, 0);
+    if (!profile.ok()) return profile.status();
+    auto snap = Snapshot(**p, 0);
+    if (!snap.ok()) return snap.status();
+    return HeadAndBase{(*p)->store.get(), std::move(*snap), std::move(profile->profile)};
+  }
+
   ingest::ScanLimits ScanLimits() const {
     return {limits.max_points_per_scan, limits.max_panoramas_per_scan, limits.max_image_bytes,
             limits.max_image_pixels};
@@ -520,31 +542,17 @@ absl::StatusOr<reweight::ReweightResult> Engine::Reweight(const std::string& pro
 absl::StatusOr<reweight::NormaliseOutcome> Engine::Normalise(const std::string& project,
                                                              const std::string& base,
                                                              const std::string& name) {
-  auto p = impl_->Find(project);
-  if (!p.ok()) return p.status();
-  if ((*p)->store->head_version() == 0) {
-    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
-  }
-  auto profile = impl_->Profile(**p, base, 0);
-  if (!profile.ok()) return profile.status();
-  auto snap = impl_->Snapshot(**p, 0);
-  if (!snap.ok()) return snap.status();
-  return reweight::NormaliseProfile(*(*p)->store, **snap, profile->profile, name);
+  auto in = impl_->HeadUnder(project, base);
+  if (!in.ok()) return in.status();
+  return reweight::NormaliseProfile(*in->store, *in->head, in->base, name);
 }
 
 absl::StatusOr<reweight::LensOutcome> Engine::EstimateLens(const std::string& project,
                                                            const std::string& base,
                                                            const reweight::LensRequest& request) {
-  auto p = impl_->Find(project);
-  if (!p.ok()) return p.status();
-  if ((*p)->store->head_version() == 0) {
-    return absl::FailedPreconditionError(absl::StrCat("project '", project, "' has no version yet"));
-  }
-  auto profile = impl_->Profile(**p, base, 0);
-  if (!profile.ok()) return profile.status();
-  auto snap = impl_->Snapshot(**p, 0);
-  if (!snap.ok()) return snap.status();
-  return reweight::EstimateLensProfile(*(*p)->store, **snap, profile->profile, request);
+  auto in = impl_->HeadUnder(project, base);
+  if (!in.ok()) return in.status();
+  return reweight::EstimateLensProfile(*in->store, *in->head, in->base, request);
 }
 
 absl::StatusOr<std::vector<fusion::LensMap>> Engine::ListLensMaps(const std::string& project) {
