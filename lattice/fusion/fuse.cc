@@ -69,11 +69,12 @@ absl::StatusOr<RecordValues> RecordValues::Of(const WeightingProfile& profile,
   }
   RecordValues out(recs);
   out.gain_ = DenseChannelGains(profile, recs);
-  out.lens_.assign(out.gain_.size(), nullptr);
+  out.lens_.assign(out.gain_.size(), {nullptr, nullptr});
   if (profile.lens != nullptr) {
     for (const auto& [source, index] : profile.lens->by_source) {
       if (source >= 0 && size_t(source) < out.lens_.size()) {
-        out.lens_[size_t(source)] = profile.lens->maps[index].get();
+        const LensMap* map = profile.lens->maps[index].get();
+        out.lens_[size_t(source)] = {map, &map->source_gain.at(source)};
       }
     }
   }
@@ -85,9 +86,9 @@ float RecordValues::Read(size_t i, double* out) const {
   float v[records::kValueChannels];
   std::copy_n(&recs_->value[i * records::kValueChannels], records::kValueChannels, v);
   float conf = 1.0f;
-  if (s >= 0 && lens_[size_t(s)] != nullptr) {
-    const LensMap& map = *lens_[size_t(s)];
-    conf = AdjustForLens(map, map.source_gain.at(s), &recs_->uv_px[2 * i], v);
+  if (s >= 0 && lens_[size_t(s)].first != nullptr) {
+    const auto& [map, gain] = lens_[size_t(s)];
+    conf = AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
   }
   for (int c = 0; c < records::kValueChannels; ++c) {
     out[c] = (s >= 0 ? double(gain_[size_t(s)][c]) : 1.0) * v[c];
@@ -97,7 +98,7 @@ float RecordValues::Read(size_t i, double* out) const {
 
 float RecordValues::LensConfidence(size_t i) const {
   const int32_t s = recs_->scan[i];
-  if (s < 0 || lens_[size_t(s)] == nullptr) return 1.0f;
+  if (s < 0 || lens_[size_t(s)].first == nullptr) return 1.0f;
   double value[records::kValueChannels];
   return Read(i, value);
 }
@@ -214,11 +215,11 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
         if (!(sum_w[c] > 0.0)) continue;
         records::FusedModality& f = *channel[c];
         double variance = 0.0;
+        double nearest[records::kValueChannels];
+        if (profile.mode == FusionMode::kNearest) values->Read(best_i[c], nearest);
         for (int ch = 0; ch < f.channels; ++ch) {
           const double mean = sum_wc[c][ch] / sum_w[c];
           variance += std::max(0.0, sum_wcc[c][ch] / sum_w[c] - mean * mean);
-          double nearest[records::kValueChannels];
-          if (profile.mode == FusionMode::kNearest) values->Read(best_i[c], nearest);
           f.value[k * f.channels + ch] =
               float(profile.mode == FusionMode::kNearest ? nearest[ch] : mean);
         }

@@ -36,7 +36,8 @@ class RecordValues {
   RecordValues(const records::RecordSet& records) : recs_(&records) {}
   const records::RecordSet* recs_;
   std::vector<std::array<float, records::kValueChannels>> gain_;
-  std::vector<const LensMap*> lens_;  ///< per source id; null: none
+  /// Per source id, its lens map and g_m in it; null map: none.
+  std::vector<std::pair<const LensMap*, const std::array<float, records::kValueChannels>*>> lens_;
 };
 
 /// Offsets of each vossel's records in a RecordSet sorted by vossel: vossel k's records are
