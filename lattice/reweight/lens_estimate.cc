@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <map>
 #include <optional>
 #include <tuple>
 
@@ -299,17 +298,21 @@ absl::StatusOr<LensEstimate> EstimateLensMap(const records::RecordSet& recs, siz
   map.image_w = W;
   map.image_h = H;
   std::vector<std::array<float, kC>> gain(frames.size(), {1.0f, 1.0f, 1.0f});
+  // g_m as the map keeps it: on the raw record values, which fusion scales by a_{m,c} after.
+  auto set_source_gains = [&](fusion::LensMap& m) {
+    for (size_t f = 0; f < frames.size(); ++f) {
+      std::array<float, kC> g{};
+      for (int c = 0; c < kC; ++c) g[c] = gain[f][c] / base_gain[size_t(frames[f].source)][c];
+      m.source_gain[frames[f].source] = g;
+    }
+  };
   for (int round = 0; round < o.rounds; ++round) {
     // References under the map found so far (none in the first round).
     fusion::WeightingProfile profile = base;
     std::optional<fusion::RecordWeightsResult> weights_r;
     if (round > 0) {
       auto current = std::make_shared<fusion::LensMap>(map);
-      for (size_t f = 0; f < frames.size(); ++f) {
-        std::array<float, kC> g{};
-        for (int c = 0; c < kC; ++c) g[c] = gain[f][c] / base_gain[size_t(frames[f].source)][c];
-        current->source_gain[frames[f].source] = g;
-      }
+      set_source_gains(*current);
       std::vector<std::shared_ptr<const fusion::LensMap>> maps;
       if (base.lens != nullptr) maps = base.lens->maps;
       maps.push_back(current);
@@ -368,11 +371,7 @@ absl::StatusOr<LensEstimate> EstimateLensMap(const records::RecordSet& recs, siz
       for (const auto& cell : by_cell) out.cells_fitted += int64_t(cell.size()) >= o.min_samples;
     }
   }
-  for (size_t f = 0; f < frames.size(); ++f) {
-    std::array<float, kC> g{};
-    for (int c = 0; c < kC; ++c) g[c] = gain[f][c] / base_gain[size_t(frames[f].source)][c];
-    map.source_gain[frames[f].source] = g;
-  }
+  set_source_gains(map);
   for (size_t cell = 0; cell < size_t(out.cells); ++cell) {
     bool dirt = false, veil = false;
     for (int c = 0; c < kC; ++c) {
