@@ -558,17 +558,7 @@ absl::StatusOr<reweight::LensOutcome> Engine::EstimateLens(const std::string& pr
 absl::StatusOr<std::vector<fusion::LensMap>> Engine::ListLensMaps(const std::string& project) {
   auto p = impl_->Find(project);
   if (!p.ok()) return p.status();
-  absl::StatusOr<std::vector<store::StoredLensMap>> stored = (*p)->store->ListLensMaps();
-  if (!stored.ok()) return stored.status();
-  std::vector<fusion::LensMap> out;
-  for (const store::StoredLensMap& s : *stored) {
-    absl::StatusOr<fusion::LensMap> m = fusion::LensMapFromText(s.text);
-    if (!m.ok()) return m.status();
-    m->id = s.id;
-    m->created_utc = s.created_utc;
-    out.push_back(std::move(*m));
-  }
-  return out;
+  return reweight::ListLensMaps(*(*p)->store);
 }
 
 absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(

@@ -3,7 +3,6 @@
 ///        each camera's stored image decoded again and its artefacts found as at ingest.
 #include <cmath>
 #include <map>
-#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -12,6 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
 #include "lattice/fusion/lens.h"
+#include "lattice/reweight/profiles.h"
 #include "lattice/ingest/artefacts.h"
 
 namespace vasl::flows {
@@ -20,15 +20,11 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
     const store::ProjectStore& store, const std::vector<store::ScanInfo>& scans,
     const std::string& project, const std::string& scan, int64_t max_pixels) {
   // §9 lens dirt and fog: the latest map that lists a source applies to it.
-  absl::StatusOr<std::vector<store::StoredLensMap>> stored = store.ListLensMaps();
-  if (!stored.ok()) return stored.status();
-  std::map<int32_t, std::shared_ptr<const fusion::LensMap>> lens_of;
-  for (const store::StoredLensMap& m : *stored) {
-    absl::StatusOr<fusion::LensMap> map = fusion::LensMapFromText(m.text);
-    if (!map.ok()) return map.status();
-    map->id = m.id;
-    auto shared = std::make_shared<const fusion::LensMap>(std::move(*map));
-    for (const auto& [source, gain] : shared->source_gain) lens_of[source] = shared;
+  absl::StatusOr<std::vector<fusion::LensMap>> lens_maps = reweight::ListLensMaps(store);
+  if (!lens_maps.ok()) return lens_maps.status();
+  std::map<int32_t, const fusion::LensMap*> lens_of;
+  for (const fusion::LensMap& map : *lens_maps) {
+    for (const auto& [source, gain] : map.source_gain) lens_of[source] = &map;
   }
   for (const store::ScanInfo& s : scans) {
     if (s.name != scan) continue;

@@ -85,19 +85,26 @@ absl::StatusOr<LensOutcome> EstimateLensProfile(store::ProjectStore& store,
                                             absl::StrJoin(cameras, ", "), ")"));
   }
 
-  // The base without any map of this rig's camera: the new one takes its place.
-  fusion::WeightingProfile stripped = base;
+  // The base without any map of this rig's camera: the new one takes its place. Its maps as
+  // loaded (LoadProfile resolves them), or read now for a base that was not.
+  fusion::WeightingProfile resolved = base;
+  if (resolved.lens == nullptr) {
+    if (absl::Status s = ResolveLensMaps(store, resolved); !s.ok()) return s;
+  }
+  fusion::WeightingProfile stripped = resolved;
   stripped.lens_maps.clear();
-  for (int64_t id : base.lens_maps) {
-    absl::StatusOr<store::StoredLensMap> m = store.GetLensMap(id);
-    if (!m.ok()) return m.status();
-    if (m->rig == request.rig && m->camera == camera) {
-      out.replaced_map = id;
-    } else {
-      stripped.lens_maps.push_back(id);
+  std::vector<std::shared_ptr<const fusion::LensMap>> kept;
+  if (resolved.lens != nullptr) {
+    for (const std::shared_ptr<const fusion::LensMap>& m : resolved.lens->maps) {
+      if (m->rig == request.rig && m->camera == camera) {
+        out.replaced_map = m->id;
+      } else {
+        stripped.lens_maps.push_back(m->id);
+        kept.push_back(m);
+      }
     }
   }
-  if (absl::Status s = ResolveLensMaps(store, stripped); !s.ok()) return s;
+  stripped.lens = kept.empty() ? nullptr : fusion::LensTable::Of(std::move(kept));
   absl::StatusOr<LensEstimate> estimate =
       EstimateLensMap(snapshot.records, snapshot.geometry.size(),
                       snapshot.geometry.vossel_size_m, stripped, out.frames, request.options);

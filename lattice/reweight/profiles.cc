@@ -5,6 +5,36 @@
 
 namespace vasl::reweight {
 
+namespace {
+
+absl::StatusOr<fusion::LensMap> FromStored(const store::StoredLensMap& stored) {
+  absl::StatusOr<fusion::LensMap> map = fusion::LensMapFromText(stored.text);
+  if (!map.ok()) return map.status();
+  map->id = stored.id;
+  map->created_utc = stored.created_utc;
+  return map;
+}
+
+}  // namespace
+
+absl::StatusOr<fusion::LensMap> LoadLensMap(const store::ProjectStore& store, int64_t id) {
+  absl::StatusOr<store::StoredLensMap> stored = store.GetLensMap(id);
+  if (!stored.ok()) return stored.status();
+  return FromStored(*stored);
+}
+
+absl::StatusOr<std::vector<fusion::LensMap>> ListLensMaps(const store::ProjectStore& store) {
+  absl::StatusOr<std::vector<store::StoredLensMap>> stored = store.ListLensMaps();
+  if (!stored.ok()) return stored.status();
+  std::vector<fusion::LensMap> out;
+  for (const store::StoredLensMap& s : *stored) {
+    absl::StatusOr<fusion::LensMap> map = FromStored(s);
+    if (!map.ok()) return map.status();
+    out.push_back(std::move(*map));
+  }
+  return out;
+}
+
 absl::Status ResolveLensMaps(const store::ProjectStore& store, fusion::WeightingProfile& profile) {
   if (profile.lens_maps.empty()) {
     profile.lens = nullptr;
@@ -12,11 +42,8 @@ absl::Status ResolveLensMaps(const store::ProjectStore& store, fusion::Weighting
   }
   std::vector<std::shared_ptr<const fusion::LensMap>> maps;
   for (int64_t id : profile.lens_maps) {
-    absl::StatusOr<store::StoredLensMap> stored = store.GetLensMap(id);
-    if (!stored.ok()) return stored.status();
-    absl::StatusOr<fusion::LensMap> map = fusion::LensMapFromText(stored->text);
+    absl::StatusOr<fusion::LensMap> map = LoadLensMap(store, id);
     if (!map.ok()) return map.status();
-    map->id = id;
     maps.push_back(std::make_shared<const fusion::LensMap>(std::move(*map)));
   }
   profile.lens = fusion::LensTable::Of(std::move(maps));

@@ -20,6 +20,11 @@ struct NamedProfile {
   std::string created_utc;  ///< empty for the built-in default
 };
 
+/// Lens map `id` (§9) from the catalog, with its id and time. NOT_FOUND for an unknown id.
+absl::StatusOr<fusion::LensMap> LoadLensMap(const store::ProjectStore& store, int64_t id);
+/// Every lens map of the project, oldest first.
+absl::StatusOr<std::vector<fusion::LensMap>> ListLensMaps(const store::ProjectStore& store);
+
 /// Loads the §9 lens maps `profile.lens_maps` names from the catalog into `profile.lens`
 /// (null when it names none). NOT_FOUND for an id the catalog lacks.
 absl::Status ResolveLensMaps(const store::ProjectStore& store, fusion::WeightingProfile& profile);
