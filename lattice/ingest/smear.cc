@@ -47,17 +47,18 @@ SmearMap DetectSmear(const geometry::LinearImage& image, const ClippedBlobs& blo
   SmearMap out;
   const int W = image.width_px, H = image.height_px;
   if (blobs.size() == 0 || W <= 0 || H <= 0) return out;
-  // Per column, the row spans (with their bloom reach) of the blobs that cover it.
-  std::vector<std::vector<std::pair<int, int>>> spans(static_cast<size_t>(W));
+  // Per column, the rows its blobs and their bloom reach take, top to bottom (none: top > bottom).
+  std::vector<int> top(size_t(W), H), bottom(size_t(W), -1);
   for (size_t b = 0; b < blobs.size(); ++b) {
     if (blobs.box_x1[b] - blobs.box_x0[b] + 1 > W / 8) continue;  // a blob across the seam, or huge
     const int reach = internal::BloomReachPx(blobs.area[b], H);
     for (int x = blobs.box_x0[b]; x <= blobs.box_x1[b]; ++x) {
-      spans[size_t(x)].push_back({blobs.box_y0[b] - reach, blobs.box_y1[b] + reach});
+      top[size_t(x)] = std::min(top[size_t(x)], blobs.box_y0[b] - reach);
+      bottom[size_t(x)] = std::max(bottom[size_t(x)], blobs.box_y1[b] + reach);
     }
   }
   std::vector<uint8_t> covered(size_t(W), 0);
-  for (int x = 0; x < W; ++x) covered[size_t(x)] = !spans[size_t(x)].empty();
+  for (int x = 0; x < W; ++x) covered[size_t(x)] = bottom[size_t(x)] >= 0;
   // The nearest column on side `step` (−1, +1) that no blob covers, two pixels further out.
   auto free_column = [&](int x, int step) {
     int c = x;
@@ -78,15 +79,10 @@ SmearMap DetectSmear(const geometry::LinearImage& image, const ClippedBlobs& blo
       if (!covered[size_t(x)]) continue;
       const int xl = free_column(x, -1), xr = free_column(x, +1);
       if (xl < 0 && xr < 0) continue;
-      int top = H, bottom = -1;  // the rows the column's blobs and their reach take
-      for (const auto& [y0, y1] : spans[size_t(x)]) {
-        top = std::min(top, y0);
-        bottom = std::max(bottom, y1);
-      }
       above.clear();
       below.clear();
       for (int y = 0; y < H; ++y) {
-        if (y >= top && y <= bottom) continue;
+        if (y >= top[size_t(x)] && y <= bottom[size_t(x)]) continue;
         const size_t row = size_t(y) * W;
         if (!blobs.clipped.empty() && blobs.clipped[row + x]) continue;
         double side = 0.0;
@@ -97,7 +93,7 @@ SmearMap DetectSmear(const geometry::LinearImage& image, const ClippedBlobs& blo
           ++n;
         }
         if (n == 0) continue;
-        (y < top ? above : below).push_back(float(Level(image, row + x) - side / n));
+        (y < top[size_t(x)] ? above : below).push_back(float(Level(image, row + x) - side / n));
       }
       const size_t min_rows = size_t(std::max(16, H / 16));
       double s = -1.0;
