@@ -119,6 +119,7 @@ struct Engine::Impl {
     result.sources_revisited = flow.sources_revisited;
     result.pairs_revisited = flow.pairs_revisited;
     result.blocks_revisited = flow.blocks_revisited;
+    result.sources_refreshed = flow.sources_refreshed;
     result.tiles_changed = flow.tiles_changed;
     result.bytes_written = flow.bytes_written;
     result.pixels_back_projected = flow.pixels_back_projected;

@@ -84,6 +84,8 @@ struct IngestResult {
   int64_t sources_revisited = 0;  ///< older sources recomputed on the tiles the change reaches
   int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
+  /// Of the sources revisited, those refreshed from their own records without their blob.
+  int64_t sources_refreshed = 0;
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes the commit wrote
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records

@@ -3,7 +3,14 @@
 #include <algorithm>
 #include <cmath>
 #include <initializer_list>
+#include <limits>
 #include <map>
+#include <memory>
+#include <optional>
+
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_pipeline.h>
+#include <tbb/task_arena.h>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/fusion/fuse.h"
@@ -11,20 +18,25 @@
 #include "lattice/ingest/backproject.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/ingest/visibility.h"
+#include "lattice/records/record_grid.h"
 #include "lattice/reweight/profiles.h"
 #include "lattice/tiles/tile_split.h"
 
 namespace vasl::flows::internal {
 namespace {
 
+/// How a stored source's visibility tests read its depth panorama (as its records did).
+ingest::DepthView ViewOf(const SourceRef& s) {
+  return s.returns()
+             ? ingest::LidarDepthView(size_t(std::max<int64_t>(0, s.info.point_count)),
+                                      s.info.divergence_rad)
+             : ingest::CameraDepthView(CameraOf(s.info, 0), s.info.width_px, s.info.height_px);
+}
+
 /// Angular pitch (radians, the larger axis) of a source's depth panorama: the Δ of its
 /// visibility tolerance.
 double DepthPixelRad(const SourceRef& s) {
-  const double pitch =
-      s.returns() ? ingest::LidarDepthPitchRad(size_t(std::max<int64_t>(0, s.info.point_count)))
-                  : ingest::ProjectionOf(CameraOf(s.info, 0), s.info.width_px, s.info.height_px)
-                        .PitchRad();
-  const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
+  const geometry::EquirectSize size = ViewOf(s).size;
   return std::max(geometry::AzimuthPitchRad(size), geometry::ElevationPitchRad(size));
 }
 
@@ -72,7 +84,8 @@ std::vector<SourceRef> SourcesOf(const std::vector<store::ScanInfo>& scans) {
 std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
                                         const std::vector<int32_t>& old_to_new, int T,
-                                        std::set<tiles::TileKey>* surface_tiles) {
+                                        std::set<tiles::TileKey>* surface_tiles,
+                                        ChangedVossels* vossels) {
   const int B = BlockVossels(T);
   const double h = now.vossel_size_m;
   std::map<tiles::TileKey, ChangedBlock> blocks;  // keyed by block coordinates
@@ -96,11 +109,13 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     surface_tiles->insert(block.tile);
   };
   const bool frames = !old.frame.empty() && !now.frame.empty();
-  std::vector<uint8_t> has_old(now.size(), 0);
+  std::vector<uint8_t> has_old(now.size(), 0), old_changed(old.size(), 0),
+      new_changed(now.size(), 0);
   for (size_t v = 0; v < old_to_new.size(); ++v) {
     const int32_t n = old_to_new[v];
     if (n < 0) {
       add(old, v);
+      old_changed[v] = 1;
       continue;
     }
     has_old[size_t(n)] = 1;
@@ -110,12 +125,29 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     if (frames ? old.frame[v] != now.frame[size_t(n)] : surface) {
       add(old, v);
       add(now, size_t(n));
+      old_changed[v] = new_changed[size_t(n)] = 1;
     } else if (surface) {
       surface_tiles->insert(tiles::TileOf(now.coord[size_t(n)], T));
     }
   }
   for (size_t n = 0; n < now.size(); ++n) {
-    if (!has_old[n]) add(now, n);
+    if (!has_old[n]) {
+      add(now, n);
+      new_changed[n] = 1;
+    }
+  }
+  if (vossels != nullptr) {
+    vossels->old_splats.vossel_size_m = h;
+    for (size_t v = 0; v < old.size(); ++v) {
+      if (!old_changed[v]) continue;
+      vossels->old_splats.coord.push_back(old.coord[v]);
+      vossels->old_splats.centroid_m.push_back(old.FrameCentroid(v));
+      vossels->old_splats.normal.push_back(old.FrameNormal(v));
+    }
+    vossels->appeared.resize(now.size());
+    for (size_t n = 0; n < now.size(); ++n) vossels->appeared[n] = has_old[n] ? 0 : 1;
+    vossels->changed_new = std::move(new_changed);
+    vossels->changed_old = std::move(old_changed);
   }
   std::vector<ChangedBlock> out;
   out.reserve(blocks.size());
@@ -234,6 +266,245 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
       geometry, StoredCamera(store, source.info, source.batch, max_image_pixels), only, context);
 }
 
+ingest::SourceVisibility StoredVisibility(const SourceRef& source,
+                                          const records::VosselGeometry& geometry,
+                                          const std::vector<uint8_t>* only,
+                                          const std::vector<uint8_t>* context) {
+  if (source.returns()) {
+    return ingest::LidarVisibility(geometry, source.info.pose, ViewOf(source), only, context);
+  }
+  return ingest::CameraVisibility(geometry, CameraOf(source.info, source.batch),
+                                  source.info.width_px, source.info.height_px, only, context);
+}
+
+absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
+                                                          const SourceRef& source,
+                                                          const records::VosselGeometry& geometry,
+                                                          int64_t max_image_pixels,
+                                                          ingest::SourceVisibility visibility) {
+  if (source.lidar()) {
+    absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, source.info, source.batch);
+    if (!lidar.ok()) return lidar.status();
+    return ingest::LidarRecords(geometry, *lidar, std::move(visibility));
+  }
+  if (source.point_colour()) {
+    absl::StatusOr<ingest::LidarSource> points = LoadPointColour(store, source.info, source.batch);
+    if (!points.ok()) return points.status();
+    return ingest::PointColourRecords(geometry, *points, std::move(visibility));
+  }
+  if (source.derived()) {
+    return absl::InternalError("StoredSourceRecords: a derived source has no visibility");
+  }
+  return ingest::CameraRecords(geometry,
+                               StoredCamera(store, source.info, source.batch, max_image_pixels),
+                               std::move(visibility));
+}
+
+std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
+                                                   records::RecordSet before,
+                                                   const records::VosselGeometry& geometry,
+                                                   const ChangedVossels& changed,
+                                                   const std::vector<uint8_t>& only,
+                                                   const ingest::SourceVisibility& visibility) {
+  const bool returns = source.returns();
+  std::vector<uint8_t> recorded(geometry.size(), 0);
+  std::vector<size_t> keep;
+  keep.reserve(before.size());
+  for (size_t i = 0; i < before.size(); ++i) {
+    const size_t k = size_t(before.vossel[i]);
+    recorded[k] = 1;
+    const float vis = visibility.vis[k];
+    if (!(vis > 0.0f)) continue;  // turned to shadow
+    if (changed.changed_new[k]) {
+      // A camera samples its image where the new frame projects; returns keep their values.
+      if (!returns) return std::nullopt;
+      ingest::ReturnTerms t;
+      if (!ingest::ReturnTermsOf(geometry, k, source.info.pose, source.info.divergence_rad,
+                                 visibility.depth.size, &t)) {
+        continue;
+      }
+      before.range_m[i] = float(t.range_m);
+      before.cos_inc[i] = float(t.cos_inc);
+      before.foot_major_m[i] = float(t.foot.major_m);
+      before.foot_minor_m[i] = float(t.foot.minor_m);
+      before.uv_px[2 * i] = float(t.uv.x());
+      before.uv_px[2 * i + 1] = float(t.uv.y());
+    }
+    before.vis[i] = vis;
+    keep.push_back(i);
+  }
+  // Seen now and not recorded before: a record may begin here, from the source's points or
+  // pixels; except that an older LiDAR has no return in a vossel that appeared after it, and
+  // that an unchanged vossel seen before too was left unrecorded for good (no return of the
+  // LiDAR in it, outside the photo). It was seen before when the old splats of the changed
+  // vossels lie behind all its samples: a sample lit now has D_rest ≥ its threshold, and
+  // D_before = min(D_rest, S_old) then was too.
+  std::vector<uint8_t> unrecorded(geometry.size(), 0);
+  bool any = false;
+  for (size_t k = 0; k < geometry.size(); ++k) {
+    if (!only[k] || recorded[k] || !(visibility.vis[k] > 0.0f)) continue;
+    if (returns && changed.appeared[k]) continue;
+    if (changed.changed_new[k]) return std::nullopt;
+    unrecorded[k] = 1;
+    any = true;
+  }
+  if (any && changed.old_splats.size() > 0) {
+    const ingest::DepthView view = ViewOf(source);
+    ingest::DepthPanorama s_old = ingest::RenderDepthPanorama(
+        changed.old_splats, source.info.pose, view.size, view.divergence_rad);
+    ingest::DilateDepthPanorama(s_old, view.dilate_px);
+    const std::vector<float> lit =
+        ingest::ComputeVisibility(geometry, s_old, ingest::DepthToleranceM(geometry.vossel_size_m),
+                                  &unrecorded, view.slope_pixels);
+    for (size_t k = 0; k < geometry.size(); ++k) {
+      if (unrecorded[k] && lit[k] < 1.0f) return std::nullopt;
+    }
+  }
+  records::RecordSet out = before.Select(keep);
+  records::RoundToStorage(out);
+  return out;
+}
+
+namespace {
+
+/// Sources revisited at once: each holds its decoded image or points while it is computed.
+constexpr int kMaxConcurrentRevisits = 4;
+
+/// Step 4 of Propagate: recomputes each revisited source on its blocks from its blob and merges
+/// its records and reach raster into `next`. Sources run concurrently (at most
+/// kMaxConcurrentRevisits, and no more than the threads) and merge in source-id order, so the
+/// result does not depend on which finishes first.
+absl::Status RevisitSources(const store::ProjectStore& store, const store::Snapshot& old,
+                            const records::VosselGeometry& g,
+                            const std::map<int32_t, std::set<tiles::TileKey>>& revisit,
+                            const ChangedVossels& changed,
+                            const std::vector<int32_t>& old_to_new,
+                            const std::vector<SourceRef>& old_sources,
+                            const std::set<tiles::TileKey>& all_blocks, int B, int T,
+                            int64_t max_image_pixels, store::Snapshot& next,
+                            store::CommitPlan& plan, std::set<tiles::TileKey>& record_tiles,
+                            FlowResult& result, StageClock& clock) {
+  const double h = g.vossel_size_m;
+  const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
+  struct Job {
+    const SourceRef* src = nullptr;
+    const std::set<tiles::TileKey>* blocks = nullptr;
+    std::set<tiles::TileKey> tiles;
+    RevisitCone cone;
+    absl::StatusOr<ingest::SourceRecords> computed;
+    bool refreshed = false;  ///< from its records before the change, without its blob
+  };
+  std::vector<const SourceRef*> order;
+  for (const SourceRef& src : old_sources) {
+    if (revisit.count(src.info.id)) order.push_back(&src);
+  }
+  // Each revisited source's records before the change, on vossels that stay (new indices).
+  std::map<int32_t, std::vector<size_t>> records_of;
+  for (size_t i = 0; i < old.records.size(); ++i) {
+    auto it = revisit.find(old.records.scan[i]);
+    const int32_t n = old_to_new[size_t(old.records.vossel[i])];
+    if (it != revisit.end() && n >= 0 && it->second.count(block_of[size_t(n)])) {
+      records_of[old.records.scan[i]].push_back(i);
+    }
+  }
+  const double span = 0.3 / double(order.size() + 1);
+  size_t next_job = 0;
+  absl::Status status;
+  const int tokens = std::clamp(tbb::this_task_arena::max_concurrency(), 1, kMaxConcurrentRevisits);
+  tbb::parallel_pipeline(
+      size_t(tokens),
+      tbb::make_filter<void, std::shared_ptr<Job>>(
+          tbb::filter_mode::serial_in_order,
+          [&](tbb::flow_control& fc) -> std::shared_ptr<Job> {
+            if (next_job == order.size() || !status.ok()) {
+              fc.stop();
+              return nullptr;
+            }
+            auto job = std::make_shared<Job>();
+            job->src = order[next_job];
+            job->blocks = &revisit.at(job->src->info.id);
+            for (const tiles::TileKey& b : *job->blocks) {
+              job->tiles.insert(tiles::TileOf(openvdb::Coord(b.x * B, b.y * B, b.z * B), T));
+            }
+            const std::string stage =
+                absl::StrCat("revisit source ", job->src->info.id, " on ", job->blocks->size(),
+                             " blocks of ", job->tiles.size(), " tiles");
+            if (absl::Status stop = clock.Start(stage, 0.5 + span * double(next_job)); !stop.ok()) {
+              status = stop;
+              fc.stop();
+              return nullptr;
+            }
+            ++next_job;
+            return job;
+          }) &
+          tbb::make_filter<std::shared_ptr<Job>, std::shared_ptr<Job>>(
+              tbb::filter_mode::parallel,
+              [&](std::shared_ptr<Job> job) {
+                // The revisited blocks, and the cone of blocks whose splats can fall where
+                // their visibility tests (and a camera's dilation) read: the depth panorama
+                // splats that cone only.
+                const SourceRef& src = *job->src;
+                if (!src.derived()) job->cone = ConeOf(src, *job->blocks, all_blocks, B, h);
+                std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
+                for (size_t v = 0; v < g.size(); ++v) {
+                  only[v] = job->blocks->count(block_of[v]) ? 1 : 0;
+                  context[v] = job->cone.context.count(block_of[v]) ? 1 : 0;
+                }
+                if (src.derived()) {
+                  job->computed =
+                      StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
+                  return job;
+                }
+                // Visibility first; the blob only when a record needs its points or pixels.
+                ingest::SourceVisibility visibility = StoredVisibility(src, g, &only, &context);
+                auto mine = records_of.find(src.info.id);
+                records::RecordSet before =
+                    mine == records_of.end() ? records::RecordSet{}
+                                             : old.records.Select(mine->second);
+                for (int32_t& v : before.vossel) v = old_to_new[size_t(v)];
+                if (std::optional<records::RecordSet> kept = RefreshedRecords(
+                        src, std::move(before), g, changed, only, visibility)) {
+                  job->computed = ingest::SourceRecords{std::move(*kept),
+                                                        std::move(visibility.reach)};
+                  job->refreshed = true;
+                  return job;
+                }
+                job->computed = StoredSourceRecords(store, src, g, max_image_pixels,
+                                                    std::move(visibility));
+                return job;
+              }) &
+          tbb::make_filter<std::shared_ptr<Job>, void>(
+              tbb::filter_mode::serial_in_order, [&](std::shared_ptr<Job> job) {
+                if (!status.ok()) return;
+                if (!job->computed.ok()) {
+                  status = job->computed.status();
+                  return;
+                }
+                const SourceRef& src = *job->src;
+                ingest::SourceRecords& recs = *job->computed;
+                next.records.Append(recs.records);
+                record_tiles.insert(job->tiles.begin(), job->tiles.end());
+                ++result.sources_revisited;
+                if (job->refreshed) ++result.sources_refreshed;
+                result.pairs_revisited += int64_t(job->tiles.size());
+                result.blocks_revisited += int64_t(job->blocks->size());
+                if (src.derived()) return;  // no depth panorama, no reach
+                auto before = old.reach.find(src.info.id);
+                if (before != old.reach.end() &&
+                    before->second.size.width_px == recs.reach.size.width_px &&
+                    before->second.size.height_px == recs.reach.size.height_px) {
+                  recs.reach = tiles::MergeReach(
+                      before->second, recs.reach,
+                      tiles::CellCoverage(recs.reach.size, src.info.pose, job->cone.exact));
+                }
+                next.reach[src.info.id] = std::move(recs.reach);
+                plan.reach_sources.insert(src.info.id);
+              }));
+  return status;
+}
+
+}  // namespace
+
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           const store::Snapshot& old, Change change,
                                           const std::vector<SourceRef>& old_sources,
@@ -256,8 +527,9 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   // 1. Changed blocks: vossels that appeared, vanished, or whose record frame changed; and the
   //    tiles whose surface (count, centroid, normal) changed, whose geometry is rewritten.
   if (absl::Status stop = clock.Start("find changes", 0.45); !stop.ok()) return stop;
+  ChangedVossels changed;
   const std::vector<ChangedBlock> blocks =
-      ChangedBlocks(old.geometry, g, change.old_to_new, T, &plan.geometry_tiles);
+      ChangedBlocks(old.geometry, g, change.old_to_new, T, &plan.geometry_tiles, &changed);
 
   // 2. Which older sources must be recomputed on which blocks.
   std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks
@@ -310,56 +582,17 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   }
   plan.drop_reach = change.dropped_sources;
 
-  // 4. Recompute the revisited pairs, from the sources' blobs.
-  const double span = 0.3 / double(std::max<size_t>(1, revisit.size() + 1));
-  double fraction = 0.5;
-  for (const SourceRef& src : old_sources) {
-    auto it = revisit.find(src.info.id);
-    if (it == revisit.end()) continue;
-    std::set<tiles::TileKey> tiles_of_src;
-    for (const tiles::TileKey& b : it->second) tiles_of_src.insert(tile_of_block(b));
-    const std::string stage = absl::StrCat("revisit source ", src.info.id, " on ",
-                                           it->second.size(), " blocks of ",
-                                           tiles_of_src.size(), " tiles");
-    if (absl::Status stop = clock.Start(stage, fraction); !stop.ok()) return stop;
-    fraction += span;
-    // The revisited blocks, and the cone of blocks whose splats can fall where their
-    // visibility tests (and a camera's dilation) read: the depth panorama splats that cone only.
-    const RevisitCone cone = src.derived() ? RevisitCone{} : ConeOf(src, it->second, all_blocks, B, h);
-    std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
-    for (size_t v = 0; v < g.size(); ++v) {
-      only[v] = it->second.count(block_of[v]) ? 1 : 0;
-      context[v] = cone.context.count(block_of[v]) ? 1 : 0;
-    }
-    absl::StatusOr<ingest::SourceRecords> computed =
-        StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
-    if (!computed.ok()) return computed.status();
-    ingest::SourceRecords& recs = *computed;
-    if (src.derived()) {
-      next.records.Append(recs.records);
-      record_tiles.insert(tiles_of_src.begin(), tiles_of_src.end());
-      ++result.sources_revisited;
-      result.pairs_revisited += int64_t(tiles_of_src.size());
-      result.blocks_revisited += int64_t(it->second.size());
-      continue;
-    }
-    auto before = old.reach.find(src.info.id);
-    if (before != old.reach.end() && before->second.size.width_px == recs.reach.size.width_px &&
-        before->second.size.height_px == recs.reach.size.height_px) {
-      recs.reach = tiles::MergeReach(
-          before->second, recs.reach,
-          tiles::CellCoverage(recs.reach.size, src.info.pose, cone.exact));
-    }
-    next.records.Append(recs.records);
-    next.reach[src.info.id] = std::move(recs.reach);
-    plan.reach_sources.insert(src.info.id);
-    record_tiles.insert(tiles_of_src.begin(), tiles_of_src.end());
-    ++result.sources_revisited;
-    result.pairs_revisited += int64_t(tiles_of_src.size());
-    result.blocks_revisited += int64_t(it->second.size());
+  // 4. Recompute the revisited pairs, from the sources' blobs: a few sources at a time (each
+  //    one's decode and point loading are mostly serial), merged in source order.
+  if (absl::Status s = RevisitSources(store, old, g, revisit, changed, change.old_to_new,
+                                      old_sources, all_blocks, B, T, max_image_pixels, next, plan,
+                                      record_tiles, result, clock);
+      !s.ok()) {
+    return s;
   }
 
   // 5. The new sources, on every tile.
+  const double fraction = 0.8 - 0.3 / double(revisit.size() + 1);
   auto add_new = [&](ingest::SourceRecords recs, int32_t id) {
     for (int32_t v : recs.records.vossel) record_tiles.insert(tile_of[size_t(v)]);
     next.records.Append(recs.records);

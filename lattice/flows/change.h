@@ -30,6 +30,7 @@
 #pragma once
 
 #include <chrono>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
@@ -90,15 +91,26 @@ struct ChangedBlock {
 /// Edge of a block in vossels for tiles of edge T: 16, or T when smaller.
 inline int BlockVossels(int T) { return T < 16 ? T : 16; }
 
+/// The vossels a geometry change touched, one by one (ChangedBlocks).
+struct ChangedVossels {
+  std::vector<uint8_t> appeared;     ///< per new vossel: no old vossel became it
+  std::vector<uint8_t> changed_new;  ///< per new vossel: appeared, or its record frame changed
+  std::vector<uint8_t> changed_old;  ///< per old vossel: vanished, or its record frame changed
+  /// The changed_old vossels in their old state, as depth panoramas splat them (each one's
+  /// frame centroid and normal as its surface).
+  records::VosselGeometry old_splats;
+};
+
 /// Blocks of the vossels that appeared, vanished or whose record frame changed between `old`
 /// and `now` (`old_to_new` maps old vossels to new ones, −1: gone), in their frames' centroids
 /// and normals; when either geometry has no frames, the surface stands in for them. Adds to
 /// `surface_tiles` every tile where a vossel appeared, vanished or changed its surface or frame
-/// (the geometry files a commit rewrites).
+/// (the geometry files a commit rewrites), and fills `vossels` when given.
 std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
                                         const records::VosselGeometry& now,
                                         const std::vector<int32_t>& old_to_new, int T,
-                                        std::set<tiles::TileKey>* surface_tiles);
+                                        std::set<tiles::TileKey>* surface_tiles,
+                                        ChangedVossels* vossels = nullptr);
 
 /// The blocks of `all` (block keys, edge B vossels) whose records from `source` may change when
 /// the `changed` blocks change (see @details, applied per block: rule 1 with the depth margin
@@ -127,6 +139,37 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
     const store::ProjectStore& store, const SourceRef& source,
     const records::VosselGeometry& geometry, int64_t max_image_pixels,
     const std::vector<uint8_t>* only = nullptr, const std::vector<uint8_t>* context = nullptr);
+
+/// The visibility of a stored source on `geometry` (ingest::LidarVisibility, CameraVisibility
+/// with the image size the catalog holds), found without reading its blob.
+ingest::SourceVisibility StoredVisibility(const SourceRef& source,
+                                          const records::VosselGeometry& geometry,
+                                          const std::vector<uint8_t>* only,
+                                          const std::vector<uint8_t>* context);
+/// The records of a stored source whose visibility is known, from its blob (not derived).
+absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
+                                                          const SourceRef& source,
+                                                          const records::VosselGeometry& geometry,
+                                                          int64_t max_image_pixels,
+                                                          ingest::SourceVisibility visibility);
+
+/// The records of `source` on the `only` vossels of `geometry` after a change, refreshed from
+/// its records there before it (`before`, renumbered to `geometry`'s vossels) where that is
+/// exact, given its visibility after the change: a record keeps its sample and takes the new
+/// V (none where V = 0), and on a vossel whose record frame changed a LiDAR's (or its point
+/// colour's) record takes the frame's range, incidence, footprint and uv (ingest::ReturnTermsOf:
+/// the mean of its returns does not depend on the frame). nullopt when some record needs the
+/// source's points or pixels: a camera's on a changed frame, or a vossel seen now that the
+/// source did not record before, unless it is a LiDAR's and the vossel appeared after it (its
+/// returns made every vossel they fell in) or the vossel's frame is unchanged and it was seen
+/// before too (the changed vossels' old splats lie behind its samples): then it was left
+/// unrecorded for good.
+std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
+                                                   records::RecordSet before,
+                                                   const records::VosselGeometry& geometry,
+                                                   const ChangedVossels& changed,
+                                                   const std::vector<uint8_t>& only,
+                                                   const ingest::SourceVisibility& visibility);
 
 /// A geometry change ready to propagate.
 struct Change {

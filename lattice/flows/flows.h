@@ -44,6 +44,9 @@ struct FlowResult {
   int64_t sources_revisited = 0;  ///< older sources recomputed on some tiles
   int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
+  /// Of the sources revisited, those whose records were refreshed from their records before
+  /// the change (visibility, and a LiDAR's geometric terms) without reading their blob.
+  int64_t sources_refreshed = 0;
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records

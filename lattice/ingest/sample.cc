@@ -12,6 +12,7 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
+#include "absl/strings/str_cat.h"
 #include "lattice/geometry/footprint.h"
 #include "lattice/geometry/linear_image.h"
 #include "lattice/ingest/artefacts.h"
@@ -239,34 +240,41 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
     }
     for (size_t i = 0; i < sum.size(); ++i) sum[i] += s.sum[i];
   }
-  const Eigen::Matrix3d R_sensor_world = R.transpose();
   tbb::enumerable_thread_specific<RecordSet> parts;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 2048), [&](const tbb::blocked_range<size_t>& r) {
     RecordSet& out = parts.local();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (count[k] == 0 || !(vis[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-      const Eigen::Vector3d to_sensor = lidar.pose.o_world - x;
-      const double range = to_sensor.norm();
-      if (range < 1e-3) continue;
-      const Eigen::Vector3d n = NormalOr(g, k, to_sensor / range);
-      const double cos_inc = geometry::CosIncidence(n, x, lidar.pose.o_world);
-      const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, lidar.divergence_rad, cos_inc);
-      const Eigen::Vector2d uv = geometry::EquirectProject(R_sensor_world * (x - lidar.pose.o_world), depth.size);
+      ReturnTerms terms;
+      if (!ReturnTermsOf(g, k, lidar.pose, lidar.divergence_rad, depth.size, &terms)) continue;
       float value[records::kValueChannels] = {0, 0, 0};
       for (int ch = 0; ch < C && ch < records::kValueChannels; ++ch) {
         value[ch] = float(sum[k * C + ch] / count[k]);
       }
       float conf[records::kConfidenceCount] = {1.0f, 1.0f, 1.0f, 1.0f};
       conf[records::kConfSaturation] = 1.0f - float(clipped[k]) / float(count[k]);
-      PushRecord(out, int32_t(k), source_id, modality, value, C, range, cos_inc, foot, uv, vis[k],
-                 conf, 0, lidar.batch);
+      PushRecord(out, int32_t(k), source_id, modality, value, C, terms.range_m, terms.cos_inc,
+                 terms.foot, terms.uv, vis[k], conf, 0, lidar.batch);
     }
   });
   return Concatenate(parts);
 }
 
 }  // namespace
+
+bool ReturnTermsOf(const records::VosselGeometry& g, size_t k, const geometry::Pose& pose,
+                   double divergence_rad, const geometry::EquirectSize& size, ReturnTerms* out) {
+  const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
+  const Eigen::Vector3d to_sensor = pose.o_world - x;
+  out->range_m = to_sensor.norm();
+  if (out->range_m < 1e-3) return false;
+  const Eigen::Vector3d n = NormalOr(g, k, to_sensor / out->range_m);
+  out->cos_inc = geometry::CosIncidence(n, x, pose.o_world);
+  out->foot = geometry::SurfaceFootprintAt(out->range_m, divergence_rad, out->cos_inc);
+  const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.conjugate().toRotationMatrix();
+  out->uv = geometry::EquirectProject(R_sensor_world * (x - pose.o_world), size);
+  return true;
+}
 
 RecordSet SampleLidar(const records::VosselGeometry& g, const LidarSource& lidar,
                       const DepthPanorama& depth, const std::vector<float>& vis) {
@@ -294,35 +302,75 @@ double LidarDepthPitchRad(size_t point_count) {
 
 int CameraSampleRadiusPx() { return kCameraSampleRadiusPx; }
 
+DepthView LidarDepthView(size_t point_count, double divergence_rad) {
+  DepthView view;
+  view.size = DepthPanoramaSize(LidarDepthPitchRad(point_count));
+  view.divergence_rad = divergence_rad;
+  return view;
+}
+
+DepthView CameraDepthView(const CameraSource& camera, int width_px, int height_px) {
+  const ImageProjection proj = ProjectionOf(camera, width_px, height_px);
+  DepthView view;
+  view.size = DepthPanoramaSize(proj.PitchRad());
+  view.divergence_rad = proj.PixelAngleRad(Eigen::Vector3d::UnitX());
+  view.slope_pixels = 1 + kCameraSampleRadiusPx;
+  view.dilate_px = kCameraSampleRadiusPx;
+  return view;
+}
+
 namespace {
 
-// §5 then §3-§6 for the returns of one LiDAR, sampled by `sample`.
+// §3-§6 for the returns of one LiDAR whose visibility is known, sampled by `sample`.
 template <typename Sample>
 SourceRecords ReturnRecords(const records::VosselGeometry& g, const LidarSource& lidar,
-                            const std::vector<uint8_t>* only, const std::vector<uint8_t>* context,
-                            Sample sample) {
-  const double tau = DepthToleranceM(g.vossel_size_m);
-  const DepthPanorama depth =
-      RenderDepthPanorama(g, lidar.pose, DepthPanoramaSize(LidarDepthPitchRad(lidar.point_count())),
-                          lidar.divergence_rad, context);
+                            SourceVisibility visibility, Sample sample) {
   SourceRecords out;
-  out.records = sample(g, lidar, depth, ComputeVisibility(g, depth, tau, only));
+  out.records = sample(g, lidar, visibility.depth, visibility.vis);
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
-  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  out.reach = std::move(visibility.reach);
   return out;
+}
+
+SourceVisibility ReturnVisibility(const records::VosselGeometry& g, const LidarSource& lidar,
+                                  const std::vector<uint8_t>* only,
+                                  const std::vector<uint8_t>* context) {
+  return LidarVisibility(g, lidar.pose, LidarDepthView(lidar.point_count(), lidar.divergence_rad),
+                         only, context);
 }
 
 }  // namespace
 
+SourceVisibility LidarVisibility(const records::VosselGeometry& g, const geometry::Pose& pose,
+                                 const DepthView& view, const std::vector<uint8_t>* only,
+                                 const std::vector<uint8_t>* context) {
+  SourceVisibility out;
+  out.depth = RenderDepthPanorama(g, pose, view.size, view.divergence_rad, context);
+  out.vis = ComputeVisibility(g, out.depth, DepthToleranceM(g.vossel_size_m), only,
+                              view.slope_pixels);
+  out.reach = tiles::ReachFromDepth(out.depth.depth_m, out.depth.size);
+  return out;
+}
+
 SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
                            const std::vector<uint8_t>* only, const std::vector<uint8_t>* context) {
-  return ReturnRecords(g, lidar, only, context, SampleLidar);
+  return ReturnRecords(g, lidar, ReturnVisibility(g, lidar, only, context), SampleLidar);
+}
+
+SourceRecords LidarRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                           SourceVisibility visibility) {
+  return ReturnRecords(g, lidar, std::move(visibility), SampleLidar);
 }
 
 SourceRecords PointColourRecords(const records::VosselGeometry& g, const LidarSource& lidar,
                                  const std::vector<uint8_t>* only,
                                  const std::vector<uint8_t>* context) {
-  return ReturnRecords(g, lidar, only, context, SamplePointColour);
+  return ReturnRecords(g, lidar, ReturnVisibility(g, lidar, only, context), SamplePointColour);
+}
+
+SourceRecords PointColourRecords(const records::VosselGeometry& g, const LidarSource& lidar,
+                                 SourceVisibility visibility) {
+  return ReturnRecords(g, lidar, std::move(visibility), SamplePointColour);
 }
 
 namespace {
@@ -351,26 +399,16 @@ std::pair<int, int> RowsTested(const records::VosselGeometry& g, const DepthPano
 
 }  // namespace
 
-absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
-                                            const CameraSource& stored,
-                                            const std::vector<uint8_t>* only,
-                                            const std::vector<uint8_t>* context) {
-  CameraSource loaded;  // holds a decoded image only while this camera is sampled
-  if (stored.image.pixels.empty() && stored.load) {
-    absl::StatusOr<LinearImage> image = stored.load();
-    if (!image.ok()) return image.status();
-    loaded = stored;
-    loaded.image = std::move(*image);
-  }
-  const CameraSource& cam = loaded.image.pixels.empty() ? stored : loaded;
-  if (cam.image.pixels.empty()) {
-    return absl::InternalError("CameraRecords: a camera source has neither an image nor a loader");
-  }
+SourceVisibility CameraVisibility(const records::VosselGeometry& g, const CameraSource& cam,
+                                  int width_px, int height_px, const std::vector<uint8_t>* only,
+                                  const std::vector<uint8_t>* context) {
   const double tau = DepthToleranceM(g.vossel_size_m);
-  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
+  const ImageProjection proj = ProjectionOf(cam, width_px, height_px);
   const double pitch = proj.PitchRad();
-  DepthPanorama depth = RenderDepthPanorama(g, cam.pose, DepthPanoramaSize(pitch),
-                                            proj.PixelAngleRad(Eigen::Vector3d::UnitX()), context);
+  const DepthView view = CameraDepthView(cam, width_px, height_px);
+  SourceVisibility out;
+  out.depth = RenderDepthPanorama(g, cam.pose, view.size, view.divergence_rad, context);
+  DepthPanorama& depth = out.depth;
   // A pinhole photo tests only the vossels its image holds (SampleCamera records no other).
   std::vector<uint8_t> in_view;
   double nearest_m = std::numeric_limits<double>::infinity();
@@ -396,8 +434,41 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   const auto [row_begin, row_end] = tested != nullptr
                                         ? RowsTested(g, depth, *tested)
                                         : std::pair<int, int>{0, depth.size.height_px};
-  DilateDepthPanorama(depth, kCameraSampleRadiusPx, row_begin, row_end);
-  SourceRecords out;
+  DilateDepthPanorama(depth, view.dilate_px, row_begin, row_end);
+  out.vis = ComputeVisibility(g, depth, tau, tested, view.slope_pixels);
+  if (cam.pinhole) {
+    // Nothing outside a pinhole photo's field is recorded, so no change there can alter its
+    // records: its reach is 0 beyond the field, widened by the widest a test reads (a vossel's
+    // patch, √2·h across at the nearest vossel's range, and the dilation and rounding pixels).
+    const double patch_rad =
+        std::asin(std::min(1.0, std::sqrt(2.0) * g.vossel_size_m / std::max(nearest_m, 1e-9)));
+    MaskOutsideCone(depth, Eigen::Vector3d::UnitZ(),
+                    proj.HalfFieldRad() + patch_rad + (kCameraSampleRadiusPx + 2) * pitch);
+  }
+  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  return out;
+}
+
+namespace {
+
+// The camera with its image: `stored`'s own, or decoded through its `load` into `loaded`.
+absl::StatusOr<const CameraSource*> WithImage(const CameraSource& stored, CameraSource& loaded) {
+  if (stored.image.pixels.empty() && stored.load) {
+    absl::StatusOr<LinearImage> image = stored.load();
+    if (!image.ok()) return image.status();
+    loaded = stored;
+    loaded.image = std::move(*image);
+    return &loaded;
+  }
+  if (stored.image.pixels.empty()) {
+    return absl::InternalError("CameraRecords: a camera source has neither an image nor a loader");
+  }
+  return &stored;
+}
+
+// §9 then §3-§6 for a camera with its image at hand (`loaded` when decoded for this call).
+SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const CameraSource& cam,
+                                  CameraSource& loaded, SourceVisibility visibility) {
   // §9: the artefacts of the image as recorded; then its channels' fringing corrected before
   // any colour is read from it.
   const ArtefactMaps artefacts = DetectArtefacts(cam.image, /*wrap=*/!cam.pinhole);
@@ -412,21 +483,43 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
       sampled = &corrected;
     }
   }
-  out.records = SampleCamera(
-      g, *sampled, ComputeVisibility(g, depth, tau, tested, 1 + kCameraSampleRadiusPx),
-      artefacts);
+  SourceRecords out;
+  out.records = SampleCamera(g, *sampled, visibility.vis, artefacts);
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
-  if (cam.pinhole) {
-    // Nothing outside a pinhole photo's field is recorded, so no change there can alter its
-    // records: its reach is 0 beyond the field, widened by the widest a test reads (a vossel's
-    // patch, √2·h across at the nearest vossel's range, and the dilation and rounding pixels).
-    const double patch_rad =
-        std::asin(std::min(1.0, std::sqrt(2.0) * g.vossel_size_m / std::max(nearest_m, 1e-9)));
-    MaskOutsideCone(depth, Eigen::Vector3d::UnitZ(),
-                    proj.HalfFieldRad() + patch_rad + (kCameraSampleRadiusPx + 2) * pitch);
-  }
-  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  out.reach = std::move(visibility.reach);
   return out;
+}
+
+}  // namespace
+
+absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
+                                            const CameraSource& stored,
+                                            const std::vector<uint8_t>* only,
+                                            const std::vector<uint8_t>* context) {
+  CameraSource loaded;  // holds a decoded image only while this camera is sampled
+  absl::StatusOr<const CameraSource*> cam = WithImage(stored, loaded);
+  if (!cam.ok()) return cam.status();
+  const LinearImage& image = (*cam)->image;
+  return SampleWithArtefacts(
+      g, **cam, loaded,
+      CameraVisibility(g, **cam, image.width_px, image.height_px, only, context));
+}
+
+absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
+                                            const CameraSource& stored,
+                                            SourceVisibility visibility) {
+  CameraSource loaded;
+  absl::StatusOr<const CameraSource*> cam = WithImage(stored, loaded);
+  if (!cam.ok()) return cam.status();
+  const LinearImage& image = (*cam)->image;
+  const DepthView view = CameraDepthView(**cam, image.width_px, image.height_px);
+  if (view.size.width_px != visibility.depth.size.width_px ||
+      view.size.height_px != visibility.depth.size.height_px) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "CameraRecords: source ", stored.id, "'s image is ", image.width_px, "x",
+        image.height_px, ", not the size its visibility was found for"));
+  }
+  return SampleWithArtefacts(g, **cam, loaded, std::move(visibility));
 }
 
 }  // namespace vasl::ingest

@@ -6,6 +6,7 @@
 #include <optional>
 #include <vector>
 
+#include "lattice/geometry/footprint.h"
 #include "lattice/geometry/image_projection.h"
 #include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/sources.h"
@@ -56,6 +57,58 @@ struct SourceRecords {
   tiles::ReachRaster reach;
 };
 
+/// Angular sampling of a source's depth panorama (radians per pixel): a LiDAR's from its point
+/// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's its
+/// ImageProjection::PitchRad. Fixed per source, so a revisit sees the same raster.
+double LidarDepthPitchRad(size_t point_count);
+/// Pixels by which a camera's depth panorama is dilated (see DilateDepthPanorama).
+int CameraSampleRadiusPx();
+
+/// How a source's §5 visibility tests read its depth panorama: the raster, the splats' growth,
+/// the pixels of the slope-scaled tolerance and of a camera's dilation. The records
+/// (LidarRecords, CameraRecords) and an ingest's check of which tests a change can alter read
+/// it from here, so both see the same tests.
+struct DepthView {
+  geometry::EquirectSize size;  ///< the depth panorama's raster (DepthPanoramaSize)
+  double divergence_rad = 0.0;  ///< RenderDepthPanorama's splat growth
+  int slope_pixels = 1;         ///< ComputeVisibility's slope_pixels
+  int dilate_px = 0;            ///< DilateDepthPanorama's radius (0: none)
+};
+/// A LiDAR's (or its point colour's) view from its point count and beam divergence.
+DepthView LidarDepthView(size_t point_count, double divergence_rad);
+/// A camera's view of a width_px × height_px image (its image need not be decoded).
+DepthView CameraDepthView(const CameraSource& camera, int width_px, int height_px);
+
+/// §5 for one source, before any of its points or pixels is read: its depth panorama of the
+/// geometry (splatting the `context` vossels; all without), the visibility V of the vossels its
+/// records can be made for (`only`, all without; of a pinhole camera those its image holds;
+/// 0 elsewhere), and its reach raster. LidarVisibility / CameraVisibility then the records'
+/// sampling are what LidarRecords / CameraRecords do.
+struct SourceVisibility {
+  DepthPanorama depth;       ///< as the tests read it (a camera's dilated on the rows they read)
+  std::vector<float> vis;    ///< V per vossel
+  tiles::ReachRaster reach;  ///< of the depth (a pinhole camera's 0 beyond its field)
+};
+SourceVisibility LidarVisibility(const records::VosselGeometry& geometry,
+                                 const geometry::Pose& pose, const DepthView& view,
+                                 const std::vector<uint8_t>* only = nullptr,
+                                 const std::vector<uint8_t>* context = nullptr);
+/// A camera's, for an image of width_px × height_px (its image need not be decoded).
+SourceVisibility CameraVisibility(const records::VosselGeometry& geometry,
+                                  const CameraSource& camera, int width_px, int height_px,
+                                  const std::vector<uint8_t>* only = nullptr,
+                                  const std::vector<uint8_t>* context = nullptr);
+
+/// The geometric terms of a record of returns on vossel k (§3, on its record frame), as
+/// SampleLidar makes them; false when k's frame lies at the sensor (no record).
+struct ReturnTerms {
+  double range_m = 0.0, cos_inc = 0.0;
+  geometry::SurfaceFootprint foot;
+  Eigen::Vector2d uv = Eigen::Vector2d::Zero();  ///< on the depth panorama's raster
+};
+bool ReturnTermsOf(const records::VosselGeometry& geometry, size_t k, const geometry::Pose& pose,
+                   double divergence_rad, const geometry::EquirectSize& size, ReturnTerms* out);
+
 /// §5 then §3-§6 for one LiDAR: depth panorama of `geometry` from the LiDAR, visibility,
 /// records. With `only` (a flag per vossel) records are made for the flagged vossels alone;
 /// with `context` the depth panorama splats only the flagged vossels (it must flag every vossel
@@ -76,11 +129,15 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geome
                                             const std::vector<uint8_t>* only = nullptr,
                                             const std::vector<uint8_t>* context = nullptr);
 
-/// Angular sampling of a source's depth panorama (radians per pixel): a LiDAR's from its point
-/// count (its returns spread over the sphere, W·H ≈ 2·H² ≈ points), a camera's its
-/// ImageProjection::PitchRad. Fixed per source, so a revisit sees the same raster.
-double LidarDepthPitchRad(size_t point_count);
-/// Pixels by which a camera's depth panorama is dilated (see DilateDepthPanorama).
-int CameraSampleRadiusPx();
+/// The records of a source whose visibility is known (LidarVisibility, CameraVisibility on the
+/// same geometry and source): the sampling alone. A camera's image must have the size its
+/// visibility was found for (FAILED_PRECONDITION otherwise).
+SourceRecords LidarRecords(const records::VosselGeometry& geometry, const LidarSource& lidar,
+                           SourceVisibility visibility);
+SourceRecords PointColourRecords(const records::VosselGeometry& geometry, const LidarSource& lidar,
+                                 SourceVisibility visibility);
+absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& geometry,
+                                            const CameraSource& camera,
+                                            SourceVisibility visibility);
 
 }  // namespace vasl::ingest

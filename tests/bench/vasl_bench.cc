@@ -101,8 +101,9 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels) {
   lidar.elevation_steps = 720;
   std::printf("\ngrowth: corridor site, %zu stations, h 0.05 m, tiles of %d vossels\n",
               site.Stations().size(), settings.tile_vossels);
-  std::printf("%-8s %8s %9s %9s %9s %8s %8s %9s %11s %11s\n", "ingest", "seconds", "vossels",
-              "records", "revisited", "pairs", "blocks", "peak_MB", "written_MB", "total_MB");
+  std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %11s %11s\n", "ingest", "seconds",
+              "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "peak_MB",
+              "written_MB", "total_MB");
   std::vector<double> seconds;
   for (size_t n = 0; n < site.Stations().size(); ++n) {
     lidar.seed = uint64_t(n + 1);
@@ -123,10 +124,11 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels) {
       else if (stage.rfind("records of", 0) == 0) own += sec;
       else rest += absl::StrFormat(" %s %.2f;", stage, sec);
     }
-    std::printf("%-8s %8.2f %9lld %9lld %9lld %8lld %8lld %9.0f %11.1f %11.1f   revisits %.2f; "
-                "own sources %.2f;%s\n",
+    std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.0f %11.1f %11.1f   revisits "
+                "%.2f; own sources %.2f;%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
+                (long long)r->sources_refreshed,
                 (long long)r->pairs_revisited, (long long)r->blocks_revisited, peak,
                 r->bytes_written / 1e6,
                 versions->back().bytes_total / 1e6, revisit, own, rest.c_str());

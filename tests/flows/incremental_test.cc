@@ -534,5 +534,53 @@ TEST(IncrementalTest, NewObjectShadowsExactlyTheRecordsBehindIt) {
   fs::remove_all(root);
 }
 
+// Claim (change.h RefreshedRecords): where a change only moves visibility, an older LiDAR's
+// records are refreshed from themselves without its points. A cube put in front of the room's
+// walls appears where neither older LiDAR has a return and changes no frame of theirs, so both
+// are refreshed: their blobs are moved away for that ingest and it still succeeds. The cameras
+// see the cube's new faces and read their images. Then the project equals a rebuild.
+TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints) {
+  const fs::path root = TestRoot("refresh");
+  auto engine = OpenEngine(root);
+  CreateProject(*engine, "room");
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  for (size_t i = 0; i < 2; ++i) {
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    Ingest(*engine, "room", *scan);
+  }
+  // The LiDARs' point blobs, moved aside: a revisit that read one would fail.
+  std::vector<std::string> moved;
+  const std::vector<store::ScanInfo> scans = *OpenStore(root, "room")->ListScans();
+  for (const store::ScanInfo& s : scans) {
+    for (const store::SourceInfo& src : s.sources) {
+      if (src.modality != records::Modality::kLidar) continue;
+      fs::rename(root / "room" / "blobs" / src.blob_sha256, root / src.blob_sha256);
+      moved.push_back(src.blob_sha256);
+    }
+  }
+  ASSERT_EQ(moved.size(), 2u);
+  const scenes::Aabb& bounds = room.RoomBounds();
+  scenes::Aabb cube;
+  cube.min_m = Eigen::Vector3d(bounds.max_m.x() - 1.4, bounds.min_m.y() + 1.2, 0.6);
+  cube.max_m = cube.min_m + Eigen::Vector3d(0.6, 0.6, 0.6);
+  geometry::Pose pose;
+  pose.o_world = Eigen::Vector3d(bounds.max_m.x() - 2.5, bounds.min_m.y() + 2.6, 1.4);
+  auto r = engine->IngestScan("room", BoxOnlyScan(cube, pose, 0.01));
+  ASSERT_TRUE(r.ok()) << r.status();
+  std::printf("  cube: %lld older sources revisited, %lld refreshed without their blob\n",
+              (long long)r->sources_revisited, (long long)r->sources_refreshed);
+  EXPECT_EQ(r->sources_refreshed, 2);
+  EXPECT_GT(r->sources_revisited, r->sources_refreshed);  // a camera sees the cube's faces
+  for (const std::string& sha : moved) fs::rename(root / sha, root / "room" / "blobs" / sha);
+  auto rebuilt = engine->Rebuild("room");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  auto st = OpenStore(root, "room");
+  const Diff d = CompareProjects(*st, 3, *st, 4);
+  d.Print("cube: incremental v3 vs rebuild v4");
+  ExpectSame(d);
+  fs::remove_all(root);
+}
+
 }  // namespace
 }  // namespace vasl

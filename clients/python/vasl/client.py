@@ -51,7 +51,7 @@ class VaslError(Exception):
 
 def _change_stats(c) -> ChangeStats:
     return ChangeStats(c.sources_computed, c.sources_revisited, c.pairs_revisited, c.tiles_changed,
-                       c.bytes_written, c.blocks_revisited)
+                       c.bytes_written, c.blocks_revisited, c.sources_refreshed)
 
 
 def _change(r) -> ChangeResult:

@@ -197,6 +197,7 @@ class ChangeStats:
     tiles_changed: int = 0  #: tiles whose objects the commit wrote
     bytes_written: int = 0  #: bytes the commit wrote
     blocks_revisited: int = 0  #: (older source, 16³-vossel block) pairs recomputed
+    sources_refreshed: int = 0  #: of those revisited, refreshed from their records (no blob)
 
 
 @dataclass
