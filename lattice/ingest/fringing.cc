@@ -69,7 +69,11 @@ std::pair<double, double> ChannelShift::Offset(int channel, double x, double y) 
   const int x0 = int(std::floor(tx)), y0 = int(std::floor(ty));
   const double fx = tx - x0, fy = ty - y0;
   auto at = [&](int i, int j, const std::vector<float>& field) {
-    i = wrap ? ((i % tiles_x) + tiles_x) % tiles_x : std::clamp(i, 0, tiles_x - 1);
+    if (!wrap) {
+      i = std::clamp(i, 0, tiles_x - 1);
+    } else if (i < 0 || i >= tiles_x) {
+      i = ((i % tiles_x) + tiles_x) % tiles_x;
+    }
     j = std::clamp(j, 0, tiles_y - 1);
     return double(field[(size_t(j) * tiles_x + size_t(i)) * 2 + size_t(c)]);
   };
@@ -209,10 +213,21 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
           CatmullRom(float(sx - x0), kx);
           CatmullRom(float(sy - y0), ky);
           float v = 0.0f;
-          for (int j = 0; j < 4; ++j) {
-            float row = 0.0f;
-            for (int i = 0; i < 4; ++i) row += kx[i] * value(x0 - 1 + i, y0 - 1 + j, c);
-            v += ky[j] * row;
+          if (x0 >= 1 && x0 + 2 < W && y0 >= 1 && y0 + 2 < H) {
+            // Inside the image: the 4×4 taps read straight from the rows (the same sums).
+            const size_t stride = size_t(W) * C;
+            const float* tap = &raw[(size_t(y0 - 1) * W + size_t(x0 - 1)) * C + size_t(c)];
+            for (int j = 0; j < 4; ++j, tap += stride) {
+              float row = 0.0f;
+              for (int i = 0; i < 4; ++i) row += kx[i] * tap[size_t(i) * C];
+              v += ky[j] * row;
+            }
+          } else {
+            for (int j = 0; j < 4; ++j) {
+              float row = 0.0f;
+              for (int i = 0; i < 4; ++i) row += kx[i] * value(x0 - 1 + i, y0 - 1 + j, c);
+              v += ky[j] * row;
+            }
           }
           // The cubic's overshoot at an edge stays within the clip and above 0.
           v = std::clamp(v, 0.0f, image.clip_value);
