@@ -220,6 +220,7 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
   const store::Snapshot& snapshot = *snap;
   render::ViewBlendInputs blend;
   std::vector<float> lens_values;
+  std::shared_ptr<const fusion::RecordValues> lens_reader;  // profile.lens: values as fused
   absl::StatusOr<fusion::RecordWeightsResult> weights;
   absl::StatusOr<std::unique_ptr<SourceTable>> sources;
   const bool detail = request.colour_detail == render::ColourDetail::kSourceImages;
@@ -237,12 +238,14 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
       absl::StatusOr<fusion::RecordValues> values =
           fusion::RecordValues::Of(profile, snapshot.records);
       if (!values.ok()) return values.status();
+      lens_reader = std::make_shared<const fusion::RecordValues>(std::move(*values));
+      const fusion::RecordValues* reader = lens_reader.get();
       lens_values.resize(snapshot.records.size() * records::kValueChannels);
       tbb::parallel_for(tbb::blocked_range<size_t>(0, snapshot.records.size(), 4096),
                         [&](const tbb::blocked_range<size_t>& r) {
         for (size_t i = r.begin(); i != r.end(); ++i) {
           double v[records::kValueChannels];
-          values->Read(i, v);
+          reader->Read(i, v);
           for (int c = 0; c < records::kValueChannels; ++c) {
             lens_values[i * records::kValueChannels + c] = float(v[c]);
           }
@@ -266,6 +269,14 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
         &image->detail_sources_skipped);
     if (!images.ok()) return images.status();
     blend.images = std::move(*images);
+    if (lens_reader != nullptr) {  // §9: each image's samples corrected as its records are
+      for (size_t m = 0; m < blend.images.size(); ++m) {
+        if (!blend.images[m].image) continue;
+        blend.images[m].correct = [lens_reader, m](const float* uv, float* rgb) {
+          lens_reader->CorrectImageSample(int32_t(m), uv, rgb);
+        };
+      }
+    }
     if (absl::Status s = render::ApplyColourDetail(snapshot.geometry, request, blend, &*image);
         !s.ok()) {
       return s;

@@ -96,6 +96,14 @@ float RecordValues::Read(size_t i, double* out) const {
   return conf;
 }
 
+void RecordValues::CorrectImageSample(int32_t source, const float* uv, float* value) const {
+  if (source < 0 || size_t(source) >= lens_.size() || lens_[size_t(source)].first == nullptr) {
+    return;
+  }
+  const auto& [map, gain] = lens_[size_t(source)];
+  AdjustForLens(*map, *gain, uv, value);
+}
+
 float RecordValues::LensConfidence(size_t i) const {
   const int32_t s = recs_->scan[i];
   if (s < 0 || lens_[size_t(s)].first == nullptr) return 1.0f;

@@ -31,6 +31,9 @@ class RecordValues {
   float Read(size_t i, double* out) const;
   /// The conf[dirt] factor alone.
   float LensConfidence(size_t i) const;
+  /// A colour read from source `source`'s own image at continuous pixel (uv[0], uv[1]) corrected
+  /// in place as Read corrects its records' values there (§9 lens map; a_{m,c} not applied).
+  void CorrectImageSample(int32_t source, const float* uv, float* value) const;
 
  private:
   RecordValues(const records::RecordSet& records) : recs_(&records) {}

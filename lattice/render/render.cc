@@ -302,6 +302,10 @@ bool BlendRecords(const ViewBlendInputs& blend, const records::VosselGeometry& g
       const DetailImage& img = blend.images[size_t(src)];
       if (const std::optional<Eigen::Vector2d> uv = ImagePixel(img, *x_hit)) {
         geometry::SampleBilinear(*img.image, uv->x(), uv->y(), img.projection.panorama(), sample);
+        if (img.correct) {
+          const float at[2] = {float(uv->x()), float(uv->y())};
+          img.correct(at, sample);
+        }
         value = sample;
         gained = size_t(src) < blend.channel_gain.size();
         if (used != nullptr) (*used)[size_t(src)] = 1;

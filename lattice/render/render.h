@@ -111,6 +111,9 @@ struct DetailImage {
   geometry::Pose pose;                  ///< T_world_camera, the lattice frame
   geometry::ImageProjection projection; ///< of `image` (its width and height)
   std::shared_ptr<const geometry::LinearImage> image;  ///< 3 channels, linear; null: none
+  /// Corrects a colour read at continuous pixel uv in place as the profile reads the source's
+  /// records there (fusion::RecordValues::CorrectImageSample: the §9 lens map); empty: none.
+  std::function<void(const float* uv, float* rgb)> correct;
 };
 
 /// What the §8 view term (η > 0) reads besides the fused values: every vossel's records with
@@ -159,7 +162,8 @@ struct ViewBlendInputs {
 /// keeps its vossel indices) from the sources' images at each pixel's own point (§8,
 /// ColourDetail::kSourceImages): C = Σ w·f·a·I_m(π_m(x)) / Σ w·f over the hit vossel's rgb and
 /// derived records of positive weight w (f = max(0, v_{k,m}·v_{k,o})^η, 1 when η = 0; a the
-/// channel gain), with I_m(π_m(x)) replaced by C_{k,m} where source m has no image. Pixels
+/// channel gain), I_m(π_m(x)) corrected by its DetailImage::correct (a §9 lens map) and
+/// replaced by C_{k,m} where source m has no image. Pixels
 /// without colour stay so; sets image.detail_sources. Parallel over rows (TBB).
 /// @return INVALID_ARGUMENT when the image kept no vossel indices or the blend inputs are
 ///         missing or disagree with the geometry.
