@@ -369,11 +369,16 @@ namespace {
 
 /// Sources revisited at once: each holds its decoded image or points while it is computed.
 constexpr int kMaxConcurrentRevisits = 4;
+/// Bytes of decoded images revisits may hold at once: fewer sources run together when their
+/// images are large (one at a time from 8192×4096 up, which decode to 400 MB each).
+constexpr int64_t kRevisitImageBytes = int64_t{512} << 20;
 
-/// Step 4 of Propagate: recomputes each revisited source on its blocks from its blob and merges
-/// its records and reach raster into `next`. Sources run concurrently (at most
-/// kMaxConcurrentRevisits, and no more than the threads) and merge in source-id order, so the
-/// result does not depend on which finishes first.
+/// Step 4 of Propagate: finds each revisited source's visibility on its blocks, refreshes its
+/// records from themselves where that is exact (RefreshedRecords) or recomputes them from its
+/// blob, and merges them and its reach raster into `next`. Sources run concurrently (at most
+/// kMaxConcurrentRevisits, no more than the threads, and within kRevisitImageBytes of decoded
+/// images) and merge in source-id order, so the result does not depend on which finishes
+/// first.
 absl::Status RevisitSources(const store::ProjectStore& store, const store::Snapshot& old,
                             const records::VosselGeometry& g,
                             const std::map<int32_t, std::set<tiles::TileKey>>& revisit,
@@ -410,7 +415,15 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
   const double span = 0.3 / double(order.size() + 1);
   size_t next_job = 0;
   absl::Status status;
-  const int tokens = std::clamp(tbb::this_task_arena::max_concurrency(), 1, kMaxConcurrentRevisits);
+  int64_t largest_image = 1;
+  for (const SourceRef* src : order) {
+    largest_image = std::max(largest_image, int64_t(src->info.width_px) * src->info.height_px *
+                                                3 * int64_t(sizeof(float)));
+  }
+  const int tokens = int(std::clamp<int64_t>(
+      std::min<int64_t>(tbb::this_task_arena::max_concurrency(),
+                        kRevisitImageBytes / largest_image),
+      1, kMaxConcurrentRevisits));
   tbb::parallel_pipeline(
       size_t(tokens),
       tbb::make_filter<void, std::shared_ptr<Job>>(
