@@ -146,6 +146,10 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     }
     vossels->appeared.resize(now.size());
     for (size_t n = 0; n < now.size(); ++n) vossels->appeared[n] = has_old[n] ? 0 : 1;
+    vossels->new_to_old.assign(now.size(), -1);
+    for (size_t v = 0; v < old_to_new.size(); ++v) {
+      if (old_to_new[v] >= 0) vossels->new_to_old[size_t(old_to_new[v])] = int32_t(v);
+    }
     vossels->changed_new = std::move(new_changed);
     vossels->changed_old = std::move(old_changed);
   }
@@ -302,6 +306,7 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectSt
 
 std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
                                                    records::RecordSet before,
+                                                   const records::VosselGeometry& old_geometry,
                                                    const records::VosselGeometry& geometry,
                                                    const ChangedVossels& changed,
                                                    const std::vector<uint8_t>& only,
@@ -334,32 +339,55 @@ std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
     keep.push_back(i);
   }
   // Seen now and not recorded before: a record may begin here, from the source's points or
-  // pixels; except that an older LiDAR has no return in a vossel that appeared after it, and
-  // that an unchanged vossel seen before too was left unrecorded for good (no return of the
-  // LiDAR in it, outside the photo). It was seen before when the old splats of the changed
-  // vossels lie behind all its samples: a sample lit now has D_rest ≥ its threshold, and
-  // D_before = min(D_rest, S_old) then was too.
-  std::vector<uint8_t> unrecorded(geometry.size(), 0);
-  bool any = false;
+  // pixels; except where the source was sure to record nothing: an older LiDAR has no return
+  // in a vossel that appeared after it, and a vossel seen before too was left unrecorded for
+  // good (an unchanged one: no return of the LiDAR in it, or outside the photo; one whose frame
+  // changed: no return of the LiDAR in it). With D_rest the depth of the vossels the change
+  // left alone (D_now = min(D_rest, S_new) ≥ its new threshold at a lit sample, D_before =
+  // min(D_rest, S_old) with S_old the changed vossels' old splats):
+  //   - an unchanged vossel was seen before when S_old lies behind all its samples, since a
+  //     sample lit now has D_rest ≥ its threshold, and D_before was then too;
+  //   - a reframed vossel was seen before when some sample of its old frame lies nearer than
+  //     min(D_now, S_old) ≤ D_before (the revisit's D_now is exact on its blocks).
+  std::vector<uint8_t> unrecorded(geometry.size(), 0), reframed(old_geometry.size(), 0);
+  bool any_unrecorded = false, any_reframed = false;
   for (size_t k = 0; k < geometry.size(); ++k) {
     if (!only[k] || recorded[k] || !(visibility.vis[k] > 0.0f)) continue;
     if (returns && changed.appeared[k]) continue;
-    if (changed.changed_new[k]) return std::nullopt;
-    unrecorded[k] = 1;
-    any = true;
+    if (!changed.changed_new[k]) {
+      unrecorded[k] = 1;
+      any_unrecorded = true;
+    } else if (returns && changed.new_to_old[k] >= 0) {
+      reframed[size_t(changed.new_to_old[k])] = 1;
+      any_reframed = true;
+    } else {
+      return std::nullopt;
+    }
   }
-  if (any && changed.old_splats.size() > 0) {
+  if ((any_unrecorded || any_reframed) && changed.old_splats.size() > 0) {
     const ingest::DepthView view = ViewOf(source);
+    const double tau_m = ingest::DepthToleranceM(geometry.vossel_size_m);
     ingest::DepthPanorama s_old = ingest::RenderDepthPanorama(
         changed.old_splats, source.info.pose, view.size, view.divergence_rad);
     ingest::DilateDepthPanorama(s_old, view.dilate_px);
-    const std::vector<float> lit =
-        ingest::ComputeVisibility(geometry, s_old, ingest::DepthToleranceM(geometry.vossel_size_m),
-                                  &unrecorded, view.slope_pixels);
-    for (size_t k = 0; k < geometry.size(); ++k) {
-      if (unrecorded[k] && lit[k] < 1.0f) return std::nullopt;
+    if (any_unrecorded) {
+      const std::vector<float> lit =
+          ingest::ComputeVisibility(geometry, s_old, tau_m, &unrecorded, view.slope_pixels);
+      for (size_t k = 0; k < geometry.size(); ++k) {
+        if (unrecorded[k] && lit[k] < 1.0f) return std::nullopt;
+      }
     }
-  }
+    if (any_reframed) {  // a LiDAR's: its panorama is not dilated
+      for (size_t p = 0; p < s_old.depth_m.size(); ++p) {
+        s_old.depth_m[p] = std::min(s_old.depth_m[p], visibility.depth.depth_m[p]);
+      }
+      const std::vector<float> lit =
+          ingest::ComputeVisibility(old_geometry, s_old, tau_m, &reframed, view.slope_pixels);
+      for (size_t v = 0; v < old_geometry.size(); ++v) {
+        if (reframed[v] && !(lit[v] > 0.0f)) return std::nullopt;
+      }
+    }
+  }  // (a reframed vossel has an old splat: with none, nothing is to check)
   records::RecordSet out = before.Select(keep);
   records::RoundToStorage(out);
   return out;
@@ -476,7 +504,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                                              : old.records.Select(mine->second);
                 for (int32_t& v : before.vossel) v = old_to_new[size_t(v)];
                 if (std::optional<records::RecordSet> kept = RefreshedRecords(
-                        src, std::move(before), g, changed, only, visibility)) {
+                        src, std::move(before), old.geometry, g, changed, only, visibility)) {
                   job->computed = ingest::SourceRecords{std::move(*kept),
                                                         std::move(visibility.reach)};
                   job->refreshed = true;

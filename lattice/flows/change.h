@@ -96,6 +96,7 @@ struct ChangedVossels {
   std::vector<uint8_t> appeared;     ///< per new vossel: no old vossel became it
   std::vector<uint8_t> changed_new;  ///< per new vossel: appeared, or its record frame changed
   std::vector<uint8_t> changed_old;  ///< per old vossel: vanished, or its record frame changed
+  std::vector<int32_t> new_to_old;   ///< per new vossel: the old vossel it was, or −1
   /// The changed_old vossels in their old state, as depth panoramas splat them (each one's
   /// frame centroid and normal as its surface).
   records::VosselGeometry old_splats;
@@ -161,11 +162,13 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectSt
 /// the mean of its returns does not depend on the frame). nullopt when some record needs the
 /// source's points or pixels: a camera's on a changed frame, or a vossel seen now that the
 /// source did not record before, unless it is a LiDAR's and the vossel appeared after it (its
-/// returns made every vossel they fell in) or the vossel's frame is unchanged and it was seen
-/// before too (the changed vossels' old splats lie behind its samples): then it was left
-/// unrecorded for good.
+/// returns made every vossel they fell in) or the vossel was seen before too, so that it was
+/// left unrecorded for good: an unchanged vossel whose samples the changed vossels' old splats
+/// lie behind, or a LiDAR's vossel whose frame changed and one of whose old samples lay nearer
+/// than min(its depth now, those old splats). `old_geometry`: the geometry before the change.
 std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
                                                    records::RecordSet before,
+                                                   const records::VosselGeometry& old_geometry,
                                                    const records::VosselGeometry& geometry,
                                                    const ChangedVossels& changed,
                                                    const std::vector<uint8_t>& only,
