@@ -179,6 +179,18 @@ std::unique_ptr<store::ProjectStore> OpenStore(const fs::path& root, const std::
   return std::move(*st);
 }
 
+// Rebuilds project "room" (its next version) and expects it to equal version `incremental`.
+void ExpectRebuildEquals(Engine& engine, const fs::path& root, int64_t incremental,
+                         const char* what) {
+  auto rebuilt = engine.Rebuild("room");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  ASSERT_EQ(rebuilt->version, incremental + 1);
+  auto st = OpenStore(root, "room");
+  const Diff d = CompareProjects(*st, incremental, *st, incremental + 1);
+  d.Print(what);
+  ExpectSame(d);
+}
+
 // Ingests the room's 4 scans one at a time (their points coloured with `point_colour`), then
 // rebuilds: the incremental HEAD is v4, the rebuild v5.
 void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what,
@@ -241,12 +253,8 @@ TEST(IncrementalTest, CameraOnlyScanBetweenLidarScansEqualsRebuild) {
     ASSERT_TRUE(scan.ok()) << scan.status();
     Ingest(*engine, "room", *scan);
   }
-  auto rebuilt = engine->Rebuild("room");
-  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
-  auto st = OpenStore(root, "room");
-  const Diff d = CompareProjects(*st, 5, *st, 6);
-  d.Print("room with a camera-only scan: incremental v5 vs rebuild v6");
-  ExpectSame(d);
+  ExpectRebuildEquals(*engine, root, 5, "room with a camera-only scan: incremental v5 vs "
+                      "rebuild v6");
   fs::remove_all(root);
 }
 
@@ -465,6 +473,33 @@ bool SegmentHitsBox(const Eigen::Vector3d& o, const Eigen::Vector3d& x, const sc
   return true;
 }
 
+// Project "room" with the room's first two scans.
+void IngestTwoRoomScans(Engine& engine, const scenes::SyntheticRoom& room) {
+  CreateProject(engine, "room");
+  for (size_t i = 0; i < 2; ++i) {
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    Ingest(engine, "room", *scan);
+  }
+}
+
+// A 0.6 m cube between the room's stations and wall x = max, away from the room's own box.
+scenes::Aabb CubeBeforeTheWall(const scenes::SyntheticRoom& room) {
+  const scenes::Aabb& bounds = room.RoomBounds();
+  scenes::Aabb cube;
+  cube.min_m = Eigen::Vector3d(bounds.max_m.x() - 1.4, bounds.min_m.y() + 1.2, 0.6);
+  cube.max_m = cube.min_m + Eigen::Vector3d(0.6, 0.6, 0.6);
+  return cube;
+}
+
+// A scan of that cube alone, from a station beside it.
+ingest::ScanInput CubeScan(const scenes::SyntheticRoom& room) {
+  const scenes::Aabb& bounds = room.RoomBounds();
+  geometry::Pose pose;
+  pose.o_world = Eigen::Vector3d(bounds.max_m.x() - 2.5, bounds.min_m.y() + 2.6, 1.4);
+  return BoxOnlyScan(CubeBeforeTheWall(room), pose, 0.01);
+}
+
 // Claim (§5): adding a scan that puts a new object in front of older scans' walls turns exactly
 // the older records behind it to shadow: every older record whose line of sight the object
 // blocks (by more than the vossel and footprint margins) is gone, and every other older record
@@ -472,13 +507,8 @@ bool SegmentHitsBox(const Eigen::Vector3d& o, const Eigen::Vector3d& x, const sc
 TEST(IncrementalTest, NewObjectShadowsExactlyTheRecordsBehindIt) {
   const fs::path root = TestRoot("revis");
   auto engine = OpenEngine(root);
-  CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
-  for (size_t i = 0; i < 2; ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
-    ASSERT_TRUE(scan.ok()) << scan.status();
-    Ingest(*engine, "room", *scan);
-  }
+  ASSERT_NO_FATAL_FAILURE(IngestTwoRoomScans(*engine, room));
   auto st = OpenStore(root, "room");
   auto before = *st->LoadSnapshot(2);
   std::map<int32_t, Eigen::Vector3d> origin;
@@ -486,14 +516,8 @@ TEST(IncrementalTest, NewObjectShadowsExactlyTheRecordsBehindIt) {
   for (const store::ScanInfo& s : scans) {
     for (const store::SourceInfo& src : s.sources) origin[src.id] = src.pose.o_world;
   }
-  // A 0.6 m cube between the stations and wall x = max, away from the room's own box.
-  const scenes::Aabb& bounds = room.RoomBounds();
-  scenes::Aabb cube;
-  cube.min_m = Eigen::Vector3d(bounds.max_m.x() - 1.4, bounds.min_m.y() + 1.2, 0.6);
-  cube.max_m = cube.min_m + Eigen::Vector3d(0.6, 0.6, 0.6);
-  geometry::Pose pose;
-  pose.o_world = Eigen::Vector3d(bounds.max_m.x() - 2.5, bounds.min_m.y() + 2.6, 1.4);
-  Ingest(*engine, "room", BoxOnlyScan(cube, pose, 0.01));
+  const scenes::Aabb cube = CubeBeforeTheWall(room);
+  Ingest(*engine, "room", CubeScan(room));
   st = OpenStore(root, "room");
   auto after = *st->LoadSnapshot(3);
 
@@ -548,13 +572,8 @@ TEST(IncrementalTest, NewObjectShadowsExactlyTheRecordsBehindIt) {
 TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints) {
   const fs::path root = TestRoot("refresh");
   auto engine = OpenEngine(root);
-  CreateProject(*engine, "room");
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
-  for (size_t i = 0; i < 2; ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), kPanoW, 2);
-    ASSERT_TRUE(scan.ok()) << scan.status();
-    Ingest(*engine, "room", *scan);
-  }
+  ASSERT_NO_FATAL_FAILURE(IngestTwoRoomScans(*engine, room));
   // The LiDARs' point blobs, moved aside: a revisit that read one would fail.
   std::vector<std::string> moved;
   const std::vector<store::ScanInfo> scans = *OpenStore(root, "room")->ListScans();
@@ -566,25 +585,14 @@ TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints
     }
   }
   ASSERT_EQ(moved.size(), 2u);
-  const scenes::Aabb& bounds = room.RoomBounds();
-  scenes::Aabb cube;
-  cube.min_m = Eigen::Vector3d(bounds.max_m.x() - 1.4, bounds.min_m.y() + 1.2, 0.6);
-  cube.max_m = cube.min_m + Eigen::Vector3d(0.6, 0.6, 0.6);
-  geometry::Pose pose;
-  pose.o_world = Eigen::Vector3d(bounds.max_m.x() - 2.5, bounds.min_m.y() + 2.6, 1.4);
-  auto r = engine->IngestScan("room", BoxOnlyScan(cube, pose, 0.01));
+  auto r = engine->IngestScan("room", CubeScan(room));
   ASSERT_TRUE(r.ok()) << r.status();
   std::printf("  cube: %lld older sources revisited, %lld refreshed without their blob\n",
               (long long)r->sources_revisited, (long long)r->sources_refreshed);
   EXPECT_EQ(r->sources_refreshed, 2);
   EXPECT_GT(r->sources_revisited, r->sources_refreshed);  // a camera sees the cube's faces
   for (const std::string& sha : moved) fs::rename(root / sha, root / "room" / "blobs" / sha);
-  auto rebuilt = engine->Rebuild("room");
-  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
-  auto st = OpenStore(root, "room");
-  const Diff d = CompareProjects(*st, 3, *st, 4);
-  d.Print("cube: incremental v3 vs rebuild v4");
-  ExpectSame(d);
+  ExpectRebuildEquals(*engine, root, 3, "cube: incremental v3 vs rebuild v4");
   fs::remove_all(root);
 }
 
