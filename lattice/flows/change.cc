@@ -491,7 +491,9 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                   only[v] = job->blocks->count(block_of[v]) ? 1 : 0;
                   context[v] = job->cone.context.count(block_of[v]) ? 1 : 0;
                 }
-                if (src.derived()) {
+                const bool sized =
+                    src.returns() || (src.info.width_px > 0 && src.info.height_px > 0);
+                if (src.derived() || !sized) {  // no visibility without a size: from the blob
                   job->computed =
                       StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
                   return job;

@@ -271,7 +271,7 @@ bool ReturnTermsOf(const records::VosselGeometry& g, size_t k, const geometry::P
   const Eigen::Vector3d n = NormalOr(g, k, to_sensor / out->range_m);
   out->cos_inc = geometry::CosIncidence(n, x, pose.o_world);
   out->foot = geometry::SurfaceFootprintAt(out->range_m, divergence_rad, out->cos_inc);
-  const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.conjugate().toRotationMatrix();
+  const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.toRotationMatrix().transpose();
   out->uv = geometry::EquirectProject(R_sensor_world * (x - pose.o_world), size);
   return true;
 }
@@ -407,6 +407,8 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
   const double pitch = proj.PitchRad();
   const DepthView view = CameraDepthView(cam, width_px, height_px);
   SourceVisibility out;
+  out.image_w = width_px;
+  out.image_h = height_px;
   out.depth = RenderDepthPanorama(g, cam.pose, view.size, view.divergence_rad, context);
   DepthPanorama& depth = out.depth;
   // A pinhole photo tests only the vossels its image holds (SampleCamera records no other).
@@ -512,9 +514,7 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   absl::StatusOr<const CameraSource*> cam = WithImage(stored, loaded);
   if (!cam.ok()) return cam.status();
   const LinearImage& image = (*cam)->image;
-  const DepthView view = CameraDepthView(**cam, image.width_px, image.height_px);
-  if (view.size.width_px != visibility.depth.size.width_px ||
-      view.size.height_px != visibility.depth.size.height_px) {
+  if (image.width_px != visibility.image_w || image.height_px != visibility.image_h) {
     return absl::FailedPreconditionError(absl::StrCat(
         "CameraRecords: source ", stored.id, "'s image is ", image.width_px, "x",
         image.height_px, ", not the size its visibility was found for"));

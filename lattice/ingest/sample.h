@@ -88,6 +88,7 @@ struct SourceVisibility {
   DepthPanorama depth;       ///< as the tests read it (a camera's dilated on the rows they read)
   std::vector<float> vis;    ///< V per vossel
   tiles::ReachRaster reach;  ///< of the depth (a pinhole camera's 0 beyond its field)
+  int image_w = 0, image_h = 0;  ///< a camera's: the image size it was found for
 };
 SourceVisibility LidarVisibility(const records::VosselGeometry& geometry,
                                  const geometry::Pose& pose, const DepthView& view,
