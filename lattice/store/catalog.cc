@@ -78,6 +78,8 @@ Db::~Db() {
   if (db_) sqlite3_close_v2(db_);
 }
 
+int64_t Db::LastInsertRowId() const { return sqlite3_last_insert_rowid(db_); }
+
 absl::Status Db::Exec(std::string_view sql) {
   char* err = nullptr;
   const std::string text(sql);

@@ -67,6 +67,8 @@ class Db {
   /// Runs one or more SQL statements without results.
   absl::Status Exec(std::string_view sql);
   absl::StatusOr<Stmt> Prepare(std::string_view sql);
+  /// The rowid of the last row an INSERT on this connection added (sqlite3_last_insert_rowid).
+  int64_t LastInsertRowId() const;
   /// The INTERNAL error for the last failure, "<what>: <path>: <sqlite3_errmsg>".
   absl::Status Error(std::string_view what) const;
   const std::filesystem::path& path() const { return path_; }

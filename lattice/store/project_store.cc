@@ -858,11 +858,7 @@ absl::StatusOr<StoredLensMap> ProjectStore::PutLensMap(const std::string& rig,
       impl_->db, "INSERT INTO lens_maps(rig, camera, body, created_utc) VALUES (?1, ?2, ?3, ?4)",
       [&](Stmt& st) { st.Bind(1, rig).Bind(2, camera).Bind(3, text).Bind(4, out.created_utc); });
   if (!s.ok()) return s;
-  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT last_insert_rowid()");
-  if (!st.ok()) return st.status();
-  absl::StatusOr<bool> row = st->Step();
-  if (!row.ok()) return row.status();
-  out.id = st->Int(0);
+  out.id = impl_->db.LastInsertRowId();
   return out;
 }
 
@@ -910,11 +906,7 @@ absl::StatusOr<int64_t> ProjectStore::RecordRender(const RenderRecord& r) {
         st.Bind(14, r.camera).Bind(15, internal::UtcNowIso8601());
       });
   if (!s.ok()) return s;
-  absl::StatusOr<Stmt> st = impl_->db.Prepare("SELECT last_insert_rowid()");
-  if (!st.ok()) return st.status();
-  absl::StatusOr<bool> row = st->Step();
-  if (!row.ok()) return row.status();
-  return st->Int(0);
+  return impl_->db.LastInsertRowId();
 }
 
 absl::StatusOr<RenderRecord> ProjectStore::GetRender(int64_t id) const {
@@ -1324,13 +1316,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
             BindPose(st, 4, scan.pose);
             st.Bind(11, int64_t{scan.batch}).Bind(12, version).Bind(13, now);
           });
-      int64_t scan_id = 0;
-      if (s.ok()) {
-        absl::StatusOr<Stmt> st = im.db.Prepare("SELECT last_insert_rowid()");
-        absl::StatusOr<bool> row = st.ok() ? st->Step() : st.status();
-        if (!row.ok()) s = row.status();
-        else if (*row) scan_id = st->Int(0);
-      }
+      const int64_t scan_id = s.ok() ? im.db.LastInsertRowId() : 0;
       added_scan_id = scan_id;
       run("INSERT INTO scan_lives(scan_id, from_version) VALUES (?1, ?2)",
           [&](Stmt& st) { st.Bind(1, scan_id).Bind(2, version); });
