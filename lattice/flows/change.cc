@@ -109,8 +109,8 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     surface_tiles->insert(block.tile);
   };
   const bool frames = !old.frame.empty() && !now.frame.empty();
-  std::vector<uint8_t> has_old(now.size(), 0), old_changed(old.size(), 0),
-      new_changed(now.size(), 0);
+  std::vector<int32_t> new_to_old(now.size(), -1);
+  std::vector<uint8_t> old_changed(old.size(), 0), new_changed(now.size(), 0);
   for (size_t v = 0; v < old_to_new.size(); ++v) {
     const int32_t n = old_to_new[v];
     if (n < 0) {
@@ -118,7 +118,7 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
       old_changed[v] = 1;
       continue;
     }
-    has_old[size_t(n)] = 1;
+    new_to_old[size_t(n)] = int32_t(v);
     const bool surface = old.point_count[v] != now.point_count[size_t(n)] ||
                          old.centroid_m[v] != now.centroid_m[size_t(n)] ||
                          old.normal[v] != now.normal[size_t(n)];
@@ -131,7 +131,7 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
     }
   }
   for (size_t n = 0; n < now.size(); ++n) {
-    if (!has_old[n]) {
+    if (new_to_old[n] < 0) {
       add(now, n);
       new_changed[n] = 1;
     }
@@ -144,14 +144,8 @@ std::vector<ChangedBlock> ChangedBlocks(const records::VosselGeometry& old,
       vossels->old_splats.centroid_m.push_back(old.FrameCentroid(v));
       vossels->old_splats.normal.push_back(old.FrameNormal(v));
     }
-    vossels->appeared.resize(now.size());
-    for (size_t n = 0; n < now.size(); ++n) vossels->appeared[n] = has_old[n] ? 0 : 1;
-    vossels->new_to_old.assign(now.size(), -1);
-    for (size_t v = 0; v < old_to_new.size(); ++v) {
-      if (old_to_new[v] >= 0) vossels->new_to_old[size_t(old_to_new[v])] = int32_t(v);
-    }
+    vossels->new_to_old = std::move(new_to_old);
     vossels->changed_new = std::move(new_changed);
-    vossels->changed_old = std::move(old_changed);
   }
   std::vector<ChangedBlock> out;
   out.reserve(blocks.size());
@@ -353,11 +347,12 @@ std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
   bool any_unrecorded = false, any_reframed = false;
   for (size_t k = 0; k < geometry.size(); ++k) {
     if (!only[k] || recorded[k] || !(visibility.vis[k] > 0.0f)) continue;
-    if (returns && changed.appeared[k]) continue;
+    const bool appeared = changed.new_to_old[k] < 0;
+    if (returns && appeared) continue;
     if (!changed.changed_new[k]) {
       unrecorded[k] = 1;
       any_unrecorded = true;
-    } else if (returns && changed.new_to_old[k] >= 0) {
+    } else if (returns && !appeared) {
       reframed[size_t(changed.new_to_old[k])] = 1;
       any_reframed = true;
     } else {

@@ -93,12 +93,10 @@ inline int BlockVossels(int T) { return T < 16 ? T : 16; }
 
 /// The vossels a geometry change touched, one by one (ChangedBlocks).
 struct ChangedVossels {
-  std::vector<uint8_t> appeared;     ///< per new vossel: no old vossel became it
   std::vector<uint8_t> changed_new;  ///< per new vossel: appeared, or its record frame changed
-  std::vector<uint8_t> changed_old;  ///< per old vossel: vanished, or its record frame changed
-  std::vector<int32_t> new_to_old;   ///< per new vossel: the old vossel it was, or −1
-  /// The changed_old vossels in their old state, as depth panoramas splat them (each one's
-  /// frame centroid and normal as its surface).
+  std::vector<int32_t> new_to_old;   ///< per new vossel: the old vossel it was, or −1 (appeared)
+  /// The old vossels that vanished or whose record frame changed, in their old state, as depth
+  /// panoramas splat them (each one's frame centroid and normal as its surface).
   records::VosselGeometry old_splats;
 };
 
