@@ -167,16 +167,18 @@ struct CodecMap {
 
 /// Finds codec artefacts (§9) in an image decoded from a JPEG (LinearImage::coding).
 /// @details In the codec's own domain (8-bit sRGB codes as JFIF Y'CbCr, 8×8 blocks from the
-///          corner), each block's luma coefficients are taken again: a coefficient that
-///          survived quantisation carries an error of q²/12 (q its step in the file's table);
-///          one quantised to 0 lost E[F² | |F| < q/2] under a Laplacian whose scale the share of
-///          that frequency's coefficients that survived names, among blocks of as much detail
-///          (surviving AC coefficients 0, 1-2, 3-5, 6-11, 12+: a block with an edge rings more
-///          than a smooth one). Their sum over 64 is the block's mean square error (blocking
-///          and ringing). Under subsampled chroma, half the chroma's range within a chroma sample's
-///          reach adds the colour an edge lost to the averaging. The largest channel's error,
-///          in linear terms at the pixel's level, over its light is the share; a pixel where it
-///          is over a tenth gets 1 − share. Not a JPEG: empty. Parallel over blocks (TBB).
+///          corner; chroma at its own resolution), each plane's blocks are taken again: a
+///          coefficient that survived quantisation carries an error of q²/12 (q its step in the
+///          file's table); one quantised to 0 lost E[F² | |F| < q/2] under a Laplacian whose
+///          scale the share of that frequency's coefficients that survived names, among blocks
+///          of as much detail (a block with an edge rings more than a smooth one; one with no
+///          surviving detail in proportion to its neighbours' DC differences, which tell a flat
+///          block from one that lost everything). Their sum over 64 is the block's mean square
+///          error (blocking and ringing). Under subsampled chroma, the decoder's chroma ramps
+///          across a colour edge, and a pixel's distance to the nearer of the chroma's extremes
+///          within a chroma sample's reach is what the averaging took from it. Each channel's
+///          error, in linear terms at its own level, over the pixel's light is a share; a pixel
+///          whose largest is over a tenth gets 1 − share. Not a JPEG: empty. Parallel (TBB).
 CodecMap DetectCodec(const geometry::LinearImage& image);
 
 /// Readout smear (§9): a CCD reading its columns out while a bright source shines adds the

@@ -60,30 +60,21 @@ std::string Encode(const geometry::LinearImage& img, const char* format, int qua
   return std::string(bytes.begin(), bytes.end());
 }
 
-/// Per 8×8 block: the root mean square of its pixels' shares, and the share of its pixels over
-/// a tenth.
-struct BlockShares {
-  std::vector<double> rms, over;
-};
-BlockShares PerBlock(int w, int h, const std::vector<double>& share) {
+/// Per 8×8 block, the root mean square of its pixels' shares.
+std::vector<double> BlockRms(int w, int h, const std::vector<double>& share) {
   const int bx = (w + 7) / 8, by = (h + 7) / 8;
-  const size_t blocks = size_t(bx) * size_t(by);
-  BlockShares out{std::vector<double>(blocks, 0.0), std::vector<double>(blocks, 0.0)};
-  std::vector<int> all(size_t(bx) * by, 0);
+  std::vector<double> rms(size_t(bx) * size_t(by), 0.0);
+  std::vector<int> all(rms.size(), 0);
   for (int y = 0; y < h; ++y) {
     for (int x = 0; x < w; ++x) {
       const size_t b = size_t(y / 8) * bx + size_t(x / 8);
       const double s = share[size_t(y) * w + x];
       ++all[b];
-      out.rms[b] += s * s;
-      out.over[b] += s > 0.1;
+      rms[b] += s * s;
     }
   }
-  for (size_t b = 0; b < all.size(); ++b) {
-    out.rms[b] = std::sqrt(out.rms[b] / all[b]);
-    out.over[b] /= all[b];
-  }
-  return out;
+  for (size_t b = 0; b < rms.size(); ++b) rms[b] = std::sqrt(rms[b] / all[b]);
+  return rms;
 }
 
 /// The largest channel error of each pixel of `decoded` against `truth`, over truth's light.
@@ -124,14 +115,14 @@ TEST(CodecTest, ReadsTheFilesTablesAndSubsampling) {
 }
 
 // Claim (§9): the blocks whose pixels the codec moved by more than a tenth of their light (root
-// mean square over the block; blocks within ±25% of that not scored) are those most of whose
-// pixels the map lowers: at quality 15 (72% of the blocks damaged) precision and recall ≥ 0.85,
-// at quality 95 (8%, at colour edges the 4:2:0 chroma smeared) precision ≥ 0.9 and recall
-// ≥ 0.75. The estimated error is the codec's on average (printed).
+// mean square over the block; blocks within ±25% of that not scored) are those where the map
+// says so (the root mean square of its 1 − conf over the block over a tenth): at quality 15
+// (72% of the blocks damaged, by blocking and ringing) and at quality 95 (8%, at colour edges
+// the 4:2:0 chroma smeared) precision and recall ≥ 0.9. Qualities between are printed.
 TEST(CodecTest, CodecMapFindsTheBlocksTheCodecDamaged) {
   const int w = 1024, h = 512;
   const geometry::LinearImage truth = ColourTextures(w, h);
-  for (const int quality : {15, 95}) {
+  for (const int quality : {15, 30, 50, 75, 95}) {
     auto decoded = DecodeImage(Encode(truth, "jpg", quality), false, 1 << 22);
     ASSERT_TRUE(decoded.ok()) << decoded.status();
     const CodecMap map = DetectCodec(*decoded);
@@ -139,23 +130,23 @@ TEST(CodecTest, CodecMapFindsTheBlocksTheCodecDamaged) {
     std::vector<double> said_share(map.conf.pixels.size());
     for (size_t p = 0; p < said_share.size(); ++p) said_share[p] = 1.0 - map.conf.pixels[p];
     const std::vector<double> true_share = ErrorShare(*decoded, truth);
-    const BlockShares is = PerBlock(w, h, true_share);
-    const BlockShares said = PerBlock(w, h, said_share);
+    const std::vector<double> is = BlockRms(w, h, true_share), said = BlockRms(w, h, said_share);
     int64_t truth_blocks = 0, found = 0, both = 0;
-    for (size_t b = 0; b < is.rms.size(); ++b) {
-      if ((is.rms[b] > 0.1 / 1.25) != (is.rms[b] > 0.1 * 1.25)) continue;
-      const bool damaged = is.rms[b] > 0.1, flagged = said.over[b] >= 0.5;
+    for (size_t b = 0; b < is.size(); ++b) {
+      if ((is[b] > 0.1 / 1.25) != (is[b] > 0.1 * 1.25)) continue;
+      const bool damaged = is[b] > 0.1, flagged = said[b] > 0.1;
       truth_blocks += damaged, found += flagged, both += damaged && flagged;
     }
     const double precision = double(both) / double(std::max<int64_t>(1, found));
     const double recall = double(both) / double(std::max<int64_t>(1, truth_blocks));
     std::printf("quality %d: %lld of %zu blocks damaged, %lld found, %lld both: precision "
                 "%.3f, recall %.3f; %.2f%% of the image below 1\n",
-                quality, (long long)truth_blocks, is.rms.size(), (long long)found, (long long)both,
+                quality, (long long)truth_blocks, is.size(), (long long)found, (long long)both,
                 precision, recall, 100.0 * map.CoveredFraction(w, h));
+    if (quality != 15 && quality != 95) continue;
     EXPECT_GT(truth_blocks, 300);
-    EXPECT_GE(precision, quality == 15 ? 0.85 : 0.9);
-    EXPECT_GE(recall, quality == 15 ? 0.85 : 0.75);
+    EXPECT_GE(precision, 0.9);
+    EXPECT_GE(recall, 0.9);
   }
 }
 
