@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "google/protobuf/util/time_util.h"
 #include "lattice/ingest/validate.h"
 #include "server/status_util.h"
@@ -273,10 +274,12 @@ absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingPro
   if (p.has_beta()) out.beta = p.beta();
   if (p.has_rho()) out.rho = p.rho();
   if (p.kappa_size() != 0) {
-    if (p.kappa_size() != int(out.kappa.size())) {
+    if (p.kappa_size() != int(out.kappa.size()) &&
+        p.kappa_size() != int(fusion::kOlderKappaCount)) {
       return absl::InvalidArgumentError(absl::StrCat(
-          "profile kappa needs ", out.kappa.size(),
-          " values (saturation, flare, dirt, codec) or none; got ", p.kappa_size()));
+          "profile kappa needs ", out.kappa.size(), " values (",
+          absl::StrJoin(records::kConfidenceNames, ", "), "), the first ",
+          fusion::kOlderKappaCount, " of them, or none; got ", p.kappa_size()));
     }
     for (int f = 0; f < p.kappa_size(); ++f) out.kappa[size_t(f)] = p.kappa(f);
   }

@@ -59,7 +59,6 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
       ArtefactMap saturation =
           coverage("saturation", maps.saturation.clipped_pixels, maps.saturation.halo_pixels,
                    maps.saturation.blobs, maps.saturation.max_halo_radius_px);
-      // Smear is in conf[saturation] too; its own map shows it apart.
       ArtefactMap smear = coverage("smear", 0, maps.smear.soft_pixels, maps.smear.columns, 0);
       smear.smear_offset = maps.smear.max_offset;
       ArtefactMap flare = coverage("flare", maps.flare.invalid_pixels, maps.flare.soft_pixels,
@@ -87,15 +86,17 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
         c.artefacts.push_back(std::move(*map));
       }
       if (auto it = lens_of.find(src.id); it != lens_of.end()) {
-        // The factor fusion puts on conf[dirt] at each pixel (fusion::AdjustForLens), read at
-        // the image's own colours; the map's pixels are the image as sent.
+        // The factors fusion puts on conf[dirt] and conf[fog] at each pixel
+        // (fusion::AdjustForLens), read at the image's own colours; the maps' pixels are the
+        // image as sent.
         const fusion::LensMap& lens = *it->second;
-        geometry::LinearImage conf;
-        conf.width_px = w;
-        conf.height_px = h;
-        conf.channels = 1;
-        conf.pixels.assign(size_t(w) * h, 1.0f);
-        int64_t flagged = 0, soft = 0;
+        geometry::LinearImage dirt;
+        dirt.width_px = w;
+        dirt.height_px = h;
+        dirt.channels = 1;
+        dirt.pixels.assign(size_t(w) * h, 1.0f);
+        geometry::LinearImage fog = dirt;
+        int64_t flagged[2] = {0, 0}, soft[2] = {0, 0};
         const float sx = float(src.width_px > 0 ? src.width_px : w) / float(w);
         const float sy = float(src.height_px > 0 ? src.height_px : h) / float(h);
         for (int y = 0; y < h; ++y) {
@@ -106,18 +107,30 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
               value[ch] = image->pixels[p * image->channels + ch];
             }
             const float uv[2] = {(float(x) + 0.5f) * sx, (float(y) + 0.5f) * sy};
-            const float f = fusion::AdjustForLens(lens, lens.source_gain.at(src.id), uv, value);
-            conf.pixels[p] = f;
-            flagged += f == 0.0f;
-            soft += f > 0.0f && f < 1.0f;
+            const fusion::LensFactors f =
+                fusion::AdjustForLens(lens, lens.source_gain.at(src.id), uv, value);
+            dirt.pixels[p] = f.dirt;
+            fog.pixels[p] = f.fog;
+            int i = 0;
+            for (const float v : {f.dirt, f.fog}) {
+              flagged[i] += v == 0.0f;
+              soft[i] += v > 0.0f && v < 1.0f;
+              ++i;
+            }
           }
         }
-        ArtefactMap map = coverage("lens", flagged, soft, 0, 0);
-        map.lens_map = lens.id;
-        absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(conf, w, h);
-        if (!png.ok()) return png.status();
-        map.png = std::move(*png);
-        c.artefacts.push_back(std::move(map));
+        int i = 0;
+        for (const auto& [name, conf] : {std::pair<const char*, const geometry::LinearImage*>{
+                                             "dirt", &dirt},
+                                         {"fog", &fog}}) {
+          ArtefactMap map = coverage(name, flagged[i], soft[i], 0, 0);
+          ++i;
+          map.lens_map = lens.id;
+          absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(*conf, w, h);
+          if (!png.ok()) return png.status();
+          map.png = std::move(*png);
+          c.artefacts.push_back(std::move(map));
+        }
       }
     }
     return out;

@@ -81,11 +81,11 @@ absl::StatusOr<RecordValues> RecordValues::Of(const WeightingProfile& profile,
   return out;
 }
 
-float RecordValues::Read(size_t i, double* out) const {
+LensFactors RecordValues::Read(size_t i, double* out) const {
   const int32_t s = recs_->scan[i];
   float v[records::kValueChannels];
   std::copy_n(&recs_->value[i * records::kValueChannels], records::kValueChannels, v);
-  float conf = 1.0f;
+  LensFactors conf;
   if (s >= 0 && lens_[size_t(s)].first != nullptr) {
     const auto& [map, gain] = lens_[size_t(s)];
     conf = AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
@@ -104,9 +104,9 @@ void RecordValues::CorrectImageSample(int32_t source, const float* uv, float* va
   AdjustForLens(*map, *gain, uv, value);
 }
 
-float RecordValues::LensConfidence(size_t i) const {
+LensFactors RecordValues::LensConfidence(size_t i) const {
   const int32_t s = recs_->scan[i];
-  if (s < 0 || lens_[size_t(s)].first == nullptr) return 1.0f;
+  if (s < 0 || lens_[size_t(s)].first == nullptr) return {};
   double value[records::kValueChannels];
   return Read(i, value);
 }
@@ -154,9 +154,10 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
         const auto g = profile.scan_gain.find(recs.scan[i]);
         WeightInputs in = WeightInputsOf(recs, i, float(range_min[c]));
         float conf[records::kConfidenceCount];
-        if (const float lens = values->LensConfidence(i); lens != 1.0f) {  // §9 dirt and fog
+        if (const LensFactors lens = values->LensConfidence(i); lens != LensFactors{}) {  // §9
           std::copy(in.conf, in.conf + records::kConfidenceCount, conf);
-          conf[records::kConfDirt] *= lens;
+          conf[records::kConfDirt] *= lens.dirt;
+          conf[records::kConfFog] *= lens.fog;
           in.conf = conf;
         }
         out.weight[i] = float(RecordWeight(profile, in, target_m,

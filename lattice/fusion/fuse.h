@@ -26,11 +26,11 @@ class RecordValues {
   /// FAILED_PRECONDITION when the profile lists lens maps it has not resolved.
   static absl::StatusOr<RecordValues> Of(const WeightingProfile& profile,
                                          const records::RecordSet& records);
-  /// Record i's value as fused, into out[kValueChannels]; returns the factor its conf[dirt]
-  /// takes from the lens map (1 for a source without one).
-  float Read(size_t i, double* out) const;
-  /// The conf[dirt] factor alone.
-  float LensConfidence(size_t i) const;
+  /// Record i's value as fused, into out[kValueChannels]; returns the factors its conf[dirt]
+  /// and conf[fog] take from the lens map (1 for a source without one).
+  LensFactors Read(size_t i, double* out) const;
+  /// The lens factors alone.
+  LensFactors LensConfidence(size_t i) const;
   /// A colour read from source `source`'s own image at continuous pixel (uv[0], uv[1]) corrected
   /// in place as Read corrects its records' values there (§9 lens map; a_{m,c} not applied).
   void CorrectImageSample(int32_t source, const float* uv, float* value) const;

@@ -48,20 +48,23 @@ double LensMap::VeilShare() const {
   return veil.empty() ? 0.0 : double(n) / double(veil.size() / kC);
 }
 
-float AdjustForLens(const LensMap& map, const std::array<float, kC>& gain, const float* uv,
-                    float* value) {
+LensFactors AdjustForLens(const LensMap& map, const std::array<float, kC>& gain,
+                          const float* uv, float* value) {
   float d[kC], v[kC];
   map.Sample(uv[0], uv[1], d, v);
-  float conf = 1.0f;
+  LensFactors out;
   for (int c = 0; c < kC; ++c) {
     const float veil = gain[c] * v[c];
     const float dc = std::max(d[c], 1e-3f);
     const float signal = value[c] > 0.0f ? std::max(0.0f, 1.0f - veil / value[c])
                                          : (veil > 0.0f ? 0.0f : 1.0f);
-    conf = std::min(conf, std::min(dc, 1.0f) * signal);
+    out.dirt = std::min(out.dirt, std::min(dc, 1.0f));
+    out.fog = std::min(out.fog, signal);
     value[c] = std::max(0.0f, (value[c] - veil) / dc);
   }
-  return std::clamp(conf, 0.0f, 1.0f);
+  out.dirt = std::clamp(out.dirt, 0.0f, 1.0f);
+  out.fog = std::clamp(out.fog, 0.0f, 1.0f);
+  return out;
 }
 
 std::shared_ptr<const LensTable> LensTable::Of(std::vector<std::shared_ptr<const LensMap>> maps) {

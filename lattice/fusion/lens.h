@@ -59,10 +59,20 @@ struct LensMap {
   double VeilShare() const;
 };
 
-/// The §9 lens adjustment of one RGB record: its value corrected in place (per channel) and
-/// the factor its conf[dirt] is multiplied by. `gain` is the source's g_m.
-float AdjustForLens(const LensMap& map, const std::array<float, records::kValueChannels>& gain,
-                    const float* uv, float* value);
+/// The factors a lens map puts on a record's confidence (§9), each in [0, 1]: dirt, min over
+/// channels of D (the light that reached the sensor), on conf[dirt]; fog, min over channels of
+/// the share of the observed colour that is the scene's (1 − g·v/C_obs), on conf[fog].
+struct LensFactors {
+  float dirt = 1.0f;
+  float fog = 1.0f;
+  bool operator!=(const LensFactors& o) const { return dirt != o.dirt || fog != o.fog; }
+};
+
+/// The §9 lens adjustment of one RGB record: its value corrected in place (per channel),
+/// C = (C_obs − g·v)/D, and the factors on its confidence. `gain` is the source's g_m.
+LensFactors AdjustForLens(const LensMap& map,
+                          const std::array<float, records::kValueChannels>& gain,
+                          const float* uv, float* value);
 
 /// The maps a profile applies, resolved: per source id the map that covers it.
 struct LensTable {

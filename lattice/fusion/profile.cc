@@ -71,8 +71,8 @@ absl::StatusOr<WeightingProfile> ProfileFromText(const std::string& text) {
       p.beta = v[0];
     } else if (key == "rho" && need(1)) {
       p.rho = v[0];
-    } else if (key == "kappa" && need(p.kappa.size())) {
-      for (size_t i = 0; i < p.kappa.size(); ++i) p.kappa[i] = v[i];
+    } else if (key == "kappa" && (need(p.kappa.size()) || need(kOlderKappaCount))) {
+      for (size_t i = 0; i < v.size(); ++i) p.kappa[i] = v[i];
     } else if (key == "v_min" && need(1)) {
       p.v_min = v[0];
     } else if (key == "lambda_src" && need(1)) {

@@ -22,13 +22,18 @@ namespace vasl::fusion {
 enum class FusionMode { kBlend, kNearest };
 
 /// The parameters of w_{k,m} (§7). Defaults are the model's defaults.
+/// κ values a profile written before smear and fog had their own factors gives (§9): the first
+/// four; the rest keep 1.
+inline constexpr size_t kOlderKappaCount = 4;
+
 struct WeightingProfile {
   std::string name = "default";
   int32_t version = 1;      ///< revision: creating a profile under an existing name adds one
   double alpha = 1.0;       ///< α, incidence exponent (1: Lambertian foreshortening)
   double beta = 1.0;        ///< β, penumbra exponent on V
   double rho = 1.0;         ///< ρ, range exponent on K_range
-  std::array<double, records::kConfidenceCount> kappa = {1.0, 1.0, 1.0, 1.0};  ///< κ_f
+  /// κ_f per confidence factor, in records::ConfidenceFactor order.
+  std::array<double, records::kConfidenceCount> kappa = {1.0, 1.0, 1.0, 1.0, 1.0, 1.0};
   double v_min = 0.5;       ///< V_min: records with V below it get weight 0
   double lambda_src = 0.5;  ///< λ_src for derived records (raw records: 1)
   double theta_max_rad = 0.0;   ///< optional incidence cut-off θ_max; 0: off

@@ -114,11 +114,6 @@ ArtefactMaps DetectArtefacts(const geometry::LinearImage& image, bool wrap) {
   ArtefactMaps maps;
   maps.saturation = DetectSaturation(image, blobs);
   maps.smear = DetectSmear(image, blobs, wrap);
-  if (!maps.smear.conf.pixels.empty()) {  // conf[saturation] holds both
-    geometry::LinearImage& sat = maps.saturation.conf;
-    if (sat.pixels.empty()) sat = internal::ConfidenceOnes(image.width_px, image.height_px);
-    for (size_t p = 0; p < sat.pixels.size(); ++p) sat.pixels[p] *= maps.smear.conf.pixels[p];
-  }
   maps.flare = DetectFlare(image, blobs, wrap);
   maps.codec = DetectCodec(image);
   maps.fringing = EstimateChannelShift(image, wrap);

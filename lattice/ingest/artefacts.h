@@ -211,9 +211,8 @@ SmearMap DetectSmear(const geometry::LinearImage& image, bool wrap);
 
 /// Every §9 map of one image, as ingest samples them into a record's confidence factors.
 struct ArtefactMaps {
-  /// conf[saturation]: blooming, with readout smear (`smear`) multiplied in.
-  SaturationMap saturation;
-  SmearMap smear;            ///< readout smear alone (in saturation.conf too)
+  SaturationMap saturation;  ///< conf[saturation]: clipped pixels and their blooming halo
+  SmearMap smear;            ///< conf[smear]: readout smear
   FlareMap flare;            ///< conf[flare], and hard invalidation
   CodecMap codec;            ///< conf[codec]
   ChannelShift fringing;     ///< a correction of the image before sampling (CorrectChannelShift)

@@ -81,6 +81,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
   const LinearImage& saturation = artefacts.saturation.conf;
   const LinearImage& flare = artefacts.flare.conf;
   const LinearImage& codec = artefacts.codec.conf;
+  const LinearImage& smear = artefacts.smear.conf;
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
@@ -107,13 +108,15 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
       const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
       float value[3] = {0, 0, 0};
-      float conf[records::kConfidenceCount] = {1.0f, 1.0f, 1.0f, 1.0f};
+      float conf[records::kConfidenceCount];
+      std::fill(std::begin(conf), std::end(conf), 1.0f);
       uint8_t flags = 0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
         SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value);
         conf[records::kConfSaturation] = read(saturation, uv.x(), uv.y());
         conf[records::kConfFlare] = read(flare, uv.x(), uv.y());
         conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
+        conf[records::kConfSmear] = read(smear, uv.x(), uv.y());
         if (conf[records::kConfFlare] < kFlareInvalidBelow) flags |= records::kFlagInvalidated;
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
@@ -122,7 +125,8 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         const Eigen::Vector3d t_minor = n.cross(t_major);
         // §9 flare: the kernel's points on invalid pixels give no colour and no confidence;
         // a record whose kernel lies mostly on them is invalidated.
-        double acc[3] = {0, 0, 0}, valid = 0.0, sat = 0.0, flare_conf = 0.0, codec_conf = 0.0;
+        double acc[3] = {0, 0, 0}, valid = 0.0, sat = 0.0, flare_conf = 0.0, codec_conf = 0.0,
+               smear_conf = 0.0;
         for (int a = 0; a < 3; ++a) {
           for (int b = 0; b < 3; ++b) {
             const Eigen::Vector3d p = x + node[a] * sk_major * t_major + node[b] * sk_minor * t_minor;
@@ -133,6 +137,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             const double w = weight[a] * weight[b];
             sat += w * read(saturation, q.x(), q.y());
             codec_conf += w * read(codec, q.x(), q.y());
+            smear_conf += w * read(smear, q.x(), q.y());
             const float f = read(flare, q.x(), q.y());
             if (f < kFlareInvalidBelow) continue;
             float s[3];
@@ -151,6 +156,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         }
         conf[records::kConfSaturation] = float(sat);
         conf[records::kConfCodec] = float(codec_conf);
+        conf[records::kConfSmear] = float(smear_conf);
       }
       PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.image.channels, range, cos_inc,
                  foot, uv, vis[k], conf, flags, cam.batch);
@@ -251,7 +257,8 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
       for (int ch = 0; ch < C && ch < records::kValueChannels; ++ch) {
         value[ch] = float(sum[k * C + ch] / count[k]);
       }
-      float conf[records::kConfidenceCount] = {1.0f, 1.0f, 1.0f, 1.0f};
+      float conf[records::kConfidenceCount];
+      std::fill(std::begin(conf), std::end(conf), 1.0f);
       conf[records::kConfSaturation] = 1.0f - float(clipped[k]) / float(count[k]);
       PushRecord(out, int32_t(k), source_id, modality, value, C, terms.range_m, terms.cos_inc,
                  terms.foot, terms.uv, vis[k], conf, 0, lidar.batch);

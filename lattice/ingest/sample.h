@@ -30,8 +30,9 @@ ImageProjection ProjectionOf(const CameraSource& camera, int width_px, int heigh
 /// kernel's weighted read of the saturation map, conf[flare] that of the flare map over the
 /// kernel's points on valid pixels; points on invalid pixels (flare map < kFlareInvalidBelow)
 /// give no colour, and a record with less than half its kernel's weight on valid pixels (a
-/// point sample on an invalid one) is flagged kFlagInvalidated; conf[codec] is the kernel's
-/// read of the codec map; conf[dirt] is 1.
+/// point sample on an invalid one) is flagged kFlagInvalidated; conf[codec] and conf[smear]
+/// are the kernel's reads of the codec and smear maps; conf[dirt] and conf[fog] are 1 (a lens
+/// map lowers them at fusion).
 records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const CameraSource& camera,
                                 const std::vector<float>& vis, const ArtefactMaps& artefacts);
 

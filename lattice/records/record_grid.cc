@@ -204,8 +204,13 @@ struct PlannedAttribute {
   std::string name;
   Kind kind;
   int stride;
-  size_t pos = 0;  ///< position in the attribute set
+  size_t pos = 0;       ///< position in the attribute set
+  int stored_stride = 0;  ///< values per record in the file: `stride`, or fewer (older conf)
 };
+
+/// Confidence factors a file written before the record's conf widened lacks (§9): values it
+/// has in its first columns, factors it does not know are 1 (not measured).
+constexpr const char* kWidenedAttribute = "conf";
 
 }  // namespace
 
@@ -402,12 +407,14 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                                                  "\" has an unsupported type ",
                                                  set.descriptor().type(pos).first, "/",
                                                  set.descriptor().type(pos).second));
-        } else if (static_cast<int>(set.getConst(pos)->stride()) != stride) {
+        } else if (const int stored = static_cast<int>(set.getConst(pos)->stride());
+                   stored != stride &&
+                   !(std::string(name) == kWidenedAttribute && stored >= 1 && stored < stride)) {
           bad = absl::DataLossError(absl::StrCat(path.string(), ": attribute \"", name,
-                                                 "\" has stride ", set.getConst(pos)->stride(),
-                                                 "; expected ", stride));
+                                                 "\" has stride ", stored, "; expected ",
+                                                 stride));
         } else {
-          plan.push_back({name, kind, stride, pos});
+          plan.push_back({name, kind, stride, pos, stored});
         }
       });
     }
@@ -463,8 +470,18 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                 if (array.isUniform()) array.expand();
                 const auto* in = array.constData();
                 Elem* o = dst.data() + begin * stride;
-                const size_t values = count * stride;
-                for (size_t v = 0; v < values; ++v) o[v] = static_cast<Elem>(St::Decode(in[v]));
+                if (a->stored_stride == stride) {
+                  const size_t values = count * stride;
+                  for (size_t v = 0; v < values; ++v) o[v] = static_cast<Elem>(St::Decode(in[v]));
+                } else {
+                  for (size_t r = 0; r < count; ++r) {
+                    for (int c = 0; c < stride; ++c) {
+                      o[r * stride + c] = c < a->stored_stride
+                          ? static_cast<Elem>(St::Decode(in[r * a->stored_stride + c]))
+                          : Elem(1);
+                    }
+                  }
+                }
               });
             });
           }

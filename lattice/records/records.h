@@ -47,9 +47,21 @@ enum RecordFlag : int8_t {
   kFlagInvalidated = 1 << 1,  ///< excluded by a hard invalidation (e.g. flare)
 };
 
-/// Confidence factors kept apart per record (§6, §9), each in [0, 1].
-enum ConfidenceFactor : int { kConfSaturation = 0, kConfFlare = 1, kConfDirt = 2, kConfCodec = 3 };
-inline constexpr int kConfidenceCount = 4;
+/// Confidence factors kept apart per record (§6, §9), each in [0, 1]: one per artefact, so a
+/// profile weights each by its own κ. Smear and fog came after the first four; records stored
+/// before them read as 1 there (not measured).
+enum ConfidenceFactor : int {
+  kConfSaturation = 0,  ///< clipped pixels and their blooming halo
+  kConfFlare = 1,       ///< veiling glare around bright sources
+  kConfDirt = 2,        ///< lens dirt, D < 1 (at fusion, from the rig's lens map)
+  kConfCodec = 3,       ///< JPEG blocking, ringing and chroma subsampling
+  kConfSmear = 4,       ///< readout smear along a clipped source's columns
+  kConfFog = 5,         ///< an additive veil (fog, haze), v > 0 (at fusion, from the lens map)
+};
+inline constexpr int kConfidenceCount = 6;
+/// Their names, in factor order (profiles' κ, the API's conf).
+inline constexpr const char* kConfidenceNames[kConfidenceCount] = {"saturation", "flare", "dirt",
+                                                                   "codec", "smear", "fog"};
 inline constexpr int kValueChannels = 3;
 
 /// Exact running sums of the points that fell in one vossel (§1), the state that makes merging

@@ -3,11 +3,13 @@
 // stations' clean panoramas. Its records on the clipped sources carry conf[saturation] 0, on
 // their halos less than 1, and away from them 1; a profile that weighs saturation (κ = 2)
 // fuses the affected vossels' colour closer to their albedo than one that ignores it (κ = 0),
-// from the records alone.
+// from the records alone. Readout smear through a source's columns is a factor of its own:
+// conf[smear] holds it, conf[saturation] does not, and κ_smear weighs it alone.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <memory>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -34,21 +36,57 @@ struct Source {
   }
 };
 
+/// A project "room" in `dir` with the synthetic room's stations ingested (LiDAR and clean
+/// panoramas).
+std::unique_ptr<Engine> RoomWithStations(const fs::path& dir,
+                                         const scenes::SyntheticRoom& room) {
+  fs::remove_all(dir);
+  auto engine = Engine::Open(dir);
+  EXPECT_TRUE(engine.ok()) << engine.status();
+  if (!engine.ok()) return nullptr;
+  store::ProjectSettings settings;
+  settings.vossel_size_m = kVosselM;
+  EXPECT_TRUE((*engine)->CreateProject("room", settings).ok());
+  for (size_t i = 0; i < room.Stations().size(); ++i) {
+    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), 512);
+    EXPECT_TRUE(scan.ok()) << scan.status();
+    if (scan.ok()) EXPECT_TRUE((*engine)->IngestScan("room", *scan).ok());
+  }
+  return std::move(*engine);
+}
+
+/// The mean |error| against the albedo seen from `pose` of the fused colour of the vossels
+/// marked in `affected` (those whose surface the pose sees within a vossel), under `profile`;
+/// and how many.
+std::pair<double, size_t> FusedError(const records::RecordSet& rec,
+                                     const records::VosselGeometry& g,
+                                     const std::vector<uint8_t>& affected,
+                                     const scenes::SyntheticRoom& room, const geometry::Pose& pose,
+                                     const fusion::WeightingProfile& profile) {
+  auto fused = fusion::Fuse(rec, g.size(), g.vossel_size_m, profile);
+  EXPECT_TRUE(fused.ok()) << fused.status();
+  if (!fused.ok()) return {0.0, 0};
+  const records::FusedModality& rgb = fused->by_modality.at(records::Modality::kRgb);
+  double err = 0.0;
+  size_t n = 0;
+  for (size_t k = 0; k < g.size(); ++k) {
+    if (!affected[k] || !(rgb.weight[k] > 0.0f)) continue;
+    const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
+    const scenes::SceneHit hit = room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
+    if (!hit.valid || std::abs(hit.t_m - (x - pose.o_world).norm()) > kVosselM) continue;
+    const Eigen::Vector3f& albedo = hit.albedo_linear;
+    for (int c = 0; c < 3; ++c) err += std::abs(rgb.value[3 * k + c] - albedo[c]) / 3.0;
+    ++n;
+  }
+  return {err / double(std::max<size_t>(1, n)), n};
+}
+
 TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheColour) {
   const fs::path dir = fs::temp_directory_path() /
                        ("vasl-saturation-flow-test-" + std::to_string(::getpid()));
-  fs::remove_all(dir);
-  auto engine = Engine::Open(dir);
-  ASSERT_TRUE(engine.ok()) << engine.status();
-  store::ProjectSettings settings;
-  settings.vossel_size_m = kVosselM;
-  ASSERT_TRUE((*engine)->CreateProject("room", settings).ok());
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
-  for (size_t i = 0; i < room.Stations().size(); ++i) {  // LiDAR and clean panoramas
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), 512);
-    ASSERT_TRUE(scan.ok()) << scan.status();
-    ASSERT_TRUE((*engine)->IngestScan("room", *scan).ok());
-  }
+  std::unique_ptr<Engine> engine = RoomWithStations(dir, room);
+  ASSERT_TRUE(engine != nullptr);
   // A panorama at a novel view with six sources over the walls, from just over the clip level
   // to 32× over it.
   const geometry::Pose pose = room.NovelViews()[0];
@@ -68,7 +106,7 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
   }
   auto bloomed = scenes::PanoramaScan("bloomed", pose, pano);
   ASSERT_TRUE(bloomed.ok()) << bloomed.status();
-  ASSERT_TRUE((*engine)->IngestScan("room", *bloomed).ok());
+  ASSERT_TRUE(engine->IngestScan("room", *bloomed).ok());
 
   auto st = store::ProjectStore::Open(dir / "room");
   ASSERT_TRUE(st.ok()) << st.status();
@@ -126,22 +164,7 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
   auto fused_error = [&](double kappa) {
     fusion::WeightingProfile profile;
     profile.kappa[records::kConfSaturation] = kappa;
-    auto fused = fusion::Fuse(rec, g.size(), g.vossel_size_m, profile);
-    EXPECT_TRUE(fused.ok()) << fused.status();
-    const records::FusedModality& rgb = fused->by_modality.at(records::Modality::kRgb);
-    double err = 0.0;
-    size_t n = 0;
-    for (size_t k = 0; k < g.size(); ++k) {
-      if (!affected[k] || !(rgb.weight[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-      const scenes::SceneHit hit =
-          room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
-      if (!hit.valid || std::abs(hit.t_m - (x - pose.o_world).norm()) > kVosselM) continue;
-      const Eigen::Vector3f& albedo = hit.albedo_linear;
-      for (int c = 0; c < 3; ++c) err += std::abs(rgb.value[3 * k + c] - albedo[c]) / 3.0;
-      ++n;
-    }
-    return std::make_pair(err / double(std::max<size_t>(1, n)), n);
+    return FusedError(rec, g, affected, room, pose, profile);
   };
   const auto [ignored, n0] = fused_error(0.0);
   const auto [weighed, n2] = fused_error(2.0);
@@ -150,7 +173,89 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
               weighed);
   EXPECT_GT(n0, 50u);
   EXPECT_LT(weighed, 0.6 * ignored);
-  engine->reset();
+  engine.reset();
+  fs::remove_all(dir);
+}
+
+// Claim (§9, §7): one source clipped with readout smear lifting its columns by 0.25 of the clip
+// level, top to bottom. Its records in those columns away from the source (beyond 6 radii) carry
+// conf[smear] below 1 and conf[saturation] 1 (≥ 90%); away from the columns conf[smear] is 1
+// (≥ 99.9%); κ_smear = 2
+// fuses the smeared vossels closer to their albedo than κ_smear = 0, and κ_saturation barely
+// touches them (within 2%).
+TEST(SaturationFlowTest, SmearIsAFactorOfItsOwn) {
+  const fs::path dir = fs::temp_directory_path() /
+                       ("vasl-smear-flow-test-" + std::to_string(::getpid()));
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  std::unique_ptr<Engine> engine = RoomWithStations(dir, room);
+  ASSERT_TRUE(engine != nullptr);
+  const geometry::Pose pose = room.NovelViews()[0];
+  const int h = kPanoW / 2;
+  scenes::Panorama pano = scenes::RenderPanorama(room, pose, kPanoW, h, 2);
+  const Source source{650, 280, 8, 32.0, 2.0};
+  constexpr double kLift = 0.25;
+  auto smeared_column = [&](double x) { return std::abs(x - source.u) < source.radius_px; };
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < kPanoW; ++x) {
+      const size_t p = size_t(y) * kPanoW + x;
+      const double add = source.Bloom(x + 0.5, y + 0.5) + (smeared_column(x + 0.5) ? kLift : 0.0);
+      for (int c = 0; c < 3; ++c) pano.rgb[3 * p + c] = std::min(1.0f, pano.rgb[3 * p + c] + float(add));
+    }
+  }
+  auto scan = scenes::PanoramaScan("smeared", pose, pano);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  ASSERT_TRUE(engine->IngestScan("room", *scan).ok());
+
+  auto st = store::ProjectStore::Open(dir / "room");
+  ASSERT_TRUE(st.ok()) << st.status();
+  auto snap = (*st)->LoadSnapshot((*st)->head_version());
+  ASSERT_TRUE(snap.ok()) << snap.status();
+  auto scans = (*st)->ListScans();
+  ASSERT_TRUE(scans.ok());
+  const int32_t camera = scans->back().sources.at(0).id;
+  const records::RecordSet& rec = (*snap)->records;
+  const records::VosselGeometry& g = (*snap)->geometry;
+  size_t in_columns = 0, lowered = 0, saturation_one = 0, outside = 0, outside_one = 0;
+  std::vector<uint8_t> affected(g.size(), 0);
+  for (size_t i = 0; i < rec.size(); ++i) {
+    if (rec.scan[i] != camera) continue;
+    const double u = rec.uv_px[2 * i], v = rec.uv_px[2 * i + 1];
+    const float* conf = &rec.conf[i * records::kConfidenceCount];
+    const bool far_from_source = std::abs(v - source.v) > 6.0 * source.radius_px;
+    if (std::abs(u - source.u) < source.radius_px - 2.0 && far_from_source) {
+      ++in_columns;
+      lowered += conf[records::kConfSmear] < 1.0f;
+      saturation_one += conf[records::kConfSaturation] == 1.0f;
+      if (conf[records::kConfSmear] < 1.0f) affected[size_t(rec.vossel[i])] = 1;
+    } else if (std::abs(u - source.u) > 3.0 * source.radius_px) {
+      ++outside;
+      outside_one += conf[records::kConfSmear] == 1.0f;
+    }
+  }
+  std::printf("smeared camera's records: %zu in the smeared columns away from the source (%zu "
+              "with conf[smear] < 1, %zu with conf[saturation] 1), %zu outside them (%zu with "
+              "conf[smear] 1)\n", in_columns, lowered, saturation_one, outside, outside_one);
+  EXPECT_GT(in_columns, 50u);
+  EXPECT_GE(lowered, size_t(0.9 * double(in_columns)));
+  EXPECT_GE(saturation_one, size_t(0.9 * double(in_columns)));
+  EXPECT_GT(outside, 10000u);
+  EXPECT_GE(outside_one, size_t(0.999 * double(outside)));
+  auto error_with = [&](int factor, double kappa) {
+    fusion::WeightingProfile profile;
+    profile.kappa[size_t(factor)] = kappa;
+    return FusedError(rec, g, affected, room, pose, profile);
+  };
+  const auto [ignored, n0] = error_with(records::kConfSmear, 0.0);
+  const auto [weighed, n2] = error_with(records::kConfSmear, 2.0);
+  const auto [saturation_only, n3] = error_with(records::kConfSaturation, 2.0);
+  std::printf("fused colour of %zu smeared vossels, mean |error| against the albedo: %.4f with "
+              "kappa_smear 0, %.4f with kappa_smear 2, %.4f with kappa_saturation 2 (smear at "
+              "its default 1)\n", n0, ignored, weighed, saturation_only);
+  EXPECT_GT(n0, 30u);
+  EXPECT_LT(weighed, 0.6 * ignored);
+  const auto [smear_default, n1] = error_with(records::kConfSmear, 1.0);
+  EXPECT_NEAR(saturation_only, smear_default, 0.02 * smear_default);
+  engine.reset();
   fs::remove_all(dir);
 }
 

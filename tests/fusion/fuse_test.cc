@@ -26,7 +26,7 @@ void AddRecord(records::RecordSet& s, int32_t vossel, int32_t scan, float value,
   s.foot_major_m[i] = foot_m;
   s.foot_minor_m[i] = foot_m;
   s.vis[i] = vis;
-  for (int f = 0; f < records::kConfidenceCount; ++f) s.conf[i * 4 + f] = 1.0f;
+  for (int f = 0; f < records::kConfidenceCount; ++f) s.conf[i * records::kConfidenceCount + f] = 1.0f;
   s.flags[i] = derived ? records::kFlagDerived : 0;
   s.batch[i] = 1;
 }
@@ -35,7 +35,7 @@ void AddRecord(records::RecordSet& s, int32_t vossel, int32_t scan, float value,
 // footprints wider than s* = h/2 (§4.2).
 TEST(WeightTest, FactorsOfTheWeight) {
   WeightingProfile p;
-  const float conf[4] = {1, 1, 1, 1};
+  const float conf[records::kConfidenceCount] = {1, 1, 1, 1, 1, 1};
   WeightInputs in{1.0f, 0.5f, 0.005f, 0.005f, conf, 3, false, 2.0f, 2.0f};
   const double h = 0.02, target = h / 2;
   EXPECT_DOUBLE_EQ(RecordWeight(p, in, target, 1.0), 0.5);  // cosθ^1, K_range = 1
@@ -51,7 +51,7 @@ TEST(WeightTest, FactorsOfTheWeight) {
   EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.5, 1e-7);
   in.derived = true;
   EXPECT_NEAR(RecordWeight(p, in, target, 2.0), 0.5 * 0.5 * 2.0, 1e-7);  // λ_src, g_m
-  const float low_conf[4] = {0.5f, 1, 1, 1};
+  const float low_conf[records::kConfidenceCount] = {0.5f, 1, 1, 1, 1, 1};
   in.conf = low_conf;
   in.derived = false;
   EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.25, 1e-7);

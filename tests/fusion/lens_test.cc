@@ -44,15 +44,17 @@ TEST(LensTest, CorrectsDirtAndVeilAndLowersTheConfidence) {
   // In a cell centre on the dirty side (cell 0: centre at u = 5, v = 5).
   float value[3], uv[2] = {5.0f, 5.0f};
   for (int c = 0; c < 3; ++c) value[c] = g[c] * 0.5f * scene[c];
-  float conf = AdjustForLens(m, g, uv, value);
+  LensFactors conf = AdjustForLens(m, g, uv, value);
   for (int c = 0; c < 3; ++c) EXPECT_NEAR(value[c], g[c] * scene[c], 1e-6f);
-  EXPECT_FLOAT_EQ(conf, 0.5f);
-  // On the veiled side: the darkest channel's share of scene light sets the confidence.
+  EXPECT_FLOAT_EQ(conf.dirt, 0.5f);
+  EXPECT_FLOAT_EQ(conf.fog, 1.0f);
+  // On the veiled side: the darkest channel's share of scene light sets the fog factor.
   uv[0] = 35.0f;
   for (int c = 0; c < 3; ++c) value[c] = g[c] * (scene[c] + 0.1f);
   conf = AdjustForLens(m, g, uv, value);
   for (int c = 0; c < 3; ++c) EXPECT_NEAR(value[c], g[c] * scene[c], 1e-6f);
-  EXPECT_NEAR(conf, 0.2f / 0.3f, 1e-6f);
+  EXPECT_FLOAT_EQ(conf.dirt, 1.0f);
+  EXPECT_NEAR(conf.fog, 0.2f / 0.3f, 1e-6f);
   // Between the halves (u = 20, midway from the centre at 15 to the one at 25): D and v blend.
   float d[3], v[3];
   m.Sample(20.0f, 5.0f, d, v);
@@ -107,6 +109,20 @@ TEST(LensTest, FusionAppliesTheMapOnlyToItsSourcesAndOnlyWhenLoaded) {
   ASSERT_TRUE(w.ok());
   EXPECT_NEAR(w->weight[0] / w->weight[1], 0.5f, 1e-6f);
   lens.kappa[records::kConfDirt] = 0.0;  // κ_dirt = 0: corrected, not down-weighted
+  w = RecordWeights(recs, 1, 0.02, lens);
+  ASSERT_TRUE(w.ok());
+  EXPECT_FLOAT_EQ(w->weight[0], w->weight[1]);
+  // Source 7 seen through the veil instead (v = 0.1 over 0.4): corrected to the scene, and its
+  // conf[fog] is the scene's share, 0.8, which κ_fog weighs apart from κ_dirt.
+  recs.uv_px[0] = 35.0f;
+  for (int c = 0; c < 3; ++c) recs.value[c] = 0.4f + 0.1f;
+  applying = Fuse(recs, 1, 0.02, lens);
+  ASSERT_TRUE(applying.ok()) << applying.status();
+  EXPECT_NEAR(applying->by_modality.at(records::Modality::kRgb).value[0], 0.4f, 1e-6f);
+  w = RecordWeights(recs, 1, 0.02, lens);
+  ASSERT_TRUE(w.ok());
+  EXPECT_NEAR(w->weight[0] / w->weight[1], 0.8f, 1e-6f);
+  lens.kappa[records::kConfFog] = 0.0;
   w = RecordWeights(recs, 1, 0.02, lens);
   ASSERT_TRUE(w.ok());
   EXPECT_FLOAT_EQ(w->weight[0], w->weight[1]);

@@ -2,8 +2,8 @@
 // sources on sharp textures are found (precision and recall ≥ 0.9 over the pixels the smear adds
 // more than a tenth of their light to), each source's lift measured within 0.02 of the clip
 // level (the median over its columns; only the faintest, 0.1 on the checkers, may go unfound);
-// the same sources without smear, and clean images, give no smeared column; conf[saturation]
-// holds the smear with the bloom.
+// the same sources without smear, and clean images, give no smeared column; the smear is a map
+// (and a record's factor) of its own, apart from the bloom.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -91,13 +91,17 @@ TEST(SmearTest, FindsPlantedColumnsAndNothingWithoutThem) {
                 kSmear[b], found_s.size(), found_s[found_s.size() / 2]);
     EXPECT_NEAR(found_s[found_s.size() / 2], kSmear[b], 0.02);
   }
-  // conf[saturation] holds it beside the bloom.
+  // Every map of the image keeps it apart (conf[smear]): the saturation map holds the bloom
+  // alone, and leaves most smeared pixels at 1.
   const ArtefactMaps all = DetectArtefacts(planted.image, true);
-  int64_t held = 0;
+  EXPECT_EQ(all.smear.conf.pixels, map.conf.pixels);
+  int64_t apart = 0;
   for (size_t p = 0; p < smear.size(); ++p) {
-    held += map.conf.pixels[p] < 1.0f && all.saturation.conf.pixels[p] <= map.conf.pixels[p];
+    apart += map.conf.pixels[p] < 1.0f && all.saturation.conf.pixels[p] == 1.0f;
   }
-  EXPECT_EQ(held, map.soft_pixels);
+  std::printf("%lld of the %lld smeared pixels at 1 in the saturation map\n", (long long)apart,
+              (long long)map.soft_pixels);
+  EXPECT_GE(apart, map.soft_pixels / 2);
 
   const Planted unsmeared = MakePanorama(kW, kH, PlantedSources(), /*sheet=*/true);
   const SmearMap none = DetectSmear(unsmeared.image, true);

@@ -110,7 +110,7 @@ def test_vdb_files_open_and_inspect_lists_attributes(client, ingested, server):
                    "batch"):
         assert needed in attrs, f"attribute {needed} missing from {sorted(attrs)}"
     assert any(n.startswith("foot") for n in attrs)
-    assert attrs["uv"].stride == 2 and attrs["value"].stride == 3 and attrs["conf"].stride == 4
+    assert attrs["uv"].stride == 2 and attrs["value"].stride == 3 and attrs["conf"].stride == 6
     assert all(a.type and a.codec for a in info.attributes)
     # The CLI shows the same table.
     out = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "inspect",
@@ -118,6 +118,7 @@ def test_vdb_files_open_and_inspect_lists_attributes(client, ingested, server):
     assert out.returncode == 0, out.stderr
     for needed in ("range", "cos_inc", "conf", "batch"):
         assert needed in out.stdout
+    assert "conf factors: saturation, flare, dirt, codec, smear, fog" in out.stdout, out.stdout
 
 
 def test_cli_render_writes_exr_and_png(ingested, server, views, tmp_path):

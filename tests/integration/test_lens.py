@@ -3,7 +3,7 @@ one rig, taken at the scene's stations and novel views through two dirt spots at
 are ingested as a rig sends them (with capture times) beside the stations' LiDAR.
 `vasl lens estimate --reweight` finds the spots from the stored records, stores the map and a
 profile that applies it and reweights under it; `vasl lens list` shows the map; `vasl
-confidence show` of the first frame, ingested before the map existed, writes its "lens" map,
+confidence show` of the first frame, ingested before the map existed, writes its "dirt" map,
 which lowers the spots' pixels and leaves the rest at 1; and a render under the new profile
 gives the spots' vossels their colour back (the error against the clean truth falls)."""
 from __future__ import annotations
@@ -74,9 +74,10 @@ def test_lens_estimate_finds_planted_dirt_and_a_reweight_applies_it(client, serv
     shown = run_cli(server, "confidence", "show", "--project", PROJECT, "--scan", "dusty-0",
                     "-o", str(out)).stdout
     print(shown)
-    assert re.search(r"pano \(\d+x\d+\) lens: dirt and fog of lens map \d+: [\d.]+% of the "
+    assert re.search(r"pano \(\d+x\d+\) dirt: dirt of lens map \d+: [\d.]+% of the "
                      r"image lowered", shown), shown
-    grey = _read_grey_png((out / "pano-lens.png").read_bytes())
+    assert re.search(r"pano \(\d+x\d+\) fog: veil of lens map \d+: ", shown), shown
+    grey = _read_grey_png((out / "pano-dirt.png").read_bytes())
     h, w = grey.shape
     jj, ii = np.mgrid[0:h, 0:w] + 0.5
     core = np.zeros((h, w), bool)

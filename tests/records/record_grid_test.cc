@@ -18,6 +18,7 @@
 
 #include <gtest/gtest.h>
 #include <openvdb/io/File.h>
+#include <openvdb/points/PointAttribute.h>
 #include <openvdb/points/PointDataGrid.h>
 
 namespace vasl::records {
@@ -249,7 +250,7 @@ TEST(RecordGridTest, ListsAttributesWithTypeCodecStride) {
       {"range", "float", "null", 1},     {"cos_inc", "float", "ufxpt16", 1},
       {"foot_major", "float", "trnc", 1}, {"foot_minor", "float", "trnc", 1},
       {"uv", "float", "null", 2},        {"vis", "float", "ufxpt8", 1},
-      {"conf", "float", "ufxpt8", 4},    {"flags", "int8", "null", 1},
+      {"conf", "float", "ufxpt8", 6},    {"flags", "int8", "null", 1},
       {"batch", "int16", "null", 1}};
   EXPECT_EQ(list->size(), expect.size());
   for (const auto& [name, type, codec, stride] : expect) {
@@ -267,6 +268,68 @@ TEST(RecordGridTest, ListsAttributesWithTypeCodecStride) {
   absl::StatusOr<RecordSet> none = ReadRecords(g, dir / "empty.vdb");
   ASSERT_TRUE(none.ok()) << none.status();
   EXPECT_EQ(none->size(), 0u);
+  fs::remove_all(dir);
+}
+
+// Claim (§9): a file written when a record had four confidence factors (conf of stride 4) reads
+// with those four as stored and the factors added since (smear, fog) at 1; any other stride
+// mismatch is still an error.
+TEST(RecordGridTest, ReadsOlderNarrowerConfidence) {
+  const fs::path dir = TestDir("narrow-conf");
+  VosselGeometry g = RandomGeometry(3000, 21);
+  CanonicalizeVosselOrder(g);
+  const fs::path path = dir / "records.vdb";
+  ASSERT_TRUE(WriteRecords(g, RandomRecords(g.size(), 22), path).ok());
+  absl::StatusOr<RecordSet> wide = ReadRecords(g, path);
+  ASSERT_TRUE(wide.ok()) << wide.status();
+  ASSERT_EQ(kConfidenceCount, 6);
+  // Rewrite the file's conf as the four-factor layout held it, in the reader's record order.
+  auto rewrite_conf = [&](int stride) {
+    openvdb::io::File file(path.string());
+    file.open(false);
+    openvdb::GridPtrVecPtr grids = file.getGrids();
+    openvdb::MetaMap::Ptr meta = file.getMetadata();
+    file.close();
+    for (openvdb::GridBase::Ptr& base : *grids) {
+      auto grid = openvdb::gridPtrCast<openvdb::points::PointDataGrid>(base);
+      if (!grid || grid->getName() != "records") continue;
+      openvdb::points::dropAttribute(grid->tree(), "conf");
+      using Unit8 = openvdb::points::FixedPointCodec<true, openvdb::points::UnitRange>;
+      openvdb::points::appendAttribute<float, Unit8>(grid->tree(), "conf", 1.0f,
+                                                     openvdb::Index(stride),
+                                                     /*constantStride=*/true, nullptr, false,
+                                                     false);
+      size_t k = 0;
+      for (auto leaf = grid->tree().beginLeaf(); leaf; ++leaf) {
+        auto& array = leaf->attributeArray("conf");
+        openvdb::points::AttributeWriteHandle<float> handle(array);
+        for (openvdb::Index n = 0; n < leaf->pointCount(); ++n, ++k) {
+          for (int c = 0; c < stride; ++c) {
+            handle.set(n, openvdb::Index(c), wide->conf[k * kConfidenceCount + size_t(c)]);
+          }
+        }
+      }
+    }
+    openvdb::io::File out(path.string());
+    out.write(*grids, *meta);
+  };
+  rewrite_conf(4);
+  absl::StatusOr<RecordSet> narrow = ReadRecords(g, path);
+  ASSERT_TRUE(narrow.ok()) << narrow.status();
+  ASSERT_EQ(narrow->size(), wide->size());
+  int64_t kept = 0, ones = 0;
+  for (size_t i = 0; i < narrow->size(); ++i) {
+    for (int c = 0; c < kConfidenceCount; ++c) {
+      const float got = narrow->conf[i * kConfidenceCount + size_t(c)];
+      if (c < 4) kept += got == wide->conf[i * kConfidenceCount + size_t(c)];
+      else ones += got == 1.0f;
+    }
+  }
+  EXPECT_EQ(kept, int64_t(4 * narrow->size()));
+  EXPECT_EQ(ones, int64_t(2 * narrow->size()));
+  EXPECT_EQ(narrow->value, wide->value);
+  rewrite_conf(7);  // wider than any layout this build knows: refused, not misread
+  EXPECT_EQ(ReadRecords(g, path).status().code(), absl::StatusCode::kDataLoss);
   fs::remove_all(dir);
 }
 

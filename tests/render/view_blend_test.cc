@@ -55,7 +55,9 @@ TwoViewFloor MakeFloor() {
       f.records.cos_inc[i] = 1.0f;  // equal weights: the test is about the view term alone
       f.records.foot_major_m[i] = f.records.foot_minor_m[i] = 0.001f;
       f.records.vis[i] = 1.0f;
-      for (int c = 0; c < 4; ++c) f.records.conf[4 * i + c] = 1.0f;
+      for (int c = 0; c < records::kConfidenceCount; ++c) {
+        f.records.conf[records::kConfidenceCount * i + c] = 1.0f;
+      }
       f.records.flags[i] = 0;
       f.records.batch[i] = 1;
     }

@@ -55,7 +55,9 @@ store::Snapshot RandomSnapshot(size_t n, double h) {
       r.foot_major_m[i] = 0.02f * u(rng);
       r.foot_minor_m[i] = r.foot_major_m[i] * u(rng);
       r.vis[i] = float(int(17 * u(rng))) / 17.0f;
-      for (int f = 0; f < 4; ++f) r.conf[i * 4 + f] = 0.5f + 0.5f * u(rng);
+      for (int f = 0; f < records::kConfidenceCount; ++f) {
+        r.conf[i * records::kConfidenceCount + f] = 0.5f + 0.5f * u(rng);
+      }
       r.uv_px[2 * i] = u(rng);
       r.uv_px[2 * i + 1] = u(rng);
       r.flags[i] = 0;

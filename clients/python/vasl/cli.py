@@ -15,6 +15,7 @@ from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
 from .readers import is_las, read_e57, read_las, read_manifest
+from .types import CONFIDENCE_FACTORS
 from .types import Pose
 
 
@@ -331,8 +332,8 @@ def _cmd_confidence(client: Client, args) -> int:
                          f"{a.soft_pixels} pixels lowered "
                          f"({100.0 * a.covered_fraction:.3f}% of the image)"
                          if a.regions else "none found")
-            elif a.artefact == "lens":
-                found = (f"dirt and fog of lens map {a.lens_map}: "
+            elif a.artefact in ("dirt", "fog"):
+                found = (f"{'dirt' if a.artefact == 'dirt' else 'veil'} of lens map {a.lens_map}: "
                          f"{100.0 * a.covered_fraction:.3f}% of the image lowered "
                          f"({a.flagged_pixels} pixels at 0)")
             else:
@@ -357,6 +358,13 @@ def _cmd_inspect(client: Client, args) -> int:
     print(f"{'ATTRIBUTE':<16} {'TYPE':<10} {'CODEC':<14} {'STRIDE':>6}")
     for a in r.attributes:
         print(f"{a.name:<16} {a.type:<10} {a.codec:<14} {a.stride:>6}")
+    for a in r.attributes:
+        if a.name == "conf":  # the factors, in the order the proto gives them (VASL-MODEL §9)
+            known = CONFIDENCE_FACTORS[:a.stride]
+            print(f"conf factors: {', '.join(known)}"
+                  + ("" if a.stride >= len(CONFIDENCE_FACTORS) else
+                     f" (written before {', '.join(CONFIDENCE_FACTORS[a.stride:])} had factors "
+                     "of their own: they read as 1)"))
     return 0
 
 

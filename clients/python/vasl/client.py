@@ -163,7 +163,7 @@ _PROFILE_KEYS = set(_PROFILE_NUMBERS) | {"name", "kappa", "mode", "scan_gain", "
 
 def profile_to_pb(profile: dict) -> pb.WeightingProfile:
     """A weighting profile from a dict (as read from JSON or TOML): name, alpha, beta, rho,
-    kappa (4 numbers, or a table by factor name), v_min, lambda_src, theta_max_rad or
+    kappa (6 numbers in CONFIDENCE_FACTORS order, or a table by factor name), v_min, lambda_src, theta_max_rad or
     theta_max_deg, proximity_m, mode ("blend" or "nearest"), scan_gain {source id: g},
     channel_gain {source id: [r, g, b]}, lens_maps [lens map ids]. Unset fields take the
     model's defaults."""
@@ -187,8 +187,9 @@ def profile_to_pb(profile: dict) -> pb.WeightingProfile:
             raise ValueError(f"kappa factors must be among {CONFIDENCE_FACTORS}, got {sorted(bad)}")
         kappa = [float(kappa.get(f, 1.0)) for f in CONFIDENCE_FACTORS]
     if kappa is not None:
-        if len(kappa) != len(CONFIDENCE_FACTORS):
-            raise ValueError(f"kappa needs {len(CONFIDENCE_FACTORS)} values {CONFIDENCE_FACTORS}")
+        if len(kappa) not in (len(CONFIDENCE_FACTORS), 4):
+            raise ValueError(f"kappa needs {len(CONFIDENCE_FACTORS)} values {CONFIDENCE_FACTORS} "
+                             "(or the first 4), or a table by factor name")
         out.kappa.extend(float(k) for k in kappa)
     mode = profile.get("mode", "blend")
     if mode not in ("blend", "nearest"):

@@ -314,7 +314,7 @@ class Inspection:
 
 
 #: Confidence factors of a record, in the order of `kappa` and `conf` (VASL-MODEL §9).
-CONFIDENCE_FACTORS = ("saturation", "flare", "dirt", "codec")
+CONFIDENCE_FACTORS = ("saturation", "flare", "dirt", "codec", "smear", "fog")
 
 
 @dataclass
