@@ -1610,8 +1610,14 @@ grpc::ServerUnaryReactor* VaslServiceImpl::ListLensMaps(grpc::CallbackServerCont
                   [this, request, response] {
     absl::StatusOr<std::vector<fusion::LensMap>> maps = engine_->ListLensMaps(request->project());
     if (!maps.ok()) return ToGrpcStatus(maps.status());
-    for (const fusion::LensMap& m : *maps) {
-      LensMapToProto(m, request->summary(), response->add_maps());
+    std::sort(maps->begin(), maps->end(),
+              [](const fusion::LensMap& a, const fusion::LensMap& b) { return a.id < b.id; });
+    auto page = Page(*maps, request->page_size(), request->page_token(),
+                     [](const fusion::LensMap& m) { return IntKey(m.id); },
+                     response->mutable_next_page_token());
+    if (!page.ok()) return ToGrpcStatus(page.status());
+    for (const fusion::LensMap* m : *page) {
+      LensMapToProto(*m, request->summary(), response->add_maps());
     }
     return grpc::Status::OK;
   });

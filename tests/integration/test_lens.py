@@ -12,12 +12,15 @@ import dataclasses
 import json
 import re
 
+import grpc
 import numpy as np
+import pytest
 
 from conftest import VOSSEL_M, manifests, run_cli
 from synth_scans import linear_to_srgb
 from test_confidence import _read_grey_png, _write_png
 from vasl import decode_exr, read_manifest
+from vasl._proto import vasl_pb2 as pb
 
 PROJECT = "lens-e2e"
 SPOTS = ((0.3, 0.45, 0.045, 0.45), (0.7, 0.55, 0.04, 0.55))  # u, v, radius (of W), D at the core
@@ -68,6 +71,14 @@ def test_lens_estimate_finds_planted_dirt_and_a_reweight_applies_it(client, serv
     assert f"lens map {found.group(1)}: rig dusty, camera pano" in listed, listed
     maps = client.list_lens_maps(PROJECT)
     assert len(maps) == 1 and 0.0 < maps[0].dirt_share < 0.2
+    # ListLensMaps pages as every List RPC does.
+    assert [m.id for m in client.list_lens_maps(PROJECT, True, page_size=1)] == [maps[0].id]
+    page = client.stub.ListLensMaps(pb.ListLensMapsRequest(project=PROJECT, summary=True,
+                                                           page_size=1))
+    assert len(page.maps) == 1 and page.next_page_token == ""
+    with pytest.raises(grpc.RpcError) as bad:
+        client.stub.ListLensMaps(pb.ListLensMapsRequest(project=PROJECT, page_token="x"))
+    assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT
 
     # The first frame's lens map, as confidence show writes it.
     out = tmp_path / "maps"

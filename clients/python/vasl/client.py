@@ -1143,11 +1143,14 @@ class Client:
                             r.cells, r.cells_fitted, r.cell_px, r.residual_before,
                             r.residual_after, r.replaced_map)
 
-    def list_lens_maps(self, project: str, summary: bool = False) -> List[LensMap]:
-        """The project's lens maps, oldest first (`summary`: without their cells)."""
+    def list_lens_maps(self, project: str, summary: bool = False, *,
+                       page_size: int = 0) -> List[LensMap]:
+        """The project's lens maps, oldest first (`summary`: without their cells), every page."""
         self._check_name(project)
-        r = self._call("ListLensMaps", pb.ListLensMapsRequest(project=project, summary=summary))
-        return [lens_map_from_pb(m) for m in r.maps]
+        maps, _ = self._pages("ListLensMaps",
+                              pb.ListLensMapsRequest(project=project, summary=summary),
+                              "maps", page_size)
+        return [lens_map_from_pb(m) for m in maps]
 
     def query_records(self, project: str, *, at=None, box=None, profile: str = "",
                       version: int = 0, limit: int = 0) -> RecordsQuery:
