@@ -141,8 +141,10 @@ std::vector<float> PlaneBlockError(const std::vector<float>& plane, int w, int h
   std::vector<float> block_mse(blocks);
   tbb::parallel_for(size_t{0}, blocks, [&](size_t b) {
     const int c = class_of(survived[b]);
-    // One code² keeps a class-0 block whose neighbours decode to its own DC above 0.
-    const double s = c == 0 ? std::sqrt((context[b] + 1.0) / (flat_context + 1.0)) : 1.0;
+    // A class-0 block whose neighbours decode to its own DC lost nothing the image shows; a
+    // plane whose every such block is so (a grey image's chroma) lost nothing there at all.
+    const double s =
+        c != 0 ? 1.0 : flat_context > 0.0 ? std::sqrt(context[b] / flat_context) : 0.0;
     double mse = 0.0;
     for (int k = 0; k < 64; ++k) {
       const double step = q[size_t(k)];
