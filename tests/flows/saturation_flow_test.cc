@@ -17,13 +17,13 @@
 #include "lattice/engine.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/store/project_store.h"
+#include "tests/flows/room_artefacts.h"
 #include "tests/scenes/synthetic_scene.h"
 
 namespace vasl {
 namespace {
 namespace fs = std::filesystem;
 
-constexpr double kVosselM = 0.05;
 constexpr int kPanoW = 1024;
 
 /// A bright source planted in the panorama: a disk of brightness B over the clip level whose
@@ -35,51 +35,6 @@ struct Source {
     return d <= 0.0 ? brightness : brightness * std::exp(-d / lambda_px);
   }
 };
-
-/// A project "room" in `dir` with the synthetic room's stations ingested (LiDAR and clean
-/// panoramas).
-std::unique_ptr<Engine> RoomWithStations(const fs::path& dir,
-                                         const scenes::SyntheticRoom& room) {
-  fs::remove_all(dir);
-  auto engine = Engine::Open(dir);
-  EXPECT_TRUE(engine.ok()) << engine.status();
-  if (!engine.ok()) return nullptr;
-  store::ProjectSettings settings;
-  settings.vossel_size_m = kVosselM;
-  EXPECT_TRUE((*engine)->CreateProject("room", settings).ok());
-  for (size_t i = 0; i < room.Stations().size(); ++i) {
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), 512);
-    EXPECT_TRUE(scan.ok()) << scan.status();
-    if (scan.ok()) EXPECT_TRUE((*engine)->IngestScan("room", *scan).ok());
-  }
-  return std::move(*engine);
-}
-
-/// The mean |error| against the albedo seen from `pose` of the fused colour of the vossels
-/// marked in `affected` (those whose surface the pose sees within a vossel), under `profile`;
-/// and how many.
-std::pair<double, size_t> FusedError(const records::RecordSet& rec,
-                                     const records::VosselGeometry& g,
-                                     const std::vector<uint8_t>& affected,
-                                     const scenes::SyntheticRoom& room, const geometry::Pose& pose,
-                                     const fusion::WeightingProfile& profile) {
-  auto fused = fusion::Fuse(rec, g.size(), g.vossel_size_m, profile);
-  EXPECT_TRUE(fused.ok()) << fused.status();
-  if (!fused.ok()) return {0.0, 0};
-  const records::FusedModality& rgb = fused->by_modality.at(records::Modality::kRgb);
-  double err = 0.0;
-  size_t n = 0;
-  for (size_t k = 0; k < g.size(); ++k) {
-    if (!affected[k] || !(rgb.weight[k] > 0.0f)) continue;
-    const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-    const scenes::SceneHit hit = room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
-    if (!hit.valid || std::abs(hit.t_m - (x - pose.o_world).norm()) > kVosselM) continue;
-    const Eigen::Vector3f& albedo = hit.albedo_linear;
-    for (int c = 0; c < 3; ++c) err += std::abs(rgb.value[3 * k + c] - albedo[c]) / 3.0;
-    ++n;
-  }
-  return {err / double(std::max<size_t>(1, n)), n};
-}
 
 TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheColour) {
   const fs::path dir = fs::temp_directory_path() /
