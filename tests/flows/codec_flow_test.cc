@@ -54,17 +54,11 @@ TEST(CodecFlowTest, CodecLowersTheRecordsConfidenceAndWeighingItMendsTheColour) 
   auto scan = scenes::PanoramaScan("jpeg-15", pose, pano);
   ASSERT_TRUE(scan.ok()) << scan.status();
   scan->panoramas.at(0).encoded_image = EncodeJpeg(pano, 15);
-  ASSERT_TRUE(engine->IngestScan("room", *scan).ok());
-
-  auto st = store::ProjectStore::Open(dir / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const int32_t camera = scans->back().sources.at(0).id;
-  const records::RecordSet& rec = (*snap)->records;
-  const records::VosselGeometry& g = (*snap)->geometry;
+  const AfterIngest after = IngestAndLoad(*engine, dir, *scan);
+  ASSERT_TRUE(after.snap != nullptr);
+  const int32_t camera = after.camera;
+  const records::RecordSet& rec = after.snap->records;
+  const records::VosselGeometry& g = after.snap->geometry;
   size_t records = 0, lowered = 0, others_lowered = 0;
   std::vector<uint8_t> affected(g.size(), 0);
   for (size_t i = 0; i < rec.size(); ++i) {

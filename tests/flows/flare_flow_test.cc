@@ -17,16 +17,12 @@
 
 #include <gtest/gtest.h>
 
-#include "lattice/engine.h"
-#include "lattice/fusion/fuse.h"
-#include "lattice/store/project_store.h"
-#include "tests/scenes/synthetic_scene.h"
+#include "tests/flows/room_artefacts.h"
 
 namespace vasl {
 namespace {
 namespace fs = std::filesystem;
 
-constexpr double kVosselM = 0.05;
 constexpr int kPanoW = 2048;
 
 /// A bright source planted in the panorama: a disk at 16× the clip level with a veil of glare
@@ -47,20 +43,11 @@ struct Source {
 TEST(FlareFlowTest, GlareInvalidatesAndLowersTheRecordsAndWeighingItMendsTheColour) {
   const fs::path dir =
       fs::temp_directory_path() / ("vasl-flare-flow-test-" + std::to_string(::getpid()));
-  fs::remove_all(dir);
-  auto engine = Engine::Open(dir);
-  ASSERT_TRUE(engine.ok()) << engine.status();
-  store::ProjectSettings settings;
-  settings.vossel_size_m = kVosselM;
-  ASSERT_TRUE((*engine)->CreateProject("room", settings).ok());
   // Plain tiled faces: a sharp texture, whose darkest pixels the veil lifts (§9), without the
   // smooth albedo gradients a veil cannot be told from in one image.
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default().WithTiles(0.1, true);
-  for (size_t i = 0; i < room.Stations().size(); ++i) {  // LiDAR and clean panoramas
-    auto scan = scenes::MakeScanInput(room, i, scenes::LidarSettings::Small(i + 1), 512);
-    ASSERT_TRUE(scan.ok()) << scan.status();
-    ASSERT_TRUE((*engine)->IngestScan("room", *scan).ok());
-  }
+  std::unique_ptr<Engine> engine = RoomWithStations(dir, room);
+  ASSERT_TRUE(engine != nullptr);
   // A panorama 1.2 m from wall y = 0, facing it (so that the wall fills the field around the
   // sources), with two sources on the wall, their veils 0.4 and 0.5 of the clip level at the
   // centre, 40 and 50 px wide.
@@ -86,17 +73,11 @@ TEST(FlareFlowTest, GlareInvalidatesAndLowersTheRecordsAndWeighingItMendsTheColo
   }
   auto flared = scenes::PanoramaScan("flared", pose, pano);
   ASSERT_TRUE(flared.ok()) << flared.status();
-  ASSERT_TRUE((*engine)->IngestScan("room", *flared).ok());
-
-  auto st = store::ProjectStore::Open(dir / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const int32_t camera = scans->back().sources.at(0).id;
-  const records::RecordSet& rec = (*snap)->records;
-  const records::VosselGeometry& g = (*snap)->geometry;
+  const AfterIngest after = IngestAndLoad(*engine, dir, *flared);
+  ASSERT_TRUE(after.snap != nullptr);
+  const int32_t camera = after.camera;
+  const records::RecordSet& rec = after.snap->records;
+  const records::VosselGeometry& g = after.snap->geometry;
 
   // The camera's records, by the glare under their pixel against the surface's own light.
   size_t dominated = 0, dominated_invalid = 0, lowered = 0, lowered_below = 0, far = 0;
@@ -153,23 +134,7 @@ TEST(FlareFlowTest, GlareInvalidatesAndLowersTheRecordsAndWeighingItMendsTheColo
   auto fused_error = [&](const records::RecordSet& records, double kappa) {
     fusion::WeightingProfile profile;
     profile.kappa[records::kConfFlare] = kappa;
-    auto fused = fusion::Fuse(records, g.size(), g.vossel_size_m, profile);
-    EXPECT_TRUE(fused.ok()) << fused.status();
-    const records::FusedModality& rgb = fused->by_modality.at(records::Modality::kRgb);
-    double err = 0.0;
-    size_t n = 0;
-    for (size_t k = 0; k < g.size(); ++k) {
-      if (!affected[k] || !(rgb.weight[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-      const scenes::SceneHit hit =
-          room.Intersect(pose.o_world, (x - pose.o_world).normalized(), 1e9);
-      if (!hit.valid || std::abs(hit.t_m - (x - pose.o_world).norm()) > kVosselM) continue;
-      for (int c = 0; c < 3; ++c) {
-        err += std::abs(rgb.value[3 * k + c] - hit.albedo_linear[c]) / 3.0;
-      }
-      ++n;
-    }
-    return std::make_pair(err / double(std::max<size_t>(1, n)), n);
+    return FusedError(records, g, affected, room, pose, profile);
   };
   // The clean stations alone: what the glare's damage is measured from.
   records::RecordSet clean = rec;
@@ -190,7 +155,7 @@ TEST(FlareFlowTest, GlareInvalidatesAndLowersTheRecordsAndWeighingItMendsTheColo
   EXPECT_LT(invalidating, ignoring);
   EXPECT_LT(weighing, invalidating);
   EXPECT_GE(undone, 0.5);
-  engine->reset();
+  engine.reset();
   fs::remove_all(dir);
 }
 

@@ -40,6 +40,30 @@ std::unique_ptr<Engine> RoomWithStations(const std::filesystem::path& dir,
   return std::move(*engine);
 }
 
+/// HEAD after `scan` was ingested into "room" of the engine over `dir`, and the id of the
+/// scan's first source (its camera).
+struct AfterIngest {
+  std::shared_ptr<const store::Snapshot> snap;
+  int32_t camera = -1;
+};
+AfterIngest IngestAndLoad(Engine& engine, const std::filesystem::path& dir,
+                          const ingest::ScanInput& scan) {
+  AfterIngest out;
+  const absl::Status ingested = engine.IngestScan("room", scan).status();
+  EXPECT_TRUE(ingested.ok()) << ingested;
+  auto st = store::ProjectStore::Open(dir / "room");
+  EXPECT_TRUE(st.ok()) << st.status();
+  if (!ingested.ok() || !st.ok()) return out;
+  auto snap = (*st)->LoadSnapshot((*st)->head_version());
+  EXPECT_TRUE(snap.ok()) << snap.status();
+  auto scans = (*st)->ListScans();
+  EXPECT_TRUE(scans.ok()) << scans.status();
+  if (!snap.ok() || !scans.ok()) return out;
+  out.snap = std::move(*snap);
+  out.camera = scans->back().sources.at(0).id;
+  return out;
+}
+
 /// The mean |error| against the albedo seen from `pose` of the fused colour of the vossels
 /// marked in `affected` (those whose surface the pose sees within a vossel), under `profile`;
 /// and how many.

@@ -61,17 +61,11 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
   }
   auto bloomed = scenes::PanoramaScan("bloomed", pose, pano);
   ASSERT_TRUE(bloomed.ok()) << bloomed.status();
-  ASSERT_TRUE(engine->IngestScan("room", *bloomed).ok());
-
-  auto st = store::ProjectStore::Open(dir / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const int32_t camera = scans->back().sources.at(0).id;
-  const records::RecordSet& rec = (*snap)->records;
-  const records::VosselGeometry& g = (*snap)->geometry;
+  const AfterIngest after = IngestAndLoad(*engine, dir, *bloomed);
+  ASSERT_TRUE(after.snap != nullptr);
+  const int32_t camera = after.camera;
+  const records::RecordSet& rec = after.snap->records;
+  const records::VosselGeometry& g = after.snap->geometry;
 
   // The camera's records, by what lies under their pixel: a clipped source, a halo (bloom
   // over a third of the surface's light), or nothing within 15 λ of a source.
@@ -159,17 +153,11 @@ TEST(SaturationFlowTest, SmearIsAFactorOfItsOwn) {
   }
   auto scan = scenes::PanoramaScan("smeared", pose, pano);
   ASSERT_TRUE(scan.ok()) << scan.status();
-  ASSERT_TRUE(engine->IngestScan("room", *scan).ok());
-
-  auto st = store::ProjectStore::Open(dir / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  auto snap = (*st)->LoadSnapshot((*st)->head_version());
-  ASSERT_TRUE(snap.ok()) << snap.status();
-  auto scans = (*st)->ListScans();
-  ASSERT_TRUE(scans.ok());
-  const int32_t camera = scans->back().sources.at(0).id;
-  const records::RecordSet& rec = (*snap)->records;
-  const records::VosselGeometry& g = (*snap)->geometry;
+  const AfterIngest after = IngestAndLoad(*engine, dir, *scan);
+  ASSERT_TRUE(after.snap != nullptr);
+  const int32_t camera = after.camera;
+  const records::RecordSet& rec = after.snap->records;
+  const records::VosselGeometry& g = after.snap->geometry;
   size_t in_columns = 0, lowered = 0, saturation_one = 0, outside = 0, outside_one = 0;
   std::vector<uint8_t> affected(g.size(), 0);
   for (size_t i = 0; i < rec.size(); ++i) {
