@@ -90,13 +90,17 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
         // (fusion::AdjustForLens), read at the image's own colours; the maps' pixels are the
         // image as sent.
         const fusion::LensMap& lens = *it->second;
-        geometry::LinearImage dirt;
-        dirt.width_px = w;
-        dirt.height_px = h;
-        dirt.channels = 1;
-        dirt.pixels.assign(size_t(w) * h, 1.0f);
-        geometry::LinearImage fog = dirt;
-        int64_t flagged[2] = {0, 0}, soft[2] = {0, 0};
+        geometry::LinearImage ones;
+        ones.width_px = w;
+        ones.height_px = h;
+        ones.channels = 1;
+        ones.pixels.assign(size_t(w) * h, 1.0f);
+        struct Factor {
+          const char* name;
+          geometry::LinearImage conf;
+          int64_t flagged = 0, soft = 0;
+        };
+        Factor factors[2] = {{"dirt", ones}, {"fog", std::move(ones)}};
         const float sx = float(src.width_px > 0 ? src.width_px : w) / float(w);
         const float sy = float(src.height_px > 0 ? src.height_px : h) / float(h);
         for (int y = 0; y < h; ++y) {
@@ -109,24 +113,18 @@ absl::StatusOr<std::vector<SourceConfidence>> ScanConfidence(
             const float uv[2] = {(float(x) + 0.5f) * sx, (float(y) + 0.5f) * sy};
             const fusion::LensFactors f =
                 fusion::AdjustForLens(lens, lens.source_gain.at(src.id), uv, value);
-            dirt.pixels[p] = f.dirt;
-            fog.pixels[p] = f.fog;
-            int i = 0;
-            for (const float v : {f.dirt, f.fog}) {
-              flagged[i] += v == 0.0f;
-              soft[i] += v > 0.0f && v < 1.0f;
-              ++i;
+            const float v[2] = {f.dirt, f.fog};
+            for (int k = 0; k < 2; ++k) {
+              factors[k].conf.pixels[p] = v[k];
+              factors[k].flagged += v[k] == 0.0f;
+              factors[k].soft += v[k] > 0.0f && v[k] < 1.0f;
             }
           }
         }
-        int i = 0;
-        for (const auto& [name, conf] : {std::pair<const char*, const geometry::LinearImage*>{
-                                             "dirt", &dirt},
-                                         {"fog", &fog}}) {
-          ArtefactMap map = coverage(name, flagged[i], soft[i], 0, 0);
-          ++i;
+        for (Factor& factor : factors) {
+          ArtefactMap map = coverage(factor.name, factor.flagged, factor.soft, 0, 0);
           map.lens_map = lens.id;
-          absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(*conf, w, h);
+          absl::StatusOr<std::string> png = ingest::EncodeConfidencePng(factor.conf, w, h);
           if (!png.ok()) return png.status();
           map.png = std::move(*png);
           c.artefacts.push_back(std::move(map));

@@ -21,11 +21,11 @@ namespace vasl::fusion {
 /// How records of one vossel combine (§7).
 enum class FusionMode { kBlend, kNearest };
 
-/// The parameters of w_{k,m} (§7). Defaults are the model's defaults.
 /// κ values a profile written before smear and fog had their own factors gives (§9): the first
 /// four; the rest keep 1.
 inline constexpr size_t kOlderKappaCount = 4;
 
+/// The parameters of w_{k,m} (§7). Defaults are the model's defaults.
 struct WeightingProfile {
   std::string name = "default";
   int32_t version = 1;      ///< revision: creating a profile under an existing name adds one

@@ -45,7 +45,6 @@ std::array<std::array<double, 8>, 8> DctBasis() {
   return c;
 }
 
-
 /// E[F² | |F| < a] for a Laplacian of scale b: what a coefficient quantised to 0 lost.
 double LostToZero(double a, double b) {
   const double e = b > 0.0 ? std::exp(-a / b) : 0.0;
@@ -111,7 +110,8 @@ std::vector<float> PlaneBlockError(const std::vector<float>& plane, int w, int h
   tbb::parallel_for(0, by, [&](int j) {
     for (int i = 0; i < bx; ++i) {
       auto at = [&](int ii, int jj) {
-        return double(dc[size_t(std::clamp(jj, 0, by - 1)) * bx + size_t(std::clamp(ii, 0, bx - 1))]);
+        const size_t row = size_t(std::clamp(jj, 0, by - 1));
+        return double(dc[row * bx + size_t(std::clamp(ii, 0, bx - 1))]);
       };
       const double gx = at(i + 1, j) - at(i - 1, j), gy = at(i, j + 1) - at(i, j - 1);
       context[size_t(j) * bx + size_t(i)] = float(gx * gx + gy * gy);
@@ -284,7 +284,10 @@ CodecMap DetectCodec(const geometry::LinearImage& image) {
         const int channels = C == 3 ? 3 : 1;
         // The steepest channel bounds the share: most pixels are settled by it alone.
         double vmax = 0.0, emax = 0.0;
-        for (int c = 0; c < channels; ++c) vmax = std::max(vmax, codes[c]), emax = std::max(emax, e2[c]);
+        for (int c = 0; c < channels; ++c) {
+          vmax = std::max(vmax, codes[c]);
+          emax = std::max(emax, e2[c]);
+        }
         const auto slope = [](double code) {
           return LinearPerCode(std::clamp(code, 0.0, 255.0) / 255.0) / 255.0;
         };

@@ -119,8 +119,8 @@ Diff CompareProjects(const store::ProjectStore& sa, int64_t va, const store::Pro
                      double(std::abs(ra.uv_px[2 * i + 1] - rb.uv_px[2 * j + 1]))});
     d.vis = std::max(d.vis, double(std::abs(ra.vis[i] - rb.vis[j])));
     for (int k = 0; k < records::kConfidenceCount; ++k) {
-      d.conf = std::max(d.conf, double(std::abs(ra.conf[records::kConfidenceCount * i + k] -
-                                                         rb.conf[records::kConfidenceCount * j + k])));
+      const size_t a = records::kConfidenceCount * i + k, b = records::kConfidenceCount * j + k;
+      d.conf = std::max(d.conf, double(std::abs(ra.conf[a] - rb.conf[b])));
     }
     d.flags |= ra.flags[i] ^ rb.flags[j];
     d.flags |= ra.modality[i] ^ rb.modality[j];

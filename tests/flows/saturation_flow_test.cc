@@ -148,7 +148,9 @@ TEST(SaturationFlowTest, SmearIsAFactorOfItsOwn) {
     for (int x = 0; x < kPanoW; ++x) {
       const size_t p = size_t(y) * kPanoW + x;
       const double add = source.Bloom(x + 0.5, y + 0.5) + (smeared_column(x + 0.5) ? kLift : 0.0);
-      for (int c = 0; c < 3; ++c) pano.rgb[3 * p + c] = std::min(1.0f, pano.rgb[3 * p + c] + float(add));
+      for (int c = 0; c < 3; ++c) {
+        pano.rgb[3 * p + c] = std::min(1.0f, pano.rgb[3 * p + c] + float(add));
+      }
     }
   }
   auto scan = scenes::PanoramaScan("smeared", pose, pano);

@@ -26,7 +26,9 @@ void AddRecord(records::RecordSet& s, int32_t vossel, int32_t scan, float value,
   s.foot_major_m[i] = foot_m;
   s.foot_minor_m[i] = foot_m;
   s.vis[i] = vis;
-  for (int f = 0; f < records::kConfidenceCount; ++f) s.conf[i * records::kConfidenceCount + f] = 1.0f;
+  for (int f = 0; f < records::kConfidenceCount; ++f) {
+    s.conf[i * records::kConfidenceCount + f] = 1.0f;
+  }
   s.flags[i] = derived ? records::kFlagDerived : 0;
   s.batch[i] = 1;
 }

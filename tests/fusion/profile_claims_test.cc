@@ -39,7 +39,9 @@ records::RecordSet TwoScans() {
       s.foot_major_m[i] = 0.004f;
       s.foot_minor_m[i] = 0.004f;
       s.vis[i] = 1.0f;
-      for (int f = 0; f < records::kConfidenceCount; ++f) s.conf[i * records::kConfidenceCount + f] = 1.0f;
+      for (int f = 0; f < records::kConfidenceCount; ++f) {
+        s.conf[i * records::kConfidenceCount + f] = 1.0f;
+      }
       s.flags[i] = 0;
       s.batch[i] = m + 1;
     }

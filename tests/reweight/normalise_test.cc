@@ -34,7 +34,9 @@ void AddRecord(records::RecordSet& s, int32_t vossel, int32_t scan, const Gains&
   s.foot_major_m[i] = 0.005f;
   s.foot_minor_m[i] = 0.005f;
   s.vis[i] = 1.0f;
-  for (int f = 0; f < records::kConfidenceCount; ++f) s.conf[i * records::kConfidenceCount + f] = 1.0f;
+  for (int f = 0; f < records::kConfidenceCount; ++f) {
+    s.conf[i * records::kConfidenceCount + f] = 1.0f;
+  }
   s.flags[i] = flags;
   s.batch[i] = 1;
 }

@@ -163,7 +163,8 @@ _PROFILE_KEYS = set(_PROFILE_NUMBERS) | {"name", "kappa", "mode", "scan_gain", "
 
 def profile_to_pb(profile: dict) -> pb.WeightingProfile:
     """A weighting profile from a dict (as read from JSON or TOML): name, alpha, beta, rho,
-    kappa (6 numbers in CONFIDENCE_FACTORS order, or a table by factor name), v_min, lambda_src, theta_max_rad or
+    kappa (6 numbers in CONFIDENCE_FACTORS order, or a table by factor name), v_min,
+    lambda_src, theta_max_rad or
     theta_max_deg, proximity_m, mode ("blend" or "nearest"), scan_gain {source id: g},
     channel_gain {source id: [r, g, b]}, lens_maps [lens map ids]. Unset fields take the
     model's defaults."""
