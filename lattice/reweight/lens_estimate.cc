@@ -6,8 +6,9 @@
 #include <tuple>
 
 #include <tbb/blocked_range.h>
-#include <tbb/combinable.h>
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_sort.h>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/fusion/fuse.h"
@@ -39,7 +40,7 @@ std::vector<Sample> CollectSamples(const records::RecordSet& recs,
                                    const fusion::RecordValues& values,
                                    const std::vector<std::array<float, kC>>& base_gain,
                                    const std::vector<int32_t>& slot_of) {
-  tbb::combinable<std::vector<Sample>> local;
+  tbb::enumerable_thread_specific<std::vector<Sample>> local;
   const size_t vossels = weights.begin.size() - 1;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossels, 2048),
                     [&](const tbb::blocked_range<size_t>& range) {
@@ -85,14 +86,43 @@ std::vector<Sample> CollectSamples(const records::RecordSet& recs,
       }
     }
   });
+  // One array, each thread's part freed as it is taken (at most one part held twice).
+  size_t total = 0;
+  for (const std::vector<Sample>& v : local) total += v.size();
   std::vector<Sample> all;
-  local.combine_each(
-      [&](const std::vector<Sample>& v) { all.insert(all.end(), v.begin(), v.end()); });
-  // A fixed order, whatever the threads did: by pixel, then frame.
-  std::sort(all.begin(), all.end(), [](const Sample& a, const Sample& b) {
-    return std::tie(a.v, a.u, a.slot, a.y[0], a.x[0]) < std::tie(b.v, b.u, b.slot, b.y[0], b.x[0]);
-  });
+  all.reserve(total);
+  for (std::vector<Sample>& v : local) {
+    all.insert(all.end(), v.begin(), v.end());
+    std::vector<Sample>().swap(v);
+  }
   return all;
+}
+
+/// The grid cell of a sample.
+struct CellOf {
+  int grid_w, grid_h, W, H;
+  CellOf(const fusion::LensMap& map, int width_px, int height_px)
+      : grid_w(map.grid_w), grid_h(map.grid_h), W(width_px), H(height_px) {}
+  size_t operator()(const Sample& s) const {
+    const int cx = std::clamp(int(s.u * grid_w / W), 0, grid_w - 1);
+    const int cy = std::clamp(int(s.v * grid_h / H), 0, grid_h - 1);
+    return size_t(cy) * size_t(grid_w) + size_t(cx);
+  }
+};
+
+/// Sorts `samples` into a fixed order, whatever the threads did: by cell, then pixel, then
+/// frame; returns each cell's first sample (cells + 1 offsets), so a cell's samples lie
+/// contiguous for its fit.
+std::vector<size_t> SortByCell(std::vector<Sample>& samples, const CellOf& cell_of) {
+  tbb::parallel_sort(samples.begin(), samples.end(), [&](const Sample& a, const Sample& b) {
+    const size_t ca = cell_of(a), cb = cell_of(b);
+    return std::tie(ca, a.v, a.u, a.slot, a.y[0], a.x[0]) <
+           std::tie(cb, b.v, b.u, b.slot, b.y[0], b.x[0]);
+  });
+  std::vector<size_t> first(size_t(cell_of.grid_w) * size_t(cell_of.grid_h) + 1, 0);
+  for (const Sample& s : samples) ++first[cell_of(s) + 1];
+  for (size_t c = 1; c < first.size(); ++c) first[c] += first[c - 1];
+  return first;
 }
 
 /// g_m per frame and channel: the median of y / (D·x + v) under `map`.
@@ -130,19 +160,18 @@ struct Sums {
 /// D and v of one cell, per channel (see the header): the robust fit and the decision are
 /// made on the channels' sum (so that noise in one channel does not make dirt of its own);
 /// each channel then fits the model chosen.
-void FitCell(const std::vector<const Sample*>& cell, const std::vector<std::array<float, kC>>& gain,
+void FitCell(const Sample* cell, size_t n, const std::vector<std::array<float, kC>>& gain,
              const LensOptions& o, float* d_out, float* v_out) {
   std::fill(d_out, d_out + kC, 1.0f);
   std::fill(v_out, v_out + kC, 0.0f);
-  const size_t n = cell.size();
   std::vector<double> t(n * (kC + 1)), x(n * (kC + 1));  // channels, then their sum
   for (size_t i = 0; i < n; ++i) {
     double* ti = &t[i * (kC + 1)];
     double* xi = &x[i * (kC + 1)];
     ti[kC] = xi[kC] = 0.0;
     for (int c = 0; c < kC; ++c) {
-      ti[c] = double(cell[i]->y[c]) / std::max(1e-6f, gain[size_t(cell[i]->slot)][c]);
-      xi[c] = cell[i]->x[c];
+      ti[c] = double(cell[i].y[c]) / std::max(1e-6f, gain[size_t(cell[i].slot)][c]);
+      xi[c] = cell[i].x[c];
       ti[kC] += ti[c];
       xi[kC] += xi[c];
     }
@@ -152,7 +181,7 @@ void FitCell(const std::vector<const Sample*>& cell, const std::vector<std::arra
     Sums s;
     for (size_t i = 0; i < n; ++i) {
       if (!keep[i]) continue;
-      const double w = cell[i]->w, xc = x[i * (kC + 1) + c], tc = t[i * (kC + 1) + c];
+      const double w = cell[i].w, xc = x[i * (kC + 1) + c], tc = t[i * (kC + 1) + c];
       s.w += w;
       s.w2 += w * w;
       s.x += w * xc;
@@ -168,7 +197,7 @@ void FitCell(const std::vector<const Sample*>& cell, const std::vector<std::arra
   auto sigma2 = [&](int c, double d, double v, const Sums& s) {
     double r2 = 0.0;
     for (size_t i = 0; i < n; ++i) {
-      if (keep[i]) r2 += cell[i]->w * residual(i, c, d, v) * residual(i, c, d, v);
+      if (keep[i]) r2 += cell[i].w * residual(i, c, d, v) * residual(i, c, d, v);
     }
     return r2 / std::max(1e-30, s.w);
   };
@@ -324,7 +353,7 @@ absl::StatusOr<LensEstimate> EstimateLensMap(const records::RecordSet& recs, siz
     }
     absl::StatusOr<fusion::RecordValues> values = fusion::RecordValues::Of(profile, recs);
     if (!values.ok()) return values.status();
-    const std::vector<Sample> samples = CollectSamples(
+    std::vector<Sample> samples = CollectSamples(
         recs, round > 0 ? *weights_r : *w0, w0->weight, *values, base_gain, slot_of);
     if (samples.empty()) {
       return absl::FailedPreconditionError(
@@ -345,22 +374,18 @@ absl::StatusOr<LensEstimate> EstimateLensMap(const records::RecordSet& recs, siz
       out.cells = int64_t(map.grid_w) * map.grid_h;
       map.transmission.assign(size_t(out.cells) * kC, 1.0f);
       map.veil.assign(size_t(out.cells) * kC, 0.0f);
-      out.residual_before = LogResidual(samples, map, gain);
     }
+    const std::vector<size_t> first = SortByCell(samples, CellOf(map, W, H));
+    if (round == 0) out.residual_before = LogResidual(samples, map, gain);
     gain = FrameGains(samples, frames.size(), map);
-    // The samples of each cell.
-    std::vector<std::vector<const Sample*>> by_cell(size_t(out.cells));
-    for (const Sample& s : samples) {
-      const int cx = std::clamp(int(s.u * map.grid_w / W), 0, map.grid_w - 1);
-      const int cy = std::clamp(int(s.v * map.grid_h / H), 0, map.grid_h - 1);
-      by_cell[size_t(cy) * map.grid_w + cx].push_back(&s);
-    }
+    auto cell_size = [&](size_t cell) { return first[cell + 1] - first[cell]; };
     std::vector<float> d_next(map.transmission.size(), 1.0f), v_next(map.veil.size(), 0.0f);
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, by_cell.size(), 16),
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, size_t(out.cells), 16),
                       [&](const tbb::blocked_range<size_t>& r) {
       for (size_t cell = r.begin(); cell != r.end(); ++cell) {
-        if (int64_t(by_cell[cell].size()) < o.min_samples) continue;
-        FitCell(by_cell[cell], gain, o, &d_next[cell * kC], &v_next[cell * kC]);
+        if (int64_t(cell_size(cell)) < o.min_samples) continue;
+        FitCell(&samples[first[cell]], cell_size(cell), gain, o, &d_next[cell * kC],
+                &v_next[cell * kC]);
       }
     });
     map.transmission = std::move(d_next);
@@ -368,7 +393,9 @@ absl::StatusOr<LensEstimate> EstimateLensMap(const records::RecordSet& recs, siz
     if (round + 1 == o.rounds) {
       out.residual_after = LogResidual(samples, map, gain);
       out.cells_fitted = 0;
-      for (const auto& cell : by_cell) out.cells_fitted += int64_t(cell.size()) >= o.min_samples;
+      for (size_t cell = 0; cell < size_t(out.cells); ++cell) {
+        out.cells_fitted += int64_t(cell_size(cell)) >= o.min_samples;
+      }
     }
   }
   set_source_gains(map);

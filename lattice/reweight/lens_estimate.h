@@ -27,8 +27,10 @@
 ///             that dirt on the other frames' pixels does not bias it, and fits again.
 ///          Residuals are taken in log space for the figures (log y − log g(Dx + v)).
 ///
-///          Cost: `rounds` passes over the records (parallel over vossels), a sort of the
-///          samples by cell and a parallel fit per cell. Memory: 40 bytes per sample.
+///          Cost: `rounds` passes over the records (parallel over vossels), a parallel sort
+///          of the samples by cell and a parallel fit per cell over each cell's contiguous
+///          samples. Memory: 40 bytes per sample (the frames' records with a reference), and
+///          one thread's part of them again while the parts are joined; no per-cell lists.
 #pragma once
 
 #include <cstdint>
