@@ -81,19 +81,18 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       const double half_cell_m = 0.5 * h + sigma_m;
       const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
       const double psi = std::asin(std::clamp(d.z(), -1.0, 1.0));
-      const int j0 = std::max(0, int(std::floor(uv.y() - a / dpsi)) - 1);
-      const int j1 = std::min(H - 1, int(std::floor(uv.y() + a / dpsi)) + 1);
-      // Azimuth half-width of a cap of radius a at elevation ψ.
+      // The pixels whose centre (i + ½, j + ½) can lie within a of d: rows within a in
+      // elevation, columns within the cap's widest azimuth half-width, asin(sin a / cos ψ).
+      // Floor and ceil keep the bounds conservative; the cap test below decides.
+      const double rows = a / dpsi;
+      const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
+      const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
       const double cos_psi_c = std::cos(psi);
-      int half_cols;
-      if (std::abs(psi) + a >= M_PI / 2 || std::sin(a) >= cos_psi_c) {
-        half_cols = W;  // touches a pole: all columns
-      } else {
-        half_cols = int(std::ceil(std::asin(std::sin(a) / cos_psi_c) / dphi)) + 1;
-      }
-      const int ic = int(std::floor(uv.x()));
-      const int i0 = half_cols * 2 + 1 >= W ? 0 : ic - half_cols;
-      const int i1 = half_cols * 2 + 1 >= W ? W - 1 : ic + half_cols;
+      const bool pole = std::abs(psi) + a >= M_PI / 2 || std::sin(a) >= cos_psi_c;
+      const double cols = pole ? double(W) : std::asin(std::sin(a) / cos_psi_c) / dphi;
+      const bool all_cols = 2.0 * cols + 2.0 >= double(W);
+      const int i0 = all_cols ? 0 : int(std::floor(uv.x() - 0.5 - cols));
+      const int i1 = all_cols ? W - 1 : int(std::ceil(uv.x() - 0.5 + cols));
       for (int j = j0; j <= j1; ++j) {
         for (int ii = i0; ii <= i1; ++ii) {
           const int i = geometry::WrapColumn(ii, W);
