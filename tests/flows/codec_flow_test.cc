@@ -5,43 +5,20 @@
 // (κ_codec = 2) fuses the vossels it lowered closer to their albedo than one that ignores it
 // (κ_codec = 0), from the records alone: κ = 1 lowers the error, κ = 2 lowers it more and by
 // at least 5% in all (the four stations' clean panoramas already hold most of the weight).
-#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <memory>
 #include <string>
 #include <vector>
 
-#include <OpenImageIO/filesystem.h>
-#include <OpenImageIO/imageio.h>
 #include <gtest/gtest.h>
 
 #include "tests/flows/room_artefacts.h"
+#include "tests/ingest/encode_srgb8.h"
 
 namespace vasl {
 namespace {
 namespace fs = std::filesystem;
-
-/// The panorama as an 8-bit sRGB JPEG at `quality` with 4:2:0 chroma.
-std::string EncodeJpeg(const scenes::Panorama& pano, int quality) {
-  std::vector<uint8_t> codes(pano.rgb.size());
-  for (size_t i = 0; i < codes.size(); ++i) {
-    const double l = std::clamp(double(pano.rgb[i]), 0.0, 1.0);
-    const double v = l <= 0.0031308 ? 12.92 * l : 1.055 * std::pow(l, 1.0 / 2.4) - 0.055;
-    codes[i] = uint8_t(std::lround(255.0 * v));
-  }
-  std::vector<unsigned char> bytes;
-  OIIO::Filesystem::IOVecOutput proxy(bytes);
-  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create("jpg");
-  EXPECT_TRUE(out && out->set_ioproxy(&proxy));
-  OIIO::ImageSpec spec(pano.width_px, pano.height_px, 3, OIIO::TypeDesc::UINT8);
-  spec.attribute("Compression", "jpeg:" + std::to_string(quality));
-  spec.attribute("jpeg:subsampling", "4:2:0");
-  EXPECT_TRUE(out->open("pano.jpg", spec));
-  EXPECT_TRUE(out->write_image(OIIO::TypeDesc::UINT8, codes.data()));
-  EXPECT_TRUE(out->close());
-  return std::string(bytes.begin(), bytes.end());
-}
 
 TEST(CodecFlowTest, CodecLowersTheRecordsConfidenceAndWeighingItMendsTheColour) {
   const fs::path dir =
@@ -53,7 +30,12 @@ TEST(CodecFlowTest, CodecLowersTheRecordsConfidenceAndWeighingItMendsTheColour) 
   const scenes::Panorama pano = scenes::RenderPanorama(room, pose, 1024, 512, 2);
   auto scan = scenes::PanoramaScan("jpeg-15", pose, pano);
   ASSERT_TRUE(scan.ok()) << scan.status();
-  scan->panoramas.at(0).encoded_image = EncodeJpeg(pano, 15);
+  geometry::LinearImage linear;
+  linear.width_px = pano.width_px;
+  linear.height_px = pano.height_px;
+  linear.channels = 3;
+  linear.pixels = pano.rgb;
+  scan->panoramas.at(0).encoded_image = EncodeSrgb8(linear, "jpg", 15);
   const AfterIngest after = IngestAndLoad(*engine, dir, *scan);
   ASSERT_TRUE(after.snap != nullptr);
   const int32_t camera = after.camera;
@@ -79,9 +61,7 @@ TEST(CodecFlowTest, CodecLowersTheRecordsConfidenceAndWeighingItMendsTheColour) 
   EXPECT_GE(lowered, records / 2);
   EXPECT_EQ(others_lowered, 0u);
   auto error_with = [&](double kappa) {
-    fusion::WeightingProfile profile;
-    profile.kappa[records::kConfCodec] = kappa;
-    return FusedError(rec, g, affected, room, pose, profile);
+    return FusedError(rec, g, affected, room, pose, ProfileWith(records::kConfCodec, kappa));
   };
   const auto [ignored, n0] = error_with(0.0);
   const auto [one, n1] = error_with(1.0);

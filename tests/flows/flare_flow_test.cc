@@ -132,9 +132,7 @@ TEST(FlareFlowTest, GlareInvalidatesAndLowersTheRecordsAndWeighingItMendsTheColo
   records::RecordSet ignored = rec;
   for (int8_t& f : ignored.flags) f = int8_t(f & ~records::kFlagInvalidated);
   auto fused_error = [&](const records::RecordSet& records, double kappa) {
-    fusion::WeightingProfile profile;
-    profile.kappa[records::kConfFlare] = kappa;
-    return FusedError(records, g, affected, room, pose, profile);
+    return FusedError(records, g, affected, room, pose, ProfileWith(records::kConfFlare, kappa));
   };
   // The clean stations alone: what the glare's damage is measured from.
   records::RecordSet clean = rec;

@@ -64,6 +64,13 @@ AfterIngest IngestAndLoad(Engine& engine, const std::filesystem::path& dir,
   return out;
 }
 
+/// The default profile with κ of confidence factor `factor` set to `kappa`.
+fusion::WeightingProfile ProfileWith(int factor, double kappa) {
+  fusion::WeightingProfile profile;
+  profile.kappa[size_t(factor)] = kappa;
+  return profile;
+}
+
 /// The mean |error| against the albedo seen from `pose` of the fused colour of the vossels
 /// marked in `affected` (those whose surface the pose sees within a vossel), under `profile`;
 /// and how many.

@@ -111,9 +111,7 @@ TEST(SaturationFlowTest, BloomLowersTheRecordsConfidenceAndWeighingItMendsTheCol
   // Fused colour of the affected vossels against their albedo, ignoring saturation (κ = 0) and
   // weighing it (κ = 2): the same records, two profiles.
   auto fused_error = [&](double kappa) {
-    fusion::WeightingProfile profile;
-    profile.kappa[records::kConfSaturation] = kappa;
-    return FusedError(rec, g, affected, room, pose, profile);
+    return FusedError(rec, g, affected, room, pose, ProfileWith(records::kConfSaturation, kappa));
   };
   const auto [ignored, n0] = fused_error(0.0);
   const auto [weighed, n2] = fused_error(2.0);
@@ -186,9 +184,7 @@ TEST(SaturationFlowTest, SmearIsAFactorOfItsOwn) {
   EXPECT_GT(outside, 10000u);
   EXPECT_GE(outside_one, size_t(0.999 * double(outside)));
   auto error_with = [&](int factor, double kappa) {
-    fusion::WeightingProfile profile;
-    profile.kappa[size_t(factor)] = kappa;
-    return FusedError(rec, g, affected, room, pose, profile);
+    return FusedError(rec, g, affected, room, pose, ProfileWith(factor, kappa));
   };
   const auto [ignored, n0] = error_with(records::kConfSmear, 0.0);
   const auto [weighed, n2] = error_with(records::kConfSmear, 2.0);

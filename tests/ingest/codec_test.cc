@@ -10,12 +10,11 @@
 #include <string>
 #include <vector>
 
-#include <OpenImageIO/filesystem.h>
-#include <OpenImageIO/imageio.h>
 #include <gtest/gtest.h>
 
 #include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/sources.h"
+#include "tests/ingest/encode_srgb8.h"
 #include "tests/ingest/planted_panorama.h"
 
 namespace vasl::ingest {
@@ -35,31 +34,6 @@ geometry::LinearImage ColourTextures(int w, int h) {
   }
   for (float& v : img.pixels) v = std::min(v, 0.98f);
   return img;
-}
-
-/// `img` encoded as 8-bit sRGB in `format` ("jpg" at `quality` with `subsampling` chroma, or
-/// "png"); a one-channel image as grey.
-std::string Encode(const geometry::LinearImage& img, const char* format, int quality,
-                   const char* subsampling = "4:2:0") {
-  std::vector<uint8_t> codes(img.pixels.size());
-  for (size_t i = 0; i < codes.size(); ++i) {
-    const double l = std::clamp(double(img.pixels[i]), 0.0, 1.0);
-    const double v = l <= 0.0031308 ? 12.92 * l : 1.055 * std::pow(l, 1.0 / 2.4) - 0.055;
-    codes[i] = uint8_t(std::lround(255.0 * v));
-  }
-  std::vector<unsigned char> bytes;
-  OIIO::Filesystem::IOVecOutput proxy(bytes);
-  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create(format);
-  EXPECT_TRUE(out && out->set_ioproxy(&proxy));
-  OIIO::ImageSpec spec(img.width_px, img.height_px, img.channels, OIIO::TypeDesc::UINT8);
-  if (std::string(format) == "jpg") {
-    spec.attribute("Compression", "jpeg:" + std::to_string(quality));
-    if (img.channels == 3) spec.attribute("jpeg:subsampling", subsampling);
-  }
-  EXPECT_TRUE(out->open(std::string("image.") + format, spec));
-  EXPECT_TRUE(out->write_image(OIIO::TypeDesc::UINT8, codes.data()));
-  EXPECT_TRUE(out->close());
-  return std::string(bytes.begin(), bytes.end());
 }
 
 /// Per 8×8 block, the root mean square of its pixels' shares.
@@ -100,7 +74,7 @@ std::vector<double> ErrorShare(const geometry::LinearImage& decoded,
 TEST(CodecTest, ReadsTheFilesTablesAndSubsampling) {
   const geometry::LinearImage img = ColourTextures(256, 128);
   for (const int quality : {15, 50, 90}) {
-    auto decoded = DecodeImage(Encode(img, "jpg", quality), false, 1 << 20);
+    auto decoded = DecodeImage(EncodeSrgb8(img, "jpg", quality), false, 1 << 20);
     ASSERT_TRUE(decoded.ok()) << decoded.status();
     ASSERT_NE(decoded->coding, nullptr);
     const CodecMap map = DetectCodec(*decoded);
@@ -111,7 +85,7 @@ TEST(CodecTest, ReadsTheFilesTablesAndSubsampling) {
     EXPECT_EQ(decoded->coding->chroma_step_x, 2);
     EXPECT_EQ(decoded->coding->chroma_step_y, 2);
   }
-  auto png = DecodeImage(Encode(img, "png", 0), false, 1 << 20);
+  auto png = DecodeImage(EncodeSrgb8(img, "png", 0), false, 1 << 20);
   ASSERT_TRUE(png.ok()) << png.status();
   EXPECT_EQ(png->coding, nullptr);
   EXPECT_TRUE(DetectCodec(*png).conf.pixels.empty());
@@ -126,7 +100,7 @@ TEST(CodecTest, CodecMapFindsTheBlocksTheCodecDamaged) {
   const int w = 1024, h = 512;
   const geometry::LinearImage truth = ColourTextures(w, h);
   for (const int quality : {15, 30, 50, 75, 95}) {
-    auto decoded = DecodeImage(Encode(truth, "jpg", quality), false, 1 << 22);
+    auto decoded = DecodeImage(EncodeSrgb8(truth, "jpg", quality), false, 1 << 22);
     ASSERT_TRUE(decoded.ok()) << decoded.status();
     const CodecMap map = DetectCodec(*decoded);
     ASSERT_EQ(map.conf.pixels.size(), size_t(w) * h);
@@ -171,7 +145,7 @@ TEST(CodecTest, OddSizesGreyAndFullChroma) {
   };
   for (const Case& c : {Case{"grey", &grey, ""}, Case{"4:4:4", &colour, "4:4:4"},
                         Case{"4:2:2", &colour, "4:2:2"}}) {
-    auto decoded = DecodeImage(Encode(*c.truth, "jpg", 15, c.subsampling), false, 1 << 20);
+    auto decoded = DecodeImage(EncodeSrgb8(*c.truth, "jpg", 15, c.subsampling), false, 1 << 20);
     ASSERT_TRUE(decoded.ok()) << c.name << ": " << decoded.status();
     ASSERT_NE(decoded->coding, nullptr) << c.name;
     const CodecMap map = DetectCodec(*decoded);
@@ -208,7 +182,7 @@ TEST(CodecTest, OddSizesGreyAndFullChroma) {
 TEST(CodecTest, ConfidenceWeightingMovesDamagedColourTowardTheTruth) {
   const int w = 1024, h = 512;
   const geometry::LinearImage truth = ColourTextures(w, h);
-  auto decoded = DecodeImage(Encode(truth, "jpg", 15), false, 1 << 22);
+  auto decoded = DecodeImage(EncodeSrgb8(truth, "jpg", 15), false, 1 << 22);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   const CodecMap map = DetectCodec(*decoded);
   const std::vector<double> share = ErrorShare(*decoded, truth);
