@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
+#include "lattice/flows/tile_budget.h"
 #include "lattice/flows/world_frame.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/ingest/sources.h"
@@ -85,6 +86,25 @@ struct Engine::Impl {
     return p.store->LoadSnapshot(version);
   }
 
+  /// What a reader (render, records query) takes of version `version` (0: HEAD) whole: HEAD
+  /// when cached, else the version loaded whole when it fits max_snapshot_bytes (HEAD is then
+  /// cached); null when it does not, and the reader goes tile group by tile group.
+  absl::StatusOr<std::shared_ptr<const store::Snapshot>> Whole(Project& p, int64_t version) {
+    const int64_t head = p.store->head_version();
+    if (version == 0 || version == head) {
+      std::lock_guard<std::mutex> lock(p.head_mu);
+      if (p.head && p.head->version == head) return p.head;
+    }
+    if (version < 0 || version > head) return Snapshot(p, version);  // its NOT_FOUND
+    auto manifest = p.store->LoadManifest(version == 0 ? head : version);
+    if (!manifest.ok()) return manifest.status();
+    if (flows::VersionMemoryBytes(*manifest, /*with_records=*/true, 1) >
+        limits.max_snapshot_bytes) {
+      return std::shared_ptr<const store::Snapshot>();
+    }
+    return Snapshot(p, version);
+  }
+
   absl::StatusOr<ProjectInfo> Info(Project& p) {
     ProjectInfo info;
     info.name = p.store->name();
@@ -106,9 +126,11 @@ struct Engine::Impl {
   // Publishes a flow's committed snapshot as HEAD and fills the caller's result.
   IngestResult Finish(Project& p, flows::FlowResult flow, Clock::time_point t0, IngestResult result) {
     const int64_t vossels_before = p.head ? int64_t(p.head->geometry.size()) : 0;
-    {
+    {  // HEAD stays cached while it fits the budget; beyond it readers go by tile groups
       std::lock_guard<std::mutex> lock(p.head_mu);
-      p.head = flow.snapshot;
+      const bool fits = flows::VersionMemoryBytes(flow.snapshot->manifest, true, 1) <=
+                        limits.max_snapshot_bytes;
+      p.head = fits ? flow.snapshot : nullptr;
     }
     for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
     result.version = flow.version;
@@ -455,7 +477,7 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   }
   auto profile = impl_->Profile(**p, request.profile, request.profile_revision);
   if (!profile.ok()) return profile.status();
-  auto snap = impl_->Snapshot(**p, request.version);
+  auto snap = impl_->Whole(**p, request.version);
   if (!snap.ok()) return snap.status();
   const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
   if (auto s = flows::CheckWithinReach(request.pose.o_world, origin,
@@ -469,7 +491,10 @@ absl::StatusOr<RenderImage> Engine::Render(const std::string& project, const Ren
   caches.fused = &(*p)->fused_layers;
   caches.images = impl_->detail_images.get();
   caches.max_image_pixels = impl_->limits.max_image_pixels;
-  return flows::RenderQuery(*(*p)->store, *snap, profile->profile, local, caches);
+  if (*snap) return flows::RenderQuery(*(*p)->store, *snap, profile->profile, local, caches);
+  const int64_t version = request.version == 0 ? (*p)->store->head_version() : request.version;
+  return flows::RenderQueryInTiles(*(*p)->store, version, profile->profile, local, caches,
+                                   impl_->limits.max_snapshot_bytes);
 }
 
 absl::StatusOr<reweight::NamedProfile> Engine::CreateProfile(
@@ -572,11 +597,16 @@ absl::StatusOr<flows::RecordsQueryResult> Engine::QueryRecords(
   }
   auto profile = impl_->Profile(**p, profile_name, 0);
   if (!profile.ok()) return profile.status();
-  auto snap = impl_->Snapshot(**p, version);
+  auto snap = impl_->Whole(**p, version);
   if (!snap.ok()) return snap.status();
   const Eigen::Vector3d origin = (*p)->store->origin().value_or(Eigen::Vector3d::Zero());
-  auto found = flows::QueryRecords(*(*p)->store, **snap, min_m - origin, max_m - origin,
-                                   profile->profile, limit);
+  auto found =
+      *snap ? flows::QueryRecords(*(*p)->store, **snap, min_m - origin, max_m - origin,
+                                  profile->profile, limit)
+            : flows::QueryRecordsInTiles(*(*p)->store,
+                                         version == 0 ? (*p)->store->head_version() : version,
+                                         min_m - origin, max_m - origin, profile->profile,
+                                         limit, impl_->limits.max_snapshot_bytes);
   if (!found.ok()) return found.status();
   for (flows::RecordRow& row : found->rows) row.centroid_m += origin;  // §1: world out
   return found;

@@ -46,6 +46,11 @@ struct EngineLimits {
   /// Decoded camera images that renders with colour detail (§8) keep and read at once
   /// (float RGB: 400 MB for an 8192×4096 panorama); cameras beyond it keep their records' colour.
   int64_t max_detail_image_bytes = 2ll << 30;
+  /// What a render or a records query holds of a version at once, estimated from its tiles'
+  /// counts (flows::TileMemoryBytes). A version within it is read whole (HEAD stays cached
+  /// while it fits); a larger one is read tile group by tile group within it, so that a
+  /// project larger than memory still renders and answers queries.
+  int64_t max_snapshot_bytes = 4ll << 30;
 };
 
 /// Summary of a project (catalog + HEAD version).

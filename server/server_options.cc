@@ -145,6 +145,10 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
       {"max-image-pixels",
        {EngineInt64(&EngineLimits::max_image_pixels, "max-image-pixels"),
         "decoded pixels of one panorama (default 134217728)"}},
+      {"max-snapshot-bytes",
+       {EngineInt64(&EngineLimits::max_snapshot_bytes, "max-snapshot-bytes"),
+        "bytes of a version a render or records query holds at once, estimated from its tiles; "
+        "a larger version is read tile group by tile group (default 4294967296)"}},
       {"max-render-width",
        {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
         "render width, pixels (default 16384)"}},

@@ -213,6 +213,19 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
                                                const render::RenderRequest& request,
                                                const RenderCaches& caches);
 
+/// RenderQuery of version `version` without holding it whole: its tiles are read in groups
+/// that each fit `budget_bytes` (tile_budget.h), one after another, each group rendered alone
+/// and composited by which hit cell each ray enters first (render::CompositeNearer), so the
+/// image is the one RenderQuery gives of the whole version. Deep output takes one pass over
+/// the groups per layer. The image says how many groups it took (RenderImage::tile_groups);
+/// its rows reach `request.rows_done` once the last group is composited.
+absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& store,
+                                                      int64_t version,
+                                                      const fusion::WeightingProfile& profile,
+                                                      const render::RenderRequest& request,
+                                                      const RenderCaches& caches,
+                                                      int64_t budget_bytes);
+
 /// What the catalog records of a render (its pose, projection, profile and version).
 store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
                                    const render::RenderImage& image);
@@ -220,6 +233,8 @@ store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
 /// One record of a provenance query, with its vossel and the §7 weight it gets under the
 /// query's profile.
 struct RecordRow {
+  /// The vossel's ordinal among the query's vossels with records (0, 1, …; the rows of one
+  /// vossel share it), which are taken tile by tile (key order), then by k.
   int32_t vossel = 0;
   openvdb::Coord coord;             ///< the vossel's index-space coordinate k
   Eigen::Vector3d centroid_m;       ///< the vossel's centroid (lattice frame; world at the facade)
@@ -238,7 +253,8 @@ struct RecordRow {
 };
 
 /// Provenance query: every record of the vossels whose cells meet the world box
-/// [min_m, max_m] (a point: min = max), in vossel then source order, at most `limit`
+/// [min_m, max_m] (a point: min = max), in vossel (RecordRow::vossel) then source order, at
+/// most `limit`
 /// (`truncated` says when more matched). INVALID_ARGUMENT for a box with min > max or
 /// non-finite corners.
 struct RecordsQueryResult {
@@ -254,6 +270,14 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
                                                 const Eigen::Vector3d& max_m,
                                                 const fusion::WeightingProfile& profile,
                                                 int64_t limit);
+/// QueryRecords of version `version` reading only the tiles the box meets, in groups that
+/// each fit `budget_bytes` (tile_budget.h), one after another: the same answer.
+absl::StatusOr<RecordsQueryResult> QueryRecordsInTiles(const store::ProjectStore& store,
+                                                       int64_t version,
+                                                       const Eigen::Vector3d& min_m,
+                                                       const Eigen::Vector3d& max_m,
+                                                       const fusion::WeightingProfile& profile,
+                                                       int64_t limit, int64_t budget_bytes);
 
 /// One artefact's confidence map of a camera image (VASL-MODEL §9) and how much of the image
 /// it covers.

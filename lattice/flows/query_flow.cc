@@ -12,6 +12,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_format.h"
 #include "lattice/flows/flows.h"
+#include "lattice/flows/tile_budget.h"
 #include "lattice/ingest/artefacts.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/ingest/sample.h"
@@ -82,6 +83,10 @@ absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
   }
   if (auto it = snap->profile_fused.find(layer); it != snap->profile_fused.end()) {
     return std::shared_ptr<const records::FusedValues>(snap, &it->second);
+  }
+  if (snap->partial) {  // the cache holds whole versions' layers: a partial one loads its own
+    return absl::InternalError(
+        absl::StrCat("a partial snapshot was loaded without the complete layer ", layer));
   }
   if (auto cached = cache.Find(snap->version, layer)) return cached;
   auto loaded = store.LoadSnapshot(snap->version, {layer}, /*with_records=*/false);
@@ -199,11 +204,15 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
 
 }  // namespace
 
-absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
-                                               std::shared_ptr<const store::Snapshot> snap,
-                                               const fusion::WeightingProfile& profile,
-                                               const render::RenderRequest& request,
-                                               const RenderCaches& caches) {
+namespace {
+
+/// The render of `snap` (whole or partial) under `profile` that RenderQuery describes, not
+/// recorded in the catalog.
+absl::StatusOr<render::RenderImage> RenderSnapshot(store::ProjectStore& store,
+                                                  std::shared_ptr<const store::Snapshot> snap,
+                                                  const fusion::WeightingProfile& profile,
+                                                  const render::RenderRequest& request,
+                                                  const RenderCaches& caches) {
   absl::StatusOr<std::shared_ptr<const records::FusedValues>> stored =
       StoredFused(store, snap, profile, *caches.fused);
   if (!stored.ok()) return stored.status();
@@ -281,16 +290,158 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
         !s.ok()) {
       return s;
     }
-    image->vossel_index = {};
+    if (!request.keep_vossel_index) image->vossel_index = {};
   }
   image->version = snapshot.version;
   image->profile = profile.name;
   image->profile_revision = profile.version;
   image->fused_on_the_fly = *stored == nullptr;
-  absl::StatusOr<int64_t> id = store.RecordRender(RenderRecordOf(request, *image));
-  if (!id.ok()) return id.status();
-  image->render_id = *id;
   return image;
+}
+
+/// Records `image` (a render of `request`) in the catalog and sets its id.
+absl::StatusOr<render::RenderImage> Recorded(store::ProjectStore& store,
+                                            const render::RenderRequest& request,
+                                            render::RenderImage image) {
+  absl::StatusOr<int64_t> id = store.RecordRender(RenderRecordOf(request, image));
+  if (!id.ok()) return id.status();
+  image.render_id = *id;
+  return image;
+}
+
+}  // namespace
+
+absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
+                                               std::shared_ptr<const store::Snapshot> snap,
+                                               const fusion::WeightingProfile& profile,
+                                               const render::RenderRequest& request,
+                                               const RenderCaches& caches) {
+  absl::StatusOr<render::RenderImage> image = RenderSnapshot(store, snap, profile, request, caches);
+  if (!image.ok()) return image.status();
+  return Recorded(store, request, std::move(*image));
+}
+
+absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& store,
+                                                      int64_t version,
+                                                      const fusion::WeightingProfile& profile,
+                                                      const render::RenderRequest& request,
+                                                      const RenderCaches& caches,
+                                                      int64_t budget_bytes) {
+  absl::StatusOr<store::Manifest> manifest = store.LoadManifest(version);
+  if (!manifest.ok()) return manifest.status();
+  // What each group loads: the profile's complete fused layer, or the records to fuse from.
+  std::vector<std::string> layers;
+  bool fuse_here = false;
+  if (profile.name != fusion::kDefaultProfileName) {
+    const std::string layer = store::FusedLayerName(profile.name, profile.version);
+    const std::vector<std::string> complete = store::CompleteProfileLayers(*manifest);
+    if (std::find(complete.begin(), complete.end(), layer) != complete.end()) {
+      layers.push_back(layer);
+    } else {
+      fuse_here = true;
+    }
+  }
+  const bool blend = request.eta > 0.0 ||
+                     request.colour_detail == render::ColourDetail::kSourceImages;
+  // One pass over the groups per surface layer (§8 deep output): layer l marches each pixel
+  // from kLayerGapVox beyond layer l-1's hit, as one render's march does; the first pass also
+  // keeps the first deep layer's fused colour (layers = 2 there).
+  const int L = request.layers;
+  render::RenderImage out;  // the first pass's composite, then each deeper layer beside it
+  std::vector<float> start;
+  int groups_rendered = 0;
+  for (int l = 0; l < L; ++l) {
+    render::RenderRequest pass = request;
+    pass.rows_done = {};
+    pass.keep_vossel_index = true;
+    pass.layers = l == 0 ? std::min(L, 2) : 1;
+    if (l > 0) {  // deeper layers take the fused colour C_k, as one render's do
+      pass.eta = 0.0;
+      pass.colour_detail = render::ColourDetail::kVossel;
+      const size_t n = out.depth_m.size();
+      start.assign(n, std::numeric_limits<float>::infinity());
+      const double gap = render::kLayerGapVox * store.settings().vossel_size_m;
+      size_t marched = 0;
+      for (size_t p = 0; p < n; ++p) {
+        if (out.layer_count[p] < l) continue;
+        start[p] = float(double(out.deep_depth_m[p * size_t(L) + size_t(l - 1)]) + gap);
+        ++marched;
+      }
+      if (marched == 0) break;
+      pass.start_range_m = &start;
+    }
+    const bool with_records = fuse_here || (l == 0 && blend);
+    const std::vector<std::set<tiles::TileKey>> groups = TileGroups(
+        *manifest, with_records, 1 + int(layers.size()), budget_bytes);
+    render::RenderImage layer = render::EmptyRender(pass);
+    std::vector<double> entry;
+    for (const std::set<tiles::TileKey>& group : groups) {
+      if (request.interrupt) {
+        if (absl::Status s = request.interrupt(); !s.ok()) return s;
+      }
+      auto part_snap = store.LoadSnapshot(version, layers, with_records, &group);
+      if (!part_snap.ok()) return part_snap.status();
+      absl::StatusOr<render::RenderImage> part =
+          RenderSnapshot(store, *part_snap, profile, pass, caches);
+      if (!part.ok()) return part.status();
+      if (absl::Status s = render::CompositeNearer(pass, (*part_snap)->geometry, *part, &layer,
+                                                   &entry);
+          !s.ok()) {
+        return s;
+      }
+      if (l == 0) {
+        out.fused_on_the_fly = part->fused_on_the_fly;
+        out.detail_sources = std::max(out.detail_sources, part->detail_sources);
+        out.detail_sources_skipped =
+            std::max(out.detail_sources_skipped, part->detail_sources_skipped);
+      }
+      ++groups_rendered;
+    }
+    if (l == 0) {  // the image's own hit, and the first deep layer (slot 0 of 2 in `layer`)
+      const bool fly = out.fused_on_the_fly;
+      const int64_t used = out.detail_sources, skipped = out.detail_sources_skipped;
+      out = std::move(layer);
+      out.vossel_index = {};
+      out.fused_on_the_fly = fly;
+      out.detail_sources = used;
+      out.detail_sources_skipped = skipped;
+      if (L > 1) {
+        const std::vector<float> two_depth = std::move(out.deep_depth_m),
+                                 two_rgb = std::move(out.deep_rgb),
+                                 two_alpha = std::move(out.deep_alpha);
+        const size_t n = out.depth_m.size();
+        out.layers = L;
+        out.layer_count.assign(n, 0);
+        out.deep_depth_m.assign(n * size_t(L), std::numeric_limits<float>::infinity());
+        out.deep_rgb.assign(3 * n * size_t(L), 0.0f);
+        out.deep_alpha.assign(n * size_t(L), 0.0f);
+        for (size_t p = 0; p < n; ++p) {
+          if (!(out.depth_m[p] < std::numeric_limits<float>::infinity())) continue;
+          const size_t q = p * size_t(L);
+          out.deep_depth_m[q] = two_depth[2 * p];
+          out.deep_alpha[q] = two_alpha[2 * p];
+          for (int c = 0; c < 3; ++c) out.deep_rgb[3 * q + c] = two_rgb[3 * 2 * p + c];
+          out.layer_count[p] = 1;
+        }
+      }
+      continue;
+    }
+    for (size_t p = 0; p < layer.depth_m.size(); ++p) {  // layer l of the deep output
+      if (!(layer.depth_m[p] < std::numeric_limits<float>::infinity())) continue;
+      const size_t q = p * size_t(L) + size_t(l);
+      out.deep_depth_m[q] = layer.depth_m[p];
+      out.deep_alpha[q] = layer.alpha[p];
+      for (int c = 0; c < 3; ++c) out.deep_rgb[3 * q + c] = layer.rgb[3 * p + c];
+      out.layer_count[p] = uint8_t(l + 1);
+    }
+  }
+  out.vossel_index = {};
+  out.version = version;
+  out.profile = profile.name;
+  out.profile_revision = profile.version;
+  out.tile_groups = groups_rendered;
+  if (absl::Status s = render::EmitRows(request, out); !s.ok()) return s;
+  return Recorded(store, request, std::move(out));
 }
 
 store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
@@ -310,24 +461,38 @@ store::RenderRecord RenderRecordOf(const render::RenderRequest& request,
   return r;
 }
 
+namespace {
+
+/// The cells k with h·(k − ½) ≤ x < h·(k + ½) that meet a records query's box, [lo, hi];
+/// INVALID_ARGUMENT for a bad box or limit.
+absl::Status QueryCells(const Eigen::Vector3d& min_m, const Eigen::Vector3d& max_m, double h,
+                        int64_t limit, openvdb::Coord* lo, openvdb::Coord* hi) {
+  if (!min_m.allFinite() || !max_m.allFinite() || (min_m.array() > max_m.array()).any()) {
+    return absl::InvalidArgumentError(
+        "a records query needs a finite box with min <= max on every axis (a point: min = max)");
+  }
+  if (limit <= 0) return absl::InvalidArgumentError("a records query's limit must be positive");
+  const Eigen::Vector3d a = (min_m / h).array() + 0.5, b = (max_m / h).array() + 0.5;
+  if ((a.array().abs() > 1e9).any() || (b.array().abs() > 1e9).any()) {
+    return absl::InvalidArgumentError("a records query's box lies beyond the lattice's reach");
+  }
+  *lo = openvdb::Coord(int(std::floor(a.x())), int(std::floor(a.y())), int(std::floor(a.z())));
+  *hi = openvdb::Coord(int(std::floor(b.x())), int(std::floor(b.y())), int(std::floor(b.z())));
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store,
                                                 const store::Snapshot& snapshot,
                                                 const Eigen::Vector3d& min_m,
                                                 const Eigen::Vector3d& max_m,
                                                 const fusion::WeightingProfile& profile,
                                                 int64_t limit) {
-  if (!min_m.allFinite() || !max_m.allFinite() || (min_m.array() > max_m.array()).any()) {
-    return absl::InvalidArgumentError(
-        "a records query needs a finite box with min <= max on every axis (a point: min = max)");
-  }
-  if (limit <= 0) return absl::InvalidArgumentError("a records query's limit must be positive");
   const records::VosselGeometry& g = snapshot.geometry;
   const double h = g.vossel_size_m;
-  // Cells k with h·(k − ½) ≤ x < h·(k + ½) meet the box.
-  const openvdb::Coord lo(int(std::floor(min_m.x() / h + 0.5)), int(std::floor(min_m.y() / h + 0.5)),
-                          int(std::floor(min_m.z() / h + 0.5)));
-  const openvdb::Coord hi(int(std::floor(max_m.x() / h + 0.5)), int(std::floor(max_m.y() / h + 0.5)),
-                          int(std::floor(max_m.z() / h + 0.5)));
+  openvdb::Coord lo, hi;
+  if (absl::Status s = QueryCells(min_m, max_m, h, limit, &lo, &hi); !s.ok()) return s;
   RecordsQueryResult out;
   out.profile = profile.name;
   out.revision = profile.version;
@@ -350,7 +515,14 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
       }
     }
   }
-  std::sort(vossels.begin(), vossels.end());
+  // Tile by tile (key order), then by k: the order RecordsQueryInTiles reads them in.
+  const int T = snapshot.tile_vossels;
+  std::sort(vossels.begin(), vossels.end(), [&](int32_t a, int32_t b) {
+    const openvdb::Coord &ka = g.coord[size_t(a)], &kb = g.coord[size_t(b)];
+    const tiles::TileKey ta = tiles::TileOf(ka, T), tb = tiles::TileOf(kb, T);
+    if (ta != tb) return ta < tb;
+    return ka < kb;
+  });
   out.vossels = int64_t(vossels.size());
   // The records of the queried vossels only (whole vossels, until the limit is reached), as a
   // set of their own: a vossel's weights depend on its own records alone (§7), so weighing
@@ -384,7 +556,7 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
         return out;
       }
       RecordRow row;
-      row.vossel = k;
+      row.vossel = int32_t(local);
       row.coord = g.coord[size_t(k)];
       row.centroid_m = g.centroid_m[size_t(k)].cast<double>();
       row.source = r.scan[i];
@@ -408,6 +580,49 @@ absl::StatusOr<RecordsQueryResult> QueryRecords(const store::ProjectStore& store
       row.weight = weights->weight[i];
       out.rows.push_back(std::move(row));
     }
+  }
+  return out;
+}
+
+absl::StatusOr<RecordsQueryResult> QueryRecordsInTiles(const store::ProjectStore& store,
+                                                       int64_t version,
+                                                       const Eigen::Vector3d& min_m,
+                                                       const Eigen::Vector3d& max_m,
+                                                       const fusion::WeightingProfile& profile,
+                                                       int64_t limit, int64_t budget_bytes) {
+  openvdb::Coord lo, hi;
+  if (absl::Status s = QueryCells(min_m, max_m, store.settings().vossel_size_m, limit, &lo, &hi);
+      !s.ok()) {
+    return s;
+  }
+  absl::StatusOr<store::Manifest> manifest = store.LoadManifest(version);
+  if (!manifest.ok()) return manifest.status();
+  const std::set<tiles::TileKey> meeting =
+      TilesMeeting(*manifest, lo, hi, store.settings().tile_vossels);
+  RecordsQueryResult out;
+  out.profile = profile.name;
+  out.revision = profile.version;
+  // Every group is read, so that `vossels` counts the whole box as QueryRecords does; once
+  // the rows are full, a group only says whether more would have matched.
+  for (const std::set<tiles::TileKey>& group :
+       TileGroups(*manifest, /*with_records=*/true, 1, budget_bytes, &meeting)) {
+    auto part = store.LoadSnapshot(version, {}, /*with_records=*/true, &group);
+    if (!part.ok()) return part.status();
+    const int64_t room = limit - int64_t(out.rows.size());
+    absl::StatusOr<RecordsQueryResult> found =
+        QueryRecords(store, **part, min_m, max_m, profile, std::max<int64_t>(room, 1));
+    if (!found.ok()) return found.status();
+    out.vossels += found->vossels;
+    if (room <= 0) {
+      out.truncated = out.truncated || !found->rows.empty();
+      continue;
+    }
+    const int32_t first = out.rows.empty() ? 0 : out.rows.back().vossel + 1;
+    for (RecordRow& row : found->rows) {
+      row.vossel += first;
+      out.rows.push_back(std::move(row));
+    }
+    out.truncated = out.truncated || found->truncated;
   }
   return out;
 }

@@ -49,10 +49,6 @@ using HddaT = openvdb::math::VolumeHDDA<TreeT, RayT, TreeT::RootNodeType::ChildN
 
 /// Largest raster RenderEquirect allocates (8 floats per pixel: 8.6 GB at this size).
 constexpr int64_t kMaxPixels = int64_t{1} << 28;
-/// A deeper layer starts this many vossels beyond the one in front *(choice)*: surfaces nearer
-/// each other than the lattice resolves are one surface, and the same surface's next vossels
-/// (a wall two vossels thick) are not a layer of their own.
-constexpr double kLayerGapVox = 1.5;
 
 /// Bands of kBandRows rows handed to threads in row order (each thread takes the next band
 /// not yet taken), and handed on to RenderRequest::rows_done in row order as they finish.
@@ -386,6 +382,10 @@ absl::Status ValidateInputs(const records::VosselGeometry& geometry,
     return absl::InvalidArgumentError(
         "render pose must have a finite position and a unit quaternion");
   }
+  if (request.start_range_m != nullptr &&
+      request.start_range_m->size() != size_t(request.width_px) * size_t(request.height_px)) {
+    return absl::InvalidArgumentError("start ranges must be one per pixel");
+  }
   if (request.layers < 1 || request.layers > kMaxLayers) {
     return absl::InvalidArgumentError(absl::StrCat("layers must lie in [1, ", kMaxLayers,
                                                    "], got ", request.layers));
@@ -464,10 +464,11 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
     image.deep_rgb.assign(3 * pixels * size_t(layers), 0.0f);
     image.deep_alpha.assign(pixels * size_t(layers), 0.0f);
   }
-  const bool keep_index = request.colour_detail == ColourDetail::kSourceImages;
+  const bool detail = request.colour_detail == ColourDetail::kSourceImages;
+  const bool keep_index = detail || request.keep_vossel_index;
   if (keep_index) image.vossel_index.assign(pixels, -1);
   // kSourceImages: rows are final after ApplyColourDetail, which hands them on.
-  Bands bands(request, image, /*emit=*/!keep_index);
+  Bands bands(request, image, /*emit=*/!detail);
   if (geometry.size() == 0) {  // nothing to hit: every row is final as it is
     if (absl::Status s = bands.ForEach([](int, int) { return true; }); !s.ok()) return s;
     return image;
@@ -508,10 +509,14 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         }
       }
       for (int i = 0; i < width; ++i) {
+        const size_t p = static_cast<size_t>(j) * width + i;
+        const double start_m = request.start_range_m ? (*request.start_range_m)[p] : 0.0;
+        if (!(start_m < std::numeric_limits<double>::infinity())) continue;
         const Eigen::Vector3d d_world = PixelRay(request, intrinsics, i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;
-        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, 0.0, &hit, &bad_value)) {
+        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, start_m, &hit,
+                      &bad_value)) {
           if (bad_value != 0) {
             bad_index.store(bad_value);
             bad.store(true);
@@ -519,7 +524,6 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
           continue;
         }
         ++hits;
-        const size_t p = static_cast<size_t>(j) * width + i;
         image.depth_m[p] = static_cast<float>(hit.range_m);
         for (int c = 0; c < 3; ++c) image.normal[3 * p + c] = static_cast<float>(hit.normal[c]);
         const size_t k = static_cast<size_t>(hit.vossel);
@@ -632,6 +636,102 @@ absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geomet
                                            const ViewBlendInputs* blend) {
   return internal::RenderEquirectWithMargin(geometry, fused, request,
                                             internal::kDefaultCellMarginVox, blend);
+}
+
+RenderImage EmptyRender(const RenderRequest& request) {
+  const size_t pixels = size_t(request.width_px) * size_t(request.height_px);
+  const size_t layers = size_t(std::max(1, request.layers));
+  RenderImage image;
+  image.width_px = request.width_px;
+  image.height_px = request.height_px;
+  image.version = request.version;
+  image.rgb.assign(3 * pixels, 0.0f);
+  image.depth_m.assign(pixels, std::numeric_limits<float>::infinity());
+  image.normal.assign(3 * pixels, 0.0f);
+  image.uncertainty.assign(pixels, 0.0f);
+  image.alpha.assign(pixels, 0.0f);
+  image.layers = int(layers);
+  if (layers > 1) {
+    image.layer_count.assign(pixels, 0);
+    image.deep_depth_m.assign(pixels * layers, std::numeric_limits<float>::infinity());
+    image.deep_rgb.assign(3 * pixels * layers, 0.0f);
+    image.deep_alpha.assign(pixels * layers, 0.0f);
+  }
+  image.vossel_index.assign(pixels, -1);
+  return image;
+}
+
+absl::Status CompositeNearer(const RenderRequest& request,
+                             const records::VosselGeometry& part_geometry,
+                             const RenderImage& part, RenderImage* into,
+                             std::vector<double>* entry) {
+  const size_t pixels = size_t(request.width_px) * size_t(request.height_px);
+  if (part.width_px != request.width_px || part.height_px != request.height_px ||
+      into->width_px != request.width_px || into->height_px != request.height_px ||
+      part.vossel_index.size() != pixels || into->vossel_index.size() != pixels) {
+    return absl::InvalidArgumentError(
+        "a composite needs renders of the request's size that kept their vossel indices");
+  }
+  if (entry->empty()) entry->assign(pixels, std::numeric_limits<double>::infinity());
+  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const double h = part_geometry.vossel_size_m;
+  const size_t part_layers = size_t(part.layers), into_layers = size_t(into->layers);
+  tbb::parallel_for(tbb::blocked_range<int>(0, request.height_px, 4),
+                    [&](const tbb::blocked_range<int>& rows) {
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      for (int i = 0; i < request.width_px; ++i) {
+        const size_t p = size_t(j) * size_t(request.width_px) + size_t(i);
+        const int32_t v = part.vossel_index[p];
+        if (v < 0 || size_t(v) >= part_geometry.size()) continue;
+        // Where the ray enters v's cell [h(k - ½), h(k + ½)] (slabs; the DDA's order).
+        const Eigen::Vector3d d = PixelRay(request, intrinsics, i, j);
+        const openvdb::Coord& k = part_geometry.coord[size_t(v)];
+        double t_in = 0.0;
+        for (int a = 0; a < 3; ++a) {
+          if (d[a] == 0.0) continue;
+          const double t0 = (h * (k[a] - 0.5) - request.pose.o_world[a]) / d[a];
+          const double t1 = (h * (k[a] + 0.5) - request.pose.o_world[a]) / d[a];
+          t_in = std::max(t_in, std::min(t0, t1));
+        }
+        double& best = (*entry)[p];
+        if (t_in > best || (t_in == best && !(part.depth_m[p] < into->depth_m[p]))) continue;
+        best = t_in;
+        into->vossel_index[p] = v;
+        into->depth_m[p] = part.depth_m[p];
+        into->uncertainty[p] = part.uncertainty[p];
+        into->alpha[p] = part.alpha[p];
+        for (int c = 0; c < 3; ++c) {
+          into->rgb[3 * p + c] = part.rgb[3 * p + c];
+          into->normal[3 * p + c] = part.normal[3 * p + c];
+        }
+        if (part_layers > 1 && into_layers > 1) {  // the first deep layer follows the hit
+          into->deep_depth_m[p * into_layers] = part.deep_depth_m[p * part_layers];
+          into->deep_alpha[p * into_layers] = part.deep_alpha[p * part_layers];
+          for (int c = 0; c < 3; ++c) {
+            into->deep_rgb[3 * p * into_layers + c] = part.deep_rgb[3 * p * part_layers + c];
+          }
+          into->layer_count[p] = std::max<uint8_t>(into->layer_count[p], 1);
+        }
+      }
+    }
+  });
+  into->hit_pixels = 0;
+  into->colourless_pixels = 0;
+  for (size_t p = 0; p < pixels; ++p) {
+    if (!(into->depth_m[p] < std::numeric_limits<float>::infinity())) continue;
+    ++into->hit_pixels;
+    if (!(into->alpha[p] > 0.0f)) ++into->colourless_pixels;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status EmitRows(const RenderRequest& request, const RenderImage& image) {
+  if (!request.rows_done) return absl::OkStatus();
+  for (int row = 0; row < image.height_px; row += kBandRows) {
+    const absl::Status s = request.rows_done(image, row, std::min(image.height_px, row + kBandRows));
+    if (!s.ok()) return s;
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace vasl::render

@@ -67,7 +67,17 @@ struct RenderRequest {
   /// ColourDetail::kSourceImages rows become final in ApplyColourDetail, which calls it.
   /// A status other than OK stops the render with that status.
   std::function<absl::Status(const RenderImage& image, int row_begin, int row_end)> rows_done;
+  /// Keep RenderImage::vossel_index whatever the colour detail: for a caller that composites
+  /// renders of parts of a version (CompositeNearer).
+  bool keep_vossel_index = false;
+  /// Per pixel, the range (metres) from which its ray looks for a surface (+inf: the pixel is
+  /// not marched); null: 0. For a caller that renders a version's deeper layers part by part.
+  const std::vector<float>* start_range_m = nullptr;
 };
+/// A deeper layer starts this many vossels beyond the one in front *(choice)*: surfaces nearer
+/// each other than the lattice resolves are one surface, and the same surface's next vossels
+/// (a wall two vossels thick) are not a layer of their own.
+inline constexpr double kLayerGapVox = 1.5;
 /// Rows per band of a render's march: the unit of its work and of RenderRequest::rows_done
 /// (a multiple of the 16 rows OpenEXR's ZIP compression packs into one chunk).
 inline constexpr int kBandRows = 16;
@@ -104,6 +114,9 @@ struct RenderImage {
   /// vossels whose image was left out (not decodable here, or beyond the byte budget).
   int64_t detail_sources = 0;
   int64_t detail_sources_skipped = 0;
+  /// Groups of tiles the version was rendered in, one after another, so that what the render
+  /// held at once stayed within the engine's memory budget (1: the version at once).
+  int tile_groups = 1;
 };
 
 /// A source's image as the colour detail reads it (§2.1 or §2.2 through its pose).
@@ -175,5 +188,25 @@ absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geomet
                                            const records::FusedValues& fused,
                                            const RenderRequest& request,
                                            const ViewBlendInputs* blend = nullptr);
+
+/// An image of `request`'s size, layers and projection with no hit, as a render of no vossel
+/// gives, with its vossel indices (all -1): what CompositeNearer starts from.
+RenderImage EmptyRender(const RenderRequest& request);
+
+/// Composites `part`, a render of `request` over some tiles of a version that kept its vossel
+/// indices into `part_geometry`, into `*into`, a composite of renders of the same request over
+/// other tiles (EmptyRender at first): each pixel keeps the hit whose cell its ray enters
+/// first, so that the composite of renders over disjoint tiles is the render over all of them
+/// (§8: the first vossel along the ray; two cells the ray enters at the same range, across an
+/// edge or a corner, are told by their depth). `entry` holds each pixel's entry range (metres)
+/// into `*into`'s hit cell; start it empty. Pixel values, normal, U, alpha and the first deep
+/// layer (when both have layers) follow the hit; the counts are recomputed.
+absl::Status CompositeNearer(const RenderRequest& request,
+                             const records::VosselGeometry& part_geometry,
+                             const RenderImage& part, RenderImage* into,
+                             std::vector<double>* entry);
+
+/// Hands `image`'s rows to request.rows_done (if any) in bands of kBandRows, in row order.
+absl::Status EmitRows(const RenderRequest& request, const RenderImage& image);
 
 }  // namespace vasl::render

@@ -955,7 +955,8 @@ absl::Status ProjectStore::SetActiveProfile(const std::string& name) {
 }
 
 absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
-    int64_t version, const std::vector<std::string>& profile_layers, bool with_records) const {
+    int64_t version, const std::vector<std::string>& profile_layers, bool with_records,
+    const std::set<tiles::TileKey>* only_tiles) const {
   if (version < 0) {
     return absl::InvalidArgumentError(absl::StrCat("version must be >= 0; got ", version));
   }
@@ -972,7 +973,10 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   if (!manifest.ok()) return manifest.status();
   snap->manifest = std::move(*manifest);
   std::vector<std::pair<tiles::TileKey, const std::map<std::string, ManifestEntry>*>> todo;
-  for (const auto& [key, layers] : snap->manifest.tiles) todo.emplace_back(key, &layers);
+  snap->partial = only_tiles != nullptr;
+  for (const auto& [key, layers] : snap->manifest.tiles) {
+    if (only_tiles == nullptr || only_tiles->count(key) != 0) todo.emplace_back(key, &layers);
+  }
   std::vector<tiles::TileContents> loaded(todo.size());
   std::vector<absl::Status> status(todo.size());
   const ObjectStore& objects = *impl_->objects;
@@ -1044,6 +1048,7 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   snap->profile_fused = std::move(all.profile_fused);
   if (snap->fused.profile.empty()) snap->fused.profile = "default";
   for (const auto& [source, entry] : snap->manifest.reach) {
+    if (snap->partial) break;  // a partial snapshot's reader renders or queries: no revisits
     const std::string& object = entry.object;
     absl::StatusOr<std::string> bytes = objects.ReadBytes(object);
     if (!bytes.ok()) return bytes.status();

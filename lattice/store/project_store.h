@@ -143,6 +143,9 @@ struct Snapshot {
   std::map<std::string, records::FusedValues> profile_fused;
   Manifest manifest;
   std::map<int32_t, tiles::ReachRaster> reach;  ///< source id → its reach raster
+  /// Loaded with only some tiles (LoadSnapshot's `only_tiles`): geometry, records and fused
+  /// values are those tiles', `reach` is empty. No flow that changes a project takes one.
+  bool partial = false;
 };
 
 /// Summary of a committed version, kept in the catalog.
@@ -276,10 +279,13 @@ class ProjectStore {
   /// fused layers `profile_layers` (FusedLayerName) besides the default's. Without
   /// `with_records` the snapshot's records stay empty and no record object is read (a caller
   /// after one fused layer).
+  /// With `only_tiles` the snapshot is partial: it holds those tiles of the version alone (the
+  /// others are not read; its manifest is still the whole version's) and no reach raster, so
+  /// that a reader bounds what it holds (flows/tile_budget.h).
   /// NOT_FOUND when it does not exist or retention removed it, or a layer is missing from a tile.
   absl::StatusOr<std::shared_ptr<const Snapshot>> LoadSnapshot(
       int64_t version, const std::vector<std::string>& profile_layers = {},
-      bool with_records = true) const;
+      bool with_records = true, const std::set<tiles::TileKey>* only_tiles = nullptr) const;
   /// The manifest of a kept version.
   absl::StatusOr<Manifest> LoadManifest(int64_t version) const;
 

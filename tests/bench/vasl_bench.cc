@@ -10,11 +10,13 @@
 #include <filesystem>
 #include <string>
 
+#include <malloc.h>
 #include <tbb/info.h>
 
 #include "absl/strings/str_format.h"
 
 #include "lattice/engine.h"
+#include "lattice/flows/tile_budget.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/records/record_grid.h"
 #include "lattice/store/project_store.h"
@@ -39,6 +41,18 @@ double PeakRssMb() {
   double kb = 0.0;
   while (std::fgets(line, sizeof(line), f)) {
     if (!std::strncmp(line, "VmHWM:", 6)) kb = std::atof(line + 6);
+  }
+  std::fclose(f);
+  return kb / 1024.0;
+}
+/// Resident set (VmRSS) of this process now, MB; 0 if unknown.
+double RssMb() {
+  std::FILE* f = std::fopen("/proc/self/status", "r");
+  if (!f) return 0.0;
+  char line[256];
+  double kb = 0.0;
+  while (std::fgets(line, sizeof(line), f)) {
+    if (!std::strncmp(line, "VmRSS:", 6)) kb = std::atof(line + 6);
   }
   std::fclose(f);
   return kb / 1024.0;
@@ -81,6 +95,52 @@ int ReweightAgainstRebuild(vasl::Engine& engine, const std::string& project, dou
               "records/s, peak %.0f MB; rebuild / reweight = %.1f\n",
               (long long)tiles, median, seconds.front(), seconds.back(), records / median / 1e6,
               PeakRssMb(), rebuild_s / median);
+  return 0;
+}
+
+/// Bounded readers (issue "A store that grows"): a 1024×512 render of the stored corridor
+/// from its first novel view by a fresh engine that reads the version whole, and by one
+/// bounded to an eighth of it (EngineLimits::max_snapshot_bytes): seconds, tile groups, and
+/// the memory each added to the process (peak RSS over the RSS before, free heap returned to
+/// the system first).
+int BoundedRender(const std::filesystem::path& dir, const std::string& project) {
+  using namespace vasl;
+  auto st = store::ProjectStore::Open(dir / project);
+  if (!st.ok()) return Fail(st.status());
+  auto manifest = (*st)->LoadManifest((*st)->head_version());
+  if (!manifest.ok()) return Fail(manifest.status());
+  const int64_t whole = flows::VersionMemoryBytes(*manifest, true, 1);
+  const int64_t geometry = flows::VersionMemoryBytes(*manifest, false, 1);
+  ::malloc_trim(0);
+  const double rss0 = RssMb();
+  ResetPeakRss();
+  {  // what holding the version whole takes, against the estimate
+    auto snap = (*st)->LoadSnapshot((*st)->head_version());
+    if (!snap.ok()) return Fail(snap.status());
+    ::malloc_trim(0);
+    std::printf("bounded render: version estimated at %.1f MB (geometry and fused alone %.1f "
+                "MB); loaded whole it holds %.0f MB (%.0f MB at the peak of its load)\n",
+                whole / 1e6, geometry / 1e6, RssMb() - rss0, PeakRssMb() - rss0);
+  }
+  for (const int64_t budget : {whole / 8, int64_t(8) << 30}) {
+    EngineLimits limits;
+    limits.max_snapshot_bytes = budget;
+    auto engine = Engine::Open(dir, limits);
+    if (!engine.ok()) return Fail(engine.status());
+    RenderRequest req;
+    req.pose = scenes::CorridorSite::Default().NovelViews()[0];
+    req.width_px = 1024;  // 40 B a pixel: 21 MB an image, so that the version's share shows
+    req.height_px = 512;
+    ::malloc_trim(0);
+    const double before = RssMb();
+    ResetPeakRss();
+    const auto t0 = Clock::now();
+    auto image = (*engine)->Render(project, req);
+    if (!image.ok()) return Fail(image.status());
+    std::printf("  budget %8.1f MB: %.2f s, %d tile groups, %lld hit pixels, +%.0f MB RSS\n",
+                budget / 1e6, Since(t0), image->tile_groups, (long long)image->hit_pixels,
+                PeakRssMb() - before);
+  }
   return 0;
 }
 
@@ -157,7 +217,8 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels) {
   if (!rebuilt.ok()) return Fail(rebuilt.status());
   std::printf("rebuild of %zu scans: %.2f s, peak %.0f MB\n", site.Stations().size(),
               rebuilt->seconds, PeakRssMb());
-  return ReweightAgainstRebuild(**engine, "growth", rebuilt->seconds);
+  if (int rc = ReweightAgainstRebuild(**engine, "growth", rebuilt->seconds); rc != 0) return rc;
+  return BoundedRender(dir, "growth");
 }
 
 }  // namespace

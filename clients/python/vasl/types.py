@@ -282,6 +282,9 @@ class RenderResult:
     colourless_pixels: int = 0  #: hit pixels whose vossel has no colour (alpha 0, never black)
     detail_sources: int = 0  #: colour_detail="images": cameras whose image coloured some pixel
     detail_sources_skipped: int = 0  #: cameras left out, their images beyond the server's budget
+    #: groups of tiles the version was rendered in, one after another, within the server's
+    #: memory budget (vasld --max-snapshot-bytes); 1: the version at once
+    tile_groups: int = 1
     alpha: Optional[np.ndarray] = None  #: (H, W) float32 coverage: 1 where the pixel has a colour
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested

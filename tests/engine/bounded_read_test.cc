@@ -1,0 +1,262 @@
+// Bounded memory for readers (issue "A store that grows"): a render or a records query of a
+// version larger than the engine's max_snapshot_bytes reads its tiles in groups within that
+// budget, one after another, and gives the answer a reader of the whole version gives. The
+// corridor site's first six stations (h = 5 cm, tiles of 32 vossels: many tiles) are ingested
+// by an engine with the default budget, which renders and queries them whole; an engine with a
+// budget of a fifth of the version's estimate asks the same and must agree pixel by pixel and
+// record by record.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include "lattice/engine.h"
+#include "lattice/flows/tile_budget.h"
+#include "tests/scenes/corridor_site.h"
+
+namespace vasl {
+namespace {
+
+namespace fs = std::filesystem;
+
+constexpr int kPanoW = 512, kPanoH = 256;
+constexpr size_t kStations = 6;
+
+// Pixels where two renders differ in any per-pixel value (depth, rgb, normal, U, alpha and,
+// when deep, every layer's depth, rgb and alpha).
+int64_t DifferingPixels(const RenderImage& a, const RenderImage& b) {
+  EXPECT_EQ(a.width_px, b.width_px);
+  EXPECT_EQ(a.height_px, b.height_px);
+  EXPECT_EQ(a.layers, b.layers);
+  const size_t n = a.depth_m.size(), L = size_t(a.layers);
+  int64_t differ = 0;
+  auto same = [](float x, float y) { return x == y || (std::isnan(x) && std::isnan(y)); };
+  for (size_t p = 0; p < n; ++p) {
+    bool eq = same(a.depth_m[p], b.depth_m[p]) && same(a.uncertainty[p], b.uncertainty[p]) &&
+              same(a.alpha[p], b.alpha[p]);
+    for (int c = 0; c < 3 && eq; ++c) {
+      eq = same(a.rgb[3 * p + c], b.rgb[3 * p + c]) && same(a.normal[3 * p + c], b.normal[3 * p + c]);
+    }
+    if (L > 1 && eq) {
+      eq = a.layer_count[p] == b.layer_count[p];
+      for (size_t l = 0; l < L && eq; ++l) {
+        eq = same(a.deep_depth_m[p * L + l], b.deep_depth_m[p * L + l]) &&
+             same(a.deep_alpha[p * L + l], b.deep_alpha[p * L + l]);
+        for (int c = 0; c < 3 && eq; ++c) {
+          eq = same(a.deep_rgb[3 * (p * L + l) + c], b.deep_rgb[3 * (p * L + l) + c]);
+        }
+      }
+    }
+    differ += eq ? 0 : 1;
+  }
+  return differ;
+}
+
+class BoundedReadTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new fs::path(fs::temp_directory_path() /
+                        ("vasl-bounded-read-" + std::to_string(::getpid())));
+    fs::remove_all(*dir_);
+    auto engine = Engine::Open(*dir_);
+    ASSERT_TRUE(engine.ok()) << engine.status();
+    store::ProjectSettings settings;
+    settings.vossel_size_m = 0.05;
+    settings.tile_vossels = 32;
+    ASSERT_TRUE((*engine)->CreateProject("site", settings).ok());
+    const scenes::CorridorSite site = scenes::CorridorSite::Default();
+    for (size_t s = 0; s < kStations; ++s) {
+      auto scan = scenes::MakeScanInput(site, s, scenes::LidarSettings::Small(s + 1), 1024, 2);
+      ASSERT_TRUE(scan.ok()) << scan.status();
+      auto r = (*engine)->IngestScan("site", *scan);
+      ASSERT_TRUE(r.ok()) << r.status();
+    }
+    fusion::WeightingProfile sharp;  // a stored profile without fused tiles: fused per render
+    sharp.name = "sharp";
+    sharp.alpha = 2.0;
+    ASSERT_TRUE((*engine)->CreateProfile("site", sharp).ok());
+    fusion::WeightingProfile kept = sharp;  // and one reweighted: its fused tiles are read
+    kept.name = "kept";
+    kept.beta = 0.5;
+    ASSERT_TRUE((*engine)->CreateProfile("site", kept).ok());
+    ASSERT_TRUE((*engine)->Reweight("site", "kept", 0).ok());
+    auto st = store::ProjectStore::Open(*dir_ / "site");
+    ASSERT_TRUE(st.ok()) << st.status();
+    auto manifest = (*st)->LoadManifest((*st)->head_version());
+    ASSERT_TRUE(manifest.ok()) << manifest.status();
+    tiles_ = int64_t(manifest->tiles.size());
+    whole_bytes_ = flows::VersionMemoryBytes(*manifest, true, 1);
+  }
+  static void TearDownTestSuite() {
+    fs::remove_all(*dir_);
+    delete dir_;
+  }
+
+  // The engine that holds whole versions and the one bounded to a fifth of this one.
+  static std::unique_ptr<Engine> Open(bool bounded) {
+    EngineLimits limits;
+    if (bounded) limits.max_snapshot_bytes = whole_bytes_ / 5;
+    auto engine = Engine::Open(*dir_, limits);
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    return engine.ok() ? std::move(*engine) : nullptr;
+  }
+
+  // Renders `req` whole and bounded; expects the same image, printed with the groups taken.
+  void ExpectSameRender(const char* what, RenderRequest req) {
+    req.pose = scenes::CorridorSite::Default().NovelViews()[0];
+    auto whole = Open(false)->Render("site", req);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+    auto bounded_engine = Open(true);
+    int64_t rows = 0;
+    req.rows_done = [&rows](const RenderImage&, int begin, int end) {
+      rows += end - begin;
+      return absl::OkStatus();
+    };
+    auto bounded = bounded_engine->Render("site", req);
+    ASSERT_TRUE(bounded.ok()) << bounded.status();
+    const int64_t differ = DifferingPixels(*whole, *bounded);
+    std::printf("  %s: whole in %d group, bounded in %d groups of %lld tiles; %lld hit pixels, "
+                "%lld differ\n", what, whole->tile_groups, bounded->tile_groups,
+                (long long)tiles_, (long long)whole->hit_pixels, (long long)differ);
+    EXPECT_EQ(whole->tile_groups, 1);
+    // Geometry alone fits in two groups; with records (η > 0, colour detail, a profile
+    // without fused tiles) in five or more. Deep output takes a pass per layer.
+    EXPECT_GE(bounded->tile_groups, 2 * req.layers);
+    int64_t deeper = 0;  // pixels with a second surface layer
+    for (uint8_t c : whole->layer_count) deeper += c >= 2 ? 1 : 0;
+    if (req.layers > 1) {
+      std::printf("  %lld pixels have a second layer\n", (long long)deeper);
+      EXPECT_GT(deeper, whole->hit_pixels / 20);  // tables and partitions: 8.7% here
+    }
+    EXPECT_GT(whole->hit_pixels, int64_t(req.width_px) * req.height_px / 2);
+    EXPECT_EQ(differ, 0);
+    EXPECT_EQ(bounded->hit_pixels, whole->hit_pixels);
+    EXPECT_EQ(bounded->colourless_pixels, whole->colourless_pixels);
+    EXPECT_EQ(bounded->fused_on_the_fly, whole->fused_on_the_fly);
+    EXPECT_EQ(bounded->version, whole->version);
+    EXPECT_GT(bounded->render_id, whole->render_id);  // recorded once, as any render
+    EXPECT_EQ(rows, req.height_px);                   // every row streamed once
+  }
+
+  static fs::path* dir_;
+  static int64_t tiles_;
+  static int64_t whole_bytes_;
+};
+fs::path* BoundedReadTest::dir_ = nullptr;
+int64_t BoundedReadTest::tiles_ = 0;
+int64_t BoundedReadTest::whole_bytes_ = 0;
+
+// Claim: the groups cover every tile once, and each fits the budget unless it is one tile.
+TEST_F(BoundedReadTest, GroupsFitTheBudget) {
+  auto st = store::ProjectStore::Open(*dir_ / "site");
+  ASSERT_TRUE(st.ok());
+  auto manifest = (*st)->LoadManifest((*st)->head_version());
+  ASSERT_TRUE(manifest.ok());
+  const int64_t budget = whole_bytes_ / 5;
+  const auto groups = flows::TileGroups(*manifest, true, 1, budget);
+  size_t covered = 0;
+  std::set<tiles::TileKey> seen;
+  for (const auto& g : groups) {
+    covered += g.size();
+    seen.insert(g.begin(), g.end());
+    const int64_t bytes = flows::VersionMemoryBytes(*manifest, true, 1, &g);
+    EXPECT_TRUE(bytes <= budget || g.size() == 1) << bytes << " > " << budget;
+  }
+  std::printf("  %lld tiles, version estimated at %.1f MB, budget %.1f MB: %zu groups\n",
+              (long long)tiles_, whole_bytes_ / 1e6, budget / 1e6, groups.size());
+  EXPECT_EQ(covered, manifest->tiles.size());
+  EXPECT_EQ(seen.size(), manifest->tiles.size());
+  EXPECT_GE(groups.size(), 5u);
+}
+
+TEST_F(BoundedReadTest, EquirectRenderIsTheWholeOne) {
+  RenderRequest req;
+  req.width_px = kPanoW;
+  req.height_px = kPanoH;
+  ExpectSameRender("equirect", req);
+}
+
+TEST_F(BoundedReadTest, ViewTermDeepLayersAndPinholeAreTheWholeOnes) {
+  RenderRequest req;
+  req.width_px = kPanoW;
+  req.height_px = kPanoH;
+  req.eta = 2.0;
+  ExpectSameRender("eta 2", req);
+  req.eta = 0.0;
+  req.layers = 3;
+  ExpectSameRender("3 layers", req);
+  req.layers = 1;
+  req.projection = render::Projection::kPinhole;
+  req.width_px = 320;
+  req.height_px = 240;
+  req.pinhole.width_px = 320;
+  req.pinhole.height_px = 240;
+  req.pinhole.fx_px = req.pinhole.fy_px = 200.0;
+  req.pinhole.cx_px = 160.0;
+  req.pinhole.cy_px = 120.0;
+  ExpectSameRender("pinhole", req);
+}
+
+TEST_F(BoundedReadTest, ColourDetailAndProfilesAreTheWholeOnes) {
+  RenderRequest req;
+  req.width_px = kPanoW;
+  req.height_px = kPanoH;
+  req.colour_detail = render::ColourDetail::kSourceImages;
+  ExpectSameRender("colour detail", req);
+  req.colour_detail = render::ColourDetail::kVossel;
+  req.profile = "sharp";
+  ExpectSameRender("profile fused per render", req);
+  req.profile = "kept";
+  ExpectSameRender("profile with fused tiles", req);
+}
+
+// Claim: a records query reads the tiles its box meets, group by group, and answers as a
+// query of the whole version: the same rows in the same order, counts and truncation.
+TEST_F(BoundedReadTest, RecordsQueryIsTheWholeOne) {
+  struct Box {
+    Eigen::Vector3d min_m, max_m;
+    int64_t limit;
+  };
+  const scenes::CorridorSite site = scenes::CorridorSite::Default();
+  const Eigen::Vector3d o = site.Stations()[0].o_world;
+  const std::vector<Box> boxes = {
+      {o - Eigen::Vector3d(4, 4, 2), o + Eigen::Vector3d(4, 4, 2), 1'000'000},  // many tiles
+      {o - Eigen::Vector3d(4, 4, 2), o + Eigen::Vector3d(4, 4, 2), 5000},       // truncated
+      {o - Eigen::Vector3d(20, 20, 5), o + Eigen::Vector3d(20, 20, 5), 100},
+  };
+  auto whole_engine = Open(false);
+  auto bounded_engine = Open(true);
+  for (const Box& b : boxes) {
+    auto whole = whole_engine->QueryRecords("site", 0, b.min_m, b.max_m, "kept", b.limit);
+    auto bounded = bounded_engine->QueryRecords("site", 0, b.min_m, b.max_m, "kept", b.limit);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+    ASSERT_TRUE(bounded.ok()) << bounded.status();
+    std::printf("  query of %lld: %lld vossels, %zu rows, truncated %d\n", (long long)b.limit,
+                (long long)whole->vossels, whole->rows.size(), int(whole->truncated));
+    EXPECT_GT(whole->rows.size(), 50u);
+    EXPECT_EQ(bounded->vossels, whole->vossels);
+    EXPECT_EQ(bounded->truncated, whole->truncated);
+    ASSERT_EQ(bounded->rows.size(), whole->rows.size());
+    size_t differ = 0;
+    for (size_t i = 0; i < whole->rows.size(); ++i) {
+      const flows::RecordRow &a = whole->rows[i], &c = bounded->rows[i];
+      differ += (a.vossel != c.vossel || a.coord != c.coord || a.source != c.source ||
+                 a.centroid_m != c.centroid_m || a.value != c.value || a.range_m != c.range_m ||
+                 a.vis != c.vis || a.conf != c.conf || a.weight != c.weight ||
+                 a.scan_name != c.scan_name)
+                    ? 1
+                    : 0;
+    }
+    EXPECT_EQ(differ, 0u);
+  }
+  EXPECT_TRUE(absl::IsInvalidArgument(
+      bounded_engine->QueryRecords("site", 0, o, o - Eigen::Vector3d(1, 0, 0), "", 10).status()));
+}
+
+}  // namespace
+}  // namespace vasl
