@@ -726,6 +726,8 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     meta->set_detail_sources(image->detail_sources);
     meta->set_detail_sources_skipped(image->detail_sources_skipped);
     meta->set_tile_groups(image->tile_groups);
+    meta->set_tiles_read(image->tiles_read);
+    meta->set_tiles_total(image->tiles_total);
     meta->set_render_seconds(SecondsSince(render_start));
     meta->set_encode_seconds(encode_seconds);
     if (absl::Status s = Send(std::move(last)); !s.ok()) return ToGrpcStatus(s);

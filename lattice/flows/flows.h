@@ -213,12 +213,14 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
                                                const render::RenderRequest& request,
                                                const RenderCaches& caches);
 
-/// RenderQuery of version `version` without holding it whole: its tiles are read in groups
-/// that each fit `budget_bytes` (tile_budget.h), one after another, each group rendered alone
-/// and composited by which hit cell each ray enters first (render::CompositeNearer), so the
-/// image is the one RenderQuery gives of the whole version. Deep output takes one pass over
-/// the groups per layer. The image says how many groups it took (RenderImage::tile_groups);
-/// its rows reach `request.rows_done` once the last group is composited.
+/// RenderQuery of version `version` without holding it whole: its tiles are read nearest the
+/// eye first, in groups that each fit `budget_bytes` (tile_budget.h), one after another, each
+/// group rendered alone and composited by which hit cell each ray enters first
+/// (render::CompositeNearer), so the image is the one RenderQuery gives of the whole version.
+/// A tile that every ray through it has already stopped before is not read (render::RayReach).
+/// Deep output takes one pass per layer. The image says how many groups and tiles it read
+/// (RenderImage::tile_groups, tiles_read); its rows reach `request.rows_done` once the last
+/// group is composited.
 absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& store,
                                                       int64_t version,
                                                       const fusion::WeightingProfile& profile,

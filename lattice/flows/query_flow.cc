@@ -350,6 +350,7 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
   render::RenderImage out;  // the first pass's composite, then each deeper layer beside it
   std::vector<float> start;
   int groups_rendered = 0;
+  std::set<tiles::TileKey> tiles_read;
   for (int l = 0; l < L; ++l) {
     render::RenderRequest pass = request;
     pass.rows_done = {};
@@ -371,11 +372,49 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
       pass.start_range_m = &start;
     }
     const bool with_records = fuse_here || (l == 0 && blend);
-    const std::vector<std::set<tiles::TileKey>> groups = TileGroups(
-        *manifest, with_records, 1 + int(layers.size()), budget_bytes);
+    const int fused_layers = 1 + int(layers.size());
     render::RenderImage layer = render::EmptyRender(pass);
     std::vector<double> entry;
-    for (const std::set<tiles::TileKey>& group : groups) {
+    // Tiles nearest the eye first, in groups within the budget; a tile that every ray through
+    // it has already stopped before (render::RayReach over the groups composited so far) is
+    // not read at all. Pixels a deeper pass does not march count as stopped.
+    render::RayReach reach(pass);
+    auto update_reach = [&] {
+      if (start.empty()) return reach.Update(entry);
+      std::vector<double> e(start.size());
+      for (size_t p = 0; p < e.size(); ++p) {
+        e[p] = !(start[p] < std::numeric_limits<float>::infinity())
+                   ? -std::numeric_limits<double>::infinity()
+                   : (entry.empty() ? std::numeric_limits<double>::infinity() : entry[p]);
+      }
+      reach.Update(e);
+    };
+    update_reach();
+    std::vector<std::tuple<double, tiles::TileKey, Eigen::Vector3d, Eigen::Vector3d>> order;
+    for (const auto& [key, tile_layers] : manifest->tiles) {
+      const double T = double(store.settings().tile_vossels), h = store.settings().vossel_size_m;
+      const Eigen::Vector3d lo = h * (T * Eigen::Vector3d(key.x, key.y, key.z).array() - 0.5);
+      const Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant(h * T);
+      const Eigen::Vector3d nearest = request.pose.o_world.cwiseMax(lo).cwiseMin(hi);
+      order.emplace_back((nearest - request.pose.o_world).norm(), key, lo, hi);
+    }
+    std::sort(order.begin(), order.end(), [](const auto& a, const auto& b) {
+      return std::get<0>(a) != std::get<0>(b) ? std::get<0>(a) < std::get<0>(b)
+                                              : std::get<1>(a) < std::get<1>(b);
+    });
+    for (size_t next = 0; next < order.size();) {
+      std::set<tiles::TileKey> group;
+      int64_t held = 0;
+      for (; next < order.size(); ++next) {
+        const auto& [near_m, key, lo, hi] = order[next];
+        if (!reach.MayReach(lo, hi)) continue;
+        const int64_t bytes = TileMemoryBytes(manifest->tiles.at(key), with_records, fused_layers);
+        if (!group.empty() && held + bytes > budget_bytes) break;
+        group.insert(key);
+        held += bytes;
+      }
+      if (group.empty()) break;
+      tiles_read.insert(group.begin(), group.end());
       if (request.interrupt) {
         if (absl::Status s = request.interrupt(); !s.ok()) return s;
       }
@@ -396,6 +435,7 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
             std::max(out.detail_sources_skipped, part->detail_sources_skipped);
       }
       ++groups_rendered;
+      update_reach();
     }
     if (l == 0) {  // the image's own hit, and the first deep layer (slot 0 of 2 in `layer`)
       const bool fly = out.fused_on_the_fly;
@@ -440,6 +480,8 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
   out.profile = profile.name;
   out.profile_revision = profile.version;
   out.tile_groups = groups_rendered;
+  out.tiles_read = int64_t(tiles_read.size());
+  out.tiles_total = int64_t(manifest->tiles.size());
   if (absl::Status s = render::EmitRows(request, out); !s.ok()) return s;
   return Recorded(store, request, std::move(out));
 }

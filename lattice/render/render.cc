@@ -725,6 +725,75 @@ absl::Status CompositeNearer(const RenderRequest& request,
   return absl::OkStatus();
 }
 
+RayReach::RayReach(const RenderRequest& request)
+    : eye_(request.pose.o_world), max_range_m_(request.max_range_m), width_(request.width_px),
+      height_(request.height_px), blocks_x_((request.width_px + kReachBlockPx - 1) / kReachBlockPx),
+      blocks_y_((request.height_px + kReachBlockPx - 1) / kReachBlockPx) {
+  const size_t n = size_t(blocks_x_) * size_t(blocks_y_);
+  axis_.resize(n);
+  half_rad_.resize(n);
+  farthest_m_.assign(n, std::numeric_limits<double>::infinity());
+  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  // One pixel's angular pitch at most (the pinhole's at its centre is the largest; an
+  // equirect row's is π / H): the pad that keeps a distorted block's cone conservative.
+  const double pad =
+      request.projection == Projection::kPinhole
+          ? 2.0 / std::min(intrinsics.fx_px, intrinsics.fy_px)
+          : 2.0 * M_PI / double(std::max(1, request.height_px));
+  tbb::parallel_for(size_t(0), n, [&](size_t b) {
+    const int i0 = int(b % size_t(blocks_x_)) * kReachBlockPx;
+    const int j0 = int(b / size_t(blocks_x_)) * kReachBlockPx;
+    const int i1 = std::min(width_, i0 + kReachBlockPx) - 1;
+    const int j1 = std::min(height_, j0 + kReachBlockPx) - 1;
+    // The centre ray, and the farthest of the rays round the block's edge (a 5 × 5 grid of its
+    // pixel centres: corners, midpoints and quarter points).
+    const Eigen::Vector3d c = PixelRay(request, intrinsics, (i0 + i1) / 2, (j0 + j1) / 2);
+    double widest = 0.0;
+    for (int a = 0; a <= 4; ++a) {
+      for (int e = 0; e <= 4; ++e) {
+        const int i = i0 + (i1 - i0) * a / 4, j = j0 + (j1 - j0) * e / 4;
+        widest = std::max(widest,
+                          std::acos(std::clamp(PixelRay(request, intrinsics, i, j).dot(c), -1.0, 1.0)));
+      }
+    }
+    axis_[b] = c;
+    half_rad_[b] = widest + pad;
+  });
+}
+
+void RayReach::Update(const std::vector<double>& entry) {
+  if (entry.size() != size_t(width_) * size_t(height_)) return;
+  tbb::parallel_for(size_t(0), axis_.size(), [&](size_t b) {
+    const int i0 = int(b % size_t(blocks_x_)) * kReachBlockPx;
+    const int j0 = int(b / size_t(blocks_x_)) * kReachBlockPx;
+    double far = 0.0;
+    for (int j = j0; j < std::min(height_, j0 + kReachBlockPx); ++j) {
+      for (int i = i0; i < std::min(width_, i0 + kReachBlockPx); ++i) {
+        far = std::max(far, entry[size_t(j) * size_t(width_) + size_t(i)]);
+      }
+    }
+    farthest_m_[b] = far;
+  });
+}
+
+bool RayReach::MayReach(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) const {
+  const Eigen::Vector3d nearest = eye_.cwiseMax(lo).cwiseMin(hi);
+  const double near_m = (nearest - eye_).norm();
+  if (near_m > max_range_m_) return false;  // rays stop before it
+  const Eigen::Vector3d centre = 0.5 * (lo + hi);
+  const double radius = 0.5 * (hi - lo).norm();
+  const double dist = (centre - eye_).norm();
+  if (!(dist > radius)) return true;  // the eye is within its bounding sphere: any direction
+  const Eigen::Vector3d axis = (centre - eye_) / dist;
+  const double half = std::asin(std::min(1.0, radius / dist));
+  for (size_t b = 0; b < axis_.size(); ++b) {
+    if (farthest_m_[b] < near_m) continue;  // every ray of the block stopped before the box
+    const double between = std::acos(std::clamp(axis.dot(axis_[b]), -1.0, 1.0));
+    if (between <= half + half_rad_[b]) return true;
+  }
+  return false;
+}
+
 absl::Status EmitRows(const RenderRequest& request, const RenderImage& image) {
   if (!request.rows_done) return absl::OkStatus();
   for (int row = 0; row < image.height_px; row += kBandRows) {

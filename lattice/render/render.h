@@ -117,6 +117,10 @@ struct RenderImage {
   /// Groups of tiles the version was rendered in, one after another, so that what the render
   /// held at once stayed within the engine's memory budget (1: the version at once).
   int tile_groups = 1;
+  /// Of the version's tiles, those such a render read: the others lay behind what every ray
+  /// through them had already hit (RayReach). Both 0 for a render of the version at once.
+  int64_t tiles_read = 0;
+  int64_t tiles_total = 0;
 };
 
 /// A source's image as the colour detail reads it (§2.1 or §2.2 through its pose).
@@ -205,6 +209,32 @@ absl::Status CompositeNearer(const RenderRequest& request,
                              const records::VosselGeometry& part_geometry,
                              const RenderImage& part, RenderImage* into,
                              std::vector<double>* entry);
+
+/// Which boxes of the lattice the rays of a request can still reach in front of the hits a
+/// composite holds (CompositeNearer's `entry`): so that a caller rendering a version part by
+/// part, nearest parts first, skips the parts every ray through them has already stopped
+/// before. Rays are bundled in blocks of kReachBlockPx² pixels, each bounded by a cone of the
+/// directions of its pixel centres; a block's rays can reach a box when its cone meets the
+/// box's bounding cone from the eye and its farthest entry range (+inf while a pixel has no hit)
+/// is not nearer than the box. Exact: a skipped box cannot hold the hit of any pixel.
+class RayReach {
+ public:
+  static constexpr int kReachBlockPx = 16;
+  explicit RayReach(const RenderRequest& request);
+  /// Takes the composite's entry ranges (one per pixel; empty: no hit yet).
+  void Update(const std::vector<double>& entry);
+  /// Whether some ray within the request's max range can enter the box [lo, hi] (lattice
+  /// metres) before it meets a hit of the composite.
+  bool MayReach(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) const;
+
+ private:
+  Eigen::Vector3d eye_;
+  double max_range_m_ = 0.0;
+  int width_ = 0, height_ = 0, blocks_x_ = 0, blocks_y_ = 0;
+  std::vector<Eigen::Vector3d> axis_;  ///< per block: the direction of its centre
+  std::vector<double> half_rad_;       ///< per block: the cone's half angle
+  std::vector<double> farthest_m_;     ///< per block: max entry range of its pixels
+};
 
 /// Hands `image`'s rows to request.rows_done (if any) in bands of kBandRows, in row order.
 absl::Status EmitRows(const RenderRequest& request, const RenderImage& image);

@@ -137,9 +137,10 @@ int BoundedRender(const std::filesystem::path& dir, const std::string& project) 
     const auto t0 = Clock::now();
     auto image = (*engine)->Render(project, req);
     if (!image.ok()) return Fail(image.status());
-    std::printf("  budget %8.1f MB: %.2f s, %d tile groups, %lld hit pixels, +%.0f MB RSS\n",
-                budget / 1e6, Since(t0), image->tile_groups, (long long)image->hit_pixels,
-                PeakRssMb() - before);
+    std::printf("  budget %8.1f MB: %.2f s, %d tile groups reading %lld of %lld tiles, %lld hit "
+                "pixels, +%.0f MB RSS\n",
+                budget / 1e6, Since(t0), image->tile_groups, (long long)image->tiles_read,
+                (long long)image->tiles_total, (long long)image->hit_pixels, PeakRssMb() - before);
   }
   return 0;
 }
@@ -178,20 +179,25 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels) {
     seconds.push_back(r->seconds);
     // Stage seconds grouped: revisits of older sources, the scan's own sources, the rest.
     double revisit = 0.0, own = 0.0;
-    std::string rest;
+    std::string rest, each;  // each: the own sources' seconds, LiDAR first
     for (const auto& [stage, sec] : r->stage_seconds) {
-      if (stage.rfind("revisit", 0) == 0) revisit += sec;
-      else if (stage.rfind("records of", 0) == 0) own += sec;
-      else rest += absl::StrFormat(" %s %.2f;", stage, sec);
+      if (stage.rfind("revisit", 0) == 0) {
+        revisit += sec;
+      } else if (stage.rfind("records of", 0) == 0) {
+        own += sec;
+        each += absl::StrFormat("%s%.2f", each.empty() ? "" : " + ", sec);
+      } else {
+        rest += absl::StrFormat(" %s %.2f;", stage, sec);
+      }
     }
     std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.0f %11.1f %11.1f   revisits "
-                "%.2f; own sources %.2f;%s\n",
+                "%.2f; own sources %.2f (%s);%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
                 (long long)r->sources_refreshed,
                 (long long)r->pairs_revisited, (long long)r->blocks_revisited, peak,
                 r->bytes_written / 1e6,
-                versions->back().bytes_total / 1e6, revisit, own, rest.c_str());
+                versions->back().bytes_total / 1e6, revisit, own, each.c_str(), rest.c_str());
   }
   if (seconds.size() >= 2) {
     double total = 0.0;

@@ -250,8 +250,8 @@ def _cmd_render(client: Client, args) -> int:
           f"{r.render_seconds:.2f} s ({r.encode_seconds:.2f} s of it encoding), "
           f"profile {r.profile} revision {r.profile_revision}"
           + (" (fused for this render: run vasl reweight to store it)" if r.fused_on_the_fly else "")
-          + (f"; read in {r.tile_groups} tile groups (the version exceeds the server's "
-             f"--max-snapshot-bytes)" if r.tile_groups > 1 else ""))
+          + (f"; read {r.tiles_read} of {r.tiles_total} tiles in {r.tile_groups} groups (the "
+             f"version exceeds the server's --max-snapshot-bytes)" if r.tiles_total else ""))
     if args.colour_detail == "images":
         print(f"colour from {r.detail_sources} cameras' images"
               + (f"; {r.detail_sources_skipped} more left out (their images exceed the server's "

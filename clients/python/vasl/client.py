@@ -1283,7 +1283,8 @@ class Client:
                               colourless_pixels=meta.colourless_pixels,
                               detail_sources=meta.detail_sources,
                               detail_sources_skipped=meta.detail_sources_skipped,
-                              tile_groups=meta.tile_groups or 1,
+                              tile_groups=meta.tile_groups or 1, tiles_read=meta.tiles_read,
+                              tiles_total=meta.tiles_total,
                               files=files, encode_seconds=meta.encode_seconds)
         if pb.IMAGE_FORMAT_EXR in parts:
             result.exr = bytes(parts[pb.IMAGE_FORMAT_EXR])

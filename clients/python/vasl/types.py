@@ -285,6 +285,10 @@ class RenderResult:
     #: groups of tiles the version was rendered in, one after another, within the server's
     #: memory budget (vasld --max-snapshot-bytes); 1: the version at once
     tile_groups: int = 1
+    #: of the version's tiles, those such a render read (the rest lay behind what every ray
+    #: through them had hit); both 0 when the server read the version whole
+    tiles_read: int = 0
+    tiles_total: int = 0
     alpha: Optional[np.ndarray] = None  #: (H, W) float32 coverage: 1 where the pixel has a colour
     exr: Optional[bytes] = None  #: the encoded EXR, if requested
     png: Optional[bytes] = None  #: the encoded PNG preview, if requested
