@@ -243,19 +243,20 @@ struct ProjectStore::Impl {
     return *row && st->Int(0) == 0;
   }
 
-  /// Writes the objects of the tiles `keys` cut from `snapshot` (parallel over tiles).
+  /// Writes the objects of the tiles `keys` cut from `snapshot` (parallel over tiles; each
+  /// tile is cut as it is written, so a commit holds only the tiles its threads are writing).
   absl::StatusOr<std::vector<WrittenTile>> WriteTiles(const Snapshot& snapshot,
                                                       const std::set<tiles::TileKey>& keys,
                                                       bool with_geometry) {
-    std::vector<tiles::TileContents> cut =
-        tiles::ExtractTiles(snapshot.geometry, snapshot.records, snapshot.fused, keys,
-                            settings.tile_vossels, &snapshot.profile_fused);
-    std::vector<WrittenTile> out(cut.size());
-    std::vector<absl::Status> status(cut.size());
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, cut.size(), 1),
+    const tiles::TileCutter cutter(snapshot.geometry, snapshot.records, snapshot.fused,
+                                   settings.tile_vossels, &snapshot.profile_fused);
+    const std::vector<tiles::TileKey> ordered(keys.begin(), keys.end());
+    std::vector<WrittenTile> out(ordered.size());
+    std::vector<absl::Status> status(ordered.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, ordered.size(), 1),
                       [&](const tbb::blocked_range<size_t>& r) {
       for (size_t t = r.begin(); t != r.end(); ++t) {
-        const tiles::TileContents& tile = cut[t];
+        const tiles::TileContents tile = cutter.Cut(ordered[t]);
         out[t].key = tile.key;
         if (tile.geometry.size() == 0) continue;
         auto put = [&](const char* layer, auto&& write) -> absl::Status {

@@ -91,54 +91,63 @@ std::map<TileKey, std::vector<int32_t>> VosselsByTile(const records::VosselGeome
   return out;
 }
 
+TileCutter::TileCutter(const records::VosselGeometry& g, const records::RecordSet& recs,
+                       const records::FusedValues& fused, int T,
+                       const std::map<std::string, records::FusedValues>* profile_fused)
+    : geometry_(g), records_(recs), fused_(fused), profile_fused_(profile_fused),
+      by_tile_(VosselsByTile(g, T)), begin_(g.size() + 1, 0) {
+  // First record of every vossel (records sorted by vossel).
+  for (size_t i = 0; i < recs.size(); ++i) ++begin_[size_t(recs.vossel[i]) + 1];
+  for (size_t k = 0; k < g.size(); ++k) begin_[k + 1] += begin_[k];
+}
+
+TileContents TileCutter::Cut(const TileKey& key) const {
+  const records::VosselGeometry& g = geometry_;
+  TileContents tile;
+  tile.key = key;
+  tile.geometry.vossel_size_m = g.vossel_size_m;
+  tile.fused.profile = fused_.profile;
+  auto it = by_tile_.find(tile.key);
+  static const std::vector<int32_t> kNone;
+  const std::vector<int32_t>& members = it == by_tile_.end() ? kNone : it->second;
+  for (int32_t v : members) AppendVossel(g, size_t(v), tile.geometry);
+  // Tile-local canonical order; `local[i]` is the new index of members[i].
+  const std::vector<int32_t> local = records::CanonicalizeVosselOrder(tile.geometry);
+  std::vector<int32_t> by_local(members.size());
+  for (size_t i = 0; i < members.size(); ++i) by_local[size_t(local[i])] = members[i];
+  std::vector<size_t> picked;
+  for (int32_t v : by_local) {
+    for (size_t k = begin_[size_t(v)]; k < begin_[size_t(v) + 1]; ++k) picked.push_back(k);
+  }
+  tile.records = records_.Select(picked);
+  // Records were picked in tile-local vossel order, each vossel's in (scan) order.
+  size_t at = 0;
+  for (size_t l = 0; l < by_local.size(); ++l) {
+    const size_t n = begin_[size_t(by_local[l]) + 1] - begin_[size_t(by_local[l])];
+    for (size_t k = 0; k < n; ++k) tile.records.vossel[at++] = int32_t(l);
+  }
+  if (!fused_.by_modality.empty()) tile.fused = GatherFused(fused_, by_local);
+  KeepOwnChannels(tile.records, tile.fused);
+  if (profile_fused_ != nullptr) {
+    for (const auto& [layer, values] : *profile_fused_) {
+      records::FusedValues& f = tile.profile_fused[layer];
+      f = GatherFused(values, by_local);
+      KeepOwnChannels(tile.records, f);
+    }
+  }
+  return tile;
+}
+
 std::vector<TileContents> ExtractTiles(
     const records::VosselGeometry& g, const records::RecordSet& recs,
     const records::FusedValues& fused, const std::set<TileKey>& keys, int T,
     const std::map<std::string, records::FusedValues>* profile_fused) {
-  const std::map<TileKey, std::vector<int32_t>> by_tile = VosselsByTile(g, T);
-  // First record of every vossel (records sorted by vossel).
-  std::vector<size_t> begin(g.size() + 1, 0);
-  for (size_t i = 0; i < recs.size(); ++i) ++begin[size_t(recs.vossel[i]) + 1];
-  for (size_t k = 0; k < g.size(); ++k) begin[k + 1] += begin[k];
-
+  const TileCutter cutter(g, recs, fused, T, profile_fused);
   const std::vector<TileKey> ordered(keys.begin(), keys.end());
   std::vector<TileContents> out(ordered.size());
   tbb::parallel_for(tbb::blocked_range<size_t>(0, ordered.size(), 1),
                     [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t t = r.begin(); t != r.end(); ++t) {
-      TileContents& tile = out[t];
-      tile.key = ordered[t];
-      tile.geometry.vossel_size_m = g.vossel_size_m;
-      tile.fused.profile = fused.profile;
-      auto it = by_tile.find(tile.key);
-      static const std::vector<int32_t> kNone;
-      const std::vector<int32_t>& members = it == by_tile.end() ? kNone : it->second;
-      for (int32_t v : members) AppendVossel(g, size_t(v), tile.geometry);
-      // Tile-local canonical order; `local[i]` is the new index of members[i].
-      const std::vector<int32_t> local = records::CanonicalizeVosselOrder(tile.geometry);
-      std::vector<int32_t> by_local(members.size());
-      for (size_t i = 0; i < members.size(); ++i) by_local[size_t(local[i])] = members[i];
-      std::vector<size_t> picked;
-      for (int32_t v : by_local) {
-        for (size_t k = begin[size_t(v)]; k < begin[size_t(v) + 1]; ++k) picked.push_back(k);
-      }
-      tile.records = recs.Select(picked);
-      // Records were picked in tile-local vossel order, each vossel's in (scan) order.
-      size_t at = 0;
-      for (size_t l = 0; l < by_local.size(); ++l) {
-        const size_t n = begin[size_t(by_local[l]) + 1] - begin[size_t(by_local[l])];
-        for (size_t k = 0; k < n; ++k) tile.records.vossel[at++] = int32_t(l);
-      }
-      if (!fused.by_modality.empty()) tile.fused = GatherFused(fused, by_local);
-      KeepOwnChannels(tile.records, tile.fused);
-      if (profile_fused != nullptr) {
-        for (const auto& [layer, values] : *profile_fused) {
-          records::FusedValues& f = tile.profile_fused[layer];
-          f = GatherFused(values, by_local);
-          KeepOwnChannels(tile.records, f);
-        }
-      }
-    }
+    for (size_t t = r.begin(); t != r.end(); ++t) out[t] = cutter.Cut(ordered[t]);
   });
   return out;
 }

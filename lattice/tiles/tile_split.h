@@ -41,6 +41,25 @@ std::vector<TileContents> ExtractTiles(
     const records::FusedValues& fused, const std::set<TileKey>& keys, int tile_vossels,
     const std::map<std::string, records::FusedValues>* profile_fused = nullptr);
 
+/// ExtractTiles one tile at a time, the whole-project index (vossels by tile, each vossel's
+/// first record) built once: for a writer that holds only the tiles it is writing. The arrays
+/// it was made from must outlive it. Cut is thread-safe.
+class TileCutter {
+ public:
+  TileCutter(const records::VosselGeometry& geometry, const records::RecordSet& records,
+             const records::FusedValues& fused, int tile_vossels,
+             const std::map<std::string, records::FusedValues>* profile_fused = nullptr);
+  TileContents Cut(const TileKey& key) const;
+
+ private:
+  const records::VosselGeometry& geometry_;
+  const records::RecordSet& records_;
+  const records::FusedValues& fused_;
+  const std::map<std::string, records::FusedValues>* profile_fused_;
+  std::map<TileKey, std::vector<int32_t>> by_tile_;
+  std::vector<size_t> begin_;  ///< first record of every vossel, and the end
+};
+
 /// Whole-project arrays put together from tiles: vossels in canonical order of one index grid,
 /// records sorted by vossel (then scan), fused values per vossel. The tiles are consumed.
 struct Assembled {
