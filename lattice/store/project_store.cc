@@ -22,6 +22,8 @@
 #include "absl/strings/strip.h"
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_pipeline.h>
+#include <tbb/task_arena.h>
 
 #include "lattice/records/record_grid.h"
 #include "lattice/tiles/tile_split.h"
@@ -978,71 +980,87 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   for (const auto& [key, layers] : snap->manifest.tiles) {
     if (only_tiles == nullptr || only_tiles->count(key) != 0) todo.emplace_back(key, &layers);
   }
-  std::vector<tiles::TileContents> loaded(todo.size());
-  std::vector<absl::Status> status(todo.size());
-  const ObjectStore& objects = *impl_->objects;
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, todo.size(), 1),
-                    [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t t = r.begin(); t != r.end(); ++t) {
-      tiles::TileContents& tile = loaded[t];
-      tile.key = todo[t].first;
-      const auto& layers = *todo[t].second;
-      auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
-        auto it = layers.find(layer);
-        if (it == layers.end()) {
-          return absl::DataLossError(absl::StrCat("version ", version, " tile ",
-                                                  tiles::ToString(tile.key), " has no ", layer));
-        }
-        return objects.LocalPath(it->second.object);
-      };
-      absl::StatusOr<fs::path> g = path_of(kLayerGeometry);
-      absl::StatusOr<fs::path> rec = path_of(kLayerRecords);
-      absl::StatusOr<fs::path> fu = path_of(kLayerFusedDefault);
-      for (const auto* p : {&g, &rec, &fu}) {
-        if (!p->ok()) {
-          status[t] = p->status();
-          break;
-        }
-      }
-      if (!status[t].ok()) continue;
-      absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*g);
-      if (!geometry.ok()) {
-        status[t] = geometry.status();
-        continue;
-      }
-      tile.geometry = std::move(*geometry);
-      if (with_records) {
-        absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
-        if (!recs.ok()) {
-          status[t] = recs.status();
-          continue;
-        }
-        tile.records = std::move(*recs);
-      }
-      absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
-      if (!fused.ok()) {
-        status[t] = fused.status();
-        continue;
-      }
-      tile.fused = std::move(*fused);
-      for (const std::string& layer : profile_layers) {
-        absl::StatusOr<fs::path> path = path_of(layer.c_str());
-        absl::StatusOr<records::FusedValues> values =
-            path.ok() ? records::ReadFused(tile.geometry, *path) : path.status();
-        if (!values.ok()) {
-          status[t] = absl::IsDataLoss(values.status()) && !path.ok()
-                          ? absl::NotFoundError(values.status().message())
-                          : values.status();
-          break;
-        }
-        tile.profile_fused[layer] = std::move(*values);
-      }
-    }
-  });
-  for (const absl::Status& s : status) {
-    if (!s.ok()) return s;
+  // Tiles are read in parallel, a few at a time, and each is appended to the version's arrays
+  // and freed as it arrives (tiles::TileAssembler): a load holds the version once, not twice.
+  size_t vossels = 0, record_count = 0;
+  for (const auto& [key, layers] : todo) {
+    vossels += size_t(RecordsOf(*layers).vossels);
+    if (with_records) record_count += size_t(RecordsOf(*layers).records);
   }
-  tiles::Assembled all = tiles::AssembleTiles(std::move(loaded), impl_->settings.vossel_size_m);
+  tiles::TileAssembler assembler(impl_->settings.vossel_size_m, vossels, record_count);
+  const ObjectStore& objects = *impl_->objects;
+  absl::Status failed;
+  auto load = [&](size_t t, tiles::TileContents& tile) -> absl::Status {
+    tile.key = todo[t].first;
+    const auto& layers = *todo[t].second;
+    auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
+      auto it = layers.find(layer);
+      if (it == layers.end()) {
+        return absl::DataLossError(absl::StrCat("version ", version, " tile ",
+                                                tiles::ToString(tile.key), " has no ", layer));
+      }
+      return objects.LocalPath(it->second.object);
+    };
+    absl::StatusOr<fs::path> g = path_of(kLayerGeometry);
+    absl::StatusOr<fs::path> rec = path_of(kLayerRecords);
+    absl::StatusOr<fs::path> fu = path_of(kLayerFusedDefault);
+    for (const auto* p : {&g, &rec, &fu}) {
+      if (!p->ok()) return p->status();
+    }
+    absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*g);
+    if (!geometry.ok()) return geometry.status();
+    tile.geometry = std::move(*geometry);
+    if (with_records) {
+      absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
+      if (!recs.ok()) return recs.status();
+      tile.records = std::move(*recs);
+    }
+    absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
+    if (!fused.ok()) return fused.status();
+    tile.fused = std::move(*fused);
+    for (const std::string& layer : profile_layers) {
+      absl::StatusOr<fs::path> path = path_of(layer.c_str());
+      absl::StatusOr<records::FusedValues> values =
+          path.ok() ? records::ReadFused(tile.geometry, *path) : path.status();
+      if (!values.ok()) {
+        return absl::IsDataLoss(values.status()) && !path.ok()
+                   ? absl::NotFoundError(values.status().message())
+                   : values.status();
+      }
+      tile.profile_fused[layer] = std::move(*values);
+    }
+    return absl::OkStatus();
+  };
+  struct Loaded {
+    tiles::TileContents tile;
+    absl::Status status;
+  };
+  size_t next = 0;
+  tbb::parallel_pipeline(
+      size_t(2 * std::max(1, tbb::this_task_arena::max_concurrency())),
+      tbb::make_filter<void, size_t>(tbb::filter_mode::serial_in_order,
+                                     [&](tbb::flow_control& fc) -> size_t {
+                                       if (next == todo.size()) fc.stop();
+                                       return next++;
+                                     }) &
+          tbb::make_filter<size_t, std::shared_ptr<Loaded>>(
+              tbb::filter_mode::parallel,
+              [&](size_t t) {
+                auto out = std::make_shared<Loaded>();
+                out->status = load(t, out->tile);
+                return out;
+              }) &
+          tbb::make_filter<std::shared_ptr<Loaded>, void>(
+              tbb::filter_mode::serial_in_order, [&](std::shared_ptr<Loaded> loaded) {
+                if (!failed.ok()) return;
+                if (!loaded->status.ok()) {
+                  failed = loaded->status;
+                  return;
+                }
+                assembler.Add(std::move(loaded->tile));
+              }));
+  if (!failed.ok()) return failed;
+  tiles::Assembled all = assembler.Finish();
   snap->geometry = std::move(all.geometry);
   snap->records = std::move(all.records);
   snap->fused = std::move(all.fused);

@@ -152,49 +152,75 @@ std::vector<TileContents> ExtractTiles(
   return out;
 }
 
+TileAssembler::TileAssembler(double vossel_size_m, size_t vossels, size_t records)
+    : vossels_(vossels) {
+  out_.geometry.vossel_size_m = vossel_size_m;
+  out_.geometry.coord.reserve(vossels);
+  out_.records.Reserve(records);
+}
+
+void TileAssembler::Add(TileContents&& tile) {
+  if (tile_first_.empty()) {  // the arrays the tiles hold, at their final size (no regrowth)
+    const records::VosselGeometry& first = tile.geometry;
+    records::VosselGeometry& g = out_.geometry;
+    if (!first.point_count.empty()) g.point_count.reserve(vossels_);
+    if (!first.centroid_m.empty()) g.centroid_m.reserve(vossels_);
+    if (!first.normal.empty()) g.normal.reserve(vossels_);
+    if (!first.covariance_m2.empty()) g.covariance_m2.reserve(vossels_);
+    if (!first.sums.empty()) g.sums.reserve(vossels_);
+    if (!first.frame.empty()) g.frame.reserve(vossels_);
+  }
+  const size_t first_vossel = out_.geometry.size();
+  tile_first_.push_back(first_vossel);
+  for (size_t v = 0; v < tile.geometry.size(); ++v) AppendVossel(tile.geometry, v, out_.geometry);
+  tile.geometry = records::VosselGeometry{};
+  for (int32_t& v : tile.records.vossel) v += int32_t(first_vossel);
+  out_.records.Append(tile.records);
+  tile.records = records::RecordSet{};
+  fused_.push_back(std::move(tile.fused));
+  profile_fused_.push_back(std::move(tile.profile_fused));
+}
+
+Assembled TileAssembler::Finish() {
+  std::vector<size_t> tile_first = tile_first_;
+  tile_first.push_back(out_.geometry.size());
+  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(out_.geometry);
+  for (int32_t& v : out_.records.vossel) v = old_to_new[size_t(v)];
+  out_.records.SortByVossel();
+  // Fused values: concatenated per channel, then permuted like the vossels. A profile's layer
+  // is assembled when every tile holds it.
+  std::vector<int32_t> new_to_old(old_to_new.size());
+  for (size_t i = 0; i < old_to_new.size(); ++i) new_to_old[size_t(old_to_new[i])] = int32_t(i);
+  const size_t n = fused_.size();
+  std::vector<const records::FusedValues*> parts(n);
+  for (size_t t = 0; t < n; ++t) parts[t] = &fused_[t];
+  out_.fused = ConcatFused(parts, tile_first, new_to_old);
+  if (n > 0) {
+    for (const auto& [layer, first] : profile_fused_.front()) {
+      bool everywhere = true;
+      for (size_t t = 0; t < n && everywhere; ++t) {
+        auto it = profile_fused_[t].find(layer);
+        everywhere = it != profile_fused_[t].end();
+        if (everywhere) parts[t] = &it->second;
+      }
+      if (everywhere) out_.profile_fused[layer] = ConcatFused(parts, tile_first, new_to_old);
+    }
+  }
+  fused_.clear();
+  profile_fused_.clear();
+  return std::move(out_);
+}
+
 Assembled AssembleTiles(std::vector<TileContents>&& tiles, double h) {
-  Assembled out;
-  out.geometry.vossel_size_m = h;
   size_t vossels = 0, records = 0;
   for (const TileContents& t : tiles) {
     vossels += t.geometry.size();
     records += t.records.size();
   }
-  out.geometry.coord.reserve(vossels);
-  out.records.Reserve(records);
-  std::vector<size_t> tile_first(tiles.size() + 1, 0);
-  for (size_t t = 0; t < tiles.size(); ++t) {
-    const TileContents& tile = tiles[t];
-    tile_first[t] = out.geometry.size();
-    for (size_t v = 0; v < tile.geometry.size(); ++v) AppendVossel(tile.geometry, v, out.geometry);
-    records::RecordSet shifted = tile.records;
-    for (int32_t& v : shifted.vossel) v += int32_t(tile_first[t]);
-    out.records.Append(shifted);
-  }
-  tile_first[tiles.size()] = out.geometry.size();
-  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(out.geometry);
-  for (int32_t& v : out.records.vossel) v = old_to_new[size_t(v)];
-  out.records.SortByVossel();
-  // Fused values: concatenated per channel, then permuted like the vossels. A profile's layer
-  // is assembled when every tile holds it.
-  std::vector<int32_t> new_to_old(old_to_new.size());
-  for (size_t i = 0; i < old_to_new.size(); ++i) new_to_old[size_t(old_to_new[i])] = int32_t(i);
-  std::vector<const records::FusedValues*> parts(tiles.size());
-  for (size_t t = 0; t < tiles.size(); ++t) parts[t] = &tiles[t].fused;
-  out.fused = ConcatFused(parts, tile_first, new_to_old);
-  if (!tiles.empty()) {
-    for (const auto& [layer, first] : tiles.front().profile_fused) {
-      bool everywhere = true;
-      for (size_t t = 0; t < tiles.size() && everywhere; ++t) {
-        auto it = tiles[t].profile_fused.find(layer);
-        everywhere = it != tiles[t].profile_fused.end();
-        if (everywhere) parts[t] = &it->second;
-      }
-      if (everywhere) out.profile_fused[layer] = ConcatFused(parts, tile_first, new_to_old);
-    }
-  }
+  TileAssembler assembler(h, vossels, records);
+  for (TileContents& t : tiles) assembler.Add(std::move(t));
   tiles.clear();
-  return out;
+  return assembler.Finish();
 }
 
 }  // namespace vasl::tiles

@@ -70,4 +70,22 @@ struct Assembled {
 };
 Assembled AssembleTiles(std::vector<TileContents>&& tiles, double vossel_size_m);
 
+/// AssembleTiles one tile at a time, for a reader that frees each tile as it arrives: Add
+/// appends a tile's vossels and records and frees them (its fused values wait for Finish);
+/// `vossels` and `records` are the totals to expect (capacity). Tiles come in any order; the
+/// result is the same.
+class TileAssembler {
+ public:
+  TileAssembler(double vossel_size_m, size_t vossels, size_t records);
+  void Add(TileContents&& tile);
+  Assembled Finish();
+
+ private:
+  size_t vossels_ = 0;
+  Assembled out_;
+  std::vector<size_t> tile_first_;
+  std::vector<records::FusedValues> fused_;
+  std::vector<std::map<std::string, records::FusedValues>> profile_fused_;
+};
+
 }  // namespace vasl::tiles
