@@ -413,7 +413,26 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                             store::CommitPlan& plan, std::set<tiles::TileKey>& record_tiles,
                             FlowResult& result, StageClock& clock) {
   const double h = g.vossel_size_m;
-  const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
+  // Each vossel's block as a dense number (all_blocks' order), so that a job flags its
+  // vossels by a table of its blocks rather than a set lookup per vossel.
+  std::vector<int32_t> block_number(g.size());
+  {
+    const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
+    const std::vector<tiles::TileKey> numbered(all_blocks.begin(), all_blocks.end());
+    tbb::parallel_for(size_t(0), g.size(), [&](size_t v) {
+      block_number[v] = int32_t(std::lower_bound(numbered.begin(), numbered.end(), block_of[v]) -
+                                numbered.begin());
+    });
+  }
+  auto number_of = [&all_blocks](const std::set<tiles::TileKey>& blocks) {
+    std::vector<uint8_t> in(all_blocks.size(), 0);
+    size_t n = 0;
+    for (auto a = all_blocks.begin(), b = blocks.begin(); a != all_blocks.end(); ++a, ++n) {
+      while (b != blocks.end() && *b < *a) ++b;
+      if (b != blocks.end() && *b == *a) in[n] = 1;
+    }
+    return in;
+  };
   struct Job {
     const SourceRef* src = nullptr;
     const std::set<tiles::TileKey>* blocks = nullptr;
@@ -427,11 +446,13 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
     if (revisit.count(src.info.id)) order.push_back(&src);
   }
   // Each revisited source's records before the change, on vossels that stay (new indices).
+  std::map<int32_t, std::vector<uint8_t>> revisit_table;  // source → its blocks, by number
+  for (const auto& [id, blocks] : revisit) revisit_table[id] = number_of(blocks);
   std::map<int32_t, std::vector<size_t>> records_of;
   for (size_t i = 0; i < old.records.size(); ++i) {
-    auto it = revisit.find(old.records.scan[i]);
+    auto it = revisit_table.find(old.records.scan[i]);
     const int32_t n = old_to_new[size_t(old.records.vossel[i])];
-    if (it != revisit.end() && n >= 0 && it->second.count(block_of[size_t(n)])) {
+    if (it != revisit_table.end() && n >= 0 && it->second[size_t(block_number[size_t(n)])]) {
       records_of[old.records.scan[i]].push_back(i);
     }
   }
@@ -481,10 +502,12 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 // splats that cone only.
                 const SourceRef& src = *job->src;
                 if (!src.derived()) job->cone = ConeOf(src, *job->blocks, all_blocks, B, h);
+                const std::vector<uint8_t> in_blocks = number_of(*job->blocks);
+                const std::vector<uint8_t> in_context = number_of(job->cone.context);
                 std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
                 for (size_t v = 0; v < g.size(); ++v) {
-                  only[v] = job->blocks->count(block_of[v]) ? 1 : 0;
-                  context[v] = job->cone.context.count(block_of[v]) ? 1 : 0;
+                  only[v] = in_blocks[size_t(block_number[v])];
+                  context[v] = in_context[size_t(block_number[v])];
                 }
                 const bool sized =
                     src.returns() || (src.info.width_px > 0 && src.info.height_px > 0);
