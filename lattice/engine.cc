@@ -95,7 +95,9 @@ struct Engine::Impl {
       std::lock_guard<std::mutex> lock(p.head_mu);
       if (p.head && p.head->version == head) return p.head;
     }
-    if (version < 0 || version > head) return Snapshot(p, version);  // its NOT_FOUND
+    if (version < 0 || version > head || head == 0) {
+      return Snapshot(p, version);  // its NOT_FOUND, or the empty project
+    }
     auto manifest = p.store->LoadManifest(version == 0 ? head : version);
     if (!manifest.ok()) return manifest.status();
     if (flows::VersionMemoryBytes(*manifest, /*with_records=*/true, 1) >
@@ -103,6 +105,15 @@ struct Engine::Impl {
       return std::shared_ptr<const store::Snapshot>();
     }
     return Snapshot(p, version);
+  }
+
+  /// HEAD as an ingest reads it: whole (and cached) while it fits max_snapshot_bytes; beyond
+  /// it without records, which the ingest then reads for the tiles it rewrites only
+  /// (flows::internal::Propagate), so that it holds the project's geometry and those tiles.
+  absl::StatusOr<std::shared_ptr<const store::Snapshot>> IngestHead(Project& p) {
+    auto whole = Whole(p, 0);
+    if (!whole.ok() || *whole) return whole;
+    return p.store->LoadSnapshot(p.store->head_version(), {}, /*with_records=*/false);
   }
 
   absl::StatusOr<ProjectInfo> Info(Project& p) {
@@ -125,17 +136,22 @@ struct Engine::Impl {
 
   // Publishes a flow's committed snapshot as HEAD and fills the caller's result.
   IngestResult Finish(Project& p, flows::FlowResult flow, Clock::time_point t0, IngestResult result) {
-    const int64_t vossels_before = p.head ? int64_t(p.head->geometry.size()) : 0;
+    const int64_t vossels_before = result.new_vossels;  // RunFlow: HEAD's before the flow
     {  // HEAD stays cached while it fits the budget; beyond it readers go by tile groups
       std::lock_guard<std::mutex> lock(p.head_mu);
-      const bool fits = flows::VersionMemoryBytes(flow.snapshot->manifest, true, 1) <=
-                        limits.max_snapshot_bytes;
+      const bool fits = !flow.snapshot->records_partial &&
+                        flows::VersionMemoryBytes(flow.snapshot->manifest, true, 1) <=
+                            limits.max_snapshot_bytes;
       p.head = fits ? flow.snapshot : nullptr;
     }
     for (auto& stage : flow.stage_seconds) result.stage_seconds.push_back(std::move(stage));
     result.version = flow.version;
     result.vossel_count = int64_t(flow.snapshot->geometry.size());
     result.record_count = int64_t(flow.snapshot->records.size());
+    if (flow.snapshot->records_partial) {  // it holds the records of the tiles it rewrote
+      auto info = p.store->HeadInfo();
+      if (info.ok()) result.record_count = info->record_count;
+    }
     result.new_vossels = result.vossel_count - vossels_before;
     result.sources_computed = flow.sources_computed;
     result.sources_revisited = flow.sources_revisited;
@@ -176,10 +192,12 @@ struct Engine::Impl {
     if (!replayed.ok()) return replayed.status();
     if (*replayed) return std::move(**replayed);
     store::OperationScope scope(*p.store, op);
+    IngestResult result;  // its new_vossels holds HEAD's vossels until Finish
+    if (auto before = p.store->HeadInfo(); before.ok()) result.new_vossels = before->vossel_count;
     absl::StatusOr<flows::FlowResult> done = flow(p);
     if (!done.ok()) return CollectAfterFailure(p, done.status());
-    return added ? FinishAdded(p, std::move(*done), t0, IngestResult{})
-                 : Finish(p, std::move(*done), t0, IngestResult{});
+    return added ? FinishAdded(p, std::move(*done), t0, std::move(result))
+                 : Finish(p, std::move(*done), t0, std::move(result));
   }
 
   /// A failed change may have stored blobs or objects that no version names (a rejected scan's
@@ -360,7 +378,7 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
     }
     if (absl::Status stop = stage_done("validate", 0.05); !stop.ok()) return stop;
 
-    auto head = impl_->Snapshot(p, 0);
+    auto head = impl_->IngestHead(p);
     if (!head.ok()) return head.status();
     if (scan.lidar.xyz_sensor_m.empty() && (*head)->geometry.size() == 0) {
       return flows::CameraOnlyWithoutGeometry(project, scan.scan_name);

@@ -403,6 +403,7 @@ constexpr int64_t kRevisitImageBytes = int64_t{512} << 20;
 /// images) and merge in source-id order, so the result does not depend on which finishes
 /// first.
 absl::Status RevisitSources(const store::ProjectStore& store, const store::Snapshot& old,
+                            const records::RecordSet& old_records,
                             const records::VosselGeometry& g,
                             const std::map<int32_t, std::set<tiles::TileKey>>& revisit,
                             const ChangedVossels& changed,
@@ -449,11 +450,11 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
   std::map<int32_t, std::vector<uint8_t>> revisit_table;  // source → its blocks, by number
   for (const auto& [id, blocks] : revisit) revisit_table[id] = number_of(blocks);
   std::map<int32_t, std::vector<size_t>> records_of;
-  for (size_t i = 0; i < old.records.size(); ++i) {
-    auto it = revisit_table.find(old.records.scan[i]);
-    const int32_t n = old_to_new[size_t(old.records.vossel[i])];
+  for (size_t i = 0; i < old_records.size(); ++i) {
+    auto it = revisit_table.find(old_records.scan[i]);
+    const int32_t n = old_to_new[size_t(old_records.vossel[i])];
     if (it != revisit_table.end() && n >= 0 && it->second[size_t(block_number[size_t(n)])]) {
-      records_of[old.records.scan[i]].push_back(i);
+      records_of[old_records.scan[i]].push_back(i);
     }
   }
   const double span = 0.3 / double(order.size() + 1);
@@ -521,7 +522,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 auto mine = records_of.find(src.info.id);
                 records::RecordSet before =
                     mine == records_of.end() ? records::RecordSet{}
-                                             : old.records.Select(mine->second);
+                                             : old_records.Select(mine->second);
                 for (int32_t& v : before.vossel) v = old_to_new[size_t(v)];
                 if (std::optional<records::RecordSet> kept = RefreshedRecords(
                         src, std::move(before), old.geometry, g, changed, only, visibility)) {
@@ -592,6 +593,8 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   const std::vector<ChangedBlock> blocks =
       ChangedBlocks(old.geometry, g, change.old_to_new, T, &plan.geometry_tiles, &changed);
 
+  std::set<tiles::TileKey> record_tiles;  // tiles whose records change
+
   // 2. Which older sources must be recomputed on which blocks.
   std::map<int32_t, std::set<tiles::TileKey>> revisit;  // source → blocks
   for (const SourceRef& src : old_sources) {
@@ -618,45 +621,13 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     if (!blocks_of_src.empty()) revisit[src.info.id] = std::move(blocks_of_src);
   }
 
-  // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out.
-  std::set<tiles::TileKey> record_tiles;
-  {
-    std::vector<size_t> keep;
-    keep.reserve(old.records.size());
-    for (size_t i = 0; i < old.records.size(); ++i) {
-      const int32_t scan = old.records.scan[i];
-      const int32_t n = change.old_to_new[size_t(old.records.vossel[i])];
-      if (change.dropped_sources.count(scan)) {
-        record_tiles.insert(tiles::TileOf(old.geometry.coord[size_t(old.records.vossel[i])], T));
-        continue;
-      }
-      if (n < 0) continue;  // its vossel vanished (its tile is a changed one)
-      auto it = revisit.find(scan);
-      if (it != revisit.end() && it->second.count(block_of[size_t(n)])) continue;
-      keep.push_back(i);
-    }
-    next.records = old.records.Select(keep);
-    for (int32_t& v : next.records.vossel) v = change.old_to_new[size_t(v)];
-  }
-  for (const auto& [source, raster] : old.reach) {
-    if (!change.dropped_sources.count(source)) next.reach[source] = raster;
-  }
-  plan.drop_reach = change.dropped_sources;
-
-  // 4. Recompute the revisited pairs, from the sources' blobs: a few sources at a time (each
-  //    one's decode and point loading are mostly serial), merged in source order.
-  if (absl::Status s = RevisitSources(store, old, g, revisit, changed, change.old_to_new,
-                                      old_sources, all_blocks, B, T, max_image_pixels, next, plan,
-                                      record_tiles, result, clock);
-      !s.ok()) {
-    return s;
-  }
-
-  // 5. The new sources, on every tile.
+  // 5. The new sources, on every tile (first: they read the new geometry alone, and their
+  //    records say which tiles an ingest within a memory budget reads the old records of).
+  records::RecordSet fresh;
   const double fraction = 0.8 - 0.3 / double(revisit.size() + 1);
   auto add_new = [&](ingest::SourceRecords recs, int32_t id) {
     for (int32_t v : recs.records.vossel) record_tiles.insert(tile_of[size_t(v)]);
-    next.records.Append(recs.records);
+    fresh.Append(recs.records);
     next.reach[id] = std::move(recs.reach);
     plan.reach_sources.insert(id);
     ++result.sources_computed;
@@ -683,7 +654,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     ingest::BackProjectStats stats;
     records::RecordSet recs = ingest::BackProjectRecords(g, d, nullptr, &stats);
     for (int32_t v : recs.vossel) record_tiles.insert(tile_of[size_t(v)]);
-    next.records.Append(recs);
+    fresh.Append(recs);
     ++result.sources_computed;
     result.pixels_back_projected += stats.pixels_used;
     result.pixels_outside += stats.pixels_outside;
@@ -698,6 +669,73 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     if (!r.ok()) return r.status();  // CameraRecords decoded the panorama and freed it
     add_new(std::move(*r), cam.id);
   }
+  // The old records this change reads: all of them, or (a HEAD loaded without records, an
+  // ingest within a memory budget) those of the tiles it rewrites: the tiles whose geometry
+  // changed, those of revisited blocks and those the new sources record on. Every other tile
+  // keeps its objects, and the new snapshot holds those tiles' records alone.
+  records::RecordSet loaded_records;
+  const records::RecordSet* old_records = &old.records;
+  if (!old.records_loaded && old.version > 0) {
+    if (!change.dropped_sources.empty()) {
+      return absl::InternalError("Propagate: a deletion needs the old version's records");
+    }
+    std::set<tiles::TileKey> rewritten = plan.geometry_tiles;
+    rewritten.insert(record_tiles.begin(), record_tiles.end());
+    for (const auto& [source, blocks] : revisit) {
+      for (const tiles::TileKey& b : blocks) rewritten.insert(tile_of_block(b));
+    }
+    size_t stored = 0;  // of them, the tiles the old version has
+    for (const tiles::TileKey& key : rewritten) stored += old.manifest.tiles.count(key);
+    if (absl::Status stop = clock.Start(absl::StrCat("read records of ", stored, " of ",
+                                                     old.manifest.tiles.size(), " tiles"),
+                                        0.5);
+        !stop.ok()) {
+      return stop;
+    }
+    absl::StatusOr<records::RecordSet> part =
+        store.LoadRecords(old.version, rewritten, old.geometry);
+    if (!part.ok()) return part.status();
+    loaded_records = std::move(*part);
+    old_records = &loaded_records;
+    next.records_partial = true;
+  }
+
+  // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out.
+  {
+    const records::RecordSet& before = *old_records;
+    std::vector<size_t> keep;
+    keep.reserve(before.size());
+    for (size_t i = 0; i < before.size(); ++i) {
+      const int32_t scan = before.scan[i];
+      const int32_t n = change.old_to_new[size_t(before.vossel[i])];
+      if (change.dropped_sources.count(scan)) {
+        record_tiles.insert(tiles::TileOf(old.geometry.coord[size_t(before.vossel[i])], T));
+        continue;
+      }
+      if (n < 0) continue;  // its vossel vanished (its tile is a changed one)
+      auto it = revisit.find(scan);
+      if (it != revisit.end() && it->second.count(block_of[size_t(n)])) continue;
+      keep.push_back(i);
+    }
+    next.records = before.Select(keep);
+    for (int32_t& v : next.records.vossel) v = change.old_to_new[size_t(v)];
+  }
+  for (const auto& [source, raster] : old.reach) {
+    if (!change.dropped_sources.count(source)) next.reach[source] = raster;
+  }
+  plan.drop_reach = change.dropped_sources;
+
+  // 4. Recompute the revisited pairs, from the sources' blobs: a few sources at a time (each
+  //    one's decode and point loading are mostly serial), merged in source order.
+  if (absl::Status s = RevisitSources(store, old, *old_records, g, revisit, changed,
+                                      change.old_to_new,
+                                      old_sources, all_blocks, B, T, max_image_pixels, next, plan,
+                                      record_tiles, result, clock);
+      !s.ok()) {
+    return s;
+  }
+
+  next.records.Append(fresh);  // 5.
   next.records.SortByVossel();
 
   // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records

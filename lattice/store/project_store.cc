@@ -977,6 +977,7 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   snap->manifest = std::move(*manifest);
   std::vector<std::pair<tiles::TileKey, const std::map<std::string, ManifestEntry>*>> todo;
   snap->partial = only_tiles != nullptr;
+  snap->records_loaded = with_records;
   for (const auto& [key, layers] : snap->manifest.tiles) {
     if (only_tiles == nullptr || only_tiles->count(key) != 0) todo.emplace_back(key, &layers);
   }
@@ -1080,6 +1081,31 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   return std::shared_ptr<const Snapshot>(std::move(snap));
 }
 
+absl::StatusOr<records::RecordSet> ProjectStore::LoadRecords(
+    int64_t version, const std::set<tiles::TileKey>& tiles,
+    const records::VosselGeometry& geometry) const {
+  auto part = LoadSnapshot(version, {}, /*with_records=*/true, &tiles);
+  if (!part.ok()) return part.status();
+  records::RecordSet out = (*part)->records;
+  const records::VosselGeometry& g = (*part)->geometry;
+  if (!geometry.index_grid) return absl::InternalError("LoadRecords: geometry without index grid");
+  auto acc = geometry.index_grid->getConstAccessor();
+  std::vector<int32_t> whole(g.size(), -1);
+  for (size_t v = 0; v < g.size(); ++v) {
+    int32_t k = -1;
+    if (!acc.probeValue(g.coord[v], k)) {
+      return absl::DataLossError(absl::StrCat("version ", version, ": a vossel of tile ",
+                                              tiles::ToString(tiles::TileOf(g.coord[v],
+                                                                            (*part)->tile_vossels)),
+                                              " is not in its geometry"));
+    }
+    whole[v] = k;
+  }
+  for (int32_t& v : out.vossel) v = whole[size_t(v)];
+  out.SortByVossel();
+  return out;
+}
+
 absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const CommitPlan& plan) {
   Impl& im = *impl_;
   std::lock_guard<std::mutex> commit_lock(im.commit_mu);
@@ -1117,6 +1143,10 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
        !plan.drop_reach.empty() || im.head.load() == 0)) {
     return absl::InvalidArgumentError(
         "a layers-only commit changes layers of an existing version and nothing else");
+  }
+  if (snapshot.records_partial && (plan.replace_all || no_snapshot)) {
+    return absl::InvalidArgumentError(
+        "a snapshot holding some tiles' records can commit only those tiles");
   }
   if (!no_snapshot && std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
       1e-9 * im.settings.vossel_size_m) {
@@ -1241,7 +1271,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   }
   int64_t vossel_count = int64_t(snapshot.geometry.size());
   int64_t record_count = int64_t(snapshot.records.size());
-  if (no_snapshot) {
+  if (no_snapshot || snapshot.records_partial) {
     vossel_count = record_count = 0;
     for (const auto& [key, layers] : manifest.tiles) {
       vossel_count += RecordsOf(layers).vossels;

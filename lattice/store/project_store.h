@@ -146,6 +146,11 @@ struct Snapshot {
   /// Loaded with only some tiles (LoadSnapshot's `only_tiles`): geometry, records and fused
   /// values are those tiles', `reach` is empty. No flow that changes a project takes one.
   bool partial = false;
+  /// The records were read (LoadSnapshot's `with_records`), or hold only some tiles': an
+  /// ingest within a memory budget reads the records of the tiles it touches (LoadRecords) and
+  /// its new snapshot holds those tiles' records alone; Commit then counts from the manifest.
+  bool records_loaded = true;
+  bool records_partial = false;
 };
 
 /// Summary of a committed version, kept in the catalog.
@@ -288,6 +293,11 @@ class ProjectStore {
       bool with_records = true, const std::set<tiles::TileKey>* only_tiles = nullptr) const;
   /// The manifest of a kept version.
   absl::StatusOr<Manifest> LoadManifest(int64_t version) const;
+  /// The records of version `version`'s tiles `tiles` (those it has), numbered by `geometry`,
+  /// the version's whole geometry (a snapshot of it loaded without records), sorted by vossel.
+  absl::StatusOr<records::RecordSet> LoadRecords(int64_t version,
+                                                 const std::set<tiles::TileKey>& tiles,
+                                                 const records::VosselGeometry& geometry) const;
 
   /// Atomic commit of a new version: `snapshot` holds the whole new state, `plan` says what
   /// changed. Writes the changed tiles' objects, the manifest rows, the scan rows, then HEAD;

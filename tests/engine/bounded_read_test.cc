@@ -221,6 +221,60 @@ TEST_F(BoundedReadTest, ColourDetailAndProfilesAreTheWholeOnes) {
   ExpectSameRender("profile with fused tiles", req);
 }
 
+// Claim: an ingest whose HEAD exceeds the budget reads HEAD without records and then the
+// records of the tiles it rewrites only, and commits the very tiles an ingest holding the whole
+// version commits: every tile object (geometry, records, fused) and reach raster the same.
+TEST_F(BoundedReadTest, IngestWithinTheBudgetWritesTheSameTiles) {
+  auto engine = Open(true);
+  store::ProjectSettings settings;
+  settings.vossel_size_m = 0.05;
+  settings.tile_vossels = 32;
+  ASSERT_TRUE(engine->CreateProject("scoped", settings).ok());
+  const scenes::CorridorSite site = scenes::CorridorSite::Default();
+  int scoped = 0;
+  for (size_t s = 0; s < kStations; ++s) {
+    auto scan = scenes::MakeScanInput(site, s, scenes::LidarSettings::Small(s + 1), 1024, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    auto r = engine->IngestScan("scoped", *scan);
+    ASSERT_TRUE(r.ok()) << r.status();
+    for (const auto& [stage, seconds] : r->stage_seconds) {
+      if (stage.rfind("read records of", 0) != 0) continue;
+      std::printf("  scan %zu: %s, %lld records in the version\n", s + 1, stage.c_str(),
+                  (long long)r->record_count);
+      ++scoped;
+    }
+  }
+  EXPECT_GE(scoped, 2);  // the later scans, once the version outgrew the budget
+  auto a = store::ProjectStore::Open(*dir_ / "site");
+  auto b = store::ProjectStore::Open(*dir_ / "scoped");
+  ASSERT_TRUE(a.ok() && b.ok());
+  auto ma = (*a)->LoadManifest(int64_t(kStations));
+  auto mb = (*b)->LoadManifest(int64_t(kStations));
+  ASSERT_TRUE(ma.ok() && mb.ok());
+  ASSERT_EQ(ma->tiles.size(), mb->tiles.size());
+  int64_t objects = 0, differ = 0;
+  for (const auto& [key, layers] : ma->tiles) {
+    auto other = mb->tiles.find(key);
+    ASSERT_NE(other, mb->tiles.end()) << tiles::ToString(key);
+    for (const char* layer : {store::kLayerGeometry, store::kLayerRecords,
+                              store::kLayerFusedDefault}) {
+      ++objects;
+      differ += layers.at(layer).object != other->second.at(layer).object ? 1 : 0;
+    }
+  }
+  for (const auto& [source, entry] : ma->reach) {
+    ++objects;
+    differ += mb->reach.count(source) == 0 || mb->reach.at(source).object != entry.object;
+  }
+  std::printf("  %lld objects compared, %lld differ\n", (long long)objects, (long long)differ);
+  EXPECT_EQ(differ, 0);
+  int64_t whole_records = -1;  // what the catalog counts for version 6 of the whole ingest
+  for (const store::VersionInfo& v : *(*a)->ListVersions()) {
+    if (v.version == int64_t(kStations)) whole_records = v.record_count;
+  }
+  EXPECT_EQ((*b)->HeadInfo()->record_count, whole_records);
+}
+
 // Claim: a records query reads the tiles its box meets, group by group, and answers as a
 // query of the whole version: the same rows in the same order, counts and truncation.
 TEST_F(BoundedReadTest, RecordsQueryIsTheWholeOne) {
