@@ -409,7 +409,7 @@ absl::StatusOr<IngestResult> Engine::BackProject(const std::string& project,
   // On failure a stored image is collected at once (RunFlow).
   const store::OperationRecord op{input.request_id, "back-project", input.name};
   return impl_->RunFlow(project, true, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
-    auto head = impl_->Snapshot(p, 0);
+    auto head = impl_->IngestHead(p);  // its derived records join as a scan's do
     if (!head.ok()) return head.status();
     const Eigen::Vector3d origin = p.store->origin().value_or(Eigen::Vector3d::Zero());
     if (auto s = flows::CheckWithinReach(input.pose.o_world, origin,

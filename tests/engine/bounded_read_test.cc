@@ -17,6 +17,7 @@
 
 #include "lattice/engine.h"
 #include "lattice/flows/tile_budget.h"
+#include "lattice/render/encode.h"
 #include "tests/scenes/corridor_site.h"
 
 namespace vasl {
@@ -273,6 +274,40 @@ TEST_F(BoundedReadTest, IngestWithinTheBudgetWritesTheSameTiles) {
     if (v.version == int64_t(kStations)) whole_records = v.record_count;
   }
   EXPECT_EQ((*b)->HeadInfo()->record_count, whole_records);
+
+  // A back-projection (§10) within the budget joins as a scan does: the same image into both
+  // projects gives the same records and fused objects.
+  RenderRequest req;
+  req.pose = site.NovelViews()[0];
+  req.width_px = kPanoW;
+  req.height_px = kPanoH;
+  auto image = Open(false)->Render("site", req);
+  ASSERT_TRUE(image.ok()) << image.status();
+  BackProjectInput in;
+  in.name = "retouch";
+  in.pose = req.pose;
+  in.image = *render::EncodeExr(*image);
+  auto into_whole = Open(false)->BackProject("site", in);
+  auto into_scoped = engine->BackProject("scoped", in);
+  ASSERT_TRUE(into_whole.ok()) << into_whole.status();
+  ASSERT_TRUE(into_scoped.ok()) << into_scoped.status();
+  EXPECT_GT(into_scoped->pixels_back_projected, int64_t(kPanoW) * kPanoH / 2);
+  EXPECT_EQ(into_scoped->record_count, into_whole->record_count);
+  a = store::ProjectStore::Open(*dir_ / "site");  // their HEADs moved on
+  b = store::ProjectStore::Open(*dir_ / "scoped");
+  ASSERT_TRUE(a.ok() && b.ok());
+  auto wa = (*a)->LoadManifest(into_whole->version);
+  auto wb = (*b)->LoadManifest(into_scoped->version);
+  ASSERT_TRUE(wa.ok() && wb.ok());
+  int64_t back_differ = 0;
+  for (const auto& [key, layers] : wa->tiles) {
+    for (const char* layer : {store::kLayerRecords, store::kLayerFusedDefault}) {
+      back_differ += wb->tiles.at(key).at(layer).object != layers.at(layer).object ? 1 : 0;
+    }
+  }
+  std::printf("  back-projection of %lld pixels: %lld record and fused objects differ\n",
+              (long long)into_scoped->pixels_back_projected, (long long)back_differ);
+  EXPECT_EQ(back_differ, 0);
 }
 
 // Claim: a records query reads the tiles its box meets, group by group, and answers as a
