@@ -321,6 +321,86 @@ absl::StatusOr<render::RenderImage> RenderQuery(store::ProjectStore& store,
   return Recorded(store, request, std::move(*image));
 }
 
+namespace {
+
+/// What one pass of RenderQueryInTiles composited, and what it read.
+struct TiledPass {
+  render::RenderImage image;  ///< the composite (its vossel indices kept)
+  int groups = 0;
+  bool fused_on_the_fly = false;
+  int64_t detail_sources = 0, detail_sources_skipped = 0;
+};
+
+/// One pass of RenderQueryInTiles: `pass` rendered over the version's tiles nearest the eye
+/// first, in groups within `budget_bytes`, each group loaded (with `layers` and, `with_records`,
+/// its records), rendered alone and composited; a tile every ray through it has already
+/// stopped before is left out (render::RayReach; pixels `pass` does not march count as
+/// stopped). Adds the tiles it read to `*read`.
+absl::StatusOr<TiledPass> RenderPassInTiles(store::ProjectStore& store, int64_t version,
+                                            const store::Manifest& manifest,
+                                            const fusion::WeightingProfile& profile,
+                                            const render::RenderRequest& pass,
+                                            const std::vector<std::string>& layers,
+                                            bool with_records, const RenderCaches& caches,
+                                            int64_t budget_bytes, std::set<tiles::TileKey>* read) {
+  TiledPass out;
+  out.image = render::EmptyRender(pass);
+  std::vector<double> entry;
+  render::RayReach reach(pass);
+  auto update_reach = [&] {
+    if (pass.start_range_m == nullptr) return reach.Update(entry);
+    const std::vector<float>& start = *pass.start_range_m;
+    std::vector<double> e(start.size());
+    for (size_t p = 0; p < e.size(); ++p) {
+      e[p] = !(start[p] < std::numeric_limits<float>::infinity())
+                 ? -std::numeric_limits<double>::infinity()
+                 : (entry.empty() ? std::numeric_limits<double>::infinity() : entry[p]);
+    }
+    reach.Update(e);
+  };
+  update_reach();
+  const std::vector<TileBox> order =
+      TilesNearestFirst(manifest, pass.pose.o_world, store.settings().tile_vossels,
+                        store.settings().vossel_size_m);
+  const int fused_layers = 1 + int(layers.size());
+  for (size_t next = 0; next < order.size();) {
+    std::set<tiles::TileKey> group;
+    int64_t held = 0;
+    for (; next < order.size(); ++next) {
+      const TileBox& tile = order[next];
+      if (!reach.MayReach(tile.lo_m, tile.hi_m)) continue;
+      const int64_t bytes =
+          TileMemoryBytes(manifest.tiles.at(tile.key), with_records, fused_layers);
+      if (!group.empty() && held + bytes > budget_bytes) break;
+      group.insert(tile.key);
+      held += bytes;
+    }
+    if (group.empty()) break;
+    read->insert(group.begin(), group.end());
+    if (pass.interrupt) {
+      if (absl::Status s = pass.interrupt(); !s.ok()) return s;
+    }
+    auto part_snap = store.LoadSnapshot(version, layers, with_records, &group);
+    if (!part_snap.ok()) return part_snap.status();
+    absl::StatusOr<render::RenderImage> part =
+        RenderSnapshot(store, *part_snap, profile, pass, caches);
+    if (!part.ok()) return part.status();
+    if (absl::Status s =
+            render::CompositeNearer(pass, (*part_snap)->geometry, *part, &out.image, &entry);
+        !s.ok()) {
+      return s;
+    }
+    out.fused_on_the_fly = part->fused_on_the_fly;
+    out.detail_sources = std::max(out.detail_sources, part->detail_sources);
+    out.detail_sources_skipped = std::max(out.detail_sources_skipped, part->detail_sources_skipped);
+    ++out.groups;
+    update_reach();
+  }
+  return out;
+}
+
+}  // namespace
+
 absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& store,
                                                       int64_t version,
                                                       const fusion::WeightingProfile& profile,
@@ -343,130 +423,70 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
   }
   const bool blend = request.eta > 0.0 ||
                      request.colour_detail == render::ColourDetail::kSourceImages;
-  // One pass over the groups per surface layer (§8 deep output): layer l marches each pixel
-  // from kLayerGapVox beyond layer l-1's hit, as one render's march does; the first pass also
-  // keeps the first deep layer's fused colour (layers = 2 there).
+  std::set<tiles::TileKey> read;
+  int groups = 0;
+
+  // The image's own surfaces; with deep output the first pass also keeps the first deep
+  // layer's fused colour (layers = 2 there).
   const int L = request.layers;
-  render::RenderImage out;  // the first pass's composite, then each deeper layer beside it
+  render::RenderRequest first = request;
+  first.rows_done = {};
+  first.keep_vossel_index = true;
+  first.layers = std::min(L, 2);
+  absl::StatusOr<TiledPass> pass0 = RenderPassInTiles(
+      store, version, *manifest, profile, first, layers, fuse_here || blend, caches,
+      budget_bytes, &read);
+  if (!pass0.ok()) return pass0.status();
+  groups += pass0->groups;
+  render::RenderImage out = std::move(pass0->image);
+  out.vossel_index = {};
+  out.fused_on_the_fly = pass0->fused_on_the_fly;
+  out.detail_sources = pass0->detail_sources;
+  out.detail_sources_skipped = pass0->detail_sources_skipped;
+  const size_t n = out.depth_m.size();
+  if (L > 1) {  // the deep arrays at L layers, the first from the pass's slot 0 of 2
+    const std::vector<float> two_depth = std::move(out.deep_depth_m),
+                             two_rgb = std::move(out.deep_rgb),
+                             two_alpha = std::move(out.deep_alpha);
+    out.layers = L;
+    out.layer_count.assign(n, 0);
+    out.deep_depth_m.assign(n * size_t(L), std::numeric_limits<float>::infinity());
+    out.deep_rgb.assign(3 * n * size_t(L), 0.0f);
+    out.deep_alpha.assign(n * size_t(L), 0.0f);
+    for (size_t p = 0; p < n; ++p) {
+      if (!(out.depth_m[p] < std::numeric_limits<float>::infinity())) continue;
+      const size_t q = p * size_t(L);
+      out.deep_depth_m[q] = two_depth[2 * p];
+      out.deep_alpha[q] = two_alpha[2 * p];
+      for (int c = 0; c < 3; ++c) out.deep_rgb[3 * q + c] = two_rgb[3 * 2 * p + c];
+      out.layer_count[p] = 1;
+    }
+  }
+  // Deeper layers (§8 deep output), a pass each: layer l marches each pixel from kLayerGapVox
+  // beyond layer l-1's hit, as one render's march does, and takes the fused colour C_k.
   std::vector<float> start;
-  int groups_rendered = 0;
-  std::set<tiles::TileKey> tiles_read;
-  for (int l = 0; l < L; ++l) {
-    render::RenderRequest pass = request;
-    pass.rows_done = {};
-    pass.keep_vossel_index = true;
-    pass.layers = l == 0 ? std::min(L, 2) : 1;
-    if (l > 0) {  // deeper layers take the fused colour C_k, as one render's do
-      pass.eta = 0.0;
-      pass.colour_detail = render::ColourDetail::kVossel;
-      const size_t n = out.depth_m.size();
-      start.assign(n, std::numeric_limits<float>::infinity());
-      const double gap = render::kLayerGapVox * store.settings().vossel_size_m;
-      size_t marched = 0;
-      for (size_t p = 0; p < n; ++p) {
-        if (out.layer_count[p] < l) continue;
-        start[p] = float(double(out.deep_depth_m[p * size_t(L) + size_t(l - 1)]) + gap);
-        ++marched;
-      }
-      if (marched == 0) break;
-      pass.start_range_m = &start;
+  for (int l = 1; l < L; ++l) {
+    start.assign(n, std::numeric_limits<float>::infinity());
+    const double gap = render::kLayerGapVox * store.settings().vossel_size_m;
+    size_t marched = 0;
+    for (size_t p = 0; p < n; ++p) {
+      if (out.layer_count[p] < l) continue;
+      start[p] = float(double(out.deep_depth_m[p * size_t(L) + size_t(l - 1)]) + gap);
+      ++marched;
     }
-    const bool with_records = fuse_here || (l == 0 && blend);
-    const int fused_layers = 1 + int(layers.size());
-    render::RenderImage layer = render::EmptyRender(pass);
-    std::vector<double> entry;
-    // Tiles nearest the eye first, in groups within the budget; a tile that every ray through
-    // it has already stopped before (render::RayReach over the groups composited so far) is
-    // not read at all. Pixels a deeper pass does not march count as stopped.
-    render::RayReach reach(pass);
-    auto update_reach = [&] {
-      if (start.empty()) return reach.Update(entry);
-      std::vector<double> e(start.size());
-      for (size_t p = 0; p < e.size(); ++p) {
-        e[p] = !(start[p] < std::numeric_limits<float>::infinity())
-                   ? -std::numeric_limits<double>::infinity()
-                   : (entry.empty() ? std::numeric_limits<double>::infinity() : entry[p]);
-      }
-      reach.Update(e);
-    };
-    update_reach();
-    std::vector<std::tuple<double, tiles::TileKey, Eigen::Vector3d, Eigen::Vector3d>> order;
-    for (const auto& [key, tile_layers] : manifest->tiles) {
-      const double T = double(store.settings().tile_vossels), h = store.settings().vossel_size_m;
-      const Eigen::Vector3d lo = h * (T * Eigen::Vector3d(key.x, key.y, key.z).array() - 0.5);
-      const Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant(h * T);
-      const Eigen::Vector3d nearest = request.pose.o_world.cwiseMax(lo).cwiseMin(hi);
-      order.emplace_back((nearest - request.pose.o_world).norm(), key, lo, hi);
-    }
-    std::sort(order.begin(), order.end(), [](const auto& a, const auto& b) {
-      return std::get<0>(a) != std::get<0>(b) ? std::get<0>(a) < std::get<0>(b)
-                                              : std::get<1>(a) < std::get<1>(b);
-    });
-    for (size_t next = 0; next < order.size();) {
-      std::set<tiles::TileKey> group;
-      int64_t held = 0;
-      for (; next < order.size(); ++next) {
-        const auto& [near_m, key, lo, hi] = order[next];
-        if (!reach.MayReach(lo, hi)) continue;
-        const int64_t bytes = TileMemoryBytes(manifest->tiles.at(key), with_records, fused_layers);
-        if (!group.empty() && held + bytes > budget_bytes) break;
-        group.insert(key);
-        held += bytes;
-      }
-      if (group.empty()) break;
-      tiles_read.insert(group.begin(), group.end());
-      if (request.interrupt) {
-        if (absl::Status s = request.interrupt(); !s.ok()) return s;
-      }
-      auto part_snap = store.LoadSnapshot(version, layers, with_records, &group);
-      if (!part_snap.ok()) return part_snap.status();
-      absl::StatusOr<render::RenderImage> part =
-          RenderSnapshot(store, *part_snap, profile, pass, caches);
-      if (!part.ok()) return part.status();
-      if (absl::Status s = render::CompositeNearer(pass, (*part_snap)->geometry, *part, &layer,
-                                                   &entry);
-          !s.ok()) {
-        return s;
-      }
-      if (l == 0) {
-        out.fused_on_the_fly = part->fused_on_the_fly;
-        out.detail_sources = std::max(out.detail_sources, part->detail_sources);
-        out.detail_sources_skipped =
-            std::max(out.detail_sources_skipped, part->detail_sources_skipped);
-      }
-      ++groups_rendered;
-      update_reach();
-    }
-    if (l == 0) {  // the image's own hit, and the first deep layer (slot 0 of 2 in `layer`)
-      const bool fly = out.fused_on_the_fly;
-      const int64_t used = out.detail_sources, skipped = out.detail_sources_skipped;
-      out = std::move(layer);
-      out.vossel_index = {};
-      out.fused_on_the_fly = fly;
-      out.detail_sources = used;
-      out.detail_sources_skipped = skipped;
-      if (L > 1) {
-        const std::vector<float> two_depth = std::move(out.deep_depth_m),
-                                 two_rgb = std::move(out.deep_rgb),
-                                 two_alpha = std::move(out.deep_alpha);
-        const size_t n = out.depth_m.size();
-        out.layers = L;
-        out.layer_count.assign(n, 0);
-        out.deep_depth_m.assign(n * size_t(L), std::numeric_limits<float>::infinity());
-        out.deep_rgb.assign(3 * n * size_t(L), 0.0f);
-        out.deep_alpha.assign(n * size_t(L), 0.0f);
-        for (size_t p = 0; p < n; ++p) {
-          if (!(out.depth_m[p] < std::numeric_limits<float>::infinity())) continue;
-          const size_t q = p * size_t(L);
-          out.deep_depth_m[q] = two_depth[2 * p];
-          out.deep_alpha[q] = two_alpha[2 * p];
-          for (int c = 0; c < 3; ++c) out.deep_rgb[3 * q + c] = two_rgb[3 * 2 * p + c];
-          out.layer_count[p] = 1;
-        }
-      }
-      continue;
-    }
-    for (size_t p = 0; p < layer.depth_m.size(); ++p) {  // layer l of the deep output
+    if (marched == 0) break;
+    render::RenderRequest deeper = first;
+    deeper.layers = 1;
+    deeper.eta = 0.0;
+    deeper.colour_detail = render::ColourDetail::kVossel;
+    deeper.start_range_m = &start;
+    absl::StatusOr<TiledPass> pass = RenderPassInTiles(
+        store, version, *manifest, profile, deeper, layers, fuse_here, caches, budget_bytes,
+        &read);
+    if (!pass.ok()) return pass.status();
+    groups += pass->groups;
+    const render::RenderImage& layer = pass->image;
+    for (size_t p = 0; p < n; ++p) {
       if (!(layer.depth_m[p] < std::numeric_limits<float>::infinity())) continue;
       const size_t q = p * size_t(L) + size_t(l);
       out.deep_depth_m[q] = layer.depth_m[p];
@@ -475,12 +495,11 @@ absl::StatusOr<render::RenderImage> RenderQueryInTiles(store::ProjectStore& stor
       out.layer_count[p] = uint8_t(l + 1);
     }
   }
-  out.vossel_index = {};
   out.version = version;
   out.profile = profile.name;
   out.profile_revision = profile.version;
-  out.tile_groups = groups_rendered;
-  out.tiles_read = int64_t(tiles_read.size());
+  out.tile_groups = groups;
+  out.tiles_read = int64_t(read.size());
   out.tiles_total = int64_t(manifest->tiles.size());
   if (absl::Status s = render::EmitRows(request, out); !s.ok()) return s;
   return Recorded(store, request, std::move(out));

@@ -1,6 +1,7 @@
 // What a reader holds of a version in memory, and tile groups within a budget (tile_budget.h).
 #include "lattice/flows/tile_budget.h"
 
+#include <algorithm>
 #include <array>
 
 #include "lattice/records/records.h"
@@ -70,6 +71,25 @@ std::vector<std::set<tiles::TileKey>> TileGroups(const store::Manifest& manifest
     held += bytes;
   }
   return groups;
+}
+
+std::vector<TileBox> TilesNearestFirst(const store::Manifest& manifest,
+                                       const Eigen::Vector3d& eye_m, int tile_vossels,
+                                       double vossel_size_m) {
+  const double T = double(tile_vossels), h = vossel_size_m;
+  std::vector<TileBox> out;
+  for (const auto& [key, layers] : manifest.tiles) {
+    TileBox box;
+    box.key = key;
+    box.lo_m = h * (T * Eigen::Vector3d(key.x, key.y, key.z).array() - 0.5);  // cells: h(k ± ½)
+    box.hi_m = box.lo_m + Eigen::Vector3d::Constant(h * T);
+    box.near_m = (eye_m.cwiseMax(box.lo_m).cwiseMin(box.hi_m) - eye_m).norm();
+    out.push_back(box);
+  }
+  std::sort(out.begin(), out.end(), [](const TileBox& a, const TileBox& b) {
+    return a.near_m != b.near_m ? a.near_m < b.near_m : a.key < b.key;
+  });
+  return out;
 }
 
 std::set<tiles::TileKey> TilesMeeting(const store::Manifest& manifest, const openvdb::Coord& lo,

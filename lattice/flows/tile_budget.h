@@ -34,6 +34,18 @@ std::vector<std::set<tiles::TileKey>> TileGroups(const store::Manifest& manifest
                                                  int64_t budget_bytes,
                                                  const std::set<tiles::TileKey>* among = nullptr);
 
+/// A tile's box: the cells of its vossels, lattice metres, and its distance from an eye.
+struct TileBox {
+  double near_m = 0.0;  ///< from the eye to the box (0: the eye is inside)
+  tiles::TileKey key;
+  Eigen::Vector3d lo_m, hi_m;
+};
+/// The manifest's tiles, nearest `eye_m` first (then by key), for tiles of `tile_vossels`
+/// vossels of edge `vossel_size_m`.
+std::vector<TileBox> TilesNearestFirst(const store::Manifest& manifest,
+                                       const Eigen::Vector3d& eye_m, int tile_vossels,
+                                       double vossel_size_m);
+
 /// The manifest's tiles that hold a vossel whose cell meets the index box [lo, hi] (inclusive
 /// vossel coordinates), for tiles of `tile_vossels`.
 std::set<tiles::TileKey> TilesMeeting(const store::Manifest& manifest, const openvdb::Coord& lo,

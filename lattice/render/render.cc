@@ -444,29 +444,11 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
     return s;
   }
   const int width = request.width_px;
-  const int height = request.height_px;
-  const size_t pixels = static_cast<size_t>(width) * height;
-
-  RenderImage image;
-  image.width_px = width;
-  image.height_px = height;
-  image.version = request.version;
-  image.rgb.assign(3 * pixels, 0.0f);
-  image.depth_m.assign(pixels, std::numeric_limits<float>::infinity());
-  image.normal.assign(3 * pixels, 0.0f);
-  image.uncertainty.assign(pixels, 0.0f);
-  image.alpha.assign(pixels, 0.0f);
   const int layers = request.layers;
-  image.layers = layers;
-  if (layers > 1) {
-    image.layer_count.assign(pixels, 0);
-    image.deep_depth_m.assign(pixels * size_t(layers), std::numeric_limits<float>::infinity());
-    image.deep_rgb.assign(3 * pixels * size_t(layers), 0.0f);
-    image.deep_alpha.assign(pixels * size_t(layers), 0.0f);
-  }
   const bool detail = request.colour_detail == ColourDetail::kSourceImages;
   const bool keep_index = detail || request.keep_vossel_index;
-  if (keep_index) image.vossel_index.assign(pixels, -1);
+  RenderImage image = EmptyRender(request);
+  if (!keep_index) image.vossel_index = {};
   // kSourceImages: rows are final after ApplyColourDetail, which hands them on.
   Bands bands(request, image, /*emit=*/!detail);
   if (geometry.size() == 0) {  // nothing to hit: every row is final as it is

@@ -34,30 +34,23 @@ int Fail(const absl::Status& s) {
   return 1;
 }
 
+/// A memory field of /proc/self/status ("VmHWM:", "VmRSS:"), MB; 0 if unknown.
+double StatusMb(const char* field) {
+  std::FILE* f = std::fopen("/proc/self/status", "r");
+  if (!f) return 0.0;
+  char line[256];
+  double kb = 0.0;
+  const size_t n = std::strlen(field);
+  while (std::fgets(line, sizeof(line), f)) {
+    if (!std::strncmp(line, field, n)) kb = std::atof(line + n);
+  }
+  std::fclose(f);
+  return kb / 1024.0;
+}
 /// Peak resident set (VmHWM) of this process since the last ResetPeakRss, MB; 0 if unknown.
-double PeakRssMb() {
-  std::FILE* f = std::fopen("/proc/self/status", "r");
-  if (!f) return 0.0;
-  char line[256];
-  double kb = 0.0;
-  while (std::fgets(line, sizeof(line), f)) {
-    if (!std::strncmp(line, "VmHWM:", 6)) kb = std::atof(line + 6);
-  }
-  std::fclose(f);
-  return kb / 1024.0;
-}
+double PeakRssMb() { return StatusMb("VmHWM:"); }
 /// Resident set (VmRSS) of this process now, MB; 0 if unknown.
-double RssMb() {
-  std::FILE* f = std::fopen("/proc/self/status", "r");
-  if (!f) return 0.0;
-  char line[256];
-  double kb = 0.0;
-  while (std::fgets(line, sizeof(line), f)) {
-    if (!std::strncmp(line, "VmRSS:", 6)) kb = std::atof(line + 6);
-  }
-  std::fclose(f);
-  return kb / 1024.0;
-}
+double RssMb() { return StatusMb("VmRSS:"); }
 /// Resets VmHWM to the current RSS (Linux: "5" to /proc/self/clear_refs).
 void ResetPeakRss() {
   if (std::FILE* f = std::fopen("/proc/self/clear_refs", "w")) {
