@@ -107,9 +107,10 @@ struct Engine::Impl {
     return Snapshot(p, version);
   }
 
-  /// HEAD as an ingest reads it: whole (and cached) while it fits max_snapshot_bytes; beyond
-  /// it without records, which the ingest then reads for the tiles it rewrites only
-  /// (flows::internal::Propagate), so that it holds the project's geometry and those tiles.
+  /// HEAD as an ingest, a back-projection or a deletion reads it: whole (and cached) while it
+  /// fits max_snapshot_bytes; beyond it without records, which the change then reads for the
+  /// tiles it rewrites only (flows::internal::Propagate), so that it holds the project's
+  /// geometry and those tiles.
   absl::StatusOr<std::shared_ptr<const store::Snapshot>> IngestHead(Project& p) {
     auto whole = Whole(p, 0);
     if (!whole.ok() || *whole) return whole;
@@ -436,7 +437,7 @@ absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, cons
                                                 const std::string& request_id) {
   const store::OperationRecord op{request_id, "delete", scan};
   return impl_->RunFlow(project, false, op, [&](Impl::Project& p) -> absl::StatusOr<flows::FlowResult> {
-    auto head = impl_->Snapshot(p, 0);
+    auto head = impl_->IngestHead(p);  // as an ingest reads it: see Impl::IngestHead
     if (!head.ok()) return head.status();
     return flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
                              StageReporter(progress));

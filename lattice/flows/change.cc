@@ -676,10 +676,16 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   records::RecordSet loaded_records;
   const records::RecordSet* old_records = &old.records;
   if (!old.records_loaded && old.version > 0) {
-    if (!change.dropped_sources.empty()) {
-      return absl::InternalError("Propagate: a deletion needs the old version's records");
-    }
     std::set<tiles::TileKey> rewritten = plan.geometry_tiles;
+    if (!change.dropped_sources.empty()) {  // a deletion: the tiles its sources recorded on
+      if (absl::Status stop = clock.Start("find the deleted sources' tiles", 0.48); !stop.ok()) {
+        return stop;
+      }
+      absl::StatusOr<std::set<tiles::TileKey>> holding =
+          store.TilesWithRecordsOf(old.version, change.dropped_sources);
+      if (!holding.ok()) return holding.status();
+      rewritten.insert(holding->begin(), holding->end());
+    }
     rewritten.insert(record_tiles.begin(), record_tiles.end());
     for (const auto& [source, blocks] : revisit) {
       for (const tiles::TileKey& b : blocks) rewritten.insert(tile_of_block(b));

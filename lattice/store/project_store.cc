@@ -1106,6 +1106,42 @@ absl::StatusOr<records::RecordSet> ProjectStore::LoadRecords(
   return out;
 }
 
+absl::StatusOr<std::set<tiles::TileKey>> ProjectStore::TilesWithRecordsOf(
+    int64_t version, const std::set<int32_t>& sources) const {
+  absl::StatusOr<Manifest> manifest = LoadManifest(version);
+  if (!manifest.ok()) return manifest.status();
+  const std::vector<tiles::TileKey> keys = [&] {
+    std::vector<tiles::TileKey> k;
+    for (const auto& [key, layers] : manifest->tiles) k.push_back(key);
+    return k;
+  }();
+  std::vector<uint8_t> holds(keys.size(), 0);
+  std::vector<absl::Status> status(keys.size());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, keys.size(), 1),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t t = r.begin(); t != r.end(); ++t) {
+      const std::set<tiles::TileKey> one = {keys[t]};
+      auto tile = LoadSnapshot(version, {}, /*with_records=*/true, &one);
+      if (!tile.ok()) {
+        status[t] = tile.status();
+        continue;
+      }
+      for (int32_t s : (*tile)->records.scan) {
+        if (sources.count(s)) {
+          holds[t] = 1;
+          break;
+        }
+      }
+    }
+  });
+  std::set<tiles::TileKey> out;
+  for (size_t t = 0; t < keys.size(); ++t) {
+    if (!status[t].ok()) return status[t];
+    if (holds[t]) out.insert(keys[t]);
+  }
+  return out;
+}
+
 absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const CommitPlan& plan) {
   Impl& im = *impl_;
   std::lock_guard<std::mutex> commit_lock(im.commit_mu);

@@ -298,6 +298,10 @@ class ProjectStore {
   absl::StatusOr<records::RecordSet> LoadRecords(int64_t version,
                                                  const std::set<tiles::TileKey>& tiles,
                                                  const records::VosselGeometry& geometry) const;
+  /// The tiles of version `version` holding a record of any of `sources`: every tile's records
+  /// are read, one tile per thread at a time (a deletion within a memory budget).
+  absl::StatusOr<std::set<tiles::TileKey>> TilesWithRecordsOf(
+      int64_t version, const std::set<int32_t>& sources) const;
 
   /// Atomic commit of a new version: `snapshot` holds the whole new state, `plan` says what
   /// changed. Writes the changed tiles' objects, the manifest rows, the scan rows, then HEAD;

@@ -222,10 +222,11 @@ TEST_F(BoundedReadTest, ColourDetailAndProfilesAreTheWholeOnes) {
   ExpectSameRender("profile with fused tiles", req);
 }
 
-// Claim: an ingest whose HEAD exceeds the budget reads HEAD without records and then the
-// records of the tiles it rewrites only, and commits the very tiles an ingest holding the whole
-// version commits: every tile object (geometry, records, fused) and reach raster the same.
-TEST_F(BoundedReadTest, IngestWithinTheBudgetWritesTheSameTiles) {
+// Claim: an ingest, a back-projection or a deletion whose HEAD exceeds the budget reads HEAD
+// without records and then the records of the tiles it rewrites only, and commits the very
+// tiles a change holding the whole version commits: every tile object (geometry, records,
+// fused) and reach raster the same.
+TEST_F(BoundedReadTest, ChangesWithinTheBudgetWriteTheSameTiles) {
   auto engine = Open(true);
   store::ProjectSettings settings;
   settings.vossel_size_m = 0.05;
@@ -308,6 +309,40 @@ TEST_F(BoundedReadTest, IngestWithinTheBudgetWritesTheSameTiles) {
   std::printf("  back-projection of %lld pixels: %lld record and fused objects differ\n",
               (long long)into_scoped->pixels_back_projected, (long long)back_differ);
   EXPECT_EQ(back_differ, 0);
+
+  // A deletion within the budget finds the tiles its sources recorded on and rewrites them as
+  // a deletion holding the whole version does: the same geometry, records, fused and reach.
+  auto scans = engine->ListScans("scoped");
+  ASSERT_TRUE(scans.ok() && scans->size() > 3);
+  const std::string gone = (*scans)[2].name;
+  auto del_whole = Open(false)->DeleteScan("site", gone);
+  auto del_scoped = engine->DeleteScan("scoped", gone);
+  ASSERT_TRUE(del_whole.ok()) << del_whole.status();
+  ASSERT_TRUE(del_scoped.ok()) << del_scoped.status();
+  for (const auto& [stage, seconds] : del_scoped->stage_seconds) {
+    if (stage.rfind("read records of", 0) == 0) std::printf("  deletion: %s\n", stage.c_str());
+  }
+  EXPECT_EQ(del_scoped->record_count, del_whole->record_count);
+  a = store::ProjectStore::Open(*dir_ / "site");
+  b = store::ProjectStore::Open(*dir_ / "scoped");
+  ASSERT_TRUE(a.ok() && b.ok());
+  auto da = (*a)->LoadManifest(del_whole->version);
+  auto db = (*b)->LoadManifest(del_scoped->version);
+  ASSERT_TRUE(da.ok() && db.ok());
+  ASSERT_EQ(da->tiles.size(), db->tiles.size());
+  int64_t del_differ = 0;
+  for (const auto& [key, layers] : da->tiles) {
+    for (const char* layer : {store::kLayerGeometry, store::kLayerRecords,
+                              store::kLayerFusedDefault}) {
+      del_differ += db->tiles.at(key).at(layer).object != layers.at(layer).object ? 1 : 0;
+    }
+  }
+  for (const auto& [source, entry] : da->reach) {
+    del_differ += db->reach.count(source) == 0 || db->reach.at(source).object != entry.object;
+  }
+  std::printf("  deletion of %s: %lld records left, %lld objects differ\n", gone.c_str(),
+              (long long)del_scoped->record_count, (long long)del_differ);
+  EXPECT_EQ(del_differ, 0);
 }
 
 // Claim: a records query reads the tiles its box meets, group by group, and answers as a
