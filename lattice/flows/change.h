@@ -181,10 +181,13 @@ struct Change {
 };
 
 /// Propagates `change` from `old`: finds the changed tiles (vossels that appeared, vanished or
-/// whose count, centroid or normal changed), carries every unaffected record over, recomputes
-/// the affected (older source, tile) pairs from their blobs, computes the new sources, fuses
-/// (§7, default profile) and fills `plan` with what changed. `old_sources` are the sources of
-/// `old` that stay. Returns the new snapshot (version not yet set).
+/// whose count, centroid or normal changed), computes the new sources, carries every
+/// unaffected record over, recomputes the affected (older source, tile) pairs from their
+/// blobs, fuses (§7, default profile) and fills `plan` with what changed. `old_sources` are
+/// the sources of `old` that stay. With `old` loaded without records (a change within the
+/// engine's memory budget) it reads the records of the tiles it rewrites only, and the new
+/// snapshot holds those (Snapshot::records_partial). Returns the new snapshot (version not
+/// yet set).
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           const store::Snapshot& old, Change change,
                                           const std::vector<SourceRef>& old_sources,
