@@ -92,6 +92,99 @@ ManifestEntry RecordsOf(const std::map<std::string, ManifestEntry>& layers) {
   return it == layers.end() ? ManifestEntry{} : it->second;
 }
 
+/// The tiles of version `version`'s `manifest` (`only_tiles`: just those) read from `objects`
+/// with the fused layers `profile_layers` and, `with_records`, their records, and put together
+/// (tiles::TileAssembler). Tiles are read in parallel, a few at a time, and each is appended
+/// to the version's arrays and freed as it arrives: a load holds the version once, not twice.
+absl::StatusOr<tiles::Assembled> ReadTiles(const ObjectStore& objects, double vossel_size_m,
+                                           int64_t version, const Manifest& manifest,
+                                           const std::set<tiles::TileKey>* only_tiles,
+                                           const std::vector<std::string>& profile_layers,
+                                           bool with_records) {
+  std::vector<std::pair<tiles::TileKey, const std::map<std::string, ManifestEntry>*>> todo;
+  for (const auto& [key, layers] : manifest.tiles) {
+    if (only_tiles == nullptr || only_tiles->count(key) != 0) todo.emplace_back(key, &layers);
+  }
+  size_t vossels = 0, record_count = 0;
+  for (const auto& [key, layers] : todo) {
+    vossels += size_t(RecordsOf(*layers).vossels);
+    if (with_records) record_count += size_t(RecordsOf(*layers).records);
+  }
+  tiles::TileAssembler assembler(vossel_size_m, vossels, record_count);
+  absl::Status failed;
+  auto load = [&](size_t t, tiles::TileContents& tile) -> absl::Status {
+    tile.key = todo[t].first;
+    const auto& layers = *todo[t].second;
+    auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
+      auto it = layers.find(layer);
+      if (it == layers.end()) {
+        return absl::DataLossError(absl::StrCat("version ", version, " tile ",
+                                                tiles::ToString(tile.key), " has no ", layer));
+      }
+      return objects.LocalPath(it->second.object);
+    };
+    absl::StatusOr<fs::path> g = path_of(kLayerGeometry);
+    absl::StatusOr<fs::path> rec = path_of(kLayerRecords);
+    absl::StatusOr<fs::path> fu = path_of(kLayerFusedDefault);
+    for (const auto* p : {&g, &rec, &fu}) {
+      if (!p->ok()) return p->status();
+    }
+    absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*g);
+    if (!geometry.ok()) return geometry.status();
+    tile.geometry = std::move(*geometry);
+    if (with_records) {
+      absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
+      if (!recs.ok()) return recs.status();
+      tile.records = std::move(*recs);
+    }
+    absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
+    if (!fused.ok()) return fused.status();
+    tile.fused = std::move(*fused);
+    for (const std::string& layer : profile_layers) {
+      absl::StatusOr<fs::path> path = path_of(layer.c_str());
+      absl::StatusOr<records::FusedValues> values =
+          path.ok() ? records::ReadFused(tile.geometry, *path) : path.status();
+      if (!values.ok()) {
+        return absl::IsDataLoss(values.status()) && !path.ok()
+                   ? absl::NotFoundError(values.status().message())
+                   : values.status();
+      }
+      tile.profile_fused[layer] = std::move(*values);
+    }
+    return absl::OkStatus();
+  };
+  struct Loaded {
+    tiles::TileContents tile;
+    absl::Status status;
+  };
+  size_t next = 0;
+  tbb::parallel_pipeline(
+      size_t(2 * std::max(1, tbb::this_task_arena::max_concurrency())),
+      tbb::make_filter<void, size_t>(tbb::filter_mode::serial_in_order,
+                                     [&](tbb::flow_control& fc) -> size_t {
+                                       if (next == todo.size()) fc.stop();
+                                       return next++;
+                                     }) &
+          tbb::make_filter<size_t, std::shared_ptr<Loaded>>(
+              tbb::filter_mode::parallel,
+              [&](size_t t) {
+                auto out = std::make_shared<Loaded>();
+                out->status = load(t, out->tile);
+                return out;
+              }) &
+          tbb::make_filter<std::shared_ptr<Loaded>, void>(
+              tbb::filter_mode::serial_in_order, [&](std::shared_ptr<Loaded> loaded) {
+                if (!failed.ok()) return;
+                if (!loaded->status.ok()) {
+                  failed = loaded->status;
+                  return;
+                }
+                assembler.Add(std::move(loaded->tile));
+              }));
+  if (!failed.ok()) return failed;
+  return assembler.Finish();
+}
+
 /// The objects of one tile as written by a commit.
 struct WrittenTile {
   tiles::TileKey key;
@@ -975,93 +1068,14 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
   absl::StatusOr<Manifest> manifest = LoadManifest(version);
   if (!manifest.ok()) return manifest.status();
   snap->manifest = std::move(*manifest);
-  std::vector<std::pair<tiles::TileKey, const std::map<std::string, ManifestEntry>*>> todo;
   snap->partial = only_tiles != nullptr;
   snap->records_loaded = with_records;
-  for (const auto& [key, layers] : snap->manifest.tiles) {
-    if (only_tiles == nullptr || only_tiles->count(key) != 0) todo.emplace_back(key, &layers);
-  }
-  // Tiles are read in parallel, a few at a time, and each is appended to the version's arrays
-  // and freed as it arrives (tiles::TileAssembler): a load holds the version once, not twice.
-  size_t vossels = 0, record_count = 0;
-  for (const auto& [key, layers] : todo) {
-    vossels += size_t(RecordsOf(*layers).vossels);
-    if (with_records) record_count += size_t(RecordsOf(*layers).records);
-  }
-  tiles::TileAssembler assembler(impl_->settings.vossel_size_m, vossels, record_count);
+  absl::StatusOr<tiles::Assembled> read =
+      ReadTiles(*impl_->objects, impl_->settings.vossel_size_m, version, snap->manifest,
+                only_tiles, profile_layers, with_records);
+  if (!read.ok()) return read.status();
+  tiles::Assembled& all = *read;
   const ObjectStore& objects = *impl_->objects;
-  absl::Status failed;
-  auto load = [&](size_t t, tiles::TileContents& tile) -> absl::Status {
-    tile.key = todo[t].first;
-    const auto& layers = *todo[t].second;
-    auto path_of = [&](const char* layer) -> absl::StatusOr<fs::path> {
-      auto it = layers.find(layer);
-      if (it == layers.end()) {
-        return absl::DataLossError(absl::StrCat("version ", version, " tile ",
-                                                tiles::ToString(tile.key), " has no ", layer));
-      }
-      return objects.LocalPath(it->second.object);
-    };
-    absl::StatusOr<fs::path> g = path_of(kLayerGeometry);
-    absl::StatusOr<fs::path> rec = path_of(kLayerRecords);
-    absl::StatusOr<fs::path> fu = path_of(kLayerFusedDefault);
-    for (const auto* p : {&g, &rec, &fu}) {
-      if (!p->ok()) return p->status();
-    }
-    absl::StatusOr<records::VosselGeometry> geometry = records::ReadGeometry(*g);
-    if (!geometry.ok()) return geometry.status();
-    tile.geometry = std::move(*geometry);
-    if (with_records) {
-      absl::StatusOr<records::RecordSet> recs = records::ReadRecords(tile.geometry, *rec);
-      if (!recs.ok()) return recs.status();
-      tile.records = std::move(*recs);
-    }
-    absl::StatusOr<records::FusedValues> fused = records::ReadFused(tile.geometry, *fu);
-    if (!fused.ok()) return fused.status();
-    tile.fused = std::move(*fused);
-    for (const std::string& layer : profile_layers) {
-      absl::StatusOr<fs::path> path = path_of(layer.c_str());
-      absl::StatusOr<records::FusedValues> values =
-          path.ok() ? records::ReadFused(tile.geometry, *path) : path.status();
-      if (!values.ok()) {
-        return absl::IsDataLoss(values.status()) && !path.ok()
-                   ? absl::NotFoundError(values.status().message())
-                   : values.status();
-      }
-      tile.profile_fused[layer] = std::move(*values);
-    }
-    return absl::OkStatus();
-  };
-  struct Loaded {
-    tiles::TileContents tile;
-    absl::Status status;
-  };
-  size_t next = 0;
-  tbb::parallel_pipeline(
-      size_t(2 * std::max(1, tbb::this_task_arena::max_concurrency())),
-      tbb::make_filter<void, size_t>(tbb::filter_mode::serial_in_order,
-                                     [&](tbb::flow_control& fc) -> size_t {
-                                       if (next == todo.size()) fc.stop();
-                                       return next++;
-                                     }) &
-          tbb::make_filter<size_t, std::shared_ptr<Loaded>>(
-              tbb::filter_mode::parallel,
-              [&](size_t t) {
-                auto out = std::make_shared<Loaded>();
-                out->status = load(t, out->tile);
-                return out;
-              }) &
-          tbb::make_filter<std::shared_ptr<Loaded>, void>(
-              tbb::filter_mode::serial_in_order, [&](std::shared_ptr<Loaded> loaded) {
-                if (!failed.ok()) return;
-                if (!loaded->status.ok()) {
-                  failed = loaded->status;
-                  return;
-                }
-                assembler.Add(std::move(loaded->tile));
-              }));
-  if (!failed.ok()) return failed;
-  tiles::Assembled all = assembler.Finish();
   snap->geometry = std::move(all.geometry);
   snap->records = std::move(all.records);
   snap->fused = std::move(all.fused);
@@ -1084,20 +1098,24 @@ absl::StatusOr<std::shared_ptr<const Snapshot>> ProjectStore::LoadSnapshot(
 absl::StatusOr<records::RecordSet> ProjectStore::LoadRecords(
     int64_t version, const std::set<tiles::TileKey>& tiles,
     const records::VosselGeometry& geometry) const {
-  auto part = LoadSnapshot(version, {}, /*with_records=*/true, &tiles);
-  if (!part.ok()) return part.status();
-  records::RecordSet out = (*part)->records;
-  const records::VosselGeometry& g = (*part)->geometry;
   if (!geometry.index_grid) return absl::InternalError("LoadRecords: geometry without index grid");
+  absl::StatusOr<Manifest> manifest = LoadManifest(version);
+  if (!manifest.ok()) return manifest.status();
+  absl::StatusOr<tiles::Assembled> part =
+      ReadTiles(*impl_->objects, impl_->settings.vossel_size_m, version, *manifest, &tiles, {},
+                /*with_records=*/true);
+  if (!part.ok()) return part.status();
+  records::RecordSet out = std::move(part->records);
+  const records::VosselGeometry& g = part->geometry;
   auto acc = geometry.index_grid->getConstAccessor();
   std::vector<int32_t> whole(g.size(), -1);
   for (size_t v = 0; v < g.size(); ++v) {
     int32_t k = -1;
     if (!acc.probeValue(g.coord[v], k)) {
-      return absl::DataLossError(absl::StrCat("version ", version, ": a vossel of tile ",
-                                              tiles::ToString(tiles::TileOf(g.coord[v],
-                                                                            (*part)->tile_vossels)),
-                                              " is not in its geometry"));
+      return absl::DataLossError(absl::StrCat(
+          "version ", version, ": a vossel of tile ",
+          tiles::ToString(tiles::TileOf(g.coord[v], impl_->settings.tile_vossels)),
+          " is not in its geometry"));
     }
     whole[v] = k;
   }
@@ -1121,12 +1139,14 @@ absl::StatusOr<std::set<tiles::TileKey>> ProjectStore::TilesWithRecordsOf(
                     [&](const tbb::blocked_range<size_t>& r) {
     for (size_t t = r.begin(); t != r.end(); ++t) {
       const std::set<tiles::TileKey> one = {keys[t]};
-      auto tile = LoadSnapshot(version, {}, /*with_records=*/true, &one);
+      absl::StatusOr<tiles::Assembled> tile =
+          ReadTiles(*impl_->objects, impl_->settings.vossel_size_m, version, *manifest, &one,
+                    {}, /*with_records=*/true);
       if (!tile.ok()) {
         status[t] = tile.status();
         continue;
       }
-      for (int32_t s : (*tile)->records.scan) {
+      for (int32_t s : tile->records.scan) {
         if (sources.count(s)) {
           holds[t] = 1;
           break;
