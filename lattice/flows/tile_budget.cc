@@ -34,7 +34,9 @@ constexpr int64_t kWeighingVosselBytes = int64_t(sizeof(size_t));
 int64_t TileMemoryBytes(const std::map<std::string, store::ManifestEntry>& layers,
                         bool with_records, int fused_layers) {
   int64_t vossels = 0, recs = 0;
-  if (auto it = layers.find(store::kLayerGeometry); it != layers.end()) vossels = it->second.vossels;
+  if (auto it = layers.find(store::kLayerGeometry); it != layers.end()) {
+    vossels = it->second.vossels;
+  }
   if (auto it = layers.find(store::kLayerRecords); it != layers.end()) recs = it->second.records;
   int64_t bytes = vossels * (kGeometryBytes + kIndexGridBytes + fused_layers * kFusedBytes);
   if (with_records) {

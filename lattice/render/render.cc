@@ -339,6 +339,11 @@ Eigen::Vector3d PixelRay(const RenderRequest& request, const geometry::PinholeIn
   return request.pose.DirectionToWorld(d_sensor).normalized();
 }
 
+/// A render of `request` keeps each pixel's vossel index (RenderImage::vossel_index).
+bool KeepsVosselIndex(const RenderRequest& request) {
+  return request.colour_detail == ColourDetail::kSourceImages || request.keep_vossel_index;
+}
+
 /// The request's pinhole intrinsics with the request's size.
 geometry::PinholeIntrinsics RequestIntrinsics(const RenderRequest& request) {
   geometry::PinholeIntrinsics k = request.pinhole;
@@ -446,9 +451,8 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   const int width = request.width_px;
   const int layers = request.layers;
   const bool detail = request.colour_detail == ColourDetail::kSourceImages;
-  const bool keep_index = detail || request.keep_vossel_index;
+  const bool keep_index = KeepsVosselIndex(request);
   RenderImage image = EmptyRender(request);
-  if (!keep_index) image.vossel_index = {};
   // kSourceImages: rows are final after ApplyColourDetail, which hands them on.
   Bands bands(request, image, /*emit=*/!detail);
   if (geometry.size() == 0) {  // nothing to hit: every row is final as it is
@@ -639,7 +643,7 @@ RenderImage EmptyRender(const RenderRequest& request) {
     image.deep_rgb.assign(3 * pixels * layers, 0.0f);
     image.deep_alpha.assign(pixels * layers, 0.0f);
   }
-  image.vossel_index.assign(pixels, -1);
+  if (KeepsVosselIndex(request)) image.vossel_index.assign(pixels, -1);
   return image;
 }
 
@@ -708,8 +712,11 @@ absl::Status CompositeNearer(const RenderRequest& request,
 }
 
 RayReach::RayReach(const RenderRequest& request)
-    : eye_(request.pose.o_world), max_range_m_(request.max_range_m), width_(request.width_px),
-      height_(request.height_px), blocks_x_((request.width_px + kReachBlockPx - 1) / kReachBlockPx),
+    : eye_(request.pose.o_world),
+      max_range_m_(request.max_range_m),
+      width_(request.width_px),
+      height_(request.height_px),
+      blocks_x_((request.width_px + kReachBlockPx - 1) / kReachBlockPx),
       blocks_y_((request.height_px + kReachBlockPx - 1) / kReachBlockPx) {
   const size_t n = size_t(blocks_x_) * size_t(blocks_y_);
   axis_.resize(n);
@@ -734,8 +741,8 @@ RayReach::RayReach(const RenderRequest& request)
     for (int a = 0; a <= 4; ++a) {
       for (int e = 0; e <= 4; ++e) {
         const int i = i0 + (i1 - i0) * a / 4, j = j0 + (j1 - j0) * e / 4;
-        widest = std::max(widest,
-                          std::acos(std::clamp(PixelRay(request, intrinsics, i, j).dot(c), -1.0, 1.0)));
+        const double cos_to_c = std::clamp(PixelRay(request, intrinsics, i, j).dot(c), -1.0, 1.0);
+        widest = std::max(widest, std::acos(cos_to_c));
       }
     }
     axis_[b] = c;
@@ -779,8 +786,8 @@ bool RayReach::MayReach(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) co
 absl::Status EmitRows(const RenderRequest& request, const RenderImage& image) {
   if (!request.rows_done) return absl::OkStatus();
   for (int row = 0; row < image.height_px; row += kBandRows) {
-    const absl::Status s = request.rows_done(image, row, std::min(image.height_px, row + kBandRows));
-    if (!s.ok()) return s;
+    const int end = std::min(image.height_px, row + kBandRows);
+    if (absl::Status s = request.rows_done(image, row, end); !s.ok()) return s;
   }
   return absl::OkStatus();
 }

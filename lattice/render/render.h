@@ -194,7 +194,8 @@ absl::StatusOr<RenderImage> RenderEquirect(const records::VosselGeometry& geomet
                                            const ViewBlendInputs* blend = nullptr);
 
 /// An image of `request`'s size, layers and projection with no hit, as a render of no vossel
-/// gives, with its vossel indices (all -1): what CompositeNearer starts from.
+/// gives, with its vossel indices (all -1) when the request keeps them (kSourceImages or
+/// keep_vossel_index): what a render and CompositeNearer start from.
 RenderImage EmptyRender(const RenderRequest& request);
 
 /// Composites `part`, a render of `request` over some tiles of a version that kept its vossel

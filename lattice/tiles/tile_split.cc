@@ -182,7 +182,7 @@ void TileAssembler::Add(TileContents&& tile) {
 }
 
 Assembled TileAssembler::Finish() {
-  std::vector<size_t> tile_first = tile_first_;
+  std::vector<size_t>& tile_first = tile_first_;
   tile_first.push_back(out_.geometry.size());
   const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(out_.geometry);
   for (int32_t& v : out_.records.vossel) v = old_to_new[size_t(v)];

@@ -41,7 +41,8 @@ int64_t DifferingPixels(const RenderImage& a, const RenderImage& b) {
     bool eq = same(a.depth_m[p], b.depth_m[p]) && same(a.uncertainty[p], b.uncertainty[p]) &&
               same(a.alpha[p], b.alpha[p]);
     for (int c = 0; c < 3 && eq; ++c) {
-      eq = same(a.rgb[3 * p + c], b.rgb[3 * p + c]) && same(a.normal[3 * p + c], b.normal[3 * p + c]);
+      eq = same(a.rgb[3 * p + c], b.rgb[3 * p + c]) &&
+           same(a.normal[3 * p + c], b.normal[3 * p + c]);
     }
     if (L > 1 && eq) {
       eq = a.layer_count[p] == b.layer_count[p];
