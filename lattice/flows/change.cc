@@ -267,12 +267,15 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
 ingest::SourceVisibility StoredVisibility(const SourceRef& source,
                                           const records::VosselGeometry& geometry,
                                           const std::vector<uint8_t>* only,
-                                          const std::vector<uint8_t>* context) {
+                                          const std::vector<uint8_t>* context,
+                                          const std::vector<tiles::ViewCap>* read_within) {
   if (source.returns()) {
-    return ingest::LidarVisibility(geometry, source.info.pose, ViewOf(source), only, context);
+    return ingest::LidarVisibility(geometry, source.info.pose, ViewOf(source), only, context,
+                                   read_within);
   }
   return ingest::CameraVisibility(geometry, CameraOf(source.info, source.batch),
-                                  source.info.width_px, source.info.height_px, only, context);
+                                  source.info.width_px, source.info.height_px, only, context,
+                                  read_within);
 }
 
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
@@ -518,7 +521,8 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                   return job;
                 }
                 // Visibility first; the blob only when a record needs its points or pixels.
-                ingest::SourceVisibility visibility = StoredVisibility(src, g, &only, &context);
+                ingest::SourceVisibility visibility =
+                    StoredVisibility(src, g, &only, &context, &job->cone.exact);
                 auto mine = records_of.find(src.info.id);
                 records::RecordSet before =
                     mine == records_of.end() ? records::RecordSet{}
@@ -608,9 +612,17 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
       if (!changed.empty()) revisit[src.info.id] = std::move(changed);
       continue;
     }
+    // A raster binned from a panorama of another size (stored before depth panoramas were
+    // whole reach cells) bounds nothing here: every changed block is then taken as reached.
     auto it = old.reach.find(src.info.id);
+    bool usable = it != old.reach.end();
+    if (usable && (src.returns() || (src.info.width_px > 0 && src.info.height_px > 0))) {
+      const geometry::EquirectSize pixels = ViewOf(src).size;
+      usable = it->second.size.width_px * tiles::kReachBlockPx == pixels.width_px &&
+               it->second.size.height_px * tiles::kReachBlockPx == pixels.height_px;
+    }
     std::set<tiles::TileKey> blocks_of_src =
-        AffectedBlocks(src, it == old.reach.end() ? nullptr : &it->second, blocks, all_blocks, B, h);
+        AffectedBlocks(src, usable ? &it->second : nullptr, blocks, all_blocks, B, h);
     if (src.returns() && !blocks_of_src.empty()) {
       absl::StatusOr<std::set<tiles::TileKey>> returns = store.SourceTiles(src.info.id);
       if (!returns.ok()) return returns.status();

@@ -140,11 +140,13 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
     const std::vector<uint8_t>* only = nullptr, const std::vector<uint8_t>* context = nullptr);
 
 /// The visibility of a stored source on `geometry` (ingest::LidarVisibility, CameraVisibility
-/// with the image size the catalog holds), found without reading its blob.
+/// with the image size the catalog holds), found without reading its blob; its depth panorama
+/// splatted only within `read_within` when given (a revisit's exact caps).
 ingest::SourceVisibility StoredVisibility(const SourceRef& source,
                                           const records::VosselGeometry& geometry,
                                           const std::vector<uint8_t>* only,
-                                          const std::vector<uint8_t>* context);
+                                          const std::vector<uint8_t>* context,
+                                          const std::vector<tiles::ViewCap>* read_within);
 /// The records of a stored source whose visibility is known, from its blob (not derived).
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
                                                           const SourceRef& source,

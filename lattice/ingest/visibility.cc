@@ -10,6 +10,8 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "lattice/tiles/tiling.h"
+
 namespace vasl::ingest {
 namespace {
 
@@ -27,14 +29,26 @@ float BitsFloat(uint32_t u) {
 }  // namespace
 
 geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
-  int height = int(std::lround(M_PI / std::max(pitch_rad, 1e-6)));
-  height = std::clamp(height, 32, max_width_px / 2);
+  // Whole reach cells (tiles::kReachBlockPx pixels) along both axes: a reach cell's pixels
+  // then span exactly the angles tiles::Reaches and tiles::CellCoverage give the cell.
+  constexpr int kCell = tiles::kReachBlockPx;
+  const int most_cells = std::max(2, max_width_px / (2 * kCell));
+  const double rows =
+      std::clamp(M_PI / std::max(pitch_rad, 1e-6), 32.0, double(most_cells * kCell));
+  const int height = std::clamp(int(std::lround(rows / kCell)), 2, most_cells) * kCell;
   return {2 * height, height};
 }
 
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geometry::Pose& pose,
                                   const geometry::EquirectSize& size, double divergence_rad,
-                                  const std::vector<uint8_t>* splat_only) {
+                                  const std::vector<uint8_t>* splat_only,
+                                  const std::vector<uint8_t>* cells) {
+  constexpr int kCell = tiles::kReachBlockPx;
+  const int cells_w = size.width_px / kCell;
+  if (cells != nullptr && (size.width_px % kCell != 0 || size.height_px % kCell != 0 ||
+                           cells->size() != size_t(cells_w) * (size.height_px / kCell))) {
+    cells = nullptr;  // not whole cells of this panorama: splat every pixel (exact, slower)
+  }
   DepthPanorama out;
   out.pose = pose;
   out.size = size;
@@ -44,7 +58,10 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const uint32_t inf_bits = FloatBits(std::numeric_limits<float>::infinity());
   for (size_t p = 0; p < npix; ++p) depth[p].store(inf_bits, std::memory_order_relaxed);
 
-  // Pixel-centre directions, separable: d = (cosψ cosφ, cosψ sinφ, sinψ).
+  // Pixel-centre directions, separable: q = (cosψ cosφ, cosψ sinφ, sinψ) in the sensor frame,
+  // and in the world frame q_w = cosφ·A_j + sinφ·B_j + C_j with the rows' A_j = cosψ_j·R x̂,
+  // B_j = cosψ_j·R ŷ, C_j = sinψ_j·R ẑ (R world-from-sensor): a pixel's tests then take a few
+  // products, with every vossel quantity in the world frame (rotations keep the dot products).
   std::vector<double> cos_phi(W), sin_phi(W), cos_psi(H), sin_psi(H);
   for (int i = 0; i < W; ++i) {
     const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
@@ -56,62 +73,90 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     cos_psi[j] = std::cos(psi);
     sin_psi[j] = std::sin(psi);
   }
+  const Eigen::Matrix3d R_world_sensor = pose.q_world_sensor.toRotationMatrix();
+  const Eigen::Matrix3d R_sensor_world = R_world_sensor.transpose();
+  std::vector<Eigen::Vector3d> row_a(H), row_b(H), row_c(H);
+  for (int j = 0; j < H; ++j) {
+    row_a[j] = cos_psi[j] * R_world_sensor.col(0);
+    row_b[j] = cos_psi[j] * R_world_sensor.col(1);
+    row_c[j] = sin_psi[j] * R_world_sensor.col(2);
+  }
   const double h = g.vossel_size_m;
   const double sphere_m = 0.5 * std::sqrt(3.0) * h;  // bounding sphere of a vossel (§5)
-  const double dpsi = geometry::ElevationPitchRad(size), dphi = geometry::AzimuthPitchRad(size);
-  const Eigen::Matrix3d R_sensor_world = pose.q_world_sensor.conjugate().toRotationMatrix();
+  const double dpsi = geometry::ElevationPitchRad(size);
+  const double px_per_rad = W / (2.0 * M_PI);
 
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
+  const tbb::blocked_range<size_t> vossels(0, g.size(), 1024);
+  tbb::parallel_for(vossels, [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (splat_only != nullptr && !(*splat_only)[k]) continue;
-      const Eigen::Vector3d centre_w = h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z());
-      const Eigen::Vector3d c_s = R_sensor_world * (centre_w - pose.o_world);
-      const double range = c_s.norm();
+      const Eigen::Vector3d c_w =
+          h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z()) - pose.o_world;
+      const double range = c_w.norm();
       if (range <= sphere_m) continue;  // the sensor sits inside this vossel
-      const Eigen::Vector3d d = c_s / range;
-      const Eigen::Vector3d x_s =
-          R_sensor_world * (g.FrameCentroid(k).cast<double>() - pose.o_world);
-      const Eigen::Vector3d n_s = R_sensor_world * g.FrameNormal(k).cast<double>();
-      const bool has_plane = n_s.squaredNorm() > 0.5;
-      const double plane_d = n_s.dot(x_s);
+      const Eigen::Vector3d d_w = c_w / range;
+      const Eigen::Vector3d d = R_sensor_world * d_w;
+      const Eigen::Vector3d x_w = g.FrameCentroid(k).cast<double>() - pose.o_world;
+      const Eigen::Vector3d n_w = g.FrameNormal(k).cast<double>();
+      const bool has_plane = n_w.squaredNorm() > 0.5;
+      const double plane_d = n_w.dot(x_w);
       // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
       const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
       const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
       const double cos_a = std::cos(a);
       const double half_cell_m = 0.5 * h + sigma_m;
       const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
-      const double psi = std::asin(std::clamp(d.z(), -1.0, 1.0));
-      // The pixels whose centre (i + ½, j + ½) can lie within a of d: rows within a in
-      // elevation, columns within the cap's widest azimuth half-width, asin(sin a / cos ψ).
-      // Floor and ceil keep the bounds conservative; the cap test below decides.
+      // The rows whose centres can lie within a of d (floor and ceil keep them conservative);
+      // in each, the columns of the cap's chord: with ρ = |d_xy|, a pixel of row j is within a
+      // when cos(φ − φ_d) ≥ (cos a − sinψ_j d_z) / (cosψ_j ρ). One pixel of slack either side,
+      // the cap test below decides.
       const double rows = a / dpsi;
       const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
       const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
-      const double cos_psi_c = std::cos(psi);
-      const bool pole = std::abs(psi) + a >= M_PI / 2 || std::sin(a) >= cos_psi_c;
-      const double cols = pole ? double(W) : std::asin(std::sin(a) / cos_psi_c) / dphi;
-      const bool all_cols = 2.0 * cols + 2.0 >= double(W);
-      const int i0 = all_cols ? 0 : int(std::floor(uv.x() - 0.5 - cols));
-      const int i1 = all_cols ? W - 1 : int(std::ceil(uv.x() - 0.5 + cols));
+      const double rho = std::hypot(d.x(), d.y());
       for (int j = j0; j <= j1; ++j) {
-        for (int ii = i0; ii <= i1; ++ii) {
-          const int i = geometry::WrapColumn(ii, W);
-          const Eigen::Vector3d q(cos_psi[j] * cos_phi[i], cos_psi[j] * sin_phi[i], sin_psi[j]);
-          if (q.dot(d) < cos_a) continue;
+        int i0 = 0, i1 = W - 1;
+        const double across = cos_psi[j] * rho;
+        if (across > 1e-9) {
+          const double c = (cos_a - sin_psi[j] * d.z()) / across;
+          if (c > 1.0 + 1e-9) continue;  // the cap misses this row's centres
+          if (c > -1.0) {
+            const double half_px = std::acos(std::min(c, 1.0)) * px_per_rad + 1.0;
+            if (2.0 * half_px + 2.0 < double(W)) {
+              i0 = int(std::floor(uv.x() - 0.5 - half_px));
+              i1 = int(std::ceil(uv.x() - 0.5 + half_px));
+            }
+          }
+        }
+        const uint8_t* cell_row =
+            cells != nullptr ? &(*cells)[size_t(j / kCell) * size_t(cells_w)] : nullptr;
+        const Eigen::Vector3d& A = row_a[j];
+        const Eigen::Vector3d& B = row_b[j];
+        const Eigen::Vector3d& C = row_c[j];
+        std::atomic<uint32_t>* depth_row = &depth[size_t(j) * W];
+        int i = geometry::WrapColumn(i0, W);
+        for (int ii = i0; ii <= i1; ++ii, i = i + 1 == W ? 0 : i + 1) {
+          if (cell_row != nullptr && !cell_row[i / kCell]) {
+            const int skip = std::min(kCell - 1 - i % kCell, i1 - ii);  // the cell's other columns
+            ii += skip;
+            i += skip;
+            continue;
+          }
+          const Eigen::Vector3d q = cos_phi[i] * A + sin_phi[i] * B + C;  // world frame
+          if (q.dot(d_w) < cos_a) continue;
           double t = range;
           if (has_plane) {
             // Surfel splat: the range where the pixel's ray crosses the vossel's plane, kept only
             // where that crossing lies inside the vossel's cell dilated by σ; a ray that grazes
             // the plane outside the vossel does not see it, and silhouettes are not inflated.
-            const double nq = n_s.dot(q);
+            const double nq = n_w.dot(q);
             if (std::abs(nq) < 1e-9) continue;
             t = plane_d / nq;
             if (!(t > 0.0)) continue;
-            const Eigen::Vector3d off_w = R_sensor_world.transpose() * (t * q - c_s);
-            if (off_w.cwiseAbs().maxCoeff() > half_cell_m) continue;
+            if ((t * q - c_w).cwiseAbs().maxCoeff() > half_cell_m) continue;
           }
           const uint32_t bits = FloatBits(float(t));
-          std::atomic<uint32_t>& cell = depth[size_t(j) * W + i];
+          std::atomic<uint32_t>& cell = depth_row[i];
           uint32_t cur = cell.load(std::memory_order_relaxed);
           while (bits < cur && !cell.compare_exchange_weak(cur, bits, std::memory_order_relaxed)) {
           }

@@ -35,8 +35,9 @@ struct DepthPanorama {
   float At(int i, int j) const { return depth_m[size_t(j) * size.width_px + i]; }
 };
 
-/// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad`,
-/// capped to `max_width_px` columns.
+/// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad` (within
+/// half a reach cell), capped to `max_width_px` columns: whole reach cells (tiles::
+/// kReachBlockPx pixels) along both axes, so that a source's reach raster lines up with it.
 geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 4096);
 
 /// §5: the depth panorama of a source rendered from the lattice by splatting each vossel's
@@ -51,10 +52,14 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// min).
 /// With `splat_only` (a flag per vossel) only the flagged vossels are splatted: the panorama is
 /// then exact wherever every vossel whose splat can fall is flagged (a revisit's cone).
+/// With `cells` (a flag per reach cell, tiles::kReachBlockPx² pixels, row-major over the
+/// panorama's cells; `size` whole cells, as DepthPanoramaSize gives) only the pixels of flagged
+/// cells are splatted; the others stay +inf (a revisit reads no other).
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
                                   const geometry::Pose& T_world_sensor,
                                   const geometry::EquirectSize& size, double divergence_rad,
-                                  const std::vector<uint8_t>* splat_only = nullptr);
+                                  const std::vector<uint8_t>* splat_only = nullptr,
+                                  const std::vector<uint8_t>* cells = nullptr);
 
 /// Min-filters a depth panorama over a (2·radius_px+1)² window, columns wrapping at the seam:
 /// every occluder grows by `radius_px` pixels. Used for cameras, whose samples read a

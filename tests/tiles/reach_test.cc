@@ -1,0 +1,133 @@
+// The reach raster decides which (source, block) pairs an ingest revisits (VASL-MODEL §5: "only
+// for (scan, region) pairs whose depth panorama the new geometry changes"), so it must never
+// say "hidden" where a pixel of the depth panorama says "reaches". These tests check that claim
+// pixel by pixel, on depth panoramas of every size DepthPanoramaSize gives (its cells must line
+// up with the pixels they bin), and the cell coverage a revisit merges its raster by.
+#include "lattice/tiles/tiling.h"
+
+#include <cmath>
+#include <random>
+
+#include <gtest/gtest.h>
+
+#include "lattice/ingest/visibility.h"
+
+namespace vasl::tiles {
+namespace {
+
+Eigen::Vector3d PixelDirection(int i, int j, const geometry::EquirectSize& size) {
+  const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / size.width_px);
+  const double psi = M_PI * (0.5 - (j + 0.5) / size.height_px);
+  return {std::cos(psi) * std::cos(phi), std::cos(psi) * std::sin(phi), std::sin(psi)};
+}
+
+// A random sensor pose, so that the caps are tested in a rotated sensor frame too.
+geometry::Pose RandomPose(std::mt19937& rng) {
+  std::normal_distribution<double> n(0.0, 1.0);
+  geometry::Pose pose;
+  pose.o_world = Eigen::Vector3d(n(rng), n(rng), n(rng));
+  pose.q_world_sensor = Eigen::Quaterniond(n(rng), n(rng), n(rng), n(rng)).normalized();
+  return pose;
+}
+
+ViewCap RandomCap(std::mt19937& rng) {
+  std::normal_distribution<double> n(0.0, 1.0);
+  std::uniform_real_distribution<double> angle(0.002, 0.2);
+  ViewCap cap;
+  cap.dir = Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+  cap.half_angle_rad = angle(rng);
+  return cap;
+}
+
+TEST(DepthPanoramaSize, CellsLineUpWithPixels) {
+  // ReachFromDepth bins kReachBlockPx² pixels per cell, and Reaches and CellCoverage place
+  // cell c at the angles of its pixels only when the panorama's rows and columns are whole
+  // multiples of the cell: every size the depth panoramas take must be.
+  for (double pitch = 2e-4; pitch < 0.2; pitch *= 1.013) {
+    const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
+    EXPECT_EQ(size.height_px % kReachBlockPx, 0) << "pitch " << pitch;
+    EXPECT_EQ(size.width_px, 2 * size.height_px) << "pitch " << pitch;
+    // Within half a cell of the asked pitch (a cell is 16 pixels), clamped to [32, 2048] rows.
+    const double rows = std::clamp(M_PI / pitch, 32.0, 2048.0);
+    EXPECT_LE(std::abs(size.height_px - rows), 0.5 * kReachBlockPx + 1e-9) << "pitch " << pitch;
+  }
+}
+
+TEST(ReachRaster, NeverHidesAPixelThatReaches) {
+  std::mt19937 rng(7);
+  // A near wall everywhere, with a few deep pixels (doorways): a cell's bound is deep only
+  // where one of its own pixels is, so a cell placed at the wrong angles shows.
+  std::uniform_real_distribution<float> deep(5.0f, 10.0f), u(0.0f, 1.0f);
+  int reaching = 0, checked = 0;
+  for (double pitch : {0.0123, 0.0031, 0.0047, 0.0081}) {
+    const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
+    std::vector<float> depth_m(size_t(size.width_px) * size.height_px);
+    for (float& d : depth_m) d = u(rng) < 0.002f ? deep(rng) : 1.0f;
+    const ReachRaster reach = ReachFromDepth(depth_m, size);
+    for (int trial = 0; trial < 400; ++trial) {
+      const geometry::Pose pose = RandomPose(rng);
+      ViewCap cap = RandomCap(rng);
+      const Eigen::Vector3d dir_s = pose.q_world_sensor.conjugate() * cap.dir;
+      const double cos_cap = std::cos(cap.half_angle_rad);
+      // The deepest pixel inside the cap; Reaches must say yes for any bound up to it.
+      // Rows whose centres can lie within the cap (a row's pixels share their elevation).
+      const double psi_c = std::asin(std::clamp(dir_s.z(), -1.0, 1.0));
+      const double dpsi = M_PI / size.height_px;
+      const int j0 = std::max(0, int((M_PI / 2 - psi_c - cap.half_angle_rad) / dpsi) - 1);
+      const int j1 =
+          std::min(size.height_px, int((M_PI / 2 - psi_c + cap.half_angle_rad) / dpsi) + 2);
+      float deepest = -1.0f;
+      for (int j = j0; j < j1; ++j) {
+        for (int i = 0; i < size.width_px; ++i) {
+          if (PixelDirection(i, j, size).dot(dir_s) >= cos_cap) {
+            deepest = std::max(deepest, depth_m[size_t(j) * size.width_px + i]);
+          }
+        }
+      }
+      if (deepest < 5.0f) continue;  // no deep pixel (or no pixel centre) in the cap
+      ++checked;
+      EXPECT_TRUE(Reaches(reach, pose, cap, deepest))
+          << size.width_px << "x" << size.height_px << " cap " << cap.half_angle_rad;
+      reaching += Reaches(reach, pose, cap, 10.5) ? 1 : 0;  // deeper than any pixel
+    }
+  }
+  EXPECT_GT(checked, 100);
+  EXPECT_EQ(reaching, 0) << "a bound deeper than every pixel reaches nothing";
+}
+
+TEST(CellCoverage, CoversEveryPixelOfTheCapsAndOnlyThemWhenWhole) {
+  std::mt19937 rng(11);
+  for (double pitch : {0.0123, 0.0031, 0.0047}) {
+    const geometry::EquirectSize size = ingest::DepthPanoramaSize(pitch);
+    const geometry::EquirectSize cells = {size.width_px / kReachBlockPx,
+                                          size.height_px / kReachBlockPx};
+    for (int trial = 0; trial < 20; ++trial) {
+      const geometry::Pose pose = RandomPose(rng);
+      std::vector<ViewCap> caps = {RandomCap(rng), RandomCap(rng)};
+      const std::vector<uint8_t> coverage = CellCoverage(cells, pose, caps);
+      int inside = 0;
+      for (int j = 0; j < size.height_px; ++j) {
+        for (int i = 0; i < size.width_px; ++i) {
+          const Eigen::Vector3d d = PixelDirection(i, j, size);
+          bool in_cap = false;
+          for (const ViewCap& cap : caps) {
+            const Eigen::Vector3d dir_s = pose.q_world_sensor.conjugate() * cap.dir;
+            in_cap = in_cap || d.dot(dir_s) >= std::cos(cap.half_angle_rad);
+          }
+          const uint8_t c =
+              coverage[size_t(j / kReachBlockPx) * cells.width_px + i / kReachBlockPx];
+          if (in_cap) {
+            ++inside;
+            ASSERT_GE(c, 1) << "pixel " << i << "," << j << " of " << size.width_px;
+          } else {
+            ASSERT_NE(c, 2) << "pixel " << i << "," << j << " of " << size.width_px;
+          }
+        }
+      }
+      EXPECT_GT(inside, 0);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace vasl::tiles
