@@ -428,7 +428,8 @@ absl::StatusOr<IngestResult> Engine::Rebuild(const std::string& project, const P
                                              const std::string& request_id) {
   const store::OperationRecord op{request_id, "rebuild", ""};
   return impl_->RunFlow(project, false, op, [&](Impl::Project& p) {
-    return flows::Rebuild(*p.store, impl_->limits.max_image_pixels, StageReporter(progress));
+    return flows::Rebuild(*p.store, impl_->limits.max_image_pixels,
+                          impl_->limits.max_snapshot_bytes, StageReporter(progress));
   });
 }
 

@@ -49,7 +49,8 @@ struct EngineLimits {
   /// What a render or a records query holds of a version at once, estimated from its tiles'
   /// counts (flows::TileMemoryBytes). A version within it is read whole (HEAD stays cached
   /// while it fits); a larger one is read tile group by tile group within it, so that a
-  /// project larger than memory still renders and answers queries.
+  /// project larger than memory still renders and answers queries. An ingest then reads the
+  /// records of the tiles it rewrites alone, and a rebuild makes its tiles group by group.
   int64_t max_snapshot_bytes = 4ll << 30;
 };
 

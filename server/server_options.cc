@@ -147,8 +147,9 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
         "decoded pixels of one panorama (default 134217728)"}},
       {"max-snapshot-bytes",
        {EngineInt64(&EngineLimits::max_snapshot_bytes, "max-snapshot-bytes"),
-        "bytes of a version a render or records query holds at once, estimated from its tiles; "
-        "a larger version is read tile group by tile group (default 4294967296)"}},
+        "bytes of a version a render, records query, ingest or rebuild holds at once, estimated "
+        "from its tiles; a larger version is read (a rebuild: made) tile group by tile group "
+        "(default 4294967296)"}},
       {"max-render-width",
        {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
         "render width, pixels (default 16384)"}},

@@ -151,9 +151,14 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
 
 /// Recomputes the whole project from its blobs (geometry, every source's records and reach,
 /// fusion) and commits it as a new version whose manifest replaces the previous one.
-/// FAILED_PRECONDITION for a project without scans.
+/// Tile by tile within `max_snapshot_bytes` (tile_budget.h): when the version, estimated from
+/// the new geometry's tiles and HEAD's record counts, exceeds it, its tiles are made in groups
+/// that fit, one after another (every source's visibility found whole and sampled on the
+/// group's vossels, fused, and the group's tile objects put), and committed together; the
+/// whole geometry is held throughout, as an ingest holds it. FAILED_PRECONDITION for a project
+/// without scans.
 absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image_pixels,
-                                   const StageFn& stage = {});
+                                   int64_t max_snapshot_bytes, const StageFn& stage = {});
 
 /// Fused values of one version under other profiles, loaded from its tiles once (thread-safe;
 /// a few layers at most).

@@ -1162,6 +1162,24 @@ absl::StatusOr<std::set<tiles::TileKey>> ProjectStore::TilesWithRecordsOf(
   return out;
 }
 
+absl::StatusOr<std::map<tiles::TileKey, std::map<std::string, ManifestEntry>>>
+ProjectStore::PutTiles(const Snapshot& snapshot, const std::set<tiles::TileKey>& tiles) {
+  if (std::fabs(snapshot.geometry.vossel_size_m - impl_->settings.vossel_size_m) >
+      1e-9 * impl_->settings.vossel_size_m) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
+                     " m differs from the project's ", impl_->settings.vossel_size_m, " m"));
+  }
+  absl::StatusOr<std::vector<WrittenTile>> written =
+      impl_->WriteTiles(snapshot, tiles, /*with_geometry=*/true);
+  if (!written.ok()) return written.status();
+  std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> out;
+  for (WrittenTile& w : *written) {
+    if (!w.layers.empty()) out[w.key] = std::move(w.layers);
+  }
+  return out;
+}
+
 absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const CommitPlan& plan) {
   Impl& im = *impl_;
   std::lock_guard<std::mutex> commit_lock(im.commit_mu);
@@ -1200,7 +1218,12 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     return absl::InvalidArgumentError(
         "a layers-only commit changes layers of an existing version and nothing else");
   }
-  if (snapshot.records_partial && (plan.replace_all || no_snapshot)) {
+  if (!plan.put_tiles.empty() && (!plan.replace_all || !plan.geometry_tiles.empty() ||
+                                  !plan.record_tiles.empty() || !plan.put_layers.empty())) {
+    return absl::InvalidArgumentError(
+        "tiles put beforehand make a whole new version (replace_all) and nothing else");
+  }
+  if (snapshot.records_partial && plan.put_tiles.empty() && (plan.replace_all || no_snapshot)) {
     return absl::InvalidArgumentError(
         "a snapshot holding some tiles' records can commit only those tiles");
   }
@@ -1253,13 +1276,22 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
   // 1. Objects of the changed tiles and reach rasters, fsynced. Nothing refers to them until
   //    the catalog does, so a failure here leaves only garbage for the next collection.
   std::set<tiles::TileKey> geometry_tiles = plan.geometry_tiles, record_tiles = plan.record_tiles;
-  if (plan.replace_all) {
+  int64_t bytes_written = 0;
+  if (!plan.put_tiles.empty()) {
+    manifest.tiles = plan.put_tiles;  // written by PutTiles
+    for (const auto& [key, layers] : plan.put_tiles) {
+      if (!layers.count(kLayerGeometry) || !layers.count(kLayerRecords)) {
+        return absl::InternalError(absl::StrCat("commit: tile ", tiles::ToString(key),
+                                                " was put without its geometry or records"));
+      }
+      for (const auto& [layer, entry] : layers) bytes_written += entry.bytes;
+    }
+  } else if (plan.replace_all) {
     const std::vector<tiles::TileKey> tile_of =
         tiles::TilesOfVossels(snapshot.geometry, im.settings.tile_vossels);
     geometry_tiles = std::set<tiles::TileKey>(tile_of.begin(), tile_of.end());
   }
   for (const tiles::TileKey& key : geometry_tiles) record_tiles.erase(key);
-  int64_t bytes_written = 0;
   for (const auto* set : {&geometry_tiles, &record_tiles}) {
     const bool with_geometry = set == &geometry_tiles;
     absl::StatusOr<std::vector<WrittenTile>> written = im.WriteTiles(snapshot, *set, with_geometry);

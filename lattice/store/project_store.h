@@ -193,6 +193,10 @@ struct CommitPlan {
   std::set<int32_t> drop_reach;
   /// Every tile and reach raster of the snapshot is written; the previous manifest is dropped.
   bool replace_all = false;
+  /// With replace_all: the new version's tiles, every layer put beforehand (ProjectStore::
+  /// PutTiles; a rebuild in tile groups). The snapshot's geometry and records are then not
+  /// written (it may hold no records); its reach rasters are.
+  std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> put_tiles;
   /// A scan to add (its sources must carry ids from NextSourceId).
   std::optional<ScanInfo> add_scan;
   /// Tiles each added LiDAR source has returns in.
@@ -307,6 +311,13 @@ class ProjectStore {
   /// changed. Writes the changed tiles' objects, the manifest rows, the scan rows, then HEAD;
   /// runs retention. Returns the new version number.
   absl::StatusOr<int64_t> Commit(const Snapshot& snapshot, const CommitPlan& plan);
+  /// Writes every layer of the tiles `tiles` of `snapshot` (which need hold the records of
+  /// those tiles alone, sorted by vossel) as objects, before a commit names them: a rebuild in
+  /// tile groups puts each group so, then commits them all (CommitPlan::put_tiles). Call under
+  /// the project's one writer, before its Commit: until a commit names them they are garbage
+  /// that the next collection removes. Tiles without vossels are left out.
+  absl::StatusOr<std::map<tiles::TileKey, std::map<std::string, ManifestEntry>>> PutTiles(
+      const Snapshot& snapshot, const std::set<tiles::TileKey>& tiles);
 
   /// Stores a new revision of profile `name` (1 + the latest; 1 for a new name) made by
   /// `text_of(revision)`, and returns it. Profiles are project metadata, not versioned data.

@@ -346,6 +346,63 @@ TEST_F(BoundedReadTest, ChangesWithinTheBudgetWriteTheSameTiles) {
   EXPECT_EQ(del_differ, 0);
 }
 
+// Claim: a rebuild of a version larger than the budget makes its tiles in groups within it, one
+// after another, and commits the objects a rebuild holding the whole version writes: every
+// tile's geometry, records and fused layers (the default's and the reweighted profile's) and
+// every reach raster; and both are the incremental version they remake, object for object.
+TEST_F(BoundedReadTest, RebuildWithinTheBudgetIsTheWholeOne) {
+  auto before = store::ProjectStore::Open(*dir_ / "site");
+  ASSERT_TRUE(before.ok()) << before.status();
+  const int64_t incremental = (*before)->head_version();
+  auto whole = Open(false)->Rebuild("site");
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  auto bounded = Open(true)->Rebuild("site");
+  ASSERT_TRUE(bounded.ok()) << bounded.status();
+  int groups = 0, whole_groups = 0;
+  for (const auto& [stage, seconds] : bounded->stage_seconds) {
+    const size_t at = stage.find(" in tile group ");
+    if (at != std::string::npos) groups = std::max(groups, std::atoi(stage.c_str() + at + 15));
+  }
+  for (const auto& [stage, seconds] : whole->stage_seconds) {
+    whole_groups += stage.find(" in tile group ") != std::string::npos ? 1 : 0;
+  }
+  EXPECT_EQ(whole_groups, 0);
+  EXPECT_GE(groups, 3) << "a fifth of the version's estimate takes several groups";
+  EXPECT_EQ(bounded->record_count, whole->record_count);
+  EXPECT_EQ(bounded->vossel_count, whole->vossel_count);
+
+  auto st = store::ProjectStore::Open(*dir_ / "site");
+  ASSERT_TRUE(st.ok()) << st.status();
+  auto mi = (*st)->LoadManifest(incremental);
+  auto mw = (*st)->LoadManifest(whole->version);
+  auto mb = (*st)->LoadManifest(bounded->version);
+  ASSERT_TRUE(mi.ok() && mw.ok() && mb.ok());
+  int64_t objects = 0, differ = 0, from_incremental = 0;
+  for (const auto& [key, layers] : mw->tiles) {
+    for (const auto& [layer, entry] : layers) {
+      ++objects;
+      auto other = mb->tiles.find(key);
+      differ += other == mb->tiles.end() || !other->second.count(layer) ||
+                other->second.at(layer).object != entry.object;
+      auto inc = mi->tiles.find(key);
+      from_incremental += inc == mi->tiles.end() || !inc->second.count(layer) ||
+                          inc->second.at(layer).object != entry.object;
+    }
+  }
+  for (const auto& [source, entry] : mw->reach) {
+    ++objects;
+    differ += mb->reach.count(source) == 0 || mb->reach.at(source).object != entry.object;
+  }
+  std::printf("  rebuild in %d tile groups: %lld objects compared with the whole rebuild, %lld "
+              "differ; %lld tile objects differ from the incremental version\n", groups,
+              (long long)objects, (long long)differ, (long long)from_incremental);
+  EXPECT_EQ(mb->tiles.size(), mw->tiles.size());
+  EXPECT_EQ(mb->reach.size(), mw->reach.size());
+  EXPECT_GT(objects, 3 * tiles_);
+  EXPECT_EQ(differ, 0);
+  EXPECT_EQ(from_incremental, 0);
+}
+
 // Claim: a records query reads the tiles its box meets, group by group, and answers as a
 // query of the whole version: the same rows in the same order, counts and truncation.
 TEST_F(BoundedReadTest, RecordsQueryIsTheWholeOne) {
