@@ -160,6 +160,8 @@ struct Engine::Impl {
     result.blocks_revisited = flow.blocks_revisited;
     result.sources_refreshed = flow.sources_refreshed;
     result.tiles_changed = flow.tiles_changed;
+    result.records_computed = flow.records_computed;
+    result.records_rewritten = flow.records_rewritten;
     result.bytes_written = flow.bytes_written;
     result.pixels_back_projected = flow.pixels_back_projected;
     result.pixels_outside = flow.pixels_outside;

@@ -94,6 +94,10 @@ struct IngestResult {
   int64_t sources_refreshed = 0;
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes the commit wrote
+  /// Records the change computed, and the records of the tiles whose records it rewrote (the
+  /// others of them carried over unchanged). An ingest's, a back-projection's, a deletion's.
+  int64_t records_computed = 0;
+  int64_t records_rewritten = 0;
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour

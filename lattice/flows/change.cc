@@ -549,6 +549,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 const SourceRef& src = *job->src;
                 ingest::SourceRecords& recs = *job->computed;
                 next.records.Append(recs.records);
+                result.records_computed += int64_t(recs.records.size());
                 record_tiles.insert(job->tiles.begin(), job->tiles.end());
                 ++result.sources_revisited;
                 if (job->refreshed) ++result.sources_refreshed;
@@ -755,6 +756,14 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
 
   next.records.Append(fresh);  // 5.
   next.records.SortByVossel();
+  result.records_computed += int64_t(fresh.size());
+  {
+    std::set<tiles::TileKey> rewritten = record_tiles;
+    rewritten.insert(plan.geometry_tiles.begin(), plan.geometry_tiles.end());
+    for (int32_t v : next.records.vossel) {
+      result.records_rewritten += rewritten.count(tile_of[size_t(v)]) ? 1 : 0;
+    }
+  }
 
   // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records
   //    keep their fused values.

@@ -49,6 +49,11 @@ struct FlowResult {
   int64_t sources_refreshed = 0;
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote
   int64_t bytes_written = 0;      ///< bytes of objects the commit wrote
+  /// Records the change computed (its new sources' and its revisited pairs'), and every record
+  /// of the tiles whose records the commit rewrote: the rest of those were carried over
+  /// unchanged (what record segments per batch would not rewrite; README "Storage").
+  int64_t records_computed = 0;
+  int64_t records_rewritten = 0;
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour

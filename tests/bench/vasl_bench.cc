@@ -164,6 +164,12 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
               "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "peak_MB",
               "written_MB", "total_MB");
   std::vector<double> seconds;
+  // Bytes of records objects the commits wrote, and what record segments per batch (README
+  // "Storage": an LSM-style layout) would have written of them: the records each change
+  // computed (its new sources' and its revisited pairs'), not those carried over unchanged
+  // into the tiles it rewrote; measured as the written records bytes in that proportion.
+  double records_written_mb = 0.0, segments_mb = 0.0;
+  store::Manifest previous;
   for (size_t n = 0; n < site.Stations().size(); ++n) {
     lidar.seed = uint64_t(n + 1);
     auto scan = scenes::MakeScanInput(site, n, lidar, pano_w, 2);
@@ -196,7 +202,32 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
                 (long long)r->pairs_revisited, (long long)r->blocks_revisited, peak,
                 r->bytes_written / 1e6,
                 versions->back().bytes_total / 1e6, revisit, own, each.c_str(), rest.c_str());
+    auto st = store::ProjectStore::Open(dir / "growth");
+    if (!st.ok()) return Fail(st.status());
+    auto manifest = (*st)->LoadManifest(r->version);
+    if (!manifest.ok()) return Fail(manifest.status());
+    double records_mb = 0.0;
+    for (const auto& [key, layers] : manifest->tiles) {
+      const store::ManifestEntry& rec = layers.at(store::kLayerRecords);
+      auto was = previous.tiles.find(key);
+      if (was == previous.tiles.end() ||
+          was->second.at(store::kLayerRecords).object != rec.object) {
+        records_mb += rec.bytes / 1e6;
+      }
+    }
+    const double share =
+        r->records_rewritten > 0 ? double(r->records_computed) / double(r->records_rewritten)
+                                 : 1.0;
+    std::printf("         records: %lld computed of %lld in the rewritten tiles; %.1f MB of "
+                "records objects written, %.1f MB as segments per batch\n",
+                (long long)r->records_computed, (long long)r->records_rewritten, records_mb,
+                records_mb * share);
+    records_written_mb += records_mb;
+    segments_mb += records_mb * share;
+    previous = std::move(*manifest);
   }
+  std::printf("records objects written by all commits %.1f MB; as segments per batch %.1f MB\n",
+              records_written_mb, segments_mb);
   if (seconds.size() >= 2) {
     double total = 0.0;
     for (double s : seconds) total += s;
