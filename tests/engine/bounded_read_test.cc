@@ -351,6 +351,21 @@ TEST_F(BoundedReadTest, ChangesWithinTheBudgetWriteTheSameTiles) {
 // tile's geometry, records and fused layers (the default's and the reweighted profile's) and
 // every reach raster; and both are the incremental version they remake, object for object.
 TEST_F(BoundedReadTest, RebuildWithinTheBudgetIsTheWholeOne) {
+  // A derived source too (§10): a render back-projected, whose records a rebuild re-derives.
+  RenderRequest req;
+  req.pose = scenes::CorridorSite::Default().NovelViews()[0];
+  req.width_px = kPanoW;
+  req.height_px = kPanoH;
+  auto image = Open(false)->Render("site", req);
+  ASSERT_TRUE(image.ok()) << image.status();
+  BackProjectInput in;
+  in.name = "retouch";
+  in.pose = req.pose;
+  in.image = *render::EncodeExr(*image);
+  auto derived = Open(false)->BackProject("site", in);
+  ASSERT_TRUE(derived.ok()) << derived.status();
+  ASSERT_GT(derived->pixels_back_projected, 0);
+
   auto before = store::ProjectStore::Open(*dir_ / "site");
   ASSERT_TRUE(before.ok()) << before.status();
   const int64_t incremental = (*before)->head_version();
