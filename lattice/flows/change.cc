@@ -673,13 +673,16 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     result.pixels_outside += stats.pixels_outside;
     result.pixels_invalid += stats.pixels_invalid;
   }
-  for (const ingest::CameraSource& cam : change.new_sources.cameras) {
+  for (ingest::CameraSource& cam : change.new_sources.cameras) {
     if (absl::Status stop = clock.Start(absl::StrCat("records of source ", cam.id), fraction);
         !stop.ok()) {
       return stop;
     }
     absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(g, cam);
-    if (!r.ok()) return r.status();  // CameraRecords decoded the panorama and freed it
+    // CameraRecords decoded the panorama and freed it, or read the one the calibration check
+    // kept with the camera: freed here.
+    ingest::LinearImage().pixels.swap(cam.image.pixels);
+    if (!r.ok()) return r.status();
     add_new(std::move(*r), cam.id);
   }
   // The old records this change reads: all of them, or (a HEAD loaded without records, an

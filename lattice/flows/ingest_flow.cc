@@ -15,6 +15,10 @@
 namespace vasl::flows {
 namespace {
 
+/// Decoded images a scan's calibration check keeps with its cameras for their records, so that
+/// a panorama is decoded once per ingest (a 4096×2048 one: 100 MB as float RGB).
+constexpr int64_t kKeepDecodedBytes = int64_t{512} << 20;
+
 // Packs LiDAR points as little-endian float32 (x, y, z, intensity), 16 bytes a point: the blob
 // format of a LiDAR source (LoadLidar). A scan with a range grid appends each point's cell
 // (uint32) and then the grid's rows and columns (uint32 each): 20 bytes a point and 8.
@@ -204,11 +208,14 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
   plan.made_by = absl::StrCat("ingest scan ", info.name);
   plan.add_scan = info;
 
-  // §2.3: each camera against the scan's own LiDAR, before its colours are fused.
+  // §2.3: each camera against the scan's own LiDAR, before its colours are fused. The decoded
+  // image stays with the camera for its records (Propagate frees it once they are sampled)
+  // while the scan's kept images fit kKeepDecodedBytes; a camera beyond it decodes again.
   if (!change.new_sources.lidars.empty()) {
     const ingest::LidarSource& l = change.new_sources.lidars[0];
+    int64_t kept_bytes = 0;
     for (size_t k = 0; k < change.new_sources.cameras.size(); ++k) {
-      const ingest::CameraSource& cam = change.new_sources.cameras[k];
+      ingest::CameraSource& cam = change.new_sources.cameras[k];
       const double fraction = 0.35 + 0.1 * double(k) / double(change.new_sources.cameras.size());
       if (absl::Status stop = clock.Start(absl::StrCat("calibration of source ", cam.id), fraction);
           !stop.ok()) {
@@ -221,6 +228,11 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
         if (src.id != cam.id) continue;
         result.calibration.emplace_back(src.name, health);
         src.calibration = std::move(health);
+      }
+      const int64_t bytes = int64_t(image->pixels.size() * sizeof(float));
+      if (cam.image.pixels.empty() && kept_bytes + bytes <= kKeepDecodedBytes) {
+        kept_bytes += bytes;
+        cam.image = std::move(*image);
       }
     }
   }
