@@ -147,8 +147,11 @@ ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap)
 /// correction moved by more than a tenth of their light; with `changed`, a map of them for a
 /// person to look at (1 − the share moved where over a tenth, 1 elsewhere; empty when nothing
 /// was found). Does nothing unless shift.found and the sizes agree. Parallel over rows (TBB).
+/// With a row range only rows [row_begin, row_end) are corrected (and counted); the others
+/// keep their raw values (a reader of those rows alone, SampledRows).
 int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& shift,
-                            geometry::LinearImage* changed = nullptr);
+                            geometry::LinearImage* changed = nullptr, int row_begin = 0,
+                            int row_end = -1);
 
 /// Codec artefacts (§9): what a JPEG's coding left in the image.
 struct CodecMap {

@@ -185,10 +185,13 @@ ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap)
 }
 
 int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& shift,
-                            geometry::LinearImage* changed) {
+                            geometry::LinearImage* changed, int row_begin, int row_end) {
   const int W = image.width_px, H = image.height_px, C = image.channels;
   if (changed != nullptr) *changed = geometry::LinearImage{};
   if (!shift.found || C < 3 || shift.width_px != W || shift.height_px != H) return 0;
+  row_begin = std::clamp(row_begin, 0, H);
+  row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
+  if (row_begin == row_end) return 0;
   const std::vector<float> raw = image.pixels;
   auto value = [&](int x, int y, int c) {
     x = shift.wrap ? ((x % W) + W) % W : std::clamp(x, 0, W - 1);
@@ -197,7 +200,8 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
   };
   if (changed != nullptr) *changed = internal::ConfidenceOnes(W, H);
   tbb::enumerable_thread_specific<int64_t> counts(0);
-  tbb::parallel_for(tbb::blocked_range<int>(0, H), [&](const tbb::blocked_range<int>& rows) {
+  const tbb::blocked_range<int> corrected_rows(row_begin, row_end);
+  tbb::parallel_for(corrected_rows, [&](const tbb::blocked_range<int>& rows) {
     int64_t& count = counts.local();
     for (int y = rows.begin(); y != rows.end(); ++y) {
       for (int x = 0; x < W; ++x) {

@@ -68,6 +68,83 @@ ImageProjection ProjectionOf(const CameraSource& cam, int width_px, int height_p
   return ImageProjection(cam.pinhole, width_px, height_px, cam.angular_resolution_rad);
 }
 
+namespace {
+
+// Where a camera samples vossel k (§3, §4.1): its frame centroid x seen at uv, and the matched
+// filter's Gaussian (σ along the footprint's major and minor axes) around x. Nullopt when the
+// camera does not see x (inside it, or outside a pinhole photo).
+struct CameraKernel {
+  Eigen::Vector3d x, v_hat, n;
+  double range = 0.0, cos_inc = 0.0;
+  Eigen::Vector2d uv;
+  geometry::SurfaceFootprint foot;
+  double sk_major = 0.0, sk_minor = 0.0;
+};
+std::optional<CameraKernel> KernelAt(const records::VosselGeometry& g, size_t k,
+                                     const CameraSource& cam, const ImageProjection& proj,
+                                     const Eigen::Matrix3d& R_cam_world, double target) {
+  CameraKernel out;
+  out.x = g.FrameCentroid(k).cast<double>();
+  const Eigen::Vector3d to_cam = cam.pose.o_world - out.x;
+  out.range = to_cam.norm();
+  if (out.range < 1e-3) return std::nullopt;
+  out.v_hat = to_cam / out.range;
+  out.n = NormalOr(g, k, out.v_hat);
+  out.cos_inc = geometry::CosIncidence(out.n, out.x, cam.pose.o_world);  // §3
+  const Eigen::Vector3d d_cam = R_cam_world * (out.x - cam.pose.o_world);
+  const std::optional<Eigen::Vector2d> at = proj.Project(d_cam);
+  if (!at || !proj.Inside(*at)) return std::nullopt;  // outside a pinhole photo
+  out.uv = *at;
+  const double theta_pix = proj.PixelAngleRad(d_cam);  // §3
+  out.foot = geometry::SurfaceFootprintAt(out.range, theta_pix, out.cos_inc);
+  out.sk_major = geometry::MatchedFilterSigmaM(out.foot.major_m, target);  // §4.1
+  out.sk_minor = geometry::MatchedFilterSigmaM(out.foot.minor_m, target);
+  return out;
+}
+
+// The 3-point Gauss–Hermite rule's outer node: a kernel point lies within √3 σ of x per axis.
+constexpr double kOuterNode = 1.7320508075688772;
+
+}  // namespace
+
+std::pair<int, int> SampledRows(const records::VosselGeometry& g, const CameraSource& cam,
+                                const std::vector<float>& vis) {
+  const int H = cam.image.height_px;
+  if (cam.pinhole) return {0, H};
+  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, H);
+  const double target = geometry::TargetResolutionM(g.vossel_size_m);
+  const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
+  const double rows_per_rad = H / M_PI;
+  using Rows = std::pair<double, double>;
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  const Rows none{kInf, -kInf};
+  const Rows rows = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, g.size(), 4096), none,
+      [&](const tbb::blocked_range<size_t>& r, Rows acc) {
+        for (size_t k = r.begin(); k != r.end(); ++k) {
+          if (!(vis[k] > 0.0f)) continue;
+          const std::optional<CameraKernel> kern = KernelAt(g, k, cam, proj, R_cam_world, target);
+          if (!kern) continue;
+          // Every kernel point lies within √3·|σ| of x, so its direction within asin(that/r)
+          // of x's, and its row (elevation) within that angle's rows of uv.
+          const double reach_m = kOuterNode * std::hypot(kern->sk_major, kern->sk_minor);
+          if (!(reach_m < kern->range)) return Rows{-1e30, 1e30};  // reaches anywhere
+          const double half = std::asin(reach_m / kern->range) * rows_per_rad;
+          acc.first = std::min(acc.first, kern->uv.y() - half);
+          acc.second = std::max(acc.second, kern->uv.y() + half);
+        }
+        return acc;
+      },
+      [](Rows a, Rows b) {
+        return Rows{std::min(a.first, b.first), std::max(a.second, b.second)};
+      });
+  if (!(rows.first <= rows.second)) return {0, 0};  // no vossel sampled
+  // A bilinear read at row v takes rows floor(v − ½) and the next; one more either side.
+  const double lo = std::floor(std::max(rows.first, -1.0) - 0.5) - 1.0;
+  const double hi = std::floor(std::min(rows.second, double(H) + 1.0) - 0.5) + 3.0;
+  return {std::clamp(int(lo), 0, H), std::clamp(int(hi), 0, H)};
+}
+
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
                        const std::vector<float>& vis, const ArtefactMaps& artefacts) {
   const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
@@ -85,28 +162,22 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   // 3-point Gauss–Hermite rule: nodes 0, ±√3 σ, weights 2/3, 1/6, 1/6 (exact second moment).
-  const double node[3] = {-std::sqrt(3.0), 0.0, std::sqrt(3.0)};
+  const double node[3] = {-kOuterNode, 0.0, kOuterNode};
   const double weight[3] = {1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0};
   tbb::enumerable_thread_specific<RecordSet> parts;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 2048), [&](const tbb::blocked_range<size_t>& r) {
     RecordSet& out = parts.local();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (!(vis[k] > 0.0f)) continue;
-      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
-      const Eigen::Vector3d to_cam = cam.pose.o_world - x;
-      const double range = to_cam.norm();
-      if (range < 1e-3) continue;
-      const Eigen::Vector3d v_hat = to_cam / range;
-      const Eigen::Vector3d n = NormalOr(g, k, v_hat);
-      const double cos_inc = geometry::CosIncidence(n, x, cam.pose.o_world);  // §3
-      const Eigen::Vector3d d_cam = R_cam_world * (x - cam.pose.o_world);
-      const std::optional<Eigen::Vector2d> at = proj.Project(d_cam);
-      if (!at || !proj.Inside(*at)) continue;  // outside a pinhole photo
-      const Eigen::Vector2d uv = *at;
-      const double theta_pix = proj.PixelAngleRad(d_cam);  // §3
-      const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range, theta_pix, cos_inc);
-      const double sk_major = geometry::MatchedFilterSigmaM(foot.major_m, target);  // §4.1
-      const double sk_minor = geometry::MatchedFilterSigmaM(foot.minor_m, target);
+      const std::optional<CameraKernel> kern = KernelAt(g, k, cam, proj, R_cam_world, target);
+      if (!kern) continue;
+      const Eigen::Vector3d& x = kern->x;
+      const Eigen::Vector3d& v_hat = kern->v_hat;
+      const Eigen::Vector3d& n = kern->n;
+      const double range = kern->range, cos_inc = kern->cos_inc;
+      const Eigen::Vector2d& uv = kern->uv;
+      const geometry::SurfaceFootprint& foot = kern->foot;
+      const double sk_major = kern->sk_major, sk_minor = kern->sk_minor;
       float value[3] = {0, 0, 0};
       float conf[records::kConfidenceCount];
       std::fill(std::begin(conf), std::end(conf), 1.0f);
@@ -503,11 +574,13 @@ SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const Camera
   const CameraSource* sampled = &cam;
   CameraSource corrected;
   if (artefacts.fringing.found) {
+    // Only the rows the samples read (a revisit samples a few blocks of a large image).
+    const auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
     if (&cam == &loaded) {
-      CorrectChannelShift(loaded.image, artefacts.fringing);
+      CorrectChannelShift(loaded.image, artefacts.fringing, nullptr, row_begin, row_end);
     } else {
       corrected = cam;
-      CorrectChannelShift(corrected.image, artefacts.fringing);
+      CorrectChannelShift(corrected.image, artefacts.fringing, nullptr, row_begin, row_end);
       sampled = &corrected;
     }
   }

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <optional>
+#include <utility>
 #include <vector>
 
 #include "lattice/geometry/footprint.h"
@@ -20,6 +21,12 @@ namespace vasl::ingest {
 using geometry::ImageProjection;
 ImageProjection ProjectionOf(const CameraSource& camera, int width_px, int height_px);
 
+
+/// The rows [begin, end) of `camera`'s image that SampleCamera reads for the vossels with
+/// vis > 0 (every kernel point's bilinear read): all of a pinhole photo's. A correction of the
+/// image (the channels' fringing, §9) need touch no other row.
+std::pair<int, int> SampledRows(const records::VosselGeometry& geometry,
+                                const CameraSource& camera, const std::vector<float>& vis);
 
 /// Records of one camera: one per vossel with V > 0 (that a pinhole image holds). The sample is the §4.1 matched
 /// filter when the pixel footprint is sharper than s* = h/2 (an elliptical Gaussian in the

@@ -148,6 +148,37 @@ TEST(FringingTest, PlantedShiftIsMeasuredAndCorrected) {
   EXPECT_LT(err_after, 0.3 * err_before);
 }
 
+// Claim: a correction of some rows (a revisit's camera, whose samples read only those) gives
+// those rows exactly the whole correction's values and leaves every other row raw; the pixels
+// it counts are the whole correction's in those rows.
+TEST(FringingTest, CorrectingSomeRowsGivesTheWholeCorrectionThere) {
+  const int w = 1024, h = 512;
+  const geometry::LinearImage truth = ThroughALens(MakePanorama(w, h, {}, false).image);
+  const double planted[3][2] = {{1.2, 0.6}, {0.0, 0.0}, {-0.8, -0.5}};
+  const geometry::LinearImage shifted = Shifted(truth, [&](int c, double, double) {
+    return std::make_pair(planted[c][0], planted[c][1]);
+  });
+  const ChannelShift shift = EstimateChannelShift(shifted, /*wrap=*/true);
+  ASSERT_TRUE(shift.found);
+  geometry::LinearImage whole = shifted, whole_map;
+  CorrectChannelShift(whole, shift, &whole_map);
+  for (const auto& [begin, end] : {std::pair{0, 1}, std::pair{37, 301}, std::pair{500, 512}}) {
+    geometry::LinearImage part = shifted, part_map;
+    const int64_t moved = CorrectChannelShift(part, shift, &part_map, begin, end);
+    int64_t whole_moved = 0, differ = 0;
+    for (int y = 0; y < h; ++y) {
+      const geometry::LinearImage& expect = y >= begin && y < end ? whole : shifted;
+      for (int x = 0; x < w; ++x) {
+        const size_t p = size_t(y) * w + size_t(x);
+        for (int c = 0; c < 3; ++c) differ += part.pixels[3 * p + c] != expect.pixels[3 * p + c];
+        if (y >= begin && y < end) whole_moved += whole_map.pixels[p] < 1.0f;
+      }
+    }
+    EXPECT_EQ(differ, 0) << "rows " << begin << ".." << end;
+    EXPECT_EQ(moved, whole_moved) << "rows " << begin << ".." << end;
+  }
+}
+
 // Claim (§9): a shift that grows across the image (red's dx from −1.5 px at the left edge to
 // +1.5 px at the right, blue's dy from +1 px at the top to −1 px at the bottom) is followed by
 // the tiles: each tile's offset is within 0.3 px of the planted one at its centre.
