@@ -108,6 +108,22 @@ class BoundedReadTest : public ::testing::Test {
     return engine.ok() ? std::move(*engine) : nullptr;
   }
 
+  // A render of "site" from the corridor's first novel view as an RGBZ image sent back (§10);
+  // an empty image when the render fails.
+  static BackProjectInput Retouch() {
+    RenderRequest req;
+    req.pose = scenes::CorridorSite::Default().NovelViews()[0];
+    req.width_px = kPanoW;
+    req.height_px = kPanoH;
+    BackProjectInput in;
+    in.name = "retouch";
+    in.pose = req.pose;
+    auto image = Open(false)->Render("site", req);
+    EXPECT_TRUE(image.ok()) << image.status();
+    if (image.ok()) in.image = *render::EncodeExr(*image);
+    return in;
+  }
+
   // Renders `req` whole and bounded; expects the same image, printed with the groups taken.
   void ExpectSameRender(const char* what, RenderRequest req) {
     req.pose = scenes::CorridorSite::Default().NovelViews()[0];
@@ -279,16 +295,8 @@ TEST_F(BoundedReadTest, ChangesWithinTheBudgetWriteTheSameTiles) {
 
   // A back-projection (§10) within the budget joins as a scan does: the same image into both
   // projects gives the same records and fused objects.
-  RenderRequest req;
-  req.pose = site.NovelViews()[0];
-  req.width_px = kPanoW;
-  req.height_px = kPanoH;
-  auto image = Open(false)->Render("site", req);
-  ASSERT_TRUE(image.ok()) << image.status();
-  BackProjectInput in;
-  in.name = "retouch";
-  in.pose = req.pose;
-  in.image = *render::EncodeExr(*image);
+  const BackProjectInput in = Retouch();
+  ASSERT_FALSE(in.image.empty());
   auto into_whole = Open(false)->BackProject("site", in);
   auto into_scoped = engine->BackProject("scoped", in);
   ASSERT_TRUE(into_whole.ok()) << into_whole.status();
@@ -352,16 +360,8 @@ TEST_F(BoundedReadTest, ChangesWithinTheBudgetWriteTheSameTiles) {
 // every reach raster; and both are the incremental version they remake, object for object.
 TEST_F(BoundedReadTest, RebuildWithinTheBudgetIsTheWholeOne) {
   // A derived source too (§10): a render back-projected, whose records a rebuild re-derives.
-  RenderRequest req;
-  req.pose = scenes::CorridorSite::Default().NovelViews()[0];
-  req.width_px = kPanoW;
-  req.height_px = kPanoH;
-  auto image = Open(false)->Render("site", req);
-  ASSERT_TRUE(image.ok()) << image.status();
-  BackProjectInput in;
-  in.name = "retouch";
-  in.pose = req.pose;
-  in.image = *render::EncodeExr(*image);
+  const BackProjectInput in = Retouch();
+  ASSERT_FALSE(in.image.empty());
   auto derived = Open(false)->BackProject("site", in);
   ASSERT_TRUE(derived.ok()) << derived.status();
   ASSERT_GT(derived->pixels_back_projected, 0);
