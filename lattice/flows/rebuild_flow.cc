@@ -87,7 +87,8 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   ingest::DeriveCentroidAndCovariance(next.geometry);
   ingest::ComputeNormals(next.geometry);
 
-  // The tiles in groups within the budget: one group when the version fits.
+  // The tiles in groups within the budget; one group (the whole version, held and committed
+  // as it is) when the version fits.
   const std::vector<tiles::TileKey> tile_of =
       tiles::TilesOfVossels(next.geometry, next.tile_vossels);
   const store::Manifest estimate = EstimateOf(tile_of, head_manifest);
@@ -96,50 +97,28 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
   if (VersionMemoryBytes(estimate, true, fused_layers) > max_snapshot_bytes) {
     groups = TileGroups(estimate, true, fused_layers, max_snapshot_bytes);
   }
+  const bool whole = groups.size() <= 1;
+  if (whole) groups = {std::set<tiles::TileKey>(tile_of.begin(), tile_of.end())};
   store::CommitPlan plan;
   plan.made_by = "rebuild";
   plan.replace_all = true;
 
-  if (groups.size() <= 1) {
-    // §3-§6: every source on every tile.
-    const double span = 0.5 / double(sources.size());
-    fraction = 0.35;
-    for (const internal::SourceRef& src : sources) {
-      if (absl::Status stop =
-              clock.Start(absl::StrCat("records of source ", src.info.id), fraction);
-          !stop.ok()) {
-        return stop;
-      }
-      fraction += span;
-      absl::StatusOr<ingest::SourceRecords> recs =
-          internal::StoredSourceRecords(store, src, next.geometry, max_image_pixels);
-      if (!recs.ok()) return recs.status();
-      next.records.Append(recs->records);
-      if (!src.derived()) next.reach[src.info.id] = std::move(recs->reach);
-      ++result.sources_computed;
-    }
-    next.records.SortByVossel();
-    if (absl::Status stop = clock.Start("fuse", 0.85); !stop.ok()) return stop;
-    if (absl::Status s = internal::FuseAll(store, head_manifest, next); !s.ok()) return s;
-    if (absl::Status s = internal::CommitFlow(store, std::move(next), plan, result, clock);
-        !s.ok()) {
-      return s;
-    }
-    return result;
-  }
-
-  // Group by group: each source's visibility on the whole geometry (its depth panorama needs
-  // every occluder; its reach raster is taken once), its records on the group's vossels alone
-  // (the same records the whole rebuild makes there), then the group fused and its tiles put.
-  const double span = 0.55 / double(groups.size() * sources.size());
+  // §3-§6, group by group. Every source's records on the group's vossels: in groups, its
+  // visibility found on the whole geometry (its depth panorama needs every occluder; its reach
+  // raster is taken once) and sampled on the group's vossels alone, the records the whole
+  // rebuild makes there; then the group fused and its tiles put.
+  const double span = 0.5 / double(groups.size() * sources.size());
   fraction = 0.35;
-  std::vector<uint8_t> in_group(next.geometry.size(), 0);
+  std::vector<uint8_t> in_group;
   for (size_t gi = 0; gi < groups.size(); ++gi) {
     const std::set<tiles::TileKey>& group = groups[gi];
-    for (size_t k = 0; k < in_group.size(); ++k) in_group[k] = group.count(tile_of[k]) ? 1 : 0;
-    const std::string of_group =
-        absl::StrCat(" in tile group ", gi + 1, " of ", groups.size(), " (", group.size(),
-                     " tiles)");
+    std::string of_group;
+    if (!whole) {
+      in_group.assign(next.geometry.size(), 0);
+      for (size_t k = 0; k < in_group.size(); ++k) in_group[k] = group.count(tile_of[k]) ? 1 : 0;
+      of_group = absl::StrCat(" in tile group ", gi + 1, " of ", groups.size(), " (",
+                              group.size(), " tiles)");
+    }
     for (const internal::SourceRef& src : sources) {
       if (absl::Status stop =
               clock.Start(absl::StrCat("records of source ", src.info.id, of_group), fraction);
@@ -149,11 +128,12 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
       fraction += span;
       const bool sized = src.returns() || (src.info.width_px > 0 && src.info.height_px > 0);
       absl::StatusOr<ingest::SourceRecords> recs;
-      if (src.derived() || !sized) {
-        // No depth panorama to find first (a derived source), or its size only in its blob:
-        // its reach, an upper bound here (a camera dilates only the rows its tests read).
+      if (whole || src.derived() || !sized) {
+        // Whole; or no depth panorama to find first (a derived source), or its size only in
+        // its blob: then its reach is an upper bound (a camera dilates only the rows its tests
+        // read).
         recs = internal::StoredSourceRecords(store, src, next.geometry, max_image_pixels,
-                                             &in_group, nullptr);
+                                             whole ? nullptr : &in_group, nullptr);
       } else {
         ingest::SourceVisibility visibility =
             internal::StoredVisibility(src, next.geometry, nullptr, nullptr, nullptr);
@@ -169,7 +149,11 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
       if (gi == 0) ++result.sources_computed;
     }
     next.records.SortByVossel();
+    if (absl::Status stop = clock.Start(absl::StrCat("fuse", of_group), fraction); !stop.ok()) {
+      return stop;
+    }
     if (absl::Status s = internal::FuseAll(store, head_manifest, next); !s.ok()) return s;
+    if (whole) break;  // committed as it is, every tile's records held
     absl::StatusOr<std::map<tiles::TileKey, std::map<std::string, store::ManifestEntry>>> put =
         store.PutTiles(next, group);
     if (!put.ok()) return put.status();
@@ -178,7 +162,7 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
     next.fused = records::FusedValues{};
     next.profile_fused.clear();
   }
-  next.records_partial = true;  // every tile is put; Commit counts from them
+  if (!whole) next.records_partial = true;  // every tile is put; Commit counts from them
   if (absl::Status s = internal::CommitFlow(store, std::move(next), plan, result, clock);
       !s.ok()) {
     return s;
