@@ -761,11 +761,11 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   next.records.SortByVossel();
   result.records_computed += int64_t(fresh.size());
   {
-    std::set<tiles::TileKey> rewritten = record_tiles;
-    rewritten.insert(plan.geometry_tiles.begin(), plan.geometry_tiles.end());
-    for (int32_t v : next.records.vossel) {
-      result.records_rewritten += rewritten.count(tile_of[size_t(v)]) ? 1 : 0;
+    std::vector<uint8_t> rewritten(g.size(), 0);  // per vossel: its tile is rewritten
+    for (size_t v = 0; v < g.size(); ++v) {
+      rewritten[v] = record_tiles.count(tile_of[v]) || plan.geometry_tiles.count(tile_of[v]);
     }
+    for (int32_t v : next.records.vossel) result.records_rewritten += rewritten[size_t(v)];
   }
 
   // 6. Fusion (§7) under the default profile; per vossel, so the tiles that kept their records

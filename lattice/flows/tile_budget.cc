@@ -78,13 +78,13 @@ std::vector<std::set<tiles::TileKey>> TileGroups(const store::Manifest& manifest
 std::vector<TileBox> TilesNearestFirst(const store::Manifest& manifest,
                                        const Eigen::Vector3d& eye_m, int tile_vossels,
                                        double vossel_size_m) {
-  const double T = double(tile_vossels), h = vossel_size_m;
   std::vector<TileBox> out;
   for (const auto& [key, layers] : manifest.tiles) {
+    const tiles::Box cells = tiles::BoxOf(key, tile_vossels, vossel_size_m);
     TileBox box;
     box.key = key;
-    box.lo_m = h * (T * Eigen::Vector3d(key.x, key.y, key.z).array() - 0.5);  // cells: h(k ± ½)
-    box.hi_m = box.lo_m + Eigen::Vector3d::Constant(h * T);
+    box.lo_m = cells.min_m;
+    box.hi_m = cells.max_m;
     box.near_m = (eye_m.cwiseMax(box.lo_m).cwiseMin(box.hi_m) - eye_m).norm();
     out.push_back(box);
   }

@@ -185,6 +185,18 @@ absl::StatusOr<tiles::Assembled> ReadTiles(const ObjectStore& objects, double vo
   return assembler.Finish();
 }
 
+/// INVALID_ARGUMENT unless `snapshot`'s lattice has the project's vossel size (a commit's or a
+/// put's input).
+absl::Status SameVosselSize(const Snapshot& snapshot, const ProjectSettings& settings) {
+  if (std::fabs(snapshot.geometry.vossel_size_m - settings.vossel_size_m) >
+      1e-9 * settings.vossel_size_m) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
+                     " m differs from the project's ", settings.vossel_size_m, " m"));
+  }
+  return absl::OkStatus();
+}
+
 /// The objects of one tile as written by a commit.
 struct WrittenTile {
   tiles::TileKey key;
@@ -1164,12 +1176,7 @@ absl::StatusOr<std::set<tiles::TileKey>> ProjectStore::TilesWithRecordsOf(
 
 absl::StatusOr<std::map<tiles::TileKey, std::map<std::string, ManifestEntry>>>
 ProjectStore::PutTiles(const Snapshot& snapshot, const std::set<tiles::TileKey>& tiles) {
-  if (std::fabs(snapshot.geometry.vossel_size_m - impl_->settings.vossel_size_m) >
-      1e-9 * impl_->settings.vossel_size_m) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
-                     " m differs from the project's ", impl_->settings.vossel_size_m, " m"));
-  }
+  if (absl::Status s = SameVosselSize(snapshot, impl_->settings); !s.ok()) return s;
   absl::StatusOr<std::vector<WrittenTile>> written =
       impl_->WriteTiles(snapshot, tiles, /*with_geometry=*/true);
   if (!written.ok()) return written.status();
@@ -1227,11 +1234,8 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     return absl::InvalidArgumentError(
         "a snapshot holding some tiles' records can commit only those tiles");
   }
-  if (!no_snapshot && std::fabs(snapshot.geometry.vossel_size_m - im.settings.vossel_size_m) >
-      1e-9 * im.settings.vossel_size_m) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("snapshot vossel size ", snapshot.geometry.vossel_size_m,
-                     " m differs from the project's ", im.settings.vossel_size_m, " m"));
+  if (!no_snapshot) {
+    if (absl::Status s = SameVosselSize(snapshot, im.settings); !s.ok()) return s;
   }
   if (plan.add_scan) {
     const ScanInfo& scan = *plan.add_scan;
