@@ -158,6 +158,8 @@ struct Engine::Impl {
     result.sources_revisited = flow.sources_revisited;
     result.pairs_revisited = flow.pairs_revisited;
     result.blocks_revisited = flow.blocks_revisited;
+    result.vossels_revisited = flow.vossels_revisited;
+    result.vossels_in_blocks = flow.vossels_in_blocks;
     result.sources_refreshed = flow.sources_refreshed;
     result.tiles_changed = flow.tiles_changed;
     result.records_computed = flow.records_computed;

@@ -90,6 +90,8 @@ struct IngestResult {
   int64_t sources_revisited = 0;  ///< older sources recomputed on the tiles the change reaches
   int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
+  int64_t vossels_revisited = 0;  ///< (older source, vossel) pairs of those blocks recomputed
+  int64_t vossels_in_blocks = 0;  ///< (older source, vossel) pairs those blocks hold
   /// Of the sources revisited, those refreshed from their own records without their blob.
   int64_t sources_refreshed = 0;
   int64_t tiles_changed = 0;      ///< tiles whose objects the commit wrote

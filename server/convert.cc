@@ -454,6 +454,7 @@ void ChangeStatsToProto(const IngestResult& result, v1::ChangeStats* out) {
   out->set_pairs_revisited(result.pairs_revisited);
   out->set_blocks_revisited(result.blocks_revisited);
   out->set_sources_refreshed(result.sources_refreshed);
+  out->set_vossels_revisited(result.vossels_revisited);
   out->set_tiles_changed(result.tiles_changed);
   out->set_bytes_written(result.bytes_written);
 }

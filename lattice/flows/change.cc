@@ -8,6 +8,7 @@
 #include <memory>
 #include <optional>
 
+#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_pipeline.h>
 #include <tbb/task_arena.h>
@@ -197,25 +198,19 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
   return out;
 }
 
-RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revisit,
-                   const std::set<tiles::TileKey>& all, int B, double h) {
+RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
+                     const std::vector<uint8_t>& candidates,
+                     const std::vector<uint8_t>& changed_new, const ChangedSplats& changes,
+                     const std::vector<tiles::TileKey>& blocks,
+                     const std::vector<int32_t>& block_of, int B) {
+  const double h = g.vossel_size_m;
   const Eigen::Vector3d o = source.info.pose.o_world;
   const double grow_m = 2.0 * h;
   const double margin_rad = AngularMarginRad(source);
-  // A camera's tests read the dilated panorama: its pixels take the min over a window, so the
-  // splats must be exact that much farther out (one pixel more for rounding).
+  // A camera's tests read the dilated panorama: its pixels take the min over a window, so a
+  // test reads that much farther out (one pixel more for rounding).
   const double dilation_rad =
       source.returns() ? 0.0 : (ingest::CameraSampleRadiusPx() + 1.0) * DepthPixelRad(source);
-  RevisitCone cone;
-  for (const tiles::TileKey& b : revisit) {
-    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
-    cap.half_angle_rad += margin_rad + dilation_rad;
-    cone.exact.push_back(cap);
-  }
-  // A splat lies within its cell grown by σ(r) (surfel or sphere), and a test D(p) ≥ r − τ
-  // holds with or without a splat at depth ≥ r. So a block whose splats all lie beyond the far
-  // side of every exact block it overlaps cannot change a test there: it is left out of the
-  // context.
   const double spread_rad = std::max(
       {source.info.divergence_rad, DepthPixelRad(source),
        source.returns() || source.info.width_px <= 0
@@ -223,19 +218,162 @@ RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revi
            : ingest::ProjectionOf(CameraOf(source.info, 0), source.info.width_px,
                                   source.info.height_px)
                  .PixelAngleRad(Eigen::Vector3d::UnitX())});
-  for (const tiles::TileKey& b : all) {
-    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(b, B, h), o, grow_m);
-    cap.half_angle_rad += margin_rad;
-    const double splat_near_m =
-        cap.near_m - grow_m - std::sqrt(3.0) * geometry::SpotSigmaM(cap.far_m, spread_rad);
-    for (const tiles::ViewCap& c : cone.exact) {
-      if (splat_near_m <= c.far_m + grow_m && tiles::CapsOverlap(cap, c, 0.0)) {
-        cone.context.insert(b);
-        break;
+  const ingest::DepthView view = ViewOf(source);
+  const tiles::CapCells grid({view.size.width_px / tiles::kReachBlockPx,
+                              view.size.height_px / tiles::kReachBlockPx},
+                             source.info.pose);
+  const double sphere_m = 0.5 * std::sqrt(3.0) * h;  // a vossel's bounding sphere (§5)
+  // A cap about the direction to `x`, of the angle a sphere of `radius_m` there subtends,
+  // widened by `widen_rad`; its far side: the range of x plus `depth_m`.
+  auto cap_about = [&o](const Eigen::Vector3d& x, double radius_m, double widen_rad,
+                        double depth_m) {
+    tiles::ViewCap cap;
+    const Eigen::Vector3d to = x - o;
+    const double r = to.norm();
+    cap.near_m = std::max(0.0, r - depth_m);
+    cap.far_m = r + depth_m;
+    if (r <= radius_m) {
+      cap.everywhere = true;
+      cap.half_angle_rad = M_PI;
+      return cap;
+    }
+    cap.dir = to / r;
+    cap.half_angle_rad = std::asin(radius_m / r) + widen_rad;
+    return cap;
+  };
+  // ComputeVisibility's samples lie within 0.53·h of the frame centroid.
+  constexpr double kPatchM = 0.55;  // × h, rounded up
+  std::vector<float> far(grid.cell_count(), 0.0f);  // per cell: splat exactly to this depth
+  auto splat_to = [&](const tiles::ViewCap& cap) {
+    const float far_m = float(cap.far_m);
+    grid.ForEach(cap, [&](size_t cell, bool) {
+      far[cell] = std::max(far[cell], far_m);
+      return true;
+    });
+  };
+
+  // 1. The vossels recomputed: the changed ones, and those with a test sample where a changed
+  //    splat, old or new, lies nearer than the sample's threshold. D before and after the
+  //    change are min(D_rest, S_old) and min(D_rest, S_new) (a camera's dilated: the min over
+  //    a window commutes with them); where min(S_old, S_new) ≥ the threshold both tests read
+  //    D_rest, so every other test, and with it the vossel's records, is as it was.
+  RevisitScope scope;
+  scope.only.assign(g.size(), 0);
+  std::vector<uint8_t> unchanged(g.size(), 0);
+  for (size_t k = 0; k < g.size(); ++k) {
+    scope.only[k] = candidates[k] && changed_new[k];
+    unchanged[k] = candidates[k] && !changed_new[k];
+  }
+  if (changes.splats.size() > 0) {
+    ingest::DepthPanorama s = ingest::RenderDepthPanorama(changes.splats, source.info.pose,
+                                                          view.size, view.divergence_rad);
+    if (view.dilate_px > 0) {  // on the rows the splats reach (+inf stays +inf elsewhere)
+      const int W = view.size.width_px, H = view.size.height_px;
+      int first = H, last = -1;
+      for (int j = 0; j < H; ++j) {
+        const float* row = &s.depth_m[size_t(j) * W];
+        if (std::any_of(row, row + W, [](float d) { return std::isfinite(d); })) {
+          first = std::min(first, j);
+          last = j;
+        }
+      }
+      if (last >= 0) {
+        ingest::DilateDepthPanorama(s, view.dilate_px, first - view.dilate_px,
+                                    last + view.dilate_px + 1);
       }
     }
+    // Tested sample by sample only where S may lie nearer than the vossel's farthest sample
+    // in a reach cell about its centroid (S's min per cell); a test reads no other.
+    const int W = view.size.width_px, H = view.size.height_px, kCell = tiles::kReachBlockPx;
+    const int cw = W / kCell, ch = H / kCell;
+    std::vector<float> cell_min(size_t(cw) * ch, std::numeric_limits<float>::infinity());
+    for (int j = 0; j < ch * kCell; ++j) {
+      const float* row = &s.depth_m[size_t(j) * W];
+      float* mins = &cell_min[size_t(j / kCell) * cw];
+      for (int i = 0; i < cw * kCell; ++i) mins[i / kCell] = std::min(mins[i / kCell], row[i]);
+    }
+    const Eigen::Matrix3d R_sensor_world =
+        source.info.pose.q_world_sensor.conjugate().toRotationMatrix();
+    const double dpsi = geometry::ElevationPitchRad(view.size);
+    const double dphi = geometry::AzimuthPitchRad(view.size);
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 4096),
+                      [&](const tbb::blocked_range<size_t>& r) {
+      for (size_t k = r.begin(); k != r.end(); ++k) {
+        if (!unchanged[k]) continue;
+        const Eigen::Vector3d to = g.FrameCentroid(k).cast<double>() - o;
+        const double range = to.norm();
+        const double patch_m = kPatchM * h;
+        if (!(range > 2.0 * patch_m)) continue;  // at the sensor: test it
+        const Eigen::Vector3d d = R_sensor_world * (to / range);
+        const double spread = std::asin(patch_m / range);
+        // Clear of the poles the samples' azimuths lie within asin(sin spread / cos ψ) of the
+        // centroid's; near a pole, test it.
+        const double cos_psi = std::hypot(d.x(), d.y());
+        if (std::acos(std::min(1.0, cos_psi)) + spread > 0.5 * M_PI - 0.1) continue;
+        const Eigen::Vector2d uv = geometry::EquirectProject(d, view.size);
+        const int di = int(std::ceil(std::asin(std::sin(spread) / cos_psi) / dphi)) + 2 +
+                       view.dilate_px;
+        const int dj = int(std::ceil(spread / dpsi)) + 2 + view.dilate_px;
+        if (2 * di + 1 >= W) continue;
+        const int r0 = std::max(0, int(uv.y()) - dj) / kCell;
+        const int r1 = std::min(ch * kCell - 1, int(uv.y()) + dj) / kCell;
+        const int i0 = int(std::floor(uv.x())) - di, i1 = int(std::floor(uv.x())) + di;
+        float nearest = std::numeric_limits<float>::infinity();
+        for (int cj = r0; cj <= r1; ++cj) {
+          for (int i = i0; i <= i1 + kCell - 1; i += kCell) {
+            const int ci = geometry::WrapColumn(std::min(i, i1), W) / kCell;
+            nearest = std::min(nearest, cell_min[size_t(cj) * cw + std::min(ci, cw - 1)]);
+          }
+        }
+        if (double(nearest) >= range + patch_m) unchanged[k] = 0;  // S lies behind every test
+      }
+    });
+    const std::vector<float> lit = ingest::ComputeVisibility(
+        g, s, ingest::DepthToleranceM(h), &unchanged, view.slope_pixels);
+    for (size_t k = 0; k < g.size(); ++k) {
+      if (unchanged[k] && lit[k] < 1.0f) scope.only[k] = 1;
+    }
   }
-  return cone;
+
+  // 2. The cells splatted exactly: those the recomputed tests read (a changed vossel's by its
+  //    whole cell, its old frame's samples being read too), to their farthest range; and those
+  //    an old splat left, whose reach the revisit recomputes, to the splat's far side.
+  for (size_t k = 0; k < g.size(); ++k) {
+    if (!scope.only[k]) continue;
+    const openvdb::Coord& c = g.coord[k];
+    splat_to(changed_new[k]
+                 ? cap_about(h * Eigen::Vector3d(c.x(), c.y(), c.z()), sphere_m + kPatchM * h,
+                             margin_rad + dilation_rad, sphere_m + kPatchM * h)
+                 : cap_about(g.FrameCentroid(k).cast<double>(), kPatchM * h,
+                             margin_rad + dilation_rad, kPatchM * h));
+  }
+  for (size_t v = 0; v < changes.before; ++v) {
+    // The splat of cell c falls within the angle of its bounding sphere grown by σ(r), at
+    // depths within the cube of half-edge h/2 + σ about its centre (RenderDepthPanorama).
+    const openvdb::Coord& c = changes.splats.coord[v];
+    const Eigen::Vector3d centre = h * Eigen::Vector3d(c.x(), c.y(), c.z());
+    const double sigma_m = geometry::SpotSigmaM((centre - o).norm() + sphere_m, spread_rad);
+    splat_to(cap_about(centre, sphere_m + sigma_m, margin_rad,
+                       std::sqrt(3.0) * (0.5 * h + sigma_m)));
+  }
+
+  // 3. The context: blocks whose splats can fall in a splatted cell nearer than its far depth.
+  std::vector<uint8_t> in_context(blocks.size(), 0);
+  tbb::parallel_for(size_t(0), blocks.size(), [&](size_t b) {
+    tiles::ViewCap cap = tiles::CapOf(tiles::BoxOf(blocks[b], B, h), o, grow_m);
+    cap.half_angle_rad += margin_rad;
+    const double near =
+        cap.near_m - grow_m - std::sqrt(3.0) * geometry::SpotSigmaM(cap.far_m, spread_rad);
+    grid.ForEach(cap, [&](size_t cell, bool) {
+      if (far[cell] > 0.0f && near <= double(far[cell])) in_context[b] = 1;
+      return in_context[b] == 0;
+    });
+  });
+  scope.context.resize(g.size());
+  for (size_t k = 0; k < g.size(); ++k) scope.context[k] = in_context[size_t(block_of[k])];
+  scope.cells.resize(grid.cell_count());
+  for (size_t c = 0; c < far.size(); ++c) scope.cells[c] = far[c] > 0.0f ? 2 : 0;
+  return scope;
 }
 
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
@@ -268,14 +406,14 @@ ingest::SourceVisibility StoredVisibility(const SourceRef& source,
                                           const records::VosselGeometry& geometry,
                                           const std::vector<uint8_t>* only,
                                           const std::vector<uint8_t>* context,
-                                          const std::vector<tiles::ViewCap>* read_within) {
+                                          const std::vector<uint8_t>* read_cells) {
   if (source.returns()) {
     return ingest::LidarVisibility(geometry, source.info.pose, ViewOf(source), only, context,
-                                   read_within);
+                                   read_cells);
   }
   return ingest::CameraVisibility(geometry, CameraOf(source.info, source.batch),
                                   source.info.width_px, source.info.height_px, only, context,
-                                  read_within);
+                                  read_cells);
 }
 
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
@@ -441,10 +579,23 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
     const SourceRef* src = nullptr;
     const std::set<tiles::TileKey>* blocks = nullptr;
     std::set<tiles::TileKey> tiles;
-    RevisitCone cone;
+    std::vector<uint8_t> cells;  ///< the reach cells its depth panorama splatted exactly
     absl::StatusOr<ingest::SourceRecords> computed;
-    bool refreshed = false;  ///< from its records before the change, without its blob
+    records::RecordSet kept;  ///< its records on the blocks' vossels it did not recompute
+    int64_t vossels = 0;      ///< the vossels it recomputed
+    int64_t candidates = 0;   ///< the vossels of its blocks
+    bool refreshed = false;   ///< from its records before the change, without its blob
   };
+  const std::vector<tiles::TileKey> numbered(all_blocks.begin(), all_blocks.end());
+  ChangedSplats changed_splats;
+  changed_splats.splats = changed.old_splats;
+  changed_splats.before = changed.old_splats.size();
+  for (size_t v = 0; v < g.size(); ++v) {
+    if (!changed.changed_new[v]) continue;
+    changed_splats.splats.coord.push_back(g.coord[v]);
+    changed_splats.splats.centroid_m.push_back(g.FrameCentroid(v));
+    changed_splats.splats.normal.push_back(g.FrameNormal(v));
+  }
   std::vector<const SourceRef*> order;
   for (const SourceRef& src : old_sources) {
     if (revisit.count(src.info.id)) order.push_back(&src);
@@ -501,35 +652,46 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
           tbb::make_filter<std::shared_ptr<Job>, std::shared_ptr<Job>>(
               tbb::filter_mode::parallel,
               [&](std::shared_ptr<Job> job) {
-                // The revisited blocks, and the cone of blocks whose splats can fall where
-                // their visibility tests (and a camera's dilation) read: the depth panorama
-                // splats that cone only.
+                // The vossels of the revisited blocks.
                 const SourceRef& src = *job->src;
-                if (!src.derived()) job->cone = ConeOf(src, *job->blocks, all_blocks, B, h);
                 const std::vector<uint8_t> in_blocks = number_of(*job->blocks);
-                const std::vector<uint8_t> in_context = number_of(job->cone.context);
-                std::vector<uint8_t> only(g.size(), 0), context(g.size(), 0);
+                std::vector<uint8_t> candidates(g.size(), 0);
                 for (size_t v = 0; v < g.size(); ++v) {
-                  only[v] = in_blocks[size_t(block_number[v])];
-                  context[v] = in_context[size_t(block_number[v])];
+                  candidates[v] = in_blocks[size_t(block_number[v])];
                 }
+                job->candidates = std::count(candidates.begin(), candidates.end(), uint8_t{1});
+                auto mine = records_of.find(src.info.id);
                 const bool sized =
                     src.returns() || (src.info.width_px > 0 && src.info.height_px > 0);
                 if (src.derived() || !sized) {  // no visibility without a size: from the blob
+                  job->vossels = job->candidates;
                   job->computed =
-                      StoredSourceRecords(store, src, g, max_image_pixels, &only, &context);
+                      StoredSourceRecords(store, src, g, max_image_pixels, &candidates, nullptr);
                   return job;
                 }
+                // Of them, the vossels whose records the change may alter, and the blocks whose
+                // splats the depth panorama needs for their tests: it splats those only.
+                RevisitScope scope = ScopeOf(src, g, candidates, changed.changed_new,
+                                             changed_splats, numbered, block_number, B);
+                job->vossels = std::count(scope.only.begin(), scope.only.end(), uint8_t{1});
+                job->cells = std::move(scope.cells);
                 // Visibility first; the blob only when a record needs its points or pixels.
                 ingest::SourceVisibility visibility =
-                    StoredVisibility(src, g, &only, &context, &job->cone.exact);
-                auto mine = records_of.find(src.info.id);
-                records::RecordSet before =
-                    mine == records_of.end() ? records::RecordSet{}
-                                             : old_records.Select(mine->second);
+                    StoredVisibility(src, g, &scope.only, &scope.context, &job->cells);
+                std::vector<size_t> redo, keep;
+                if (mine != records_of.end()) {
+                  for (size_t i : mine->second) {
+                    (scope.only[size_t(old_to_new[size_t(old_records.vossel[i])])] ? redo : keep)
+                        .push_back(i);
+                  }
+                }
+                job->kept = old_records.Select(keep);
+                for (int32_t& v : job->kept.vossel) v = old_to_new[size_t(v)];
+                records::RecordSet before = old_records.Select(redo);
                 for (int32_t& v : before.vossel) v = old_to_new[size_t(v)];
                 if (std::optional<records::RecordSet> kept = RefreshedRecords(
-                        src, std::move(before), old.geometry, g, changed, only, visibility)) {
+                        src, std::move(before), old.geometry, g, changed, scope.only,
+                        visibility)) {
                   job->computed = ingest::SourceRecords{std::move(*kept),
                                                         std::move(visibility.reach)};
                   job->refreshed = true;
@@ -549,7 +711,10 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 const SourceRef& src = *job->src;
                 ingest::SourceRecords& recs = *job->computed;
                 next.records.Append(recs.records);
+                next.records.Append(job->kept);
                 result.records_computed += int64_t(recs.records.size());
+                result.vossels_revisited += job->vossels;
+                result.vossels_in_blocks += job->candidates;
                 record_tiles.insert(job->tiles.begin(), job->tiles.end());
                 ++result.sources_revisited;
                 if (job->refreshed) ++result.sources_refreshed;
@@ -560,9 +725,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 if (before != old.reach.end() &&
                     before->second.size.width_px == recs.reach.size.width_px &&
                     before->second.size.height_px == recs.reach.size.height_px) {
-                  recs.reach = tiles::MergeReach(
-                      before->second, recs.reach,
-                      tiles::CellCoverage(recs.reach.size, src.info.pose, job->cone.exact));
+                  recs.reach = tiles::MergeReach(before->second, recs.reach, job->cells);
                 }
                 next.reach[src.info.id] = std::move(recs.reach);
                 plan.reach_sources.insert(src.info.id);

@@ -20,13 +20,18 @@
 ///          2. A reachable changed block c can alter D_m only inside cap_m(c), and only at
 ///             depths ≥ near(c) − 2h; so it can alter the visibility of tile t only when
 ///             cap_m(t) meets cap_m(c) and far(t) + 4h ≥ near(c).
-///          The rules are applied to blocks of 16³ vossels (finer than tiles): the records of m
-///          recomputed are those on the blocks of 2 (c itself included); a LiDAR's are kept to
-///          the tiles where it has returns (it records nothing elsewhere). Everything else keeps
-///          its records bit for bit. The recomputation renders D_m from every block whose
-///          splats can fall where the revisited tests read at a depth they compare (blocks wholly
-///          behind those tests are left out: see ConeOf), so its records equal a rebuild's and
-///          its new reach raster bounds a rebuild's from above.
+///          The rules are applied to blocks of 16³ vossels (finer than tiles): the blocks of 2
+///          (c itself included) are m's revisited blocks; a LiDAR's are kept to the tiles where
+///          it has returns (it records nothing elsewhere).
+///          3. Within them, vossel by vossel: D_m before and after are min(D_rest, S_old) and
+///             min(D_rest, S_new), S the changed vossels' splats; an unchanged vossel k's test
+///             at a pixel changes only where min(S_old, S_new) lies below its threshold there.
+///             Only the changed vossels and those with such a sample are recomputed
+///             (RevisitScope).
+///          Everything else keeps its records bit for bit. The recomputation renders D_m from
+///          every block whose splats can fall where the recomputed tests read at a depth they
+///          compare (blocks wholly behind those tests are left out: see ScopeOf), so its records
+///          equal a rebuild's and its new reach raster bounds a rebuild's from above.
 #pragma once
 
 #include <chrono>
@@ -119,18 +124,37 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
                                         const std::vector<ChangedBlock>& changed,
                                         const std::set<tiles::TileKey>& all, int B, double h);
 
-/// Where a revisit of a source must see exactly: the caps (from the source) of the blocks it
-/// recomputes, widened by its angular margin and a camera's dilation, and the blocks whose
-/// splats can fall inside them nearer than the far side of a block they overlap. Splatting the
-/// context alone gives, inside `exact`, every depth a visibility test there compares exactly
-/// (deeper splats cannot change a test D(p) ≥ r − τ with r below them) and an upper bound
-/// elsewhere, so the records of the revisited blocks are a rebuild's.
-struct RevisitCone {
-  std::vector<tiles::ViewCap> exact;
-  std::set<tiles::TileKey> context;  ///< block keys
+/// What a revisit of a source recomputes, and what it renders to do so (rule 3 of @details).
+/// Of the vossels of its revisited blocks, the records recomputed are those of the changed
+/// vossels and of the vossels with a visibility test sample where a changed splat, old or new,
+/// lies nearer than the sample's threshold (found on a depth panorama of the changed splats
+/// alone, dilated as the source's): every other test reads the depth of the unchanged vossels
+/// before and after, so those records stay bit for bit. The depth panorama is then splatted
+/// exactly on `cells` (the reach cells the recomputed tests read, a camera's dilation included,
+/// and those an old splat left, whose reach the revisit recomputes) from the `context` blocks:
+/// those whose splats can fall in such a cell nearer than the farthest test or old splat
+/// there. Deeper splats cannot change a test D(p) ≥ r − τ with r below them, so the records
+/// recomputed are a rebuild's, and the fresh reach in `cells` bounds a rebuild's from above.
+struct RevisitScope {
+  std::vector<uint8_t> only;     ///< per vossel of the new geometry: its records are recomputed
+  std::vector<uint8_t> context;  ///< per vossel: splatted into the depth panorama
+  std::vector<uint8_t> cells;    ///< per reach cell of the depth panorama: 2 splatted exactly
 };
-RevisitCone ConeOf(const SourceRef& source, const std::set<tiles::TileKey>& revisit,
-                   const std::set<tiles::TileKey>& all, int B, double h);
+/// Every splat a change touched, as the depth panoramas splat them (each one's frame centroid
+/// and normal as its surface): the old state of the vossels that vanished or were reframed
+/// (the first `before`), then the new state of those that appeared or were reframed.
+struct ChangedSplats {
+  records::VosselGeometry splats;
+  size_t before = 0;
+};
+/// The scope of a revisit of `source` whose revisited blocks hold the `candidates` vossels of
+/// `g` (`changed_new` as ChangedVossels'); `blocks` numbers the blocks of `g` (edge B) and
+/// `block_of` gives each vossel's number.
+RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
+                     const std::vector<uint8_t>& candidates,
+                     const std::vector<uint8_t>& changed_new, const ChangedSplats& changes,
+                     const std::vector<tiles::TileKey>& blocks,
+                     const std::vector<int32_t>& block_of, int B);
 
 /// The records (and reach raster) of a stored source on `geometry`, its points or image read
 /// back from its blob; `only` and `context` as ingest::LidarRecords / CameraRecords.
@@ -141,12 +165,12 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(
 
 /// The visibility of a stored source on `geometry` (ingest::LidarVisibility, CameraVisibility
 /// with the image size the catalog holds), found without reading its blob; its depth panorama
-/// splatted only within `read_within` when given (a revisit's exact caps).
+/// splatted only on the reach cells `read_cells` flags when given (a revisit's scope).
 ingest::SourceVisibility StoredVisibility(const SourceRef& source,
                                           const records::VosselGeometry& geometry,
                                           const std::vector<uint8_t>* only,
                                           const std::vector<uint8_t>* context,
-                                          const std::vector<tiles::ViewCap>* read_within);
+                                          const std::vector<uint8_t>* read_cells);
 /// The records of a stored source whose visibility is known, from its blob (not derived).
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
                                                           const SourceRef& source,

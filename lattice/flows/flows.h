@@ -44,6 +44,8 @@ struct FlowResult {
   int64_t sources_revisited = 0;  ///< older sources recomputed on some tiles
   int64_t pairs_revisited = 0;    ///< (older source, tile) pairs with records recomputed
   int64_t blocks_revisited = 0;   ///< (older source, 16³-vossel block) pairs recomputed
+  int64_t vossels_revisited = 0;  ///< (older source, vossel) pairs of those blocks recomputed
+  int64_t vossels_in_blocks = 0;  ///< (older source, vossel) pairs those blocks hold
   /// Of the sources revisited, those whose records were refreshed from their records before
   /// the change (visibility, and a LiDAR's geometric terms) without reading their blob.
   int64_t sources_refreshed = 0;

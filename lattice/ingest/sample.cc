@@ -419,27 +419,12 @@ SourceVisibility ReturnVisibility(const records::VosselGeometry& g, const LidarS
 
 }  // namespace
 
-namespace {
-
-// The reach cells of a depth panorama of `size` that `caps` meet (none: every cell).
-std::optional<std::vector<uint8_t>> CellsWithin(const geometry::EquirectSize& size,
-                                                const geometry::Pose& pose,
-                                                const std::vector<tiles::ViewCap>* caps) {
-  if (caps == nullptr) return std::nullopt;
-  return tiles::CellCoverage(
-      {size.width_px / tiles::kReachBlockPx, size.height_px / tiles::kReachBlockPx}, pose, *caps);
-}
-
-}  // namespace
-
 SourceVisibility LidarVisibility(const records::VosselGeometry& g, const geometry::Pose& pose,
                                  const DepthView& view, const std::vector<uint8_t>* only,
                                  const std::vector<uint8_t>* context,
-                                 const std::vector<tiles::ViewCap>* read_within) {
+                                 const std::vector<uint8_t>* read_cells) {
   SourceVisibility out;
-  const std::optional<std::vector<uint8_t>> cells = CellsWithin(view.size, pose, read_within);
-  out.depth = RenderDepthPanorama(g, pose, view.size, view.divergence_rad, context,
-                                  cells ? &*cells : nullptr);
+  out.depth = RenderDepthPanorama(g, pose, view.size, view.divergence_rad, context, read_cells);
   out.vis = ComputeVisibility(g, out.depth, DepthToleranceM(g.vossel_size_m), only,
                               view.slope_pixels);
   out.reach = tiles::ReachFromDepth(out.depth.depth_m, out.depth.size);
@@ -496,7 +481,7 @@ std::pair<int, int> RowsTested(const records::VosselGeometry& g, const DepthPano
 SourceVisibility CameraVisibility(const records::VosselGeometry& g, const CameraSource& cam,
                                   int width_px, int height_px, const std::vector<uint8_t>* only,
                                   const std::vector<uint8_t>* context,
-                                  const std::vector<tiles::ViewCap>* read_within) {
+                                  const std::vector<uint8_t>* read_cells) {
   const double tau = DepthToleranceM(g.vossel_size_m);
   const ImageProjection proj = ProjectionOf(cam, width_px, height_px);
   const double pitch = proj.PitchRad();
@@ -504,9 +489,8 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
   SourceVisibility out;
   out.image_w = width_px;
   out.image_h = height_px;
-  const std::optional<std::vector<uint8_t>> cells = CellsWithin(view.size, cam.pose, read_within);
-  out.depth = RenderDepthPanorama(g, cam.pose, view.size, view.divergence_rad, context,
-                                  cells ? &*cells : nullptr);
+  out.depth =
+      RenderDepthPanorama(g, cam.pose, view.size, view.divergence_rad, context, read_cells);
   DepthPanorama& depth = out.depth;
   // A pinhole photo tests only the vossels its image holds (SampleCamera records no other).
   std::vector<uint8_t> in_view;

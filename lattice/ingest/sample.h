@@ -92,10 +92,9 @@ DepthView CameraDepthView(const CameraSource& camera, int width_px, int height_p
 /// records can be made for (`only`, all without; of a pinhole camera those its image holds;
 /// 0 elsewhere), and its reach raster. LidarVisibility / CameraVisibility then the records'
 /// sampling are what LidarRecords / CameraRecords do.
-/// With `read_within` (a revisit's caps: every pixel the tests of `only` read lies inside
-/// them) the panorama is splatted only on the reach cells the caps meet; elsewhere it and the
-/// reach raster say +inf, a bound the caller must not use (tiles::MergeReach keeps the old one
-/// there).
+/// With `read_cells` (a revisit's: per reach cell of the panorama, nonzero where the tests of
+/// `only` read) the panorama is splatted only on those cells; elsewhere it and the reach raster
+/// say +inf, a bound the caller must not use (tiles::MergeReach keeps the old one there).
 struct SourceVisibility {
   DepthPanorama depth;       ///< as the tests read it (a camera's dilated on the rows they read)
   std::vector<float> vis;    ///< V per vossel
@@ -106,13 +105,13 @@ SourceVisibility LidarVisibility(const records::VosselGeometry& geometry,
                                  const geometry::Pose& pose, const DepthView& view,
                                  const std::vector<uint8_t>* only = nullptr,
                                  const std::vector<uint8_t>* context = nullptr,
-                                 const std::vector<tiles::ViewCap>* read_within = nullptr);
+                                 const std::vector<uint8_t>* read_cells = nullptr);
 /// A camera's, for an image of width_px × height_px (its image need not be decoded).
 SourceVisibility CameraVisibility(const records::VosselGeometry& geometry,
                                   const CameraSource& camera, int width_px, int height_px,
                                   const std::vector<uint8_t>* only = nullptr,
                                   const std::vector<uint8_t>* context = nullptr,
-                                  const std::vector<tiles::ViewCap>* read_within = nullptr);
+                                  const std::vector<uint8_t>* read_cells = nullptr);
 
 /// The geometric terms of a record of returns on vossel k (§3, on its record frame), as
 /// SampleLidar makes them; false when k's frame lies at the sensor (no record).

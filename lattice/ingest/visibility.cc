@@ -1,11 +1,9 @@
 #include "lattice/ingest/visibility.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <limits>
-#include <memory>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -19,11 +17,6 @@ uint32_t FloatBits(float f) {
   uint32_t u;
   std::memcpy(&u, &f, 4);
   return u;
-}
-float BitsFloat(uint32_t u) {
-  float f;
-  std::memcpy(&f, &u, 4);
-  return f;
 }
 
 }  // namespace
@@ -54,9 +47,31 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   out.size = size;
   const int W = size.width_px, H = size.height_px;
   const size_t npix = size_t(W) * H;
-  std::unique_ptr<std::atomic<uint32_t>[]> depth(new std::atomic<uint32_t>[npix]);
-  const uint32_t inf_bits = FloatBits(std::numeric_limits<float>::infinity());
-  for (size_t p = 0; p < npix; ++p) depth[p].store(inf_bits, std::memory_order_relaxed);
+  // Float bits, which order as the floats do for depths ≥ 0: splats keep the min by an atomic
+  // compare-and-swap on each pixel's word (GCC's __atomic builtins on plain words).
+  std::vector<uint32_t> depth(npix, FloatBits(std::numeric_limits<float>::infinity()));
+  // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie
+  // in unflagged cells only is passed over before any per-row work.
+  const int cells_h = cells != nullptr ? size.height_px / kCell : 0;
+  std::vector<int32_t> flagged_sum;
+  if (cells != nullptr) {
+    flagged_sum.assign(size_t(cells_w + 1) * size_t(cells_h + 1), 0);
+    for (int cj = 0; cj < cells_h; ++cj) {
+      for (int ci = 0; ci < cells_w; ++ci) {
+        flagged_sum[size_t(cj + 1) * (cells_w + 1) + ci + 1] =
+            ((*cells)[size_t(cj) * cells_w + ci] != 0 ? 1 : 0) +
+            flagged_sum[size_t(cj) * (cells_w + 1) + ci + 1] +
+            flagged_sum[size_t(cj + 1) * (cells_w + 1) + ci] -
+            flagged_sum[size_t(cj) * (cells_w + 1) + ci];
+      }
+    }
+  }
+  // Flagged cells among cell rows [r0, r1] and cell columns [c0, c1] (0 ≤ c0 ≤ c1 < cells_w).
+  auto flagged_in = [&](int r0, int r1, int c0, int c1) {
+    const size_t s = size_t(cells_w + 1);
+    return flagged_sum[size_t(r1 + 1) * s + c1 + 1] - flagged_sum[size_t(r0) * s + c1 + 1] -
+           flagged_sum[size_t(r1 + 1) * s + c0] + flagged_sum[size_t(r0) * s + c0];
+  };
 
   // Pixel-centre directions, separable: q = (cosψ cosφ, cosψ sinφ, sinψ) in the sensor frame,
   // and in the world frame q_w = cosφ·A_j + sinφ·B_j + C_j with the rows' A_j = cosψ_j·R x̂,
@@ -96,15 +111,9 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       if (range <= sphere_m) continue;  // the sensor sits inside this vossel
       const Eigen::Vector3d d_w = c_w / range;
       const Eigen::Vector3d d = R_sensor_world * d_w;
-      const Eigen::Vector3d x_w = g.FrameCentroid(k).cast<double>() - pose.o_world;
-      const Eigen::Vector3d n_w = g.FrameNormal(k).cast<double>();
-      const bool has_plane = n_w.squaredNorm() > 0.5;
-      const double plane_d = n_w.dot(x_w);
       // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
       const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
       const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
-      const double cos_a = std::cos(a);
-      const double half_cell_m = 0.5 * h + sigma_m;
       const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
       // The rows whose centres can lie within a of d (floor and ceil keep them conservative);
       // in each, the columns of the cap's chord: with ρ = |d_xy|, a pixel of row j is within a
@@ -114,6 +123,37 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
       const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
       const double rho = std::hypot(d.x(), d.y());
+      if (cells != nullptr) {
+        // The cap's columns: clear of the poles it spans the azimuths within asin(sin a / ρ)
+        // of d's (ρ = cos ψ_d); one pixel of slack either side.
+        int c0 = 0, c1 = cells_w - 1;
+        const double sin_a = std::sin(a);
+        if (sin_a < rho && std::asin(std::min(1.0, d.z() < 0 ? -d.z() : d.z())) + a <
+                               0.5 * M_PI - 1e-9) {
+          const double half_px = std::asin(sin_a / rho) * px_per_rad + 1.0;
+          if (2.0 * half_px + 2.0 < double(W)) {
+            c0 = int(std::floor((uv.x() - 0.5 - half_px) / kCell));
+            c1 = int(std::floor((uv.x() - 0.5 + half_px) / kCell));
+          }
+        }
+        const int r0 = j0 / kCell, r1 = j1 / kCell;
+        int hits;
+        if (c1 - c0 + 1 >= cells_w) {
+          hits = flagged_in(r0, r1, 0, cells_w - 1);
+        } else {
+          const int w0 = ((c0 % cells_w) + cells_w) % cells_w;
+          const int w1 = ((c1 % cells_w) + cells_w) % cells_w;
+          hits = w0 <= w1 ? flagged_in(r0, r1, w0, w1)
+                          : flagged_in(r0, r1, w0, cells_w - 1) + flagged_in(r0, r1, 0, w1);
+        }
+        if (hits == 0) continue;
+      }
+      const Eigen::Vector3d x_w = g.FrameCentroid(k).cast<double>() - pose.o_world;
+      const Eigen::Vector3d n_w = g.FrameNormal(k).cast<double>();
+      const bool has_plane = n_w.squaredNorm() > 0.5;
+      const double plane_d = n_w.dot(x_w);
+      const double cos_a = std::cos(a);
+      const double half_cell_m = 0.5 * h + sigma_m;
       for (int j = j0; j <= j1; ++j) {
         int i0 = 0, i1 = W - 1;
         const double across = cos_psi[j] * rho;
@@ -133,7 +173,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
         const Eigen::Vector3d& A = row_a[j];
         const Eigen::Vector3d& B = row_b[j];
         const Eigen::Vector3d& C = row_c[j];
-        std::atomic<uint32_t>* depth_row = &depth[size_t(j) * W];
+        uint32_t* depth_row = &depth[size_t(j) * W];
         int i = geometry::WrapColumn(i0, W);
         for (int ii = i0; ii <= i1; ++ii, i = i + 1 == W ? 0 : i + 1) {
           if (cell_row != nullptr && !cell_row[i / kCell]) {
@@ -156,16 +196,17 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
             if ((t * q - c_w).cwiseAbs().maxCoeff() > half_cell_m) continue;
           }
           const uint32_t bits = FloatBits(float(t));
-          std::atomic<uint32_t>& cell = depth_row[i];
-          uint32_t cur = cell.load(std::memory_order_relaxed);
-          while (bits < cur && !cell.compare_exchange_weak(cur, bits, std::memory_order_relaxed)) {
+          uint32_t* word = &depth_row[i];
+          uint32_t cur = __atomic_load_n(word, __ATOMIC_RELAXED);
+          while (bits < cur && !__atomic_compare_exchange_n(word, &cur, bits, true,
+                                                            __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
           }
         }
       }
     }
   });
   out.depth_m.resize(npix);
-  for (size_t p = 0; p < npix; ++p) out.depth_m[p] = BitsFloat(depth[p].load(std::memory_order_relaxed));
+  std::memcpy(out.depth_m.data(), depth.data(), npix * sizeof(float));
   return out;
 }
 

@@ -99,40 +99,33 @@ bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, con
   return false;
 }
 
+CapCells::CapCells(const geometry::EquirectSize& size, const geometry::Pose& T_world_sensor)
+    : size_(size),
+      R_sensor_world_(T_world_sensor.q_world_sensor.conjugate().toRotationMatrix()) {
+  const int W = size.width_px, H = size.height_px;
+  if (W <= 0 || H <= 0) return;
+  half_diag_ = 0.5 * std::hypot(2.0 * M_PI / W, M_PI / H);
+  dir_.resize(size_t(W) * size_t(H));
+  for (int j = 0; j < H; ++j) {
+    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    for (int i = 0; i < W; ++i) {
+      const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+      dir_[size_t(j) * W + i] = Eigen::Vector3d(std::cos(psi) * std::cos(phi),
+                                                std::cos(psi) * std::sin(phi), std::sin(psi));
+    }
+  }
+}
+
 std::vector<uint8_t> CellCoverage(const geometry::EquirectSize& size,
                                   const geometry::Pose& T_world_sensor,
                                   const std::vector<ViewCap>& caps) {
-  const int W = size.width_px, H = size.height_px;
-  std::vector<uint8_t> out(size_t(std::max(0, W)) * std::max(0, H), 0);
-  if (W <= 0 || H <= 0) return out;
-  const double half_diag = 0.5 * std::hypot(2.0 * M_PI / W, M_PI / H);
-  const Eigen::Quaterniond q_sensor_world = T_world_sensor.q_world_sensor.conjugate();
+  const CapCells cells(size, T_world_sensor);
+  std::vector<uint8_t> out(cells.cell_count(), 0);
   for (const ViewCap& cap : caps) {
-    if (cap.everywhere) {
-      std::fill(out.begin(), out.end(), uint8_t{2});
-      return out;
-    }
-    const Eigen::Vector3d dir_s = q_sensor_world * cap.dir;
-    const double psi_c = std::asin(std::clamp(dir_s.z(), -1.0, 1.0));
-    const double outer = cap.half_angle_rad + half_diag;
-    const double cos_outer = std::cos(std::min(outer, M_PI));
-    const double inner = cap.half_angle_rad - half_diag;
-    const double cos_inner = inner > 0.0 ? std::cos(inner) : 2.0;  // 2: no cell wholly inside
-    const int j0 = std::max(0, int(std::floor((0.5 - (psi_c + outer) / M_PI) * H)) - 1);
-    const int j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - outer) / M_PI) * H)) + 1);
-    for (int j = j0; j <= j1; ++j) {
-      const double psi = M_PI * (0.5 - (j + 0.5) / H);
-      const double cpsi = std::cos(psi), spsi = std::sin(psi);
-      uint8_t* row = &out[size_t(j) * W];
-      for (int i = 0; i < W; ++i) {
-        if (row[i] == 2) continue;
-        const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
-        const double c = cpsi * std::cos(phi) * dir_s.x() + cpsi * std::sin(phi) * dir_s.y() +
-                         spsi * dir_s.z();
-        if (c >= cos_inner) row[i] = 2;
-        else if (c >= cos_outer) row[i] = 1;
-      }
-    }
+    cells.ForEach(cap, [&out](size_t c, bool whole) {
+      out[c] = whole ? uint8_t{2} : std::max(out[c], uint8_t{1});
+      return true;
+    });
   }
   return out;
 }

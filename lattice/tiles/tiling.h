@@ -10,6 +10,8 @@
 ///          centroid of the tile lies inside it.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -92,6 +94,29 @@ ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::Eq
 bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,
              double min_depth_m);
 
+/// The cells of a raster of `size` cells (reach cells, or any equirect raster in the frame of a
+/// sensor at `T_world_sensor`) that a cap may overlap, each tested by its centre direction and
+/// its angular half-diagonal as Reaches tests it; for rules that test many caps against one
+/// raster. A cap clear of the poles is searched over the columns its azimuth span can reach.
+class CapCells {
+ public:
+  CapCells(const geometry::EquirectSize& size, const geometry::Pose& T_world_sensor);
+  const geometry::EquirectSize& size() const { return size_; }
+  size_t cell_count() const {
+    return size_t(std::max(0, size_.width_px)) * size_t(std::max(0, size_.height_px));
+  }
+  /// Calls fn(cell, whole) for every cell `cap` may overlap (cell: row-major index; whole: the
+  /// cell lies wholly inside the cap) until fn returns false.
+  template <typename Fn>
+  void ForEach(const ViewCap& cap, Fn&& fn) const;
+
+ private:
+  geometry::EquirectSize size_;
+  Eigen::Matrix3d R_sensor_world_;
+  double half_diag_ = 0.0;
+  std::vector<Eigen::Vector3d> dir_;  ///< cell centres' unit directions, sensor frame
+};
+
 /// How the union of `caps` (world frame; the sensor at `T_world_sensor`) covers each cell of a
 /// raster of `size` cells: 2 when the whole cell lies inside a cap, 1 when it may overlap one,
 /// 0 when it lies outside every cap.
@@ -111,5 +136,45 @@ ReachRaster MergeReach(const ReachRaster& old, const ReachRaster& fresh,
 std::string SerializeReach(const ReachRaster& reach);
 /// DATA_LOSS when `bytes` is not a reach raster.
 absl::StatusOr<ReachRaster> ParseReach(const std::string& bytes);
+
+template <typename Fn>
+void CapCells::ForEach(const ViewCap& cap, Fn&& fn) const {
+  const int W = size_.width_px, H = size_.height_px;
+  if (W <= 0 || H <= 0) return;
+  if (cap.everywhere) {
+    for (size_t c = 0; c < cell_count(); ++c) {
+      if (!fn(c, true)) return;
+    }
+    return;
+  }
+  const Eigen::Vector3d d = R_sensor_world_ * cap.dir;
+  const double psi_c = std::asin(std::clamp(d.z(), -1.0, 1.0));
+  const double outer = cap.half_angle_rad + half_diag_;
+  const double cos_outer = std::cos(std::min(outer, M_PI));
+  const double inner = cap.half_angle_rad - half_diag_;
+  const double cos_inner = inner > 0.0 ? std::cos(inner) : 2.0;  // 2: no cell wholly inside
+  const int j0 = std::max(0, int(std::floor((0.5 - (psi_c + outer) / M_PI) * H)) - 1);
+  const int j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - outer) / M_PI) * H)) + 1);
+  // A cap of radius α clear of both poles spans the azimuths within asin(sin α / cos ψ_c) of
+  // its centre's; one column of slack either side, the direction test decides.
+  int i0 = 0, span = W;
+  if (std::abs(psi_c) + outer < 0.5 * M_PI - 1e-9) {
+    const double half_rad = std::asin(std::min(1.0, std::sin(outer) / std::cos(psi_c)));
+    const double half = half_rad / (2.0 * M_PI) * W + 1.0;
+    if (2.0 * half + 1.0 < double(W)) {
+      const double centre = (0.5 - std::atan2(d.y(), d.x()) / (2.0 * M_PI)) * W - 0.5;
+      i0 = int(std::floor(centre - half));
+      span = int(std::ceil(centre + half)) - i0 + 1;
+    }
+  }
+  i0 = ((i0 % W) + W) % W;
+  for (int j = j0; j <= j1; ++j) {
+    const size_t row = size_t(j) * size_t(W);
+    for (int n = 0, i = i0; n < span; ++n, i = i + 1 == W ? 0 : i + 1) {
+      const double c = dir_[row + size_t(i)].dot(d);
+      if (c >= cos_outer && !fn(row + size_t(i), c >= cos_inner)) return;
+    }
+  }
+}
 
 }  // namespace vasl::tiles

@@ -160,9 +160,9 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
               "budget %lld MB\n",
               site.Stations().size(), settings.tile_vossels,
               (long long)((*engine)->limits().max_snapshot_bytes >> 20));
-  std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %11s %11s\n", "ingest", "seconds",
-              "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "peak_MB",
-              "written_MB", "total_MB");
+  std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %9s %11s %11s\n", "ingest", "seconds",
+              "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "rev_voss%",
+              "peak_MB", "written_MB", "total_MB");
   std::vector<double> seconds;
   // Bytes of records objects the commits wrote, and what record segments per batch (README
   // "Storage": an LSM-style layout) would have written of them: the records each change
@@ -194,12 +194,15 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
         rest += absl::StrFormat(" %s %.2f;", stage, sec);
       }
     }
-    std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.0f %11.1f %11.1f   revisits "
-                "%.2f; own sources %.2f (%s);%s\n",
+    std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.1f %9.0f %11.1f %11.1f   "
+                "revisits %.2f; own sources %.2f (%s);%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
-                (long long)r->sources_refreshed,
-                (long long)r->pairs_revisited, (long long)r->blocks_revisited, peak,
+                (long long)r->sources_refreshed, (long long)r->pairs_revisited,
+                (long long)r->blocks_revisited,
+                100.0 * double(r->vossels_revisited) /
+                    double(std::max<int64_t>(1, r->vossels_in_blocks)),
+                peak,
                 r->bytes_written / 1e6,
                 versions->back().bytes_total / 1e6, revisit, own, each.c_str(), rest.c_str());
     auto st = store::ProjectStore::Open(dir / "growth");

@@ -5,8 +5,11 @@
 // up with the pixels they bin), and the cell coverage a revisit merges its raster by.
 #include "lattice/tiles/tiling.h"
 
+#include <algorithm>
 #include <cmath>
 #include <random>
+
+#include <Eigen/Geometry>
 
 #include <gtest/gtest.h>
 
@@ -127,6 +130,47 @@ TEST(CellCoverage, CoversEveryPixelOfTheCapsAndOnlyThemWhenWhole) {
       EXPECT_GT(inside, 0);
     }
   }
+}
+
+// CapCells searches a cap clear of the poles over the columns of its azimuth span only: at the
+// seam (φ = ±π), beside a pole and across one, it still visits every cell whose centre lies
+// within the cap's radius plus a cell's half-diagonal, and no other.
+TEST(CapCells, VisitsTheCellsOfCapsAtTheSeamAndThePoles) {
+  const geometry::EquirectSize cells = {128, 64};
+  const double half_diag = 0.5 * std::hypot(2.0 * M_PI / cells.width_px, M_PI / cells.height_px);
+  geometry::Pose pose;
+  pose.q_world_sensor = Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()));
+  const CapCells grid(cells, pose);
+  int caps = 0;
+  for (double psi : {0.0, 0.6, -1.2, 1.45, -1.5, 1.5707}) {
+    for (double phi : {M_PI - 1e-4, -M_PI + 0.01, 0.3}) {
+      for (double half : {0.001, 0.03, 0.2, 0.9}) {
+        ViewCap cap;
+        const Eigen::Vector3d d_s(std::cos(psi) * std::cos(phi), std::cos(psi) * std::sin(phi),
+                                  std::sin(psi));
+        cap.dir = pose.q_world_sensor * d_s;
+        cap.half_angle_rad = half;
+        std::vector<uint8_t> seen(size_t(cells.width_px) * cells.height_px, 0);
+        grid.ForEach(cap, [&](size_t c, bool) {
+          ++seen[c];
+          return true;
+        });
+        for (int j = 0; j < cells.height_px; ++j) {
+          for (int i = 0; i < cells.width_px; ++i) {
+            const double angle =
+                std::acos(std::clamp(PixelDirection(i, j, cells).dot(d_s), -1.0, 1.0));
+            const bool in = angle <= half + half_diag - 1e-9;
+            const bool out = angle > half + half_diag + 1e-9;
+            const uint8_t n = seen[size_t(j) * cells.width_px + i];
+            if (in) ASSERT_EQ(n, 1) << "cell " << i << "," << j << " psi " << psi << " phi " << phi;
+            if (out) ASSERT_EQ(n, 0) << "cell " << i << "," << j << " psi " << psi << " phi " << phi;
+          }
+        }
+        ++caps;
+      }
+    }
+  }
+  EXPECT_EQ(caps, 72);
 }
 
 }  // namespace

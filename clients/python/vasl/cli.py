@@ -374,8 +374,9 @@ def _print_change(what: str, r) -> None:
     c = r.change
     print(f"{what}: version {r.version}, {r.vossel_count} vossels, {r.record_count} records, "
           f"{r.seconds:.2f} s; {c.sources_computed} sources computed, {c.sources_revisited} "
-          f"revisited on {c.pairs_revisited} (source, tile) pairs ({c.sources_refreshed} "
-          f"refreshed from their own records); {c.tiles_changed} tiles, "
+          f"revisited on {c.pairs_revisited} (source, tile) pairs, {c.vossels_revisited} "
+          f"(source, vossel) pairs ({c.sources_refreshed} refreshed from their own records); "
+          f"{c.tiles_changed} tiles, "
           f"{c.bytes_written / 1e6:.1f} MB written")
 
 

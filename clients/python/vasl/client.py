@@ -51,7 +51,8 @@ class VaslError(Exception):
 
 def _change_stats(c) -> ChangeStats:
     return ChangeStats(c.sources_computed, c.sources_revisited, c.pairs_revisited, c.tiles_changed,
-                       c.bytes_written, c.blocks_revisited, c.sources_refreshed)
+                       c.bytes_written, c.blocks_revisited, c.sources_refreshed,
+                       c.vossels_revisited)
 
 
 def _change(r) -> ChangeResult:

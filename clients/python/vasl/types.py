@@ -198,6 +198,7 @@ class ChangeStats:
     bytes_written: int = 0  #: bytes the commit wrote
     blocks_revisited: int = 0  #: (older source, 16³-vossel block) pairs recomputed
     sources_refreshed: int = 0  #: of those revisited, refreshed from their records (no blob)
+    vossels_revisited: int = 0  #: (older source, vossel) pairs recomputed in those blocks
 
 
 @dataclass
