@@ -202,7 +202,8 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
                      const std::vector<uint8_t>& candidates,
                      const std::vector<uint8_t>& changed_new, const ChangedSplats& changes,
                      const std::vector<tiles::TileKey>& blocks,
-                     const std::vector<int32_t>& block_of, int B) {
+                     const std::vector<int32_t>& block_of, int B,
+                     const tiles::ReachRaster* reach) {
   const double h = g.vossel_size_m;
   const Eigen::Vector3d o = source.info.pose.o_world;
   const double grow_m = 2.0 * h;
@@ -347,14 +348,28 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
                  : cap_about(g.FrameCentroid(k).cast<double>(), kPatchM * h,
                              margin_rad + dilation_rad, kPatchM * h));
   }
+  // An old splat nearer nowhere than the old reach there lay behind the old depth wherever it
+  // fell: leaving changes no depth, nor the reach. (A LiDAR's reach bounds its depth pixel by
+  // pixel; a camera's is binned from its dilated depth, which bounds the depth of no pixel.)
+  const bool bounded = source.returns() && reach != nullptr &&
+                       reach->size.width_px == grid.size().width_px &&
+                       reach->size.height_px == grid.size().height_px;
   for (size_t v = 0; v < changes.before; ++v) {
     // The splat of cell c falls within the angle of its bounding sphere grown by σ(r), at
     // depths within the cube of half-edge h/2 + σ about its centre (RenderDepthPanorama).
     const openvdb::Coord& c = changes.splats.coord[v];
     const Eigen::Vector3d centre = h * Eigen::Vector3d(c.x(), c.y(), c.z());
     const double sigma_m = geometry::SpotSigmaM((centre - o).norm() + sphere_m, spread_rad);
-    splat_to(cap_about(centre, sphere_m + sigma_m, margin_rad,
-                       std::sqrt(3.0) * (0.5 * h + sigma_m)));
+    const tiles::ViewCap cap =
+        cap_about(centre, sphere_m + sigma_m, margin_rad, std::sqrt(3.0) * (0.5 * h + sigma_m));
+    bool seen = !bounded;
+    if (bounded) {
+      grid.ForEach(cap, [&](size_t cell, bool) {
+        seen = double(reach->max_depth_m[cell]) >= cap.near_m;
+        return !seen;
+      });
+    }
+    if (seen) splat_to(cap);
   }
 
   // 3. The context: blocks whose splats can fall in a splatted cell nearer than its far depth.
@@ -585,6 +600,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
     int64_t vossels = 0;      ///< the vossels it recomputed
     int64_t candidates = 0;   ///< the vossels of its blocks
     bool refreshed = false;   ///< from its records before the change, without its blob
+    bool unchanged = false;   ///< the change alters none of its records, nor its reach
   };
   const std::vector<tiles::TileKey> numbered(all_blocks.begin(), all_blocks.end());
   ChangedSplats changed_splats;
@@ -671,14 +687,25 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 }
                 // Of them, the vossels whose records the change may alter, and the blocks whose
                 // splats the depth panorama needs for their tests: it splats those only.
-                RevisitScope scope = ScopeOf(src, g, candidates, changed.changed_new,
-                                             changed_splats, numbered, block_number, B);
+                auto old_reach = old.reach.find(src.info.id);
+                RevisitScope scope = ScopeOf(
+                    src, g, candidates, changed.changed_new, changed_splats, numbered,
+                    block_number, B, old_reach == old.reach.end() ? nullptr : &old_reach->second);
                 job->vossels = std::count(scope.only.begin(), scope.only.end(), uint8_t{1});
                 job->cells = std::move(scope.cells);
+                std::vector<size_t> redo, keep;
+                if (job->vossels == 0 &&
+                    std::none_of(job->cells.begin(), job->cells.end(), [](uint8_t c) { return c; })) {
+                  // Nothing of the source changes: its records stay, and its reach too.
+                  if (mine != records_of.end()) job->kept = old_records.Select(mine->second);
+                  for (int32_t& v : job->kept.vossel) v = old_to_new[size_t(v)];
+                  job->computed = ingest::SourceRecords{};
+                  job->unchanged = true;
+                  return job;
+                }
                 // Visibility first; the blob only when a record needs its points or pixels.
                 ingest::SourceVisibility visibility =
                     StoredVisibility(src, g, &scope.only, &scope.context, &job->cells);
-                std::vector<size_t> redo, keep;
                 if (mine != records_of.end()) {
                   for (size_t i : mine->second) {
                     (scope.only[size_t(old_to_new[size_t(old_records.vossel[i])])] ? redo : keep)
@@ -720,7 +747,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 if (job->refreshed) ++result.sources_refreshed;
                 result.pairs_revisited += int64_t(job->tiles.size());
                 result.blocks_revisited += int64_t(job->blocks->size());
-                if (src.derived()) return;  // no depth panorama, no reach
+                if (src.derived() || job->unchanged) return;  // its reach stays as it was
                 auto before = old.reach.find(src.info.id);
                 if (before != old.reach.end() &&
                     before->second.size.width_px == recs.reach.size.width_px &&

@@ -131,7 +131,8 @@ std::set<tiles::TileKey> AffectedBlocks(const SourceRef& source, const tiles::Re
 /// alone, dilated as the source's): every other test reads the depth of the unchanged vossels
 /// before and after, so those records stay bit for bit. The depth panorama is then splatted
 /// exactly on `cells` (the reach cells the recomputed tests read, a camera's dilation included,
-/// and those an old splat left, whose reach the revisit recomputes) from the `context` blocks:
+/// and those an old splat the source saw left, whose reach the revisit recomputes; none: the
+/// change alters nothing of the source) from the `context` blocks:
 /// those whose splats can fall in such a cell nearer than the farthest test or old splat
 /// there. Deeper splats cannot change a test D(p) ≥ r − τ with r below them, so the records
 /// recomputed are a rebuild's, and the fresh reach in `cells` bounds a rebuild's from above.
@@ -149,12 +150,14 @@ struct ChangedSplats {
 };
 /// The scope of a revisit of `source` whose revisited blocks hold the `candidates` vossels of
 /// `g` (`changed_new` as ChangedVossels'); `blocks` numbers the blocks of `g` (edge B) and
-/// `block_of` gives each vossel's number.
+/// `block_of` gives each vossel's number; `reach`: the source's reach raster before the change
+/// (nullptr: unknown), which says which old splats lay behind the old depth everywhere.
 RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
                      const std::vector<uint8_t>& candidates,
                      const std::vector<uint8_t>& changed_new, const ChangedSplats& changes,
                      const std::vector<tiles::TileKey>& blocks,
-                     const std::vector<int32_t>& block_of, int B);
+                     const std::vector<int32_t>& block_of, int B,
+                     const tiles::ReachRaster* reach);
 
 /// The records (and reach raster) of a stored source on `geometry`, its points or image read
 /// back from its blob; `only` and `context` as ingest::LidarRecords / CameraRecords.
