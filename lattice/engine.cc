@@ -48,6 +48,8 @@ struct Engine::Impl {
   EngineLimits limits;
   /// Decoded camera images of colour-detail renders (§8), shared by the projects.
   std::unique_ptr<flows::SourceImageCache> detail_images;
+  /// Older cameras' decoded images that revisits read (EngineLimits::max_revisit_image_bytes).
+  std::unique_ptr<flows::SourceImageCache> revisit_images;
   std::mutex mu;  ///< guards `projects`
   std::map<std::string, std::shared_ptr<Project>> projects;
 
@@ -268,6 +270,8 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const fs::path& data_dir,
   impl->data_dir = data_dir;
   impl->limits = limits;
   impl->detail_images = std::make_unique<flows::SourceImageCache>(limits.max_detail_image_bytes);
+  impl->revisit_images =
+      std::make_unique<flows::SourceImageCache>(limits.max_revisit_image_bytes);
   return std::unique_ptr<Engine>(new Engine(std::move(impl)));
 }
 
@@ -402,7 +406,7 @@ absl::StatusOr<IngestResult> Engine::IngestScan(const std::string& project, cons
     flows::ShiftScan(*info, -*origin);
     if (absl::Status stop = stage_done("store blobs", 0.15); !stop.ok()) return stop;
     auto flow = flows::IngestScan(st, **head, *info, scan, impl_->limits.max_image_pixels,
-                                  StageReporter(progress));
+                                  StageReporter(progress), impl_->revisit_images.get());
     if (flow.ok()) flow->stage_seconds.insert(flow->stage_seconds.begin(), stages.begin(), stages.end());
     return flow;
   }, t0);
@@ -445,7 +449,7 @@ absl::StatusOr<IngestResult> Engine::DeleteScan(const std::string& project, cons
     auto head = impl_->IngestHead(p);  // as an ingest reads it: see Impl::IngestHead
     if (!head.ok()) return head.status();
     return flows::DeleteScan(*p.store, **head, scan, impl_->limits.max_image_pixels,
-                             StageReporter(progress));
+                             StageReporter(progress), impl_->revisit_images.get());
   });
 }
 

@@ -150,6 +150,10 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
         "bytes of a version a render, records query, ingest or rebuild holds at once, estimated "
         "from its tiles; a larger version is read (a rebuild: made) tile group by tile group "
         "(default 4294967296)"}},
+      {"max-revisit-image-bytes",
+       {EngineInt64(&EngineLimits::max_revisit_image_bytes, "max-revisit-image-bytes"),
+        "decoded images of older cameras that ingests revisit, kept between ingests (0: none; "
+        "default 268435456)"}},
       {"max-render-width",
        {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
         "render width, pixels (default 16384)"}},

@@ -82,7 +82,7 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
   plan.add_scan = info;
   absl::StatusOr<store::Snapshot> next =
       internal::Propagate(store, head, std::move(change), internal::SourcesOf(*scans),
-                          /*max_image_pixels=*/0, plan, result, clock);
+                          /*max_image_pixels=*/0, /*images=*/nullptr, plan, result, clock);
   if (!next.ok()) return next.status();
   if (result.pixels_back_projected == 0) {
     if (result.pixels_invalid > 0 && result.pixels_outside == 0) {

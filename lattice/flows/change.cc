@@ -435,7 +435,8 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectSt
                                                           const SourceRef& source,
                                                           const records::VosselGeometry& geometry,
                                                           int64_t max_image_pixels,
-                                                          ingest::SourceVisibility visibility) {
+                                                          ingest::SourceVisibility visibility,
+                                                          SourceImageCache* images) {
   if (source.lidar()) {
     absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, source.info, source.batch);
     if (!lidar.ok()) return lidar.status();
@@ -449,9 +450,12 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectSt
   if (source.derived()) {
     return absl::InternalError("StoredSourceRecords: a derived source has no visibility");
   }
-  return ingest::CameraRecords(geometry,
-                               StoredCamera(store, source.info, source.batch, max_image_pixels),
-                               std::move(visibility));
+  // A revisit's: through the decoded cameras, which the next ingest's revisits mostly read
+  // again.
+  absl::StatusOr<ingest::CameraSource> cam =
+      LoadedCamera(store, source.info, source.batch, max_image_pixels, images);
+  if (!cam.ok()) return cam.status();
+  return ingest::CameraRecords(geometry, *cam, std::move(visibility));
 }
 
 std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
@@ -566,7 +570,8 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                             const std::vector<int32_t>& old_to_new,
                             const std::vector<SourceRef>& old_sources,
                             const std::set<tiles::TileKey>& all_blocks, int B, int T,
-                            int64_t max_image_pixels, store::Snapshot& next,
+                            int64_t max_image_pixels, SourceImageCache* images,
+                            store::Snapshot& next,
                             store::CommitPlan& plan, std::set<tiles::TileKey>& record_tiles,
                             FlowResult& result, StageClock& clock) {
   const double h = g.vossel_size_m;
@@ -725,7 +730,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                   return job;
                 }
                 job->computed = StoredSourceRecords(store, src, g, max_image_pixels,
-                                                    std::move(visibility));
+                                                    std::move(visibility), images);
                 return job;
               }) &
           tbb::make_filter<std::shared_ptr<Job>, void>(
@@ -765,8 +770,9 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           const store::Snapshot& old, Change change,
                                           const std::vector<SourceRef>& old_sources,
-                                          int64_t max_image_pixels, store::CommitPlan& plan,
-                                          FlowResult& result, StageClock& clock) {
+                                          int64_t max_image_pixels, SourceImageCache* images,
+                                          store::CommitPlan& plan, FlowResult& result,
+                                          StageClock& clock) {
   const int T = old.tile_vossels;
   const double h = change.geometry.vossel_size_m;
   store::Snapshot next;
@@ -941,7 +947,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   //    one's decode and point loading are mostly serial), merged in source order.
   if (absl::Status s = RevisitSources(store, old, *old_records, g, revisit, changed,
                                       change.old_to_new,
-                                      old_sources, all_blocks, B, T, max_image_pixels, next, plan,
+                                      old_sources, all_blocks, B, T, max_image_pixels, images, next, plan,
                                       record_tiles, result, clock);
       !s.ok()) {
     return s;

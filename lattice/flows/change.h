@@ -174,12 +174,14 @@ ingest::SourceVisibility StoredVisibility(const SourceRef& source,
                                           const std::vector<uint8_t>* only,
                                           const std::vector<uint8_t>* context,
                                           const std::vector<uint8_t>* read_cells);
-/// The records of a stored source whose visibility is known, from its blob (not derived).
+/// The records of a stored source whose visibility is known, from its blob (not derived); a
+/// camera's image through `images` when given (LoadedCamera).
 absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectStore& store,
                                                           const SourceRef& source,
                                                           const records::VosselGeometry& geometry,
                                                           int64_t max_image_pixels,
-                                                          ingest::SourceVisibility visibility);
+                                                          ingest::SourceVisibility visibility,
+                                                          SourceImageCache* images = nullptr);
 
 /// The records of `source` on the `only` vossels of `geometry` after a change, refreshed from
 /// its records there before it (`before`, renumbered to `geometry`'s vossels) where that is
@@ -215,12 +217,14 @@ struct Change {
 /// blobs, fuses (§7, default profile) and fills `plan` with what changed. `old_sources` are
 /// the sources of `old` that stay. With `old` loaded without records (a change within the
 /// engine's memory budget) it reads the records of the tiles it rewrites only, and the new
-/// snapshot holds those (Snapshot::records_partial). Returns the new snapshot (version not
+/// snapshot holds those (Snapshot::records_partial). Revisits read cameras through `images`
+/// (may be null: each decoded for the revisit alone). Returns the new snapshot (version not
 /// yet set).
 absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                                           const store::Snapshot& old, Change change,
                                           const std::vector<SourceRef>& old_sources,
-                                          int64_t max_image_pixels, store::CommitPlan& plan,
+                                          int64_t max_image_pixels, SourceImageCache* images,
+                                          store::CommitPlan& plan,
                                           FlowResult& result, StageClock& clock);
 
 /// §7 fusion of `next`'s records under the default profile and under every profile whose

@@ -15,7 +15,7 @@ namespace vasl::flows {
 
 absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const std::string& scan_name, int64_t max_image_pixels,
-                                      const StageFn& stage) {
+                                      const StageFn& stage, SourceImageCache* images) {
   FlowResult result;
   internal::StageClock clock(result, stage);
   const double h = store.settings().vossel_size_m;
@@ -113,7 +113,7 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
   plan.made_by = absl::StrCat("delete scan ", gone.name);
   plan.delete_scan = gone.name;
   absl::StatusOr<store::Snapshot> next = internal::Propagate(
-      store, head, std::move(change), remaining, max_image_pixels, plan, result, clock);
+      store, head, std::move(change), remaining, max_image_pixels, images, plan, result, clock);
   if (!next.ok()) return next.status();
   if (absl::Status s = internal::CommitFlow(store, std::move(*next), plan, result, clock); !s.ok()) {
     return s;

@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/scan_input.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/fusion/profile.h"
@@ -98,6 +99,20 @@ bool IsPointColour(const store::SourceInfo& source);
 absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& store,
                                                     const store::SourceInfo& source,
                                                     int32_t batch);
+/// A stored camera with its image decoded and its artefact maps found, through the process's
+/// DecodedCameras (decoded_cameras.h): read from it when it holds them, kept in it after a
+/// decode. With a cache budget of 0, StoredCamera's (decoded on demand).
+absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
+                                                  const store::SourceInfo& source,
+                                                  int32_t batch, int64_t max_image_pixels);
+/// A stored camera with its image decoded and its artefact maps found, read from `images`
+/// when it keeps them and kept there after a decode (revisits of successive ingests mostly
+/// read the same cameras); with no cache, StoredCamera's (decoded on demand).
+class SourceImageCache;
+absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
+                                                  const store::SourceInfo& source,
+                                                  int32_t batch, int64_t max_image_pixels,
+                                                  SourceImageCache* images);
 /// A stored camera whose image is decoded from its blob on demand (`load`).
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
@@ -121,10 +136,12 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& store, const
 /// records are made and freed after, so an ingest holds one decoded panorama at a time.
 /// `head` is the project's HEAD snapshot. A camera-only scan (no points) keeps `head`'s
 /// geometry; the caller refuses one when `head` has none (CameraOnlyWithoutGeometry), before
-/// it stores any blob.
+/// it stores any blob. Older cameras a revisit needs the pixels of are read through `images`
+/// when given (the engine's, kept between ingests: LoadedCamera).
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const store::ScanInfo& info, const ingest::ScanInput& scan,
-                                      int64_t max_image_pixels, const StageFn& stage = {});
+                                      int64_t max_image_pixels, const StageFn& stage = {},
+                                      SourceImageCache* images = nullptr);
 
 /// An RGBZ image sent back as derived data (§10).
 struct BackProjectInput {
@@ -154,7 +171,8 @@ absl::StatusOr<FlowResult> BackProject(store::ProjectStore& store, const store::
 /// NOT_FOUND for an unknown scan.
 absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const std::string& scan_name, int64_t max_image_pixels,
-                                      const StageFn& stage = {});
+                                      const StageFn& stage = {},
+                                      SourceImageCache* images = nullptr);
 
 /// Recomputes the whole project from its blobs (geometry, every source's records and reach,
 /// fusion) and commits it as a new version whose manifest replaces the previous one.
@@ -181,16 +199,20 @@ class FusedLayerCache {
   std::map<std::string, std::shared_ptr<const records::FusedValues>> layers_;
 };
 
-/// Decoded camera images for renders with ColourDetail::kSourceImages (§8), by blob hash,
-/// within a byte budget: the least recently used go first. Thread-safe.
+/// Decoded camera images within a byte budget, the least recently used going first: those of
+/// renders with ColourDetail::kSourceImages (§8), by blob hash, and those revisits read (with
+/// their artefact maps, §9: LoadedCamera). Thread-safe.
 class SourceImageCache {
  public:
   explicit SourceImageCache(int64_t budget_bytes) : budget_bytes_(budget_bytes) {}
   int64_t budget_bytes() const { return budget_bytes_; }
-  /// The image decoded from blob `sha`, or null when not cached.
-  std::shared_ptr<const geometry::LinearImage> Find(const std::string& sha);
-  /// Keeps `image` (evicting others to stay within the budget; one larger than it is not kept).
-  void Put(const std::string& sha, std::shared_ptr<const geometry::LinearImage> image);
+  /// The image kept under `key` (and, when asked, its artefact maps if kept), or null.
+  std::shared_ptr<const geometry::LinearImage> Find(
+      const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts = nullptr);
+  /// Keeps `image` (and its `artefacts`, if any) under `key`, evicting others to stay within
+  /// the budget; one larger than it is not kept, nor one under a key already kept.
+  void Put(const std::string& key, std::shared_ptr<const geometry::LinearImage> image,
+           std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr);
 
  private:
   std::mutex mu_;
@@ -199,6 +221,8 @@ class SourceImageCache {
   uint64_t clock_ = 0;
   struct Entry {
     std::shared_ptr<const geometry::LinearImage> image;
+    std::shared_ptr<const ingest::ArtefactMaps> artefacts;
+    int64_t bytes = 0;
     uint64_t used = 0;
   };
   std::map<std::string, Entry> entries_;

@@ -120,7 +120,8 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
 
 absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::Snapshot& head,
                                       const store::ScanInfo& info, const ingest::ScanInput& scan,
-                                      int64_t max_image_pixels, const StageFn& stage) {
+                                      int64_t max_image_pixels, const StageFn& stage,
+                                      SourceImageCache* images) {
   const ingest::LidarData& lidar = scan.lidar;
   FlowResult result;
   internal::StageClock clock(result, stage);
@@ -243,7 +244,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
 
   absl::StatusOr<store::Snapshot> next =
       internal::Propagate(store, head, std::move(change), internal::SourcesOf(*scans),
-                          max_image_pixels, plan, result, clock);
+                          max_image_pixels, images, plan, result, clock);
   if (!next.ok()) return next.status();
   if (absl::Status s = internal::CommitFlow(store, std::move(*next), plan, result, clock); !s.ok()) {
     return s;

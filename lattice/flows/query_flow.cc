@@ -98,30 +98,40 @@ absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
 
 }  // namespace
 
-std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(const std::string& sha) {
+std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(
+    const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts) {
   std::lock_guard<std::mutex> lock(mu_);
-  auto it = entries_.find(sha);
+  auto it = entries_.find(key);
   if (it == entries_.end()) return nullptr;
   it->second.used = ++clock_;
+  if (artefacts != nullptr) *artefacts = it->second.artefacts;
   return it->second.image;
 }
 
-void SourceImageCache::Put(const std::string& sha,
-                           std::shared_ptr<const geometry::LinearImage> image) {
-  const int64_t bytes = int64_t(image->ByteSize());
+void SourceImageCache::Put(const std::string& key,
+                           std::shared_ptr<const geometry::LinearImage> image,
+                           std::shared_ptr<const ingest::ArtefactMaps> artefacts) {
+  int64_t bytes = int64_t(image->ByteSize());
+  if (artefacts != nullptr) {
+    for (const geometry::LinearImage* map :
+         {&artefacts->saturation.conf, &artefacts->smear.conf, &artefacts->flare.conf,
+          &artefacts->codec.conf}) {
+      bytes += int64_t(map->ByteSize());
+    }
+  }
   if (bytes > budget_bytes_) return;
   std::lock_guard<std::mutex> lock(mu_);
-  if (entries_.count(sha) != 0) return;
+  if (entries_.count(key) != 0) return;
   while (bytes_ + bytes > budget_bytes_ && !entries_.empty()) {
     auto oldest = entries_.begin();
     for (auto it = entries_.begin(); it != entries_.end(); ++it) {
       if (it->second.used < oldest->second.used) oldest = it;
     }
-    bytes_ -= int64_t(oldest->second.image->ByteSize());
+    bytes_ -= oldest->second.bytes;
     entries_.erase(oldest);
   }
   bytes_ += bytes;
-  entries_[sha] = {std::move(image), ++clock_};
+  entries_[key] = {std::move(image), std::move(artefacts), bytes, ++clock_};
 }
 
 namespace {

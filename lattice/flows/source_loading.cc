@@ -9,6 +9,7 @@
 #include "absl/strings/str_split.h"
 #include "lattice/ingest/backproject.h"
 #include "lattice/flows/flows.h"
+#include "lattice/ingest/artefacts.h"
 
 namespace vasl::flows {
 
@@ -178,6 +179,31 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
     }
     return image;
   };
+  return cam;
+}
+
+absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
+                                                  const store::SourceInfo& src, int32_t batch,
+                                                  int64_t max_pixels, SourceImageCache* images) {
+  ingest::CameraSource cam = StoredCamera(store, src, batch, max_pixels);
+  if (images == nullptr || images->budget_bytes() <= 0) return cam;
+  // What the decode and the detectors read: the blob, IR or not, the pixel limit, and whether
+  // the image wraps (an equirect panorama) or not (a pinhole photo).
+  const std::string key =
+      absl::StrCat(src.blob_sha256, src.modality == records::Modality::kIr ? " ir " : " rgb ",
+                   max_pixels, cam.pinhole ? " pinhole" : " equirect");
+  std::shared_ptr<const ingest::ArtefactMaps> artefacts;
+  std::shared_ptr<const geometry::LinearImage> image = images->Find(key, &artefacts);
+  if (image == nullptr || artefacts == nullptr) {
+    absl::StatusOr<ingest::LinearImage> decoded = cam.load();
+    if (!decoded.ok()) return decoded.status();
+    image = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
+    artefacts = std::make_shared<const ingest::ArtefactMaps>(
+        ingest::DetectArtefacts(*image, /*wrap=*/!cam.pinhole));
+    images->Put(key, image, artefacts);
+  }
+  cam.image = *image;  // a copy: a fringing correction changes the rows it samples
+  cam.artefacts = std::move(artefacts);
   return cam;
 }
 

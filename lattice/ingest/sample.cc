@@ -554,22 +554,27 @@ SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const Camera
                                   CameraSource& loaded, SourceVisibility visibility) {
   // §9: the artefacts of the image as recorded; then its channels' fringing corrected before
   // any colour is read from it.
-  const ArtefactMaps artefacts = DetectArtefacts(cam.image, /*wrap=*/!cam.pinhole);
+  ArtefactMaps detected;
+  const ArtefactMaps* artefacts = cam.artefacts.get();
+  if (artefacts == nullptr) {
+    detected = DetectArtefacts(cam.image, /*wrap=*/!cam.pinhole);
+    artefacts = &detected;
+  }
   const CameraSource* sampled = &cam;
   CameraSource corrected;
-  if (artefacts.fringing.found) {
+  if (artefacts->fringing.found) {
     // Only the rows the samples read (a revisit samples a few blocks of a large image).
     const auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
     if (&cam == &loaded) {
-      CorrectChannelShift(loaded.image, artefacts.fringing, nullptr, row_begin, row_end);
+      CorrectChannelShift(loaded.image, artefacts->fringing, nullptr, row_begin, row_end);
     } else {
       corrected = cam;
-      CorrectChannelShift(corrected.image, artefacts.fringing, nullptr, row_begin, row_end);
+      CorrectChannelShift(corrected.image, artefacts->fringing, nullptr, row_begin, row_end);
       sampled = &corrected;
     }
   }
   SourceRecords out;
-  out.records = SampleCamera(g, *sampled, visibility.vis, artefacts);
+  out.records = SampleCamera(g, *sampled, visibility.vis, *artefacts);
   records::RoundToStorage(out.records);  // fusion now reads what the store will hold
   out.reach = std::move(visibility.reach);
   return out;

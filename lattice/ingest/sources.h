@@ -82,6 +82,8 @@ struct LidarSource {
   bool HasGrid() const { return grid_rows > 0 && grid_columns > 0 && !grid_cell.empty(); }
 };
 
+struct ArtefactMaps;  // artefacts.h
+
 /// A camera of a scan: an equirectangular panorama (§2.1) or a pinhole photo (§2.2).
 struct CameraSource {
   int32_t id = 0;                     ///< source id (record `scan`)
@@ -95,6 +97,9 @@ struct CameraSource {
   double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
   /// Set: a pinhole camera (its width and height are the image's); unset: equirectangular.
   std::optional<geometry::PinholeIntrinsics> pinhole;
+  /// §9: the artefact maps of `image` as decoded, when already found (a cache's); unset: the
+  /// records find them.
+  std::shared_ptr<const ArtefactMaps> artefacts;
 };
 
 /// An RGBZ[N,U,A] image sent back as derived data (§10): a render, edited or refined.

@@ -3,6 +3,7 @@
 // machine. Run by deploy/bench.sh; speed goals live here, not in timed tests.
 // Usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only] [--tile-vossels T]
 //                   [--snapshot-budget-mb M]  (the growth engine's EngineLimits::max_snapshot_bytes)
+//                   [--revisit-cache-mb M]    (its EngineLimits::max_revisit_image_bytes)
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -142,10 +143,12 @@ int BoundedRender(const std::filesystem::path& dir, const std::string& project) 
 /// Growth of the store (issue "A store that grows"): every scan of the corridor site ingested
 /// one at a time, with its seconds, what it recomputed, its peak RSS and the bytes its commit
 /// wrote against the project's total; then a rebuild of the same scans.
-int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64_t budget_mb) {
+int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64_t budget_mb,
+           int64_t revisit_cache_mb) {
   using namespace vasl;
   EngineLimits limits;
   if (budget_mb > 0) limits.max_snapshot_bytes = budget_mb << 20;
+  if (revisit_cache_mb >= 0) limits.max_revisit_image_bytes = revisit_cache_mb << 20;
   auto engine = Engine::Open(dir, limits);
   if (!engine.ok()) return Fail(engine.status());
   store::ProjectSettings settings;
@@ -157,9 +160,10 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
   lidar.azimuth_steps = 1440;
   lidar.elevation_steps = 720;
   std::printf("\ngrowth: corridor site, %zu stations, h 0.05 m, tiles of %d vossels, engine "
-              "budget %lld MB\n",
+              "budget %lld MB, revisited images kept %lld MB\n",
               site.Stations().size(), settings.tile_vossels,
-              (long long)((*engine)->limits().max_snapshot_bytes >> 20));
+              (long long)((*engine)->limits().max_snapshot_bytes >> 20),
+              (long long)((*engine)->limits().max_revisit_image_bytes >> 20));
   std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %9s %11s %11s\n", "ingest", "seconds",
               "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "rev_voss%",
               "peak_MB", "written_MB", "total_MB");
@@ -266,13 +270,14 @@ int main(int argc, char** argv) {
   int pano_w = 2048, repeat = 5;
   bool growth_only = false;
   int tile_vossels = 64;
-  int64_t budget_mb = 0;
+  int64_t budget_mb = 0, revisit_cache_mb = -1;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--growth-only")) growth_only = true;
     else if (i + 1 < argc && !std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--tile-vossels")) tile_vossels = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--snapshot-budget-mb")) budget_mb = std::atoll(argv[++i]);
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--revisit-cache-mb")) revisit_cache_mb = std::atoll(argv[++i]);
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
@@ -280,7 +285,7 @@ int main(int argc, char** argv) {
   std::printf("vasl_bench: %d threads, vossel %.2f m, panoramas %dx%d, LiDAR 1440x720 per scan\n",
               tbb::info::default_concurrency(), h, pano_w, pano_w / 2);
   if (growth_only) {
-    const int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb);
+    const int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb, revisit_cache_mb);
     std::filesystem::remove_all(dir);
     return rc;
   }
@@ -365,7 +370,7 @@ int main(int argc, char** argv) {
   std::printf("\nrecords.vdb: %zu records, %.1f bytes/record on disk, write %.0f ms (%.1f M rec/s), "
               "read %.0f ms (%.1f M rec/s)\n", recs.size(), bytes / recs.size(), write_s * 1e3,
               recs.size() / write_s / 1e6, read_s * 1e3, recs.size() / read_s / 1e6);
-  if (int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb); rc != 0) return rc;
+  if (int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb, revisit_cache_mb); rc != 0) return rc;
   std::filesystem::remove_all(dir);
   return 0;
 }

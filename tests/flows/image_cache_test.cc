@@ -1,0 +1,106 @@
+// The decoded images revisits keep between ingests (flows.h SourceImageCache, LoadedCamera):
+// a camera read through the cache is the camera its blob decodes to, with the artefact maps
+// its records would find (§9), whether the cache held it or not; and the cache holds no more
+// than its budget, the least recently used going first.
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "lattice/engine.h"
+#include "lattice/flows/flows.h"
+#include "lattice/ingest/artefacts.h"
+#include "lattice/store/project_store.h"
+#include "tests/scenes/synthetic_scene.h"
+
+namespace vasl {
+namespace {
+namespace fs = std::filesystem;
+
+std::shared_ptr<const geometry::LinearImage> Image(int w, int h, float v) {
+  auto im = std::make_shared<geometry::LinearImage>();
+  im->width_px = w;
+  im->height_px = h;
+  im->channels = 3;
+  im->pixels.assign(size_t(w) * h * 3, v);
+  return im;
+}
+
+TEST(SourceImageCache, KeepsTheMostRecentlyUsedWithinItsBudgetArtefactsIncluded) {
+  const int64_t one = 100 * 100 * 3 * int64_t(sizeof(float));  // an image's bytes
+  flows::SourceImageCache cache(3 * one);
+  auto maps = std::make_shared<ingest::ArtefactMaps>();
+  maps->saturation.conf = *Image(100, 100, 1.0f);  // counts as much as an image (3 channels)
+  cache.Put("a", Image(100, 100, 0.1f), maps);     // 2 images' bytes
+  cache.Put("b", Image(100, 100, 0.2f));
+  std::shared_ptr<const ingest::ArtefactMaps> found;
+  ASSERT_NE(cache.Find("a", &found), nullptr);  // a is now the most recent
+  EXPECT_EQ(found, maps);
+  cache.Put("c", Image(100, 100, 0.3f));  // over budget: b (least recent) goes
+  EXPECT_EQ(cache.Find("b"), nullptr);
+  ASSERT_NE(cache.Find("a"), nullptr);
+  ASSERT_NE(cache.Find("c"), nullptr);
+  cache.Put("d", Image(200, 200, 0.4f));  // larger than the budget: not kept, nothing evicted
+  EXPECT_EQ(cache.Find("d"), nullptr);
+  EXPECT_NE(cache.Find("a"), nullptr);
+  flows::SourceImageCache none(0);
+  none.Put("a", Image(1, 1, 0.5f));
+  EXPECT_EQ(none.Find("a"), nullptr);
+}
+
+TEST(LoadedCamera, IsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
+  const fs::path root =
+      fs::temp_directory_path() / ("vasl-image-cache-" + std::to_string(::getpid()));
+  fs::remove_all(root);
+  auto engine = Engine::Open(root);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  store::ProjectSettings settings;
+  settings.vossel_size_m = 0.05;
+  ASSERT_TRUE((*engine)->CreateProject("room", settings).ok());
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 512, 2);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  ASSERT_TRUE((*engine)->IngestScan("room", *scan).ok());
+  auto st = store::ProjectStore::Open(root / "room");
+  ASSERT_TRUE(st.ok()) << st.status();
+  const std::vector<store::ScanInfo> scans = *(*st)->ListScans();
+  const store::SourceInfo* camera = nullptr;
+  for (const store::SourceInfo& s : scans.at(0).sources) {
+    if (s.modality == records::Modality::kRgb) camera = &s;
+  }
+  ASSERT_NE(camera, nullptr);
+  const int64_t max_pixels = 1 << 24;
+
+  // Without a cache: decoded on demand, as ever.
+  ingest::CameraSource lazy = flows::StoredCamera(**st, *camera, scans[0].batch, max_pixels);
+  absl::StatusOr<ingest::LinearImage> decoded = lazy.load();
+  ASSERT_TRUE(decoded.ok()) << decoded.status();
+  const ingest::ArtefactMaps expected = ingest::DetectArtefacts(*decoded, /*wrap=*/true);
+  auto uncached = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, nullptr);
+  ASSERT_TRUE(uncached.ok()) << uncached.status();
+  EXPECT_TRUE(uncached->image.pixels.empty());
+  EXPECT_EQ(uncached->artefacts, nullptr);
+
+  // Through a cache: a miss decodes and keeps, a hit gives the same maps; both the decode's.
+  flows::SourceImageCache cache(int64_t(256) << 20);
+  auto first = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, &cache);
+  auto second = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, &cache);
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_TRUE(second.ok()) << second.status();
+  EXPECT_EQ(first->artefacts, second->artefacts);  // the kept maps, shared
+  for (const ingest::CameraSource* cam : {&*first, &*second}) {
+    EXPECT_EQ(cam->image.width_px, decoded->width_px);
+    EXPECT_EQ(cam->image.pixels, decoded->pixels);
+    ASSERT_NE(cam->artefacts, nullptr);
+    EXPECT_EQ(cam->artefacts->fringing.found, expected.fringing.found);
+    EXPECT_EQ(cam->artefacts->saturation.conf.pixels, expected.saturation.conf.pixels);
+    EXPECT_EQ(cam->artefacts->flare.conf.pixels, expected.flare.conf.pixels);
+    EXPECT_EQ(cam->artefacts->smear.conf.pixels, expected.smear.conf.pixels);
+    EXPECT_EQ(cam->artefacts->codec.conf.pixels, expected.codec.conf.pixels);
+  }
+  fs::remove_all(root);
+}
+
+}  // namespace
+}  // namespace vasl
