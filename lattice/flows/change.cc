@@ -574,7 +574,6 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                             store::Snapshot& next,
                             store::CommitPlan& plan, std::set<tiles::TileKey>& record_tiles,
                             FlowResult& result, StageClock& clock) {
-  const double h = g.vossel_size_m;
   // Each vossel's block as a dense number (all_blocks' order), so that a job flags its
   // vossels by a table of its blocks rather than a set lookup per vossel.
   std::vector<int32_t> block_number(g.size());
@@ -698,9 +697,8 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                     block_number, B, old_reach == old.reach.end() ? nullptr : &old_reach->second);
                 job->vossels = std::count(scope.only.begin(), scope.only.end(), uint8_t{1});
                 job->cells = std::move(scope.cells);
-                std::vector<size_t> redo, keep;
-                if (job->vossels == 0 &&
-                    std::none_of(job->cells.begin(), job->cells.end(), [](uint8_t c) { return c; })) {
+                if (job->vossels == 0 && std::none_of(job->cells.begin(), job->cells.end(),
+                                                      [](uint8_t c) { return c != 0; })) {
                   // Nothing of the source changes: its records stay, and its reach too.
                   if (mine != records_of.end()) job->kept = old_records.Select(mine->second);
                   for (int32_t& v : job->kept.vossel) v = old_to_new[size_t(v)];
@@ -711,6 +709,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 // Visibility first; the blob only when a record needs its points or pixels.
                 ingest::SourceVisibility visibility =
                     StoredVisibility(src, g, &scope.only, &scope.context, &job->cells);
+                std::vector<size_t> redo, keep;  // its records before on them: recomputed or not
                 if (mine != records_of.end()) {
                   for (size_t i : mine->second) {
                     (scope.only[size_t(old_to_new[size_t(old_records.vossel[i])])] ? redo : keep)
@@ -947,7 +946,8 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   //    one's decode and point loading are mostly serial), merged in source order.
   if (absl::Status s = RevisitSources(store, old, *old_records, g, revisit, changed,
                                       change.old_to_new,
-                                      old_sources, all_blocks, B, T, max_image_pixels, images, next, plan,
+                                      old_sources, all_blocks, B, T, max_image_pixels, images,
+                                      next, plan,
                                       record_tiles, result, clock);
       !s.ok()) {
     return s;

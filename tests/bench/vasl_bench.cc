@@ -277,7 +277,8 @@ int main(int argc, char** argv) {
     else if (i + 1 < argc && !std::strcmp(argv[i], "--repeat")) repeat = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--tile-vossels")) tile_vossels = std::atoi(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--snapshot-budget-mb")) budget_mb = std::atoll(argv[++i]);
-    else if (i + 1 < argc && !std::strcmp(argv[i], "--revisit-cache-mb")) revisit_cache_mb = std::atoll(argv[++i]);
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--revisit-cache-mb"))
+      revisit_cache_mb = std::atoll(argv[++i]);
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
@@ -370,7 +371,10 @@ int main(int argc, char** argv) {
   std::printf("\nrecords.vdb: %zu records, %.1f bytes/record on disk, write %.0f ms (%.1f M rec/s), "
               "read %.0f ms (%.1f M rec/s)\n", recs.size(), bytes / recs.size(), write_s * 1e3,
               recs.size() / write_s / 1e6, read_s * 1e3, recs.size() / read_s / 1e6);
-  if (int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb, revisit_cache_mb); rc != 0) return rc;
+  if (int rc = Growth(dir / "growth-engine", pano_w, tile_vossels, budget_mb, revisit_cache_mb);
+      rc != 0) {
+    return rc;
+  }
   std::filesystem::remove_all(dir);
   return 0;
 }

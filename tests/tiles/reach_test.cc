@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <random>
+#include <string>
 
 #include <Eigen/Geometry>
 
@@ -139,7 +140,8 @@ TEST(CapCells, VisitsTheCellsOfCapsAtTheSeamAndThePoles) {
   const geometry::EquirectSize cells = {128, 64};
   const double half_diag = 0.5 * std::hypot(2.0 * M_PI / cells.width_px, M_PI / cells.height_px);
   geometry::Pose pose;
-  pose.q_world_sensor = Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()));
+  pose.q_world_sensor =
+      Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()));
   const CapCells grid(cells, pose);
   int caps = 0;
   for (double psi : {0.0, 0.6, -1.2, 1.45, -1.5, 1.5707}) {
@@ -162,8 +164,10 @@ TEST(CapCells, VisitsTheCellsOfCapsAtTheSeamAndThePoles) {
             const bool in = angle <= half + half_diag - 1e-9;
             const bool out = angle > half + half_diag + 1e-9;
             const uint8_t n = seen[size_t(j) * cells.width_px + i];
-            if (in) ASSERT_EQ(n, 1) << "cell " << i << "," << j << " psi " << psi << " phi " << phi;
-            if (out) ASSERT_EQ(n, 0) << "cell " << i << "," << j << " psi " << psi << " phi " << phi;
+            const std::string where = "cell " + std::to_string(i) + "," + std::to_string(j) +
+                                      " psi " + std::to_string(psi) + " phi " + std::to_string(phi);
+            if (in) ASSERT_EQ(n, 1) << where;
+            if (out) ASSERT_EQ(n, 0) << where;
           }
         }
         ++caps;
