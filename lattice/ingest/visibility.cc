@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <optional>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -229,22 +230,37 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin, int
   row_begin = std::clamp(row_begin, 0, H);
   row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
   if (row_begin >= row_end) return;
+  const int r = std::min(radius_px, W);
   // Separable min filter: rows (wrapping), then columns (clamped); the row pass covers the rows
-  // the column pass reads.
-  std::vector<float> tmp(depth.depth_m.size());
-  tbb::parallel_for(std::max(0, row_begin - radius_px), std::min(H, row_end + radius_px), [&](int j) {
-    const float* row = &depth.depth_m[size_t(j) * W];
-    for (int i = 0; i < W; ++i) {
-      float m = row[i];
-      for (int d = -radius_px; d <= radius_px; ++d) m = std::min(m, row[geometry::WrapColumn(i + d, W)]);
-      tmp[size_t(j) * W + i] = m;
+  // the column pass reads, and only those are held. Both inner loops run over contiguous
+  // columns, one window offset at a time.
+  const int t0 = std::max(0, row_begin - r), t1 = std::min(H, row_end + r);
+  std::vector<float> tmp(size_t(t1 - t0) * W);
+  tbb::parallel_for(tbb::blocked_range<int>(t0, t1, 8), [&](const tbb::blocked_range<int>& rows) {
+    std::vector<float> padded(size_t(W) + 2 * r);  // the row with r columns wrapped either side
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      const float* row = &depth.depth_m[size_t(j) * W];
+      std::copy(row + W - r, row + W, padded.begin());
+      std::copy(row, row + W, padded.begin() + r);
+      std::copy(row, row + r, padded.begin() + r + W);
+      float* out = &tmp[size_t(j - t0) * W];
+      std::copy(padded.begin(), padded.begin() + W, out);
+      for (int d = 1; d <= 2 * r; ++d) {
+        const float* in = padded.data() + d;
+        for (int i = 0; i < W; ++i) out[i] = std::min(out[i], in[i]);
+      }
     }
   });
-  tbb::parallel_for(row_begin, row_end, [&](int j) {
-    for (int i = 0; i < W; ++i) {
-      float m = tmp[size_t(j) * W + i];
-      for (int d = -radius_px; d <= radius_px; ++d) m = std::min(m, tmp[size_t(std::clamp(j + d, 0, H - 1)) * W + i]);
-      depth.depth_m[size_t(j) * W + i] = m;
+  tbb::parallel_for(tbb::blocked_range<int>(row_begin, row_end, 8),
+                    [&](const tbb::blocked_range<int>& rows) {
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      float* out = &depth.depth_m[size_t(j) * W];
+      const int a = std::max(t0, j - r), b = std::min(t1 - 1, j + r);
+      std::copy_n(&tmp[size_t(a - t0) * W], W, out);
+      for (int k = a + 1; k <= b; ++k) {
+        const float* in = &tmp[size_t(k - t0) * W];
+        for (int i = 0; i < W; ++i) out[i] = std::min(out[i], in[i]);
+      }
     }
   });
 }
@@ -261,9 +277,23 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   const double h = g.vossel_size_m;
   const Eigen::Matrix3d R_sensor_world = depth.pose.q_world_sensor.conjugate().toRotationMatrix();
   const int W = depth.size.width_px, H = depth.size.height_px;
-  const double pixel_rad =
-      slope_pixels *
+  const double pitch_rad =
       std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
+  const double pixel_rad = slope_pixels * pitch_rad;
+  // Every sample lies within kPatchM·h of the frame centroid (the grid's corner at 0.375·√2·h).
+  constexpr double kPatchM = 0.55;
+  // Shadow by reach cells (exact): a vossel whose every sample lies, beyond its tolerance,
+  // farther than the farthest depth of each cell its patch can fall in fails every test, V = 0
+  // without a test per sample. Taken when enough vossels are tested to pay for the cells' pass.
+  constexpr int kCell = tiles::kReachBlockPx;
+  const size_t tested =
+      only == nullptr ? g.size() : size_t(std::count(only->begin(), only->end(), uint8_t{1}));
+  std::optional<tiles::CapCells> grid;
+  tiles::ReachRaster farthest;
+  if (tested >= kShadowByCellsMinVossels && W % kCell == 0 && H % kCell == 0) {
+    grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, depth.pose);
+    farthest = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  }
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (only != nullptr && !(*only)[k]) continue;
@@ -272,10 +302,23 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       const Eigen::Vector3d to_sensor = depth.pose.o_world - x;
       if (to_sensor.squaredNorm() == 0.0) continue;
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
-      const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
       const double range_k = to_sensor.norm();
       const double tolerance_m = SlopeScaledToleranceM(tau_m, range_k, pixel_rad,
                                                        std::abs(n.dot(to_sensor)) / range_k);
+      const double patch_m = kPatchM * h;
+      if (grid && range_k > 2.0 * patch_m) {
+        tiles::ViewCap cap;  // the samples' directions, one pixel wider for rounding
+        cap.dir = -to_sensor / range_k;
+        cap.half_angle_rad = std::asin(patch_m / range_k) + pitch_rad;
+        const double behind_m = range_k - patch_m - tolerance_m;  // the nearest sample's threshold
+        bool reached = false;
+        grid->ForEach(cap, [&](size_t cell, bool) {
+          reached = double(farthest.max_depth_m[cell]) >= behind_m;
+          return !reached;
+        });
+        if (!reached) continue;  // V = 0
+      }
+      const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
       int lit = 0;
       for (int sample = 0; sample < kSamples; ++sample) {
         {

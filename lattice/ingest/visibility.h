@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 #include <vector>
 
 #include "lattice/geometry/equirect.h"
@@ -88,7 +89,11 @@ void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double h
 /// test reads may lie from its own pixel: 1, or 1 + the radius of DilateDepthPanorama when
 /// `depth` was dilated (its min filter reads the surface itself up to that many pixels away, where
 /// a surface at grazing incidence is nearer by r·Δ·tanθ per pixel: without it such a surface
-/// shadows itself). Parallel (TBB).
+/// shadows itself). Parallel (TBB). When at least kShadowByCellsMinVossels vossels are tested
+/// on a panorama of whole reach cells, a vossel whose patch lies, beyond its tolerance, behind
+/// the farthest depth of every reach cell it can fall in gets V = 0 without a test per sample
+/// (exact: each of its tests would fail).
+inline constexpr size_t kShadowByCellsMinVossels = 4096;
 std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
                                      const DepthPanorama& depth, double tau_m,
                                      const std::vector<uint8_t>* only = nullptr,
