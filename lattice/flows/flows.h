@@ -99,15 +99,10 @@ bool IsPointColour(const store::SourceInfo& source);
 absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& store,
                                                     const store::SourceInfo& source,
                                                     int32_t batch);
-/// A stored camera with its image decoded and its artefact maps found, through the process's
-/// DecodedCameras (decoded_cameras.h): read from it when it holds them, kept in it after a
-/// decode. With a cache budget of 0, StoredCamera's (decoded on demand).
-absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
-                                                  const store::SourceInfo& source,
-                                                  int32_t batch, int64_t max_image_pixels);
 /// A stored camera with its image decoded and its artefact maps found, read from `images`
 /// when it keeps them and kept there after a decode (revisits of successive ingests mostly
-/// read the same cameras); with no cache, StoredCamera's (decoded on demand).
+/// read the same cameras); with no cache, StoredCamera's (decoded on demand). The kept image
+/// is shared with the camera (CameraSource::kept_image), its §9 channel shift corrected once.
 class SourceImageCache;
 absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
                                                   const store::SourceInfo& source,

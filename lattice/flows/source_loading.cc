@@ -197,12 +197,15 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
   if (image == nullptr || artefacts == nullptr) {
     absl::StatusOr<ingest::LinearImage> decoded = cam.load();
     if (!decoded.ok()) return decoded.status();
-    image = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
     artefacts = std::make_shared<const ingest::ArtefactMaps>(
-        ingest::DetectArtefacts(*image, /*wrap=*/!cam.pinhole));
+        ingest::DetectArtefacts(*decoded, /*wrap=*/!cam.pinhole));
+    // §9: the channel shift corrected once, on the whole image, for every later revisit (each
+    // corrected row reads the image as decoded, so its rows are those a revisit would correct).
+    ingest::CorrectChannelShift(*decoded, artefacts->fringing);
+    image = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
     images->Put(key, image, artefacts);
   }
-  cam.image = *image;  // a copy: a fringing correction changes the rows it samples
+  cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
   cam.artefacts = std::move(artefacts);
   return cam;
 }

@@ -109,9 +109,9 @@ constexpr double kOuterNode = 1.7320508075688772;
 
 std::pair<int, int> SampledRows(const records::VosselGeometry& g, const CameraSource& cam,
                                 const std::vector<float>& vis) {
-  const int H = cam.image.height_px;
+  const int H = cam.Decoded().height_px;
   if (cam.pinhole) return {0, H};
-  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, H);
+  const ImageProjection proj = ProjectionOf(cam, cam.Decoded().width_px, H);
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   const double rows_per_rad = H / M_PI;
@@ -147,7 +147,7 @@ std::pair<int, int> SampledRows(const records::VosselGeometry& g, const CameraSo
 
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
                        const std::vector<float>& vis, const ArtefactMaps& artefacts) {
-  const ImageProjection proj = ProjectionOf(cam, cam.image.width_px, cam.image.height_px);
+  const ImageProjection proj = ProjectionOf(cam, cam.Decoded().width_px, cam.Decoded().height_px);
   const bool wrap = !cam.pinhole;
   auto read = [&](const LinearImage& map, double u, double v) {  // §9: a map at (u, v)
     if (map.pixels.empty()) return 1.0f;
@@ -183,7 +183,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       std::fill(std::begin(conf), std::end(conf), 1.0f);
       uint8_t flags = 0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
-        SampleBilinear(cam.image, uv.x(), uv.y(), wrap, value);
+        SampleBilinear(cam.Decoded(), uv.x(), uv.y(), wrap, value);
         conf[records::kConfSaturation] = read(saturation, uv.x(), uv.y());
         conf[records::kConfFlare] = read(flare, uv.x(), uv.y());
         conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
@@ -212,8 +212,8 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             const float f = read(flare, q.x(), q.y());
             if (f < kFlareInvalidBelow) continue;
             float s[3];
-            SampleBilinear(cam.image, q.x(), q.y(), wrap, s);
-            for (int c = 0; c < cam.image.channels; ++c) acc[c] += w * s[c];
+            SampleBilinear(cam.Decoded(), q.x(), q.y(), wrap, s);
+            for (int c = 0; c < cam.Decoded().channels; ++c) acc[c] += w * s[c];
             valid += w;
             flare_conf += w * f;
           }
@@ -229,7 +229,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         conf[records::kConfCodec] = float(codec_conf);
         conf[records::kConfSmear] = float(smear_conf);
       }
-      PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.image.channels, range, cos_inc,
+      PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.Decoded().channels, range, cos_inc,
                  foot, uv, vis[k], conf, flags, cam.batch);
     }
   });
@@ -536,6 +536,7 @@ namespace {
 
 // The camera with its image: `stored`'s own, or decoded through its `load` into `loaded`.
 absl::StatusOr<const CameraSource*> WithImage(const CameraSource& stored, CameraSource& loaded) {
+  if (stored.kept_image) return &stored;
   if (stored.image.pixels.empty() && stored.load) {
     absl::StatusOr<LinearImage> image = stored.load();
     if (!image.ok()) return image.status();
@@ -557,12 +558,12 @@ SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const Camera
   ArtefactMaps detected;
   const ArtefactMaps* artefacts = cam.artefacts.get();
   if (artefacts == nullptr) {
-    detected = DetectArtefacts(cam.image, /*wrap=*/!cam.pinhole);
+    detected = DetectArtefacts(cam.Decoded(), /*wrap=*/!cam.pinhole);
     artefacts = &detected;
   }
   const CameraSource* sampled = &cam;
   CameraSource corrected;
-  if (artefacts->fringing.found) {
+  if (artefacts->fringing.found && !cam.kept_image) {  // a kept image is corrected
     // Only the rows the samples read (a revisit samples a few blocks of a large image).
     const auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
     if (&cam == &loaded) {
@@ -589,7 +590,7 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   CameraSource loaded;  // holds a decoded image only while this camera is sampled
   absl::StatusOr<const CameraSource*> cam = WithImage(stored, loaded);
   if (!cam.ok()) return cam.status();
-  const LinearImage& image = (*cam)->image;
+  const LinearImage& image = (*cam)->Decoded();
   return SampleWithArtefacts(
       g, **cam, loaded,
       CameraVisibility(g, **cam, image.width_px, image.height_px, only, context));
@@ -601,7 +602,7 @@ absl::StatusOr<SourceRecords> CameraRecords(const records::VosselGeometry& g,
   CameraSource loaded;
   absl::StatusOr<const CameraSource*> cam = WithImage(stored, loaded);
   if (!cam.ok()) return cam.status();
-  const LinearImage& image = (*cam)->image;
+  const LinearImage& image = (*cam)->Decoded();
   if (image.width_px != visibility.image_w || image.height_px != visibility.image_h) {
     return absl::FailedPreconditionError(absl::StrCat(
         "CameraRecords: source ", stored.id, "'s image is ", image.width_px, "x",

@@ -100,6 +100,12 @@ struct CameraSource {
   /// §9: the artefact maps of `image` as decoded, when already found (a cache's); unset: the
   /// records find them.
   std::shared_ptr<const ArtefactMaps> artefacts;
+  /// The decoded image as a cache keeps it, shared rather than copied, with its channel shift
+  /// (§9 fringing, found in `artefacts`) already corrected; read instead of `image` when set.
+  std::shared_ptr<const LinearImage> kept_image;
+
+  /// The image the records read: the kept one, or `image`.
+  const LinearImage& Decoded() const { return kept_image ? *kept_image : image; }
 };
 
 /// An RGBZ[N,U,A] image sent back as derived data (§10): a render, edited or refined.

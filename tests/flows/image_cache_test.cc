@@ -1,6 +1,7 @@
 // The decoded images revisits keep between ingests (flows.h SourceImageCache, LoadedCamera):
-// a camera read through the cache is the camera its blob decodes to, with the artefact maps
-// its records would find (§9), whether the cache held it or not; and the cache holds no more
+// a camera read through the cache is the camera its blob decodes to, its channel shift
+// corrected, with the artefact maps its records would find (§9), whether the cache held it or
+// not; a camera kept so gives the records of one decoded afresh; and the cache holds no more
 // than its budget, the least recently used going first.
 #include <filesystem>
 #include <memory>
@@ -11,6 +12,9 @@
 #include "lattice/engine.h"
 #include "lattice/flows/flows.h"
 #include "lattice/ingest/artefacts.h"
+#include "lattice/ingest/sample.h"
+#include "lattice/ingest/validate.h"
+#include "lattice/ingest/voxelise.h"
 #include "lattice/store/project_store.h"
 #include "tests/scenes/synthetic_scene.h"
 
@@ -89,9 +93,14 @@ TEST(LoadedCamera, IsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
   ASSERT_TRUE(first.ok()) << first.status();
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_EQ(first->artefacts, second->artefacts);  // the kept maps, shared
+  EXPECT_EQ(first->kept_image, second->kept_image);  // shared, not copied
+  ingest::LinearImage corrected = *decoded;
+  ingest::CorrectChannelShift(corrected, expected.fringing);
   for (const ingest::CameraSource* cam : {&*first, &*second}) {
-    EXPECT_EQ(cam->image.width_px, decoded->width_px);
-    EXPECT_EQ(cam->image.pixels, decoded->pixels);
+    EXPECT_TRUE(cam->image.pixels.empty());
+    ASSERT_NE(cam->kept_image, nullptr);
+    EXPECT_EQ(cam->Decoded().width_px, decoded->width_px);
+    EXPECT_EQ(cam->Decoded().pixels, corrected.pixels);
     ASSERT_NE(cam->artefacts, nullptr);
     EXPECT_EQ(cam->artefacts->fringing.found, expected.fringing.found);
     EXPECT_EQ(cam->artefacts->saturation.conf.pixels, expected.saturation.conf.pixels);
@@ -100,6 +109,62 @@ TEST(LoadedCamera, IsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
     EXPECT_EQ(cam->artefacts->codec.conf.pixels, expected.codec.conf.pixels);
   }
   fs::remove_all(root);
+}
+
+// Claim (§9): a camera whose kept image had its channel shift corrected once, whole, gives
+// exactly the records of the same camera decoded afresh, which corrects only the rows its
+// samples read in a copy. A shift is planted (red and blue 0.6 and 0.4 px apart from green) so
+// that the correction applies.
+TEST(LoadedCamera, AKeptCorrectedImageGivesTheRecordsOfAFreshDecode) {
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 512, 2);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  ingest::LidarSource lidar;
+  lidar.id = 1;
+  lidar.pose = scan->pose;
+  lidar.xyz_sensor_m = scan->lidar.xyz_sensor_m;
+  lidar.intensity = scan->lidar.intensity;
+  auto g = ingest::BuildGeometry({lidar}, 0.05);
+  ASSERT_TRUE(g.ok()) << g.status();
+  auto image = ingest::DecodePanorama(*scan, 0, int64_t(1) << 24);
+  ASSERT_TRUE(image.ok()) << image.status();
+  auto artefacts = std::make_shared<ingest::ArtefactMaps>(ingest::DetectArtefacts(*image, true));
+  ingest::ChannelShift& shift = artefacts->fringing;
+  shift.found = true;
+  shift.wrap = true;
+  shift.width_px = image->width_px;
+  shift.height_px = image->height_px;
+  shift.dx[0] = 0.6;
+  shift.dy[0] = 0.2;
+  shift.dx[2] = -0.4;
+  shift.dy[2] = 0.1;
+  shift.tiles_x = shift.tiles_y = 1;
+  shift.tile_dx = {0.6f, -0.4f};
+  shift.tile_dy = {0.2f, 0.1f};
+  shift.max_offset_px = 0.64;
+
+  ingest::CameraSource fresh;
+  fresh.id = 2;
+  fresh.pose = scan->panoramas[0].pose;
+  fresh.image = *image;
+  fresh.artefacts = artefacts;
+  ingest::CameraSource kept = fresh;
+  kept.image = ingest::LinearImage{};
+  auto whole = std::make_shared<ingest::LinearImage>(*image);
+  ASSERT_GT(ingest::CorrectChannelShift(*whole, shift), 0) << "the planted shift must apply";
+  kept.kept_image = whole;
+
+  auto a = ingest::CameraRecords(*g, fresh);
+  auto b = ingest::CameraRecords(*g, kept);
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  ASSERT_GT(a->records.size(), 1000u);
+  a->records.SortByVossel();  // parallel sampling gives them in any order
+  b->records.SortByVossel();
+  EXPECT_EQ(a->records.vossel, b->records.vossel);
+  EXPECT_EQ(a->records.value, b->records.value);
+  EXPECT_EQ(a->records.vis, b->records.vis);
+  EXPECT_EQ(fresh.image.pixels, image->pixels) << "the fresh camera's own image stays as decoded";
 }
 
 }  // namespace
