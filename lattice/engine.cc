@@ -48,7 +48,8 @@ struct Engine::Impl {
   EngineLimits limits;
   /// Decoded camera images of colour-detail renders (§8), shared by the projects.
   std::unique_ptr<flows::SourceImageCache> detail_images;
-  /// Older cameras' decoded images that revisits read (EngineLimits::max_revisit_image_bytes).
+  /// Older cameras' decoded images and older LiDARs' points that revisits read
+  /// (EngineLimits::max_revisit_image_bytes).
   std::unique_ptr<flows::SourceImageCache> revisit_images;
   std::mutex mu;  ///< guards `projects`
   std::map<std::string, std::shared_ptr<Project>> projects;

@@ -152,8 +152,8 @@ const std::map<std::string, std::pair<Setter, std::string>>& Flags() {
         "(default 4294967296)"}},
       {"max-revisit-image-bytes",
        {EngineInt64(&EngineLimits::max_revisit_image_bytes, "max-revisit-image-bytes"),
-        "decoded images of older cameras that ingests revisit, kept between ingests (0: none; "
-        "default 268435456)"}},
+        "decoded images of older cameras and points of older LiDARs that ingests revisit, kept "
+        "between ingests (0: none; default 268435456)"}},
       {"max-render-width",
        {EngineInt(&EngineLimits::max_render_width_px, "max-render-width"),
         "render width, pixels (default 16384)"}},

@@ -437,10 +437,11 @@ absl::StatusOr<ingest::SourceRecords> StoredSourceRecords(const store::ProjectSt
                                                           int64_t max_image_pixels,
                                                           ingest::SourceVisibility visibility,
                                                           SourceImageCache* images) {
-  if (source.lidar()) {
-    absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, source.info, source.batch);
+  if (source.lidar()) {  // through the kept LiDARs, as cameras below
+    absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> lidar =
+        LoadedLidar(store, source.info, source.batch, images);
     if (!lidar.ok()) return lidar.status();
-    return ingest::LidarRecords(geometry, *lidar, std::move(visibility));
+    return ingest::LidarRecords(geometry, **lidar, std::move(visibility));
   }
   if (source.point_colour()) {
     absl::StatusOr<ingest::LidarSource> points = LoadPointColour(store, source.info, source.batch);

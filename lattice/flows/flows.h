@@ -88,6 +88,13 @@ absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& sto
 /// DATA_LOSS when the blob is damaged.
 absl::StatusOr<ingest::LidarSource> LoadLidar(const store::ProjectStore& store,
                                               const store::SourceInfo& source, int32_t batch);
+/// A stored LiDAR with its gap fill at the project's vossel size computed, read from `images`
+/// when it keeps it and kept there after a load (as LoadedCamera keeps cameras); with no cache,
+/// LoadLidar's, its gap fill computed.
+class SourceImageCache;
+absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
+    const store::ProjectStore& store, const store::SourceInfo& source, int32_t batch,
+    SourceImageCache* images);
 /// A point-colour source's camera text (SourceInfo::camera): "points SHA", SHA the blob of the
 /// scan's LiDAR points the colours belong to (its own blob holds float32 r, g, b per point, in
 /// the same order, linear).
@@ -208,6 +215,10 @@ class SourceImageCache {
   /// the budget; one larger than it is not kept, nor one under a key already kept.
   void Put(const std::string& key, std::shared_ptr<const geometry::LinearImage> image,
            std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr);
+  /// A LiDAR's points (with its range grid and gap fill) kept under `key`, or null; kept as
+  /// images are, in the same budget.
+  std::shared_ptr<const ingest::LidarSource> FindLidar(const std::string& key);
+  void PutLidar(const std::string& key, std::shared_ptr<const ingest::LidarSource> lidar);
 
  private:
   std::mutex mu_;
@@ -217,9 +228,12 @@ class SourceImageCache {
   struct Entry {
     std::shared_ptr<const geometry::LinearImage> image;
     std::shared_ptr<const ingest::ArtefactMaps> artefacts;
+    std::shared_ptr<const ingest::LidarSource> lidar;
     int64_t bytes = 0;
     uint64_t used = 0;
   };
+  /// Keeps `entry` (its bytes counted) under `key`, evicting the least recently used.
+  void Keep(const std::string& key, Entry entry);
   std::map<std::string, Entry> entries_;
 };
 

@@ -119,10 +119,41 @@ void SourceImageCache::Put(const std::string& key,
       bytes += int64_t(map->ByteSize());
     }
   }
-  if (bytes > budget_bytes_) return;
+  Entry entry;
+  entry.image = std::move(image);
+  entry.artefacts = std::move(artefacts);
+  entry.bytes = bytes;
+  Keep(key, std::move(entry));
+}
+
+std::shared_ptr<const ingest::LidarSource> SourceImageCache::FindLidar(const std::string& key) {
+  std::lock_guard<std::mutex> lock(mu_);
+  auto it = entries_.find(key);
+  if (it == entries_.end()) return nullptr;
+  it->second.used = ++clock_;
+  return it->second.lidar;
+}
+
+void SourceImageCache::PutLidar(const std::string& key,
+                                std::shared_ptr<const ingest::LidarSource> lidar) {
+  Entry entry;
+  entry.bytes = int64_t(sizeof(float) * (lidar->xyz_sensor_m.size() + lidar->intensity.size() +
+                                         lidar->rgb.size()) +
+                        sizeof(uint32_t) * lidar->grid_cell.size());
+  if (lidar->gap_fill != nullptr) {
+    entry.bytes += int64_t(lidar->gap_fill->size() *
+                           (sizeof(Eigen::Vector3d) + sizeof(std::array<uint32_t, 3>) +
+                            sizeof(std::array<float, 3>)));
+  }
+  entry.lidar = std::move(lidar);
+  Keep(key, std::move(entry));
+}
+
+void SourceImageCache::Keep(const std::string& key, Entry entry) {
+  if (entry.bytes > budget_bytes_) return;
   std::lock_guard<std::mutex> lock(mu_);
   if (entries_.count(key) != 0) return;
-  while (bytes_ + bytes > budget_bytes_ && !entries_.empty()) {
+  while (bytes_ + entry.bytes > budget_bytes_ && !entries_.empty()) {
     auto oldest = entries_.begin();
     for (auto it = entries_.begin(); it != entries_.end(); ++it) {
       if (it->second.used < oldest->second.used) oldest = it;
@@ -130,8 +161,9 @@ void SourceImageCache::Put(const std::string& key,
     bytes_ -= oldest->second.bytes;
     entries_.erase(oldest);
   }
-  bytes_ += bytes;
-  entries_[key] = {std::move(image), std::move(artefacts), bytes, ++clock_};
+  bytes_ += entry.bytes;
+  entry.used = ++clock_;
+  entries_[key] = std::move(entry);
 }
 
 namespace {

@@ -10,6 +10,7 @@
 #include "lattice/ingest/backproject.h"
 #include "lattice/flows/flows.h"
 #include "lattice/ingest/artefacts.h"
+#include "lattice/ingest/voxelise.h"
 
 namespace vasl::flows {
 
@@ -180,6 +181,29 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
     return image;
   };
   return cam;
+}
+
+absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
+    const store::ProjectStore& store, const store::SourceInfo& src, int32_t batch,
+    SourceImageCache* images) {
+  // What the points and their gap fill depend on: the blob, the source's pose and the vossel
+  // size (the cache serves every project of the engine); the id and batch its records carry.
+  const double h = store.settings().vossel_size_m;
+  const geometry::Pose& p = src.pose;
+  const std::string key = absl::StrFormat(
+      "%s lidar %d %d h %.17g o %.17g %.17g %.17g q %.17g %.17g %.17g %.17g", src.blob_sha256,
+      src.id, batch, h, p.o_world.x(), p.o_world.y(), p.o_world.z(), p.q_world_sensor.w(),
+      p.q_world_sensor.x(), p.q_world_sensor.y(), p.q_world_sensor.z());
+  const bool caching = images != nullptr && images->budget_bytes() > 0;
+  if (caching) {
+    if (std::shared_ptr<const ingest::LidarSource> kept = images->FindLidar(key)) return kept;
+  }
+  absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src, batch);
+  if (!lidar.ok()) return lidar.status();
+  lidar->gap_fill = ingest::GapFill(*lidar, h);
+  auto loaded = std::make_shared<const ingest::LidarSource>(std::move(*lidar));
+  if (caching) images->PutLidar(key, loaded);
+  return loaded;
 }
 
 absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,

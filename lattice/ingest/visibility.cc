@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <limits>
 #include <optional>
 
@@ -12,15 +11,6 @@
 #include "lattice/tiles/tiling.h"
 
 namespace vasl::ingest {
-namespace {
-
-uint32_t FloatBits(float f) {
-  uint32_t u;
-  std::memcpy(&u, &f, 4);
-  return u;
-}
-
-}  // namespace
 
 geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
   // Whole reach cells (tiles::kReachBlockPx pixels) along both axes: a reach cell's pixels
@@ -48,9 +38,10 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   out.size = size;
   const int W = size.width_px, H = size.height_px;
   const size_t npix = size_t(W) * H;
-  // Float bits, which order as the floats do for depths ≥ 0: splats keep the min by an atomic
-  // compare-and-swap on each pixel's word (GCC's __atomic builtins on plain words).
-  std::vector<uint32_t> depth(npix, FloatBits(std::numeric_limits<float>::infinity()));
+  // Splats keep each pixel's min by an atomic compare-and-swap on the panorama's own floats
+  // (GCC's generic __atomic builtins on plain words, compared bit for bit).
+  std::vector<float>& depth = out.depth_m;
+  depth.assign(npix, std::numeric_limits<float>::infinity());
   // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie
   // in unflagged cells only is passed over before any per-row work.
   const int cells_h = cells != nullptr ? size.height_px / kCell : 0;
@@ -174,7 +165,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
         const Eigen::Vector3d& A = row_a[j];
         const Eigen::Vector3d& B = row_b[j];
         const Eigen::Vector3d& C = row_c[j];
-        uint32_t* depth_row = &depth[size_t(j) * W];
+        float* depth_row = &depth[size_t(j) * W];
         int i = geometry::WrapColumn(i0, W);
         for (int ii = i0; ii <= i1; ++ii, i = i + 1 == W ? 0 : i + 1) {
           if (cell_row != nullptr && !cell_row[i / kCell]) {
@@ -196,18 +187,17 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
             if (!(t > 0.0)) continue;
             if ((t * q - c_w).cwiseAbs().maxCoeff() > half_cell_m) continue;
           }
-          const uint32_t bits = FloatBits(float(t));
-          uint32_t* word = &depth_row[i];
-          uint32_t cur = __atomic_load_n(word, __ATOMIC_RELAXED);
-          while (bits < cur && !__atomic_compare_exchange_n(word, &cur, bits, true,
-                                                            __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+          float splat_m = float(t);
+          float* word = &depth_row[i];
+          float cur;
+          __atomic_load(word, &cur, __ATOMIC_RELAXED);
+          while (splat_m < cur && !__atomic_compare_exchange(word, &cur, &splat_m, true,
+                                                             __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
           }
         }
       }
     }
   });
-  out.depth_m.resize(npix);
-  std::memcpy(out.depth_m.data(), depth.data(), npix * sizeof(float));
   return out;
 }
 

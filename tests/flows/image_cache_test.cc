@@ -2,7 +2,8 @@
 // a camera read through the cache is the camera its blob decodes to, its channel shift
 // corrected, with the artefact maps its records would find (§9), whether the cache held it or
 // not; a camera kept so gives the records of one decoded afresh; and the cache holds no more
-// than its budget, the least recently used going first.
+// than its budget, the least recently used going first. A LiDAR read through it is the stored
+// one with its gap fill.
 #include <filesystem>
 #include <memory>
 #include <string>
@@ -53,43 +54,64 @@ TEST(SourceImageCache, KeepsTheMostRecentlyUsedWithinItsBudgetArtefactsIncluded)
   EXPECT_EQ(none.Find("a"), nullptr);
 }
 
-TEST(LoadedCamera, IsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
-  const fs::path root =
-      fs::temp_directory_path() / ("vasl-image-cache-" + std::to_string(::getpid()));
-  fs::remove_all(root);
-  auto engine = Engine::Open(root);
-  ASSERT_TRUE(engine.ok()) << engine.status();
-  store::ProjectSettings settings;
-  settings.vossel_size_m = 0.05;
-  ASSERT_TRUE((*engine)->CreateProject("room", settings).ok());
-  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
-  auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 512, 2);
-  ASSERT_TRUE(scan.ok()) << scan.status();
-  ASSERT_TRUE((*engine)->IngestScan("room", *scan).ok());
-  auto st = store::ProjectStore::Open(root / "room");
-  ASSERT_TRUE(st.ok()) << st.status();
-  const std::vector<store::ScanInfo> scans = *(*st)->ListScans();
-  const store::SourceInfo* camera = nullptr;
-  for (const store::SourceInfo& s : scans.at(0).sources) {
-    if (s.modality == records::Modality::kRgb) camera = &s;
+// One scan of the synthetic room, with its range grid, ingested into a project; its store open.
+class StoredRoom : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    root_ = fs::temp_directory_path() / ("vasl-image-cache-" + std::to_string(::getpid()));
+    fs::remove_all(root_);
+    auto engine = Engine::Open(root_);
+    ASSERT_TRUE(engine.ok()) << engine.status();
+    store::ProjectSettings settings;
+    settings.vossel_size_m = 0.05;
+    ASSERT_TRUE((*engine)->CreateProject("room", settings).ok());
+    const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+    auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 512, 2);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    scenes::SetRangeGrid(scenes::LidarSettings::Small(1), &scan->lidar);  // a gap fill to keep
+    ASSERT_TRUE((*engine)->IngestScan("room", *scan).ok());
+    auto st = store::ProjectStore::Open(root_ / "room");
+    ASSERT_TRUE(st.ok()) << st.status();
+    store_ = std::move(*st);
+    scans_ = *store_->ListScans();
   }
+  void TearDown() override {
+    store_.reset();
+    fs::remove_all(root_);
+  }
+  const store::SourceInfo* Source(records::Modality modality) const {
+    for (const store::SourceInfo& s : scans_.at(0).sources) {
+      if (s.modality == modality) return &s;
+    }
+    return nullptr;
+  }
+
+  fs::path root_;
+  std::unique_ptr<store::ProjectStore> store_;
+  std::vector<store::ScanInfo> scans_;
+};
+
+TEST_F(StoredRoom, LoadedCameraIsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
+  const std::unique_ptr<store::ProjectStore>& st = store_;
+  const std::vector<store::ScanInfo>& scans = scans_;
+  const store::SourceInfo* camera = Source(records::Modality::kRgb);
   ASSERT_NE(camera, nullptr);
   const int64_t max_pixels = 1 << 24;
 
   // Without a cache: decoded on demand, as ever.
-  ingest::CameraSource lazy = flows::StoredCamera(**st, *camera, scans[0].batch, max_pixels);
+  ingest::CameraSource lazy = flows::StoredCamera(*st, *camera, scans[0].batch, max_pixels);
   absl::StatusOr<ingest::LinearImage> decoded = lazy.load();
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   const ingest::ArtefactMaps expected = ingest::DetectArtefacts(*decoded, /*wrap=*/true);
-  auto uncached = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, nullptr);
+  auto uncached = flows::LoadedCamera(*st, *camera, scans[0].batch, max_pixels, nullptr);
   ASSERT_TRUE(uncached.ok()) << uncached.status();
   EXPECT_TRUE(uncached->image.pixels.empty());
   EXPECT_EQ(uncached->artefacts, nullptr);
 
   // Through a cache: a miss decodes and keeps, a hit gives the same maps; both the decode's.
   flows::SourceImageCache cache(int64_t(256) << 20);
-  auto first = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, &cache);
-  auto second = flows::LoadedCamera(**st, *camera, scans[0].batch, max_pixels, &cache);
+  auto first = flows::LoadedCamera(*st, *camera, scans[0].batch, max_pixels, &cache);
+  auto second = flows::LoadedCamera(*st, *camera, scans[0].batch, max_pixels, &cache);
   ASSERT_TRUE(first.ok()) << first.status();
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_EQ(first->artefacts, second->artefacts);  // the kept maps, shared
@@ -108,7 +130,41 @@ TEST(LoadedCamera, IsTheDecodedCameraWithItsArtefactsFromTheCacheOrNot) {
     EXPECT_EQ(cam->artefacts->smear.conf.pixels, expected.smear.conf.pixels);
     EXPECT_EQ(cam->artefacts->codec.conf.pixels, expected.codec.conf.pixels);
   }
-  fs::remove_all(root);
+}
+
+// A LiDAR read through the cache has the points LoadLidar reads and the gap fill GapFill
+// computes, whether the cache held it or not; a hit shares the kept one; a cache too small for
+// it keeps nothing.
+TEST_F(StoredRoom, LoadedLidarIsTheStoredLidarWithItsGapFillFromTheCacheOrNot) {
+  const store::SourceInfo* src = Source(records::Modality::kLidar);
+  ASSERT_NE(src, nullptr);
+  const int32_t batch = scans_[0].batch;
+  auto fresh = flows::LoadLidar(*store_, *src, batch);
+  ASSERT_TRUE(fresh.ok()) << fresh.status();
+  ASSERT_TRUE(fresh->HasGrid()) << "the synthetic scan has a range grid";
+  const std::shared_ptr<const ingest::GapFillPoints> fill = ingest::GapFill(*fresh, 0.05);
+  ASSERT_GT(fill->size(), 0u);
+
+  flows::SourceImageCache cache(int64_t(256) << 20), tiny(1024);
+  for (flows::SourceImageCache* images : {static_cast<flows::SourceImageCache*>(nullptr), &tiny,
+                                          &cache}) {
+    auto first = flows::LoadedLidar(*store_, *src, batch, images);
+    auto second = flows::LoadedLidar(*store_, *src, batch, images);
+    ASSERT_TRUE(first.ok()) << first.status();
+    ASSERT_TRUE(second.ok()) << second.status();
+    EXPECT_EQ(*first == *second, images == &cache) << "only a cache it fits in shares it";
+    for (const auto* l : {&**first, &**second}) {
+      EXPECT_EQ(l->id, src->id);
+      EXPECT_EQ(l->batch, batch);
+      EXPECT_EQ(l->xyz_sensor_m, fresh->xyz_sensor_m);
+      EXPECT_EQ(l->intensity, fresh->intensity);
+      EXPECT_EQ(l->grid_cell, fresh->grid_cell);
+      ASSERT_NE(l->gap_fill, nullptr);
+      EXPECT_EQ(l->gap_fill->x, fill->x);
+      EXPECT_EQ(l->gap_fill->corner, fill->corner);
+      EXPECT_EQ(l->gap_fill->weight, fill->weight);
+    }
+  }
 }
 
 // Claim (§9): a camera whose kept image had its channel shift corrected once, whole, gives
