@@ -329,8 +329,9 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
         if (double(nearest) >= range + patch_m) unchanged[k] = 0;  // S lies behind every test
       }
     });
-    const std::vector<float> lit = ingest::ComputeVisibility(
-        g, s, ingest::DepthToleranceM(h), &unchanged, view.slope_pixels);
+    const std::vector<float> lit =
+        ingest::ComputeVisibility(g, s, ingest::DepthToleranceM(h), &unchanged, view.slope_pixels,
+                                  /*shadow_by_cells=*/false);
     for (size_t k = 0; k < g.size(); ++k) {
       if (unchanged[k] && lit[k] < 1.0f) scope.only[k] = 1;
     }
@@ -528,7 +529,8 @@ std::optional<records::RecordSet> RefreshedRecords(const SourceRef& source,
     ingest::DilateDepthPanorama(s_old, view.dilate_px);
     if (any_unrecorded) {
       const std::vector<float> lit =
-          ingest::ComputeVisibility(geometry, s_old, tau_m, &unrecorded, view.slope_pixels);
+          ingest::ComputeVisibility(geometry, s_old, tau_m, &unrecorded, view.slope_pixels,
+                                    /*shadow_by_cells=*/false);
       for (size_t k = 0; k < geometry.size(); ++k) {
         if (unrecorded[k] && lit[k] < 1.0f) return std::nullopt;
       }

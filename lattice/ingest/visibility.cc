@@ -257,7 +257,7 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin, int
 
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
                                      double tau_m, const std::vector<uint8_t>* only,
-                                     int slope_pixels) {
+                                     int slope_pixels, bool shadow_by_cells) {
   // PCF samples over the vossel's patch: a 4×4 grid and the centre. 17 samples make V a
   // multiple of 1/17, which the record's 8-bit `vis` stores exactly (code 15·lit of 255), so no
   // V ≥ V_min test a profile can set flips between ingest and a reweight from disk (§7).
@@ -280,7 +280,8 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       only == nullptr ? g.size() : size_t(std::count(only->begin(), only->end(), uint8_t{1}));
   std::optional<tiles::CapCells> grid;
   tiles::ReachRaster farthest;
-  if (tested >= kShadowByCellsMinVossels && W % kCell == 0 && H % kCell == 0) {
+  if (shadow_by_cells && tested >= kShadowByCellsMinVossels && W % kCell == 0 &&
+      H % kCell == 0) {
     grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, depth.pose);
     farthest = tiles::ReachFromDepth(depth.depth_m, depth.size);
   }
