@@ -22,22 +22,10 @@ class VisibilityShortcutTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     site_ = new scenes::CorridorSite(scenes::CorridorSite::Default());
-    std::vector<LidarSource> lidars;
     scenes::LidarSettings settings;
     settings.azimuth_steps = 720;
     settings.elevation_steps = 360;
-    int id = 1;
-    for (const geometry::Pose& pose : site_->Stations()) {
-      settings.seed = uint64_t(id);
-      scenes::LidarScan scan = scenes::GenerateLidar(*site_, pose, settings);
-      LidarSource src;
-      src.id = id++;
-      src.pose = pose;
-      src.xyz_sensor_m = std::move(scan.xyz_sensor_m);
-      src.intensity = std::move(scan.intensity);
-      lidars.push_back(std::move(src));
-    }
-    auto g = BuildGeometry(lidars, kVosselM);
+    auto g = BuildGeometry(scenes::StationLidars(*site_, settings), kVosselM);
     ASSERT_TRUE(g.ok()) << g.status();
     geometry_ = new records::VosselGeometry(std::move(*g));
   }

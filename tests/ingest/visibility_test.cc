@@ -24,22 +24,10 @@ class VisibilityTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     room_ = new scenes::SyntheticRoom(scenes::SyntheticRoom::Default());
-    std::vector<LidarSource> lidars;
     scenes::LidarSettings settings;
     settings.azimuth_steps = 1440;
     settings.elevation_steps = 720;
-    int id = 1;
-    for (const geometry::Pose& pose : room_->Stations()) {
-      settings.seed = uint64_t(id);
-      scenes::LidarScan scan = scenes::GenerateLidar(*room_, pose, settings);
-      LidarSource src;
-      src.id = id++;
-      src.pose = pose;
-      src.xyz_sensor_m = std::move(scan.xyz_sensor_m);
-      src.intensity = std::move(scan.intensity);
-      lidars.push_back(std::move(src));
-    }
-    auto g = BuildGeometry(lidars, kVosselM);
+    auto g = BuildGeometry(scenes::StationLidars(*room_, settings), kVosselM);
     ASSERT_TRUE(g.ok()) << g.status();
     geometry_ = new records::VosselGeometry(std::move(*g));
     for (int s = 0; s < 2; ++s) {

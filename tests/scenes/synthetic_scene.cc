@@ -413,6 +413,22 @@ void SetRangeGrid(const LidarSettings& settings, ingest::LidarData* lidar) {
   }
 }
 
+std::vector<ingest::LidarSource> StationLidars(const Scene& scene, LidarSettings settings) {
+  std::vector<ingest::LidarSource> lidars;
+  int id = 1;
+  for (const geometry::Pose& pose : scene.Stations()) {
+    settings.seed = uint64_t(id);
+    LidarScan scan = GenerateLidar(scene, pose, settings);
+    ingest::LidarSource src;
+    src.id = id++;
+    src.pose = pose;
+    src.xyz_sensor_m = std::move(scan.xyz_sensor_m);
+    src.intensity = std::move(scan.intensity);
+    lidars.push_back(std::move(src));
+  }
+  return lidars;
+}
+
 LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanner,
                         const LidarSettings& settings) {
   const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};

@@ -34,6 +34,7 @@
 #include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/ingest/scan_input.h"
+#include "lattice/ingest/sources.h"
 
 namespace vasl::scenes {
 
@@ -307,6 +308,10 @@ struct LidarScan {
 /// Simulates a LiDAR at T_world_scanner: one return per ray, range = analytic range + noise.
 LidarScan GenerateLidar(const Scene& scene, const geometry::Pose& T_world_scanner,
                         const LidarSettings& settings);
+
+/// One LiDAR source per station of `scene` (ids 1, 2, … in station order, each scan seeded by
+/// its id), points in the sensor frame with their intensities.
+std::vector<ingest::LidarSource> StationLidars(const Scene& scene, LidarSettings settings);
 
 /// An equirectangular panorama (§2.1) with its ground-truth range.
 struct Panorama {
