@@ -242,8 +242,7 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
     cap.half_angle_rad = std::asin(radius_m / r) + widen_rad;
     return cap;
   };
-  // ComputeVisibility's samples lie within 0.53·h of the frame centroid.
-  constexpr double kPatchM = 0.55;  // × h, rounded up
+  constexpr double kPatchM = ingest::kSamplePatchM;  // × h: the reach of a vossel's tests
   std::vector<float> far(grid.cell_count(), 0.0f);  // per cell: splat exactly to this depth
   auto splat_to = [&](const tiles::ViewCap& cap) {
     const float far_m = float(cap.far_m);
@@ -284,7 +283,7 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
       }
     }
     // Tested sample by sample only where S may lie nearer than the vossel's farthest sample
-    // in a reach cell about its centroid (S's min per cell); a test reads no other.
+    // in a reach cell its tests can read (S's min per cell, over ingest::SampleCap).
     const int W = view.size.width_px, H = view.size.height_px, kCell = tiles::kReachBlockPx;
     const int cw = W / kCell, ch = H / kCell;
     std::vector<float> cell_min(size_t(cw) * ch, std::numeric_limits<float>::infinity());
@@ -293,40 +292,21 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
       float* mins = &cell_min[size_t(j / kCell) * cw];
       for (int i = 0; i < cw * kCell; ++i) mins[i / kCell] = std::min(mins[i / kCell], row[i]);
     }
-    const Eigen::Matrix3d R_sensor_world =
-        source.info.pose.q_world_sensor.conjugate().toRotationMatrix();
-    const double dpsi = geometry::ElevationPitchRad(view.size);
-    const double dphi = geometry::AzimuthPitchRad(view.size);
+    const double pitch_rad =
+        std::max(geometry::AzimuthPitchRad(view.size), geometry::ElevationPitchRad(view.size));
     tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 4096),
                       [&](const tbb::blocked_range<size_t>& r) {
       for (size_t k = r.begin(); k != r.end(); ++k) {
         if (!unchanged[k]) continue;
-        const Eigen::Vector3d to = g.FrameCentroid(k).cast<double>() - o;
-        const double range = to.norm();
-        const double patch_m = kPatchM * h;
-        if (!(range > 2.0 * patch_m)) continue;  // at the sensor: test it
-        const Eigen::Vector3d d = R_sensor_world * (to / range);
-        const double spread = std::asin(patch_m / range);
-        // Clear of the poles the samples' azimuths lie within asin(sin spread / cos ψ) of the
-        // centroid's; near a pole, test it.
-        const double cos_psi = std::hypot(d.x(), d.y());
-        if (std::acos(std::min(1.0, cos_psi)) + spread > 0.5 * M_PI - 0.1) continue;
-        const Eigen::Vector2d uv = geometry::EquirectProject(d, view.size);
-        const int di = int(std::ceil(std::asin(std::sin(spread) / cos_psi) / dphi)) + 2 +
-                       view.dilate_px;
-        const int dj = int(std::ceil(spread / dpsi)) + 2 + view.dilate_px;
-        if (2 * di + 1 >= W) continue;
-        const int r0 = std::max(0, int(uv.y()) - dj) / kCell;
-        const int r1 = std::min(ch * kCell - 1, int(uv.y()) + dj) / kCell;
-        const int i0 = int(std::floor(uv.x())) - di, i1 = int(std::floor(uv.x())) + di;
-        float nearest = std::numeric_limits<float>::infinity();
-        for (int cj = r0; cj <= r1; ++cj) {
-          for (int i = i0; i <= i1 + kCell - 1; i += kCell) {
-            const int ci = geometry::WrapColumn(std::min(i, i1), W) / kCell;
-            nearest = std::min(nearest, cell_min[size_t(cj) * cw + std::min(ci, cw - 1)]);
-          }
-        }
-        if (double(nearest) >= range + patch_m) unchanged[k] = 0;  // S lies behind every test
+        const std::optional<tiles::ViewCap> cap =
+            ingest::SampleCap(g.FrameCentroid(k).cast<double>(), o, h, pitch_rad);
+        if (!cap) continue;  // at the sensor: test it
+        bool nearer = false;  // S may lie nearer than the farthest sample in a cell it reads
+        grid.ForEach(*cap, [&](size_t cell, bool) {
+          nearer = double(cell_min[cell]) < cap->far_m;
+          return !nearer;
+        });
+        if (!nearer) unchanged[k] = 0;  // S lies behind every test
       }
     });
     const std::vector<float> lit =
@@ -559,6 +539,14 @@ constexpr int kMaxConcurrentRevisits = 4;
 /// images are large (one at a time from 8192×4096 up, which decode to 400 MB each).
 constexpr int64_t kRevisitImageBytes = int64_t{512} << 20;
 
+// The records `rows` of `records`, their vossels renumbered into the new geometry.
+records::RecordSet Renumbered(const records::RecordSet& records, const std::vector<size_t>& rows,
+                              const std::vector<int32_t>& old_to_new) {
+  records::RecordSet out = records.Select(rows);
+  for (int32_t& v : out.vossel) v = old_to_new[size_t(v)];
+  return out;
+}
+
 /// Step 4 of Propagate: finds each revisited source's visibility on its blocks, refreshes its
 /// records from themselves where that is exact (RefreshedRecords) or recomputes them from its
 /// blob, and merges them and its reach raster into `next`. Sources run concurrently (at most
@@ -703,8 +691,9 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 if (job->vossels == 0 && std::none_of(job->cells.begin(), job->cells.end(),
                                                       [](uint8_t c) { return c != 0; })) {
                   // Nothing of the source changes: its records stay, and its reach too.
-                  if (mine != records_of.end()) job->kept = old_records.Select(mine->second);
-                  for (int32_t& v : job->kept.vossel) v = old_to_new[size_t(v)];
+                  if (mine != records_of.end()) {
+                    job->kept = Renumbered(old_records, mine->second, old_to_new);
+                  }
                   job->computed = ingest::SourceRecords{};
                   job->unchanged = true;
                   return job;
@@ -719,10 +708,8 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                         .push_back(i);
                   }
                 }
-                job->kept = old_records.Select(keep);
-                for (int32_t& v : job->kept.vossel) v = old_to_new[size_t(v)];
-                records::RecordSet before = old_records.Select(redo);
-                for (int32_t& v : before.vossel) v = old_to_new[size_t(v)];
+                job->kept = Renumbered(old_records, keep, old_to_new);
+                records::RecordSet before = Renumbered(old_records, redo, old_to_new);
                 if (std::optional<records::RecordSet> kept = RefreshedRecords(
                         src, std::move(before), old.geometry, g, changed, scope.only,
                         visibility)) {
@@ -937,8 +924,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
       if (it != revisit.end() && it->second.count(block_of[size_t(n)])) continue;
       keep.push_back(i);
     }
-    next.records = before.Select(keep);
-    for (int32_t& v : next.records.vossel) v = change.old_to_new[size_t(v)];
+    next.records = Renumbered(before, keep, change.old_to_new);
   }
   for (const auto& [source, raster] : old.reach) {
     if (!change.dropped_sources.count(source)) next.reach[source] = raster;

@@ -234,6 +234,8 @@ class SourceImageCache {
   };
   /// Keeps `entry` (its bytes counted) under `key`, evicting the least recently used.
   void Keep(const std::string& key, Entry entry);
+  /// The entry kept under `key`, marked most recently used; empty when none.
+  Entry Use(const std::string& key);
   std::map<std::string, Entry> entries_;
 };
 

@@ -98,14 +98,19 @@ absl::StatusOr<std::shared_ptr<const records::FusedValues>> StoredFused(
 
 }  // namespace
 
-std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(
-    const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts) {
+SourceImageCache::Entry SourceImageCache::Use(const std::string& key) {
   std::lock_guard<std::mutex> lock(mu_);
   auto it = entries_.find(key);
-  if (it == entries_.end()) return nullptr;
+  if (it == entries_.end()) return Entry{};
   it->second.used = ++clock_;
-  if (artefacts != nullptr) *artefacts = it->second.artefacts;
-  return it->second.image;
+  return it->second;
+}
+
+std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(
+    const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts) {
+  Entry entry = Use(key);
+  if (artefacts != nullptr) *artefacts = std::move(entry.artefacts);
+  return std::move(entry.image);
 }
 
 void SourceImageCache::Put(const std::string& key,
@@ -127,11 +132,7 @@ void SourceImageCache::Put(const std::string& key,
 }
 
 std::shared_ptr<const ingest::LidarSource> SourceImageCache::FindLidar(const std::string& key) {
-  std::lock_guard<std::mutex> lock(mu_);
-  auto it = entries_.find(key);
-  if (it == entries_.end()) return nullptr;
-  it->second.used = ++clock_;
-  return it->second.lidar;
+  return Use(key).lidar;
 }
 
 void SourceImageCache::PutLidar(const std::string& key,

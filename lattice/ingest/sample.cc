@@ -109,9 +109,10 @@ constexpr double kOuterNode = 1.7320508075688772;
 
 std::pair<int, int> SampledRows(const records::VosselGeometry& g, const CameraSource& cam,
                                 const std::vector<float>& vis) {
-  const int H = cam.Decoded().height_px;
+  const LinearImage& image = cam.Decoded();
+  const int H = image.height_px;
   if (cam.pinhole) return {0, H};
-  const ImageProjection proj = ProjectionOf(cam, cam.Decoded().width_px, H);
+  const ImageProjection proj = ProjectionOf(cam, image.width_px, H);
   const double target = geometry::TargetResolutionM(g.vossel_size_m);
   const Eigen::Matrix3d R_cam_world = cam.pose.q_world_sensor.conjugate().toRotationMatrix();
   const double rows_per_rad = H / M_PI;
@@ -147,7 +148,8 @@ std::pair<int, int> SampledRows(const records::VosselGeometry& g, const CameraSo
 
 RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam,
                        const std::vector<float>& vis, const ArtefactMaps& artefacts) {
-  const ImageProjection proj = ProjectionOf(cam, cam.Decoded().width_px, cam.Decoded().height_px);
+  const LinearImage& image = cam.Decoded();
+  const ImageProjection proj = ProjectionOf(cam, image.width_px, image.height_px);
   const bool wrap = !cam.pinhole;
   auto read = [&](const LinearImage& map, double u, double v) {  // §9: a map at (u, v)
     if (map.pixels.empty()) return 1.0f;
@@ -183,7 +185,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       std::fill(std::begin(conf), std::end(conf), 1.0f);
       uint8_t flags = 0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
-        SampleBilinear(cam.Decoded(), uv.x(), uv.y(), wrap, value);
+        SampleBilinear(image, uv.x(), uv.y(), wrap, value);
         conf[records::kConfSaturation] = read(saturation, uv.x(), uv.y());
         conf[records::kConfFlare] = read(flare, uv.x(), uv.y());
         conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
@@ -212,8 +214,8 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             const float f = read(flare, q.x(), q.y());
             if (f < kFlareInvalidBelow) continue;
             float s[3];
-            SampleBilinear(cam.Decoded(), q.x(), q.y(), wrap, s);
-            for (int c = 0; c < cam.Decoded().channels; ++c) acc[c] += w * s[c];
+            SampleBilinear(image, q.x(), q.y(), wrap, s);
+            for (int c = 0; c < image.channels; ++c) acc[c] += w * s[c];
             valid += w;
             flare_conf += w * f;
           }
@@ -229,7 +231,7 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         conf[records::kConfCodec] = float(codec_conf);
         conf[records::kConfSmear] = float(smear_conf);
       }
-      PushRecord(out, int32_t(k), cam.id, cam.modality, value, cam.Decoded().channels, range, cos_inc,
+      PushRecord(out, int32_t(k), cam.id, cam.modality, value, image.channels, range, cos_inc,
                  foot, uv, vis[k], conf, flags, cam.batch);
     }
   });

@@ -255,6 +255,20 @@ void DilateDepthPanorama(DepthPanorama& depth, int radius_px, int row_begin, int
   });
 }
 
+std::optional<tiles::ViewCap> SampleCap(const Eigen::Vector3d& x, const Eigen::Vector3d& o,
+                                        double vossel_size_m, double pitch_rad) {
+  const double patch_m = kSamplePatchM * vossel_size_m;
+  const Eigen::Vector3d to = x - o;
+  const double range = to.norm();
+  if (!(range > 2.0 * patch_m)) return std::nullopt;
+  tiles::ViewCap cap;
+  cap.dir = to / range;
+  cap.half_angle_rad = std::asin(patch_m / range) + pitch_rad;
+  cap.near_m = range - patch_m;
+  cap.far_m = range + patch_m;
+  return cap;
+}
+
 std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const DepthPanorama& depth,
                                      double tau_m, const std::vector<uint8_t>* only,
                                      int slope_pixels, bool shadow_by_cells) {
@@ -270,8 +284,6 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
   const double pitch_rad =
       std::max(geometry::AzimuthPitchRad(depth.size), geometry::ElevationPitchRad(depth.size));
   const double pixel_rad = slope_pixels * pitch_rad;
-  // Every sample lies within kPatchM·h of the frame centroid (the grid's corner at 0.375·√2·h).
-  constexpr double kPatchM = 0.55;
   // Shadow by reach cells (exact): a vossel whose every sample lies, beyond its tolerance,
   // farther than the farthest depth of each cell its patch can fall in fails every test, V = 0
   // without a test per sample. Taken when enough vossels are tested to pay for the cells' pass.
@@ -296,14 +308,12 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       const double range_k = to_sensor.norm();
       const double tolerance_m = SlopeScaledToleranceM(tau_m, range_k, pixel_rad,
                                                        std::abs(n.dot(to_sensor)) / range_k);
-      const double patch_m = kPatchM * h;
-      if (grid && range_k > 2.0 * patch_m) {
-        tiles::ViewCap cap;  // the samples' directions, one pixel wider for rounding
-        cap.dir = -to_sensor / range_k;
-        cap.half_angle_rad = std::asin(patch_m / range_k) + pitch_rad;
-        const double behind_m = range_k - patch_m - tolerance_m;  // the nearest sample's threshold
+      const std::optional<tiles::ViewCap> cap =
+          grid ? SampleCap(x, depth.pose.o_world, h, pitch_rad) : std::nullopt;
+      if (cap) {
+        const double behind_m = cap->near_m - tolerance_m;  // the nearest sample's threshold
         bool reached = false;
-        grid->ForEach(cap, [&](size_t cell, bool) {
+        grid->ForEach(*cap, [&](size_t cell, bool) {
           reached = double(farthest.max_depth_m[cell]) >= behind_m;
           return !reached;
         });

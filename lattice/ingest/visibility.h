@@ -6,12 +6,14 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <optional>
 #include <vector>
 
 #include "lattice/geometry/equirect.h"
 #include "lattice/geometry/footprint.h"
 #include "lattice/geometry/pose.h"
 #include "lattice/records/records.h"
+#include "lattice/tiles/tiling.h"
 
 namespace vasl::ingest {
 
@@ -26,6 +28,17 @@ inline double SlopeScaledToleranceM(double tau_m, double range_m, double pixel_r
   const double c = std::max(cos_inc, geometry::kCosIncidenceMin);
   return tau_m + range_m * pixel_rad * std::sqrt(1.0 - c * c) / c;
 }
+
+/// §5: ComputeVisibility's test samples lie within kSamplePatchM·h of the vossel's frame
+/// centroid (its 4×4 grid's corners at 0.375·√2·h = 0.53·h, rounded up).
+inline constexpr double kSamplePatchM = 0.55;
+
+/// The directions (a cap, world frame) in which ComputeVisibility's tests of the vossel whose
+/// frame centroid is `x` read a panorama from a sensor at `o`: about x, of the angle its sample
+/// patch subtends, one pixel (`pitch_rad`) wider for rounding. Its far side lies kSamplePatchM·h
+/// beyond x. nullopt when the sensor lies within twice the patch of x (a test may read anywhere).
+std::optional<tiles::ViewCap> SampleCap(const Eigen::Vector3d& x, const Eigen::Vector3d& o,
+                                        double vossel_size_m, double pitch_rad);
 
 /// Per pixel, the nearest range (metres) of occupied geometry from one source; +inf: none.
 struct DepthPanorama {
