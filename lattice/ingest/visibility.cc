@@ -297,8 +297,48 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
     grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, depth.pose);
     farthest = tiles::ReachFromDepth(depth.depth_m, depth.size);
   }
+  // The largest tolerance a vossel at range r can take (cosθ at its floor), for the chunk test.
+  const double tan_max =
+      std::sqrt(1.0 - geometry::kCosIncidenceMin * geometry::kCosIncidenceMin) /
+      geometry::kCosIncidenceMin;
+  const double patch_m = kSamplePatchM * h;
+  // Whole chunks of kShadowChunk consecutive vossels (neighbours in the lattice's canonical
+  // order) first: when the box of their frame centroids lies, beyond the largest tolerance,
+  // behind the farthest depth of every cell its cap (grown by the patch, one pixel wider) can
+  // fall in, each of its vossels' caps lies in that cap and its nearest sample's threshold
+  // behind the box's, so each one's shadow-by-cells test below holds: V = 0 for all of them.
+  constexpr size_t kShadowChunk = 64;
+  auto chunk_in_shadow = [&](size_t begin, size_t end) {
+    Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+    Eigen::Vector3d hi = -lo;
+    for (size_t k = begin; k != end; ++k) {
+      if (only != nullptr && !(*only)[k]) continue;
+      const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
+      lo = lo.cwiseMin(x);
+      hi = hi.cwiseMax(x);
+    }
+    if (!(lo.x() <= hi.x())) return true;  // nothing tested
+    tiles::ViewCap cap = tiles::CapOf({lo, hi}, depth.pose.o_world, patch_m);
+    if (cap.everywhere || !(cap.near_m > 2.0 * patch_m)) return false;
+    cap.half_angle_rad += pitch_rad;
+    const double behind_m =
+        cap.near_m - patch_m - (tau_m + cap.far_m * pixel_rad * tan_max);
+    bool reached = false;
+    grid->ForEach(cap, [&](size_t cell, bool) {
+      reached = double(farthest.max_depth_m[cell]) >= behind_m;
+      return !reached;
+    });
+    return !reached;
+  };
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
+      if (grid && (k == r.begin() || k % kShadowChunk == 0)) {
+        const size_t end = std::min(r.end(), (k / kShadowChunk + 1) * kShadowChunk);
+        if (chunk_in_shadow(k, end)) {
+          k = end - 1;  // V = 0 for the chunk
+          continue;
+        }
+      }
       if (only != nullptr && !(*only)[k]) continue;
       const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
       Eigen::Vector3d n = g.FrameNormal(k).cast<double>();

@@ -105,7 +105,8 @@ void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double h
 /// shadows itself). Parallel (TBB). When at least kShadowByCellsMinVossels vossels are tested
 /// on a panorama of whole reach cells, a vossel whose patch lies, beyond its tolerance, behind
 /// the farthest depth of every reach cell it can fall in gets V = 0 without a test per sample
-/// (exact: each of its tests would fail). `shadow_by_cells` false skips that pass: for a
+/// (exact: each of its tests would fail), and so do whole runs of consecutive vossels whose
+/// box lies so behind them. `shadow_by_cells` false skips that pass: for a
 /// panorama of a few splats, +inf in nearly every cell, it would shadow nothing.
 inline constexpr size_t kShadowByCellsMinVossels = 4096;
 std::vector<float> ComputeVisibility(const records::VosselGeometry& geometry,
