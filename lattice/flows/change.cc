@@ -11,6 +11,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_pipeline.h>
+#include <tbb/parallel_reduce.h>
 #include <tbb/task_arena.h>
 
 #include "absl/strings/str_cat.h"
@@ -267,31 +268,31 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
   if (changes.splats.size() > 0) {
     ingest::DepthPanorama s = ingest::RenderDepthPanorama(changes.splats, source.info.pose,
                                                           view.size, view.divergence_rad);
-    if (view.dilate_px > 0) {  // on the rows the splats reach (+inf stays +inf elsewhere)
-      const int W = view.size.width_px, H = view.size.height_px;
-      int first = H, last = -1;
-      for (int j = 0; j < H; ++j) {
-        const float* row = &s.depth_m[size_t(j) * W];
-        if (std::any_of(row, row + W, [](float d) { return std::isfinite(d); })) {
-          first = std::min(first, j);
-          last = j;
-        }
-      }
-      if (last >= 0) {
-        ingest::DilateDepthPanorama(s, view.dilate_px, first - view.dilate_px,
-                                    last + view.dilate_px + 1);
-      }
+    // The rows the splats reach (+inf stays +inf elsewhere, dilated or not).
+    const int W = view.size.width_px, H = view.size.height_px;
+    using Rows = std::pair<int, int>;
+    const Rows reached = tbb::parallel_reduce(
+        tbb::blocked_range<int>(0, H, 16), Rows{H, -1},
+        [&](const tbb::blocked_range<int>& r, Rows rows) {
+          for (int j = r.begin(); j != r.end(); ++j) {
+            const float* row = &s.depth_m[size_t(j) * W];
+            if (std::any_of(row, row + W, [](float d) { return std::isfinite(d); })) {
+              rows = {std::min(rows.first, j), std::max(rows.second, j)};
+            }
+          }
+          return rows;
+        },
+        [](Rows a, Rows b) {
+          return Rows{std::min(a.first, b.first), std::max(a.second, b.second)};
+        });
+    const int first = reached.first - view.dilate_px, end = reached.second + view.dilate_px + 1;
+    if (view.dilate_px > 0 && reached.second >= 0) {
+      ingest::DilateDepthPanorama(s, view.dilate_px, first, end);
     }
     // Tested sample by sample only where S may lie nearer than the vossel's farthest sample
     // in a reach cell its tests can read (S's min per cell, over ingest::SampleCap).
-    const int W = view.size.width_px, H = view.size.height_px, kCell = tiles::kReachBlockPx;
-    const int cw = W / kCell, ch = H / kCell;
-    std::vector<float> cell_min(size_t(cw) * ch, std::numeric_limits<float>::infinity());
-    for (int j = 0; j < ch * kCell; ++j) {
-      const float* row = &s.depth_m[size_t(j) * W];
-      float* mins = &cell_min[size_t(j / kCell) * cw];
-      for (int i = 0; i < cw * kCell; ++i) mins[i / kCell] = std::min(mins[i / kCell], row[i]);
-    }
+    const std::vector<float> cell_min =
+        tiles::CellMinFromDepth(s.depth_m, view.size, first, reached.second >= 0 ? end : first);
     const double pitch_rad =
         std::max(geometry::AzimuthPitchRad(view.size), geometry::ElevationPitchRad(view.size));
     tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 4096),
@@ -539,10 +540,37 @@ constexpr int kMaxConcurrentRevisits = 4;
 /// images are large (one at a time from 8192×4096 up, which decode to 400 MB each).
 constexpr int64_t kRevisitImageBytes = int64_t{512} << 20;
 
-// The records `rows` of `records`, their vossels renumbered into the new geometry.
+// The blocks of a geometry numbered densely (in key order), and each vossel's number: a set of
+// blocks is then a table by number, and a vossel is looked up in it without a set search.
+struct BlockNumbers {
+  std::vector<tiles::TileKey> numbered;
+  std::vector<int32_t> of_vossel;
+
+  BlockNumbers(const std::vector<tiles::TileKey>& block_of,
+               const std::set<tiles::TileKey>& all_blocks)
+      : numbered(all_blocks.begin(), all_blocks.end()), of_vossel(block_of.size()) {
+    tbb::parallel_for(size_t(0), block_of.size(), [&](size_t v) {
+      of_vossel[v] = int32_t(std::lower_bound(numbered.begin(), numbered.end(), block_of[v]) -
+                             numbered.begin());
+    });
+  }
+  // 1 for the blocks of `blocks` (a subset of the numbered ones), by number.
+  std::vector<uint8_t> Table(const std::set<tiles::TileKey>& blocks) const {
+    std::vector<uint8_t> in(numbered.size(), 0);
+    auto b = blocks.begin();
+    for (size_t n = 0; n < numbered.size(); ++n) {
+      while (b != blocks.end() && *b < numbered[n]) ++b;
+      if (b != blocks.end() && *b == numbered[n]) in[n] = 1;
+    }
+    return in;
+  }
+};
+
+// The records `rows` of `records`, their vossels renumbered into the new geometry (room for
+// `capacity` records).
 records::RecordSet Renumbered(const records::RecordSet& records, const std::vector<size_t>& rows,
-                              const std::vector<int32_t>& old_to_new) {
-  records::RecordSet out = records.Select(rows);
+                              const std::vector<int32_t>& old_to_new, size_t capacity = 0) {
+  records::RecordSet out = records.Select(rows, capacity);
   for (int32_t& v : out.vossel) v = old_to_new[size_t(v)];
   return out;
 }
@@ -552,7 +580,8 @@ records::RecordSet Renumbered(const records::RecordSet& records, const std::vect
 /// blob, and merges them and its reach raster into `next`. Sources run concurrently (at most
 /// kMaxConcurrentRevisits, no more than the threads, and within kRevisitImageBytes of decoded
 /// images) and merge in source-id order, so the result does not depend on which finishes
-/// first.
+/// first. `records_of`: per revisited source, the rows of `old_records` on its blocks' vossels
+/// that stay.
 absl::Status RevisitSources(const store::ProjectStore& store, const store::Snapshot& old,
                             const records::RecordSet& old_records,
                             const records::VosselGeometry& g,
@@ -560,31 +589,13 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                             const ChangedVossels& changed,
                             const std::vector<int32_t>& old_to_new,
                             const std::vector<SourceRef>& old_sources,
-                            const std::set<tiles::TileKey>& all_blocks, int B, int T,
-                            int64_t max_image_pixels, SourceImageCache* images,
+                            const BlockNumbers& block_numbers,
+                            const std::map<int32_t, std::vector<size_t>>& records_of, int B,
+                            int T, int64_t max_image_pixels, SourceImageCache* images,
                             store::Snapshot& next,
                             store::CommitPlan& plan, std::set<tiles::TileKey>& record_tiles,
                             FlowResult& result, StageClock& clock) {
-  // Each vossel's block as a dense number (all_blocks' order), so that a job flags its
-  // vossels by a table of its blocks rather than a set lookup per vossel.
-  std::vector<int32_t> block_number(g.size());
-  {
-    const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
-    const std::vector<tiles::TileKey> numbered(all_blocks.begin(), all_blocks.end());
-    tbb::parallel_for(size_t(0), g.size(), [&](size_t v) {
-      block_number[v] = int32_t(std::lower_bound(numbered.begin(), numbered.end(), block_of[v]) -
-                                numbered.begin());
-    });
-  }
-  auto number_of = [&all_blocks](const std::set<tiles::TileKey>& blocks) {
-    std::vector<uint8_t> in(all_blocks.size(), 0);
-    size_t n = 0;
-    for (auto a = all_blocks.begin(), b = blocks.begin(); a != all_blocks.end(); ++a, ++n) {
-      while (b != blocks.end() && *b < *a) ++b;
-      if (b != blocks.end() && *b == *a) in[n] = 1;
-    }
-    return in;
-  };
+  const std::vector<int32_t>& block_number = block_numbers.of_vossel;
   struct Job {
     const SourceRef* src = nullptr;
     const std::set<tiles::TileKey>* blocks = nullptr;
@@ -597,7 +608,6 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
     bool refreshed = false;   ///< from its records before the change, without its blob
     bool unchanged = false;   ///< the change alters none of its records, nor its reach
   };
-  const std::vector<tiles::TileKey> numbered(all_blocks.begin(), all_blocks.end());
   ChangedSplats changed_splats;
   changed_splats.splats = changed.old_splats;
   changed_splats.before = changed.old_splats.size();
@@ -610,17 +620,6 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
   std::vector<const SourceRef*> order;
   for (const SourceRef& src : old_sources) {
     if (revisit.count(src.info.id)) order.push_back(&src);
-  }
-  // Each revisited source's records before the change, on vossels that stay (new indices).
-  std::map<int32_t, std::vector<uint8_t>> revisit_table;  // source → its blocks, by number
-  for (const auto& [id, blocks] : revisit) revisit_table[id] = number_of(blocks);
-  std::map<int32_t, std::vector<size_t>> records_of;
-  for (size_t i = 0; i < old_records.size(); ++i) {
-    auto it = revisit_table.find(old_records.scan[i]);
-    const int32_t n = old_to_new[size_t(old_records.vossel[i])];
-    if (it != revisit_table.end() && n >= 0 && it->second[size_t(block_number[size_t(n)])]) {
-      records_of[old_records.scan[i]].push_back(i);
-    }
   }
   const double span = 0.3 / double(order.size() + 1);
   size_t next_job = 0;
@@ -665,7 +664,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
               [&](std::shared_ptr<Job> job) {
                 // The vossels of the revisited blocks.
                 const SourceRef& src = *job->src;
-                const std::vector<uint8_t> in_blocks = number_of(*job->blocks);
+                const std::vector<uint8_t> in_blocks = block_numbers.Table(*job->blocks);
                 std::vector<uint8_t> candidates(g.size(), 0);
                 for (size_t v = 0; v < g.size(); ++v) {
                   candidates[v] = in_blocks[size_t(block_number[v])];
@@ -684,8 +683,9 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
                 // splats the depth panorama needs for their tests: it splats those only.
                 auto old_reach = old.reach.find(src.info.id);
                 RevisitScope scope = ScopeOf(
-                    src, g, candidates, changed.changed_new, changed_splats, numbered,
-                    block_number, B, old_reach == old.reach.end() ? nullptr : &old_reach->second);
+                    src, g, candidates, changed.changed_new, changed_splats,
+                    block_numbers.numbered, block_number, B,
+                    old_reach == old.reach.end() ? nullptr : &old_reach->second);
                 job->vossels = std::count(scope.only.begin(), scope.only.end(), uint8_t{1});
                 job->cells = std::move(scope.cells);
                 if (job->vossels == 0 && std::none_of(job->cells.begin(), job->cells.end(),
@@ -907,24 +907,57 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     next.records_partial = true;
   }
 
-  // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out.
+  // 3. Records carried over: renumbered; a dropped source's, and revisited pairs', left out
+  //    (those go, per source, to its revisit). One parallel pass classes them, by tables per
+  //    source id and block number.
+  const BlockNumbers block_numbers(block_of, all_blocks);
+  std::map<int32_t, std::vector<size_t>> revisited_records;  // source → its records on its blocks
   {
     const records::RecordSet& before = *old_records;
+    int32_t ids = 0;
+    for (int32_t scan : before.scan) ids = std::max(ids, scan + 1);
+    std::vector<uint8_t> dropped(size_t(ids), 0);
+    for (int32_t id : change.dropped_sources) {
+      if (id >= 0 && id < ids) dropped[size_t(id)] = 1;
+    }
+    std::vector<std::vector<uint8_t>> tables(static_cast<size_t>(ids));  // empty: not revisited
+    for (const auto& [id, blocks] : revisit) {
+      if (id >= 0 && id < ids) tables[size_t(id)] = block_numbers.Table(blocks);
+    }
+    enum Class : uint8_t { kKeep, kDropped, kVanished, kRevisited };
+    std::vector<uint8_t> klass(before.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, before.size(), 1 << 14),
+                      [&](const tbb::blocked_range<size_t>& r) {
+      for (size_t i = r.begin(); i != r.end(); ++i) {
+        const int32_t id = before.scan[i];
+        const int32_t n = change.old_to_new[size_t(before.vossel[i])];
+        const bool known = id >= 0;  // a source id (ids start at 1)
+        klass[i] = known && dropped[size_t(id)] ? kDropped
+                   : n < 0                      ? kVanished
+                   : known && !tables[size_t(id)].empty() &&
+                           tables[size_t(id)][size_t(block_numbers.of_vossel[size_t(n)])]
+                       ? kRevisited
+                       : kKeep;
+      }
+    });
     std::vector<size_t> keep;
     keep.reserve(before.size());
     for (size_t i = 0; i < before.size(); ++i) {
-      const int32_t scan = before.scan[i];
-      const int32_t n = change.old_to_new[size_t(before.vossel[i])];
-      if (change.dropped_sources.count(scan)) {
-        record_tiles.insert(tiles::TileOf(old.geometry.coord[size_t(before.vossel[i])], T));
-        continue;
+      switch (klass[i]) {
+        case kKeep: keep.push_back(i); break;
+        case kDropped:
+          record_tiles.insert(tiles::TileOf(old.geometry.coord[size_t(before.vossel[i])], T));
+          break;
+        case kRevisited: revisited_records[before.scan[i]].push_back(i); break;
+        default: break;  // its vossel vanished (its tile is a changed one)
       }
-      if (n < 0) continue;  // its vossel vanished (its tile is a changed one)
-      auto it = revisit.find(scan);
-      if (it != revisit.end() && it->second.count(block_of[size_t(n)])) continue;
-      keep.push_back(i);
     }
-    next.records = Renumbered(before, keep, change.old_to_new);
+    // Room for the records the revisits and the new sources append (a revisit recomputes
+    // about as many as it had; a quarter more is kept free), so that they copy nothing.
+    size_t appended = fresh.size();
+    for (const auto& [source, rows] : revisited_records) appended += rows.size();
+    next.records =
+        Renumbered(before, keep, change.old_to_new, keep.size() + appended + appended / 4);
   }
   for (const auto& [source, raster] : old.reach) {
     if (!change.dropped_sources.count(source)) next.reach[source] = raster;
@@ -935,7 +968,8 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   //    one's decode and point loading are mostly serial), merged in source order.
   if (absl::Status s = RevisitSources(store, old, *old_records, g, revisit, changed,
                                       change.old_to_new,
-                                      old_sources, all_blocks, B, T, max_image_pixels, images,
+                                      old_sources, block_numbers, revisited_records, B, T,
+                                      max_image_pixels, images,
                                       next, plan,
                                       record_tiles, result, clock);
       !s.ok()) {

@@ -5,6 +5,8 @@
 #include <numeric>
 #include <tuple>
 
+#include <tbb/task_group.h>
+
 namespace vasl::records {
 
 const char* ModalityName(Modality m) {
@@ -55,27 +57,88 @@ void RecordSet::Append(const RecordSet& other) {
 
 void RecordSet::SortByVossel() {
   const size_t n = size();
-  std::vector<uint32_t> order(n);
-  std::iota(order.begin(), order.end(), 0u);
-  std::stable_sort(order.begin(), order.end(), [this](uint32_t a, uint32_t b) {
+  auto key_less = [this](size_t a, size_t b) {
     return std::tie(vossel[a], scan[a], modality[a]) < std::tie(vossel[b], scan[b], modality[b]);
+  };
+  // A stable sort orders by (key, position). The longest run already in order (a change's
+  // records carried over, say) is kept as it is, the rest sorted, and the two merged.
+  size_t run_begin = 0, run_end = std::min<size_t>(n, 1);
+  for (size_t begin = 0, i = 1; i <= n; ++i) {
+    if (i < n && !key_less(i, i - 1)) continue;
+    if (i - begin > run_end - run_begin) {
+      run_begin = begin;
+      run_end = i;
+    }
+    begin = i;
+  }
+  if (run_begin == 0 && run_end == n) return;  // in order already
+  std::vector<uint32_t> rest;
+  rest.reserve(n - (run_end - run_begin));
+  for (size_t i = 0; i < n; ++i) {
+    if (i < run_begin || i >= run_end) rest.push_back(uint32_t(i));
+  }
+  std::stable_sort(rest.begin(), rest.end(), key_less);
+  if (run_begin > 0) {  // merged into new arrays
+    std::vector<uint32_t> run(run_end - run_begin), order(n);
+    std::iota(run.begin(), run.end(), uint32_t(run_begin));
+    std::merge(run.begin(), run.end(), rest.begin(), rest.end(), order.begin(),
+               [&key_less](uint32_t a, uint32_t b) {
+                 return key_less(a, b) || (!key_less(b, a) && a < b);
+               });
+    *this = Select(std::vector<size_t>(order.begin(), order.end()));
+    return;
+  }
+  // The run is a prefix (records appended to sorted ones): merged in place from the back. Each
+  // position from the last down takes the greater of the run's last unplaced record and the
+  // rest's (the rest's on a tie: it came later); a run record moves only toward the end, so it
+  // is read before its position is written. The run's records before the first insertion stay.
+  std::vector<uint32_t> from(n);
+  size_t i = run_end, j = rest.size(), k = n;
+  while (j > 0) {
+    --k;
+    if (i > 0 && key_less(rest[j - 1], i - 1)) {
+      from[k] = uint32_t(--i);
+    } else {
+      from[k] = uint32_t(n + --j);  // ≥ n: the rest's j-th record
+    }
+  }
+  const size_t first = k;
+  tbb::task_group arrays;  // one task per array
+  ForEachArray(*this, *this, [&](auto& a, auto&, int stride) {
+    arrays.run([&a, stride, &rest, &from, first, n] {
+      using Array = std::decay_t<decltype(a)>;
+      Array moved(rest.size() * stride);  // the rest's records, sorted, before any is written
+      for (size_t r = 0; r < rest.size(); ++r) {
+        std::copy_n(a.begin() + size_t(rest[r]) * stride, stride, moved.begin() + r * stride);
+      }
+      for (size_t p = n; p-- > first;) {
+        const size_t f = from[p];
+        if (f >= n) {
+          std::copy_n(moved.begin() + (f - n) * stride, stride, a.begin() + p * stride);
+        } else if (f != p) {
+          std::copy_n(a.begin() + f * stride, stride, a.begin() + p * stride);
+        }
+      }
+    });
   });
-  ForEachArray(*this, *this, [&order, n](auto& a, auto&, int stride) {
-    std::decay_t<decltype(a)> out(a.size());
-    for (size_t i = 0; i < n; ++i)
-      std::copy_n(a.begin() + size_t(order[i]) * stride, stride, out.begin() + i * stride);
-    a.swap(out);
-  });
+  arrays.wait();
 }
 
-RecordSet RecordSet::Select(const std::vector<size_t>& indices) const {
+RecordSet RecordSet::Select(const std::vector<size_t>& indices, size_t capacity) const {
+  // One task per array: a large set's time goes to the first touch of its new pages (the
+  // zeroing resize), which then runs on every thread at once.
   RecordSet out;
-  ForEachArray(out, *this, [&indices](auto& dst, const auto& src, int stride) {
-    dst.resize(indices.size() * stride);
-    for (size_t i = 0; i < indices.size(); ++i) {
-      std::copy_n(src.begin() + indices[i] * stride, stride, dst.begin() + i * stride);
-    }
+  tbb::task_group arrays;
+  ForEachArray(out, *this, [&](auto& dst, const auto& src, int stride) {
+    arrays.run([&dst, &src, stride, &indices, capacity] {
+      dst.reserve(std::max(capacity, indices.size()) * stride);
+      dst.resize(indices.size() * stride);
+      for (size_t i = 0; i < indices.size(); ++i) {
+        std::copy_n(src.begin() + indices[i] * stride, stride, dst.begin() + i * stride);
+      }
+    });
   });
+  arrays.wait();
   return out;
 }
 

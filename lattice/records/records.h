@@ -164,8 +164,9 @@ struct RecordSet {
   void Append(const RecordSet& other);
   /// Reorders the records by (vossel, scan, modality); stable.
   void SortByVossel();
-  /// The records at `indices`, in that order.
-  RecordSet Select(const std::vector<size_t>& indices) const;
+  /// The records at `indices`, in that order; room for `capacity` records reserved (appending
+  /// up to it then copies nothing already there).
+  RecordSet Select(const std::vector<size_t>& indices, size_t capacity = 0) const;
 };
 
 /// Fused values of one modality under one profile (§7), per vossel.

@@ -5,6 +5,8 @@
 #include <cstring>
 #include <limits>
 
+#include <tbb/parallel_for.h>
+
 #include "absl/strings/str_cat.h"
 
 namespace vasl::tiles {
@@ -50,21 +52,52 @@ bool CapsOverlap(const ViewCap& a, const ViewCap& b, double margin_rad) {
   return angle <= a.half_angle_rad + b.half_angle_rad + margin_rad;
 }
 
-ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size) {
+namespace {
+
+// Per block of kReachBlockPx² pixels, `op` (min or max) over its pixels of rows
+// [row_begin, row_end), from `init`: parallel over rows of blocks; each pixel row is folded
+// column by column into the block row's columns (contiguous, vectorised), then per block.
+template <typename Op>
+ReachRaster PerCell(const std::vector<float>& depth_m, const geometry::EquirectSize& size,
+                    int row_begin, int row_end, float init, Op op) {
+  const int W = size.width_px, H = size.height_px;
   ReachRaster r;
-  r.size = {(size.width_px + kReachBlockPx - 1) / kReachBlockPx,
-            (size.height_px + kReachBlockPx - 1) / kReachBlockPx};
-  r.max_depth_m.assign(size_t(r.size.width_px) * r.size.height_px,
-                       -std::numeric_limits<float>::infinity());
-  for (int j = 0; j < size.height_px; ++j) {
-    float* row = &r.max_depth_m[size_t(j / kReachBlockPx) * r.size.width_px];
-    const float* in = &depth_m[size_t(j) * size.width_px];
-    for (int i = 0; i < size.width_px; ++i) {
-      float& cell = row[i / kReachBlockPx];
-      cell = std::max(cell, in[i]);
+  r.size = {(W + kReachBlockPx - 1) / kReachBlockPx, (H + kReachBlockPx - 1) / kReachBlockPx};
+  r.max_depth_m.assign(size_t(r.size.width_px) * r.size.height_px, init);
+  row_begin = std::clamp(row_begin, 0, H);
+  row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
+  if (row_begin >= row_end || W <= 0) return r;
+  const int first = row_begin / kReachBlockPx, last = (row_end - 1) / kReachBlockPx;
+  tbb::parallel_for(first, last + 1, [&](int cj) {
+    std::vector<float> columns(size_t(W), init);
+    const int j0 = std::max(row_begin, cj * kReachBlockPx);
+    const int j1 = std::min(row_end, (cj + 1) * kReachBlockPx);
+    for (int j = j0; j < j1; ++j) {
+      const float* in = &depth_m[size_t(j) * W];
+      for (int i = 0; i < W; ++i) columns[i] = op(columns[i], in[i]);
     }
-  }
+    float* cells = &r.max_depth_m[size_t(cj) * r.size.width_px];
+    for (int i = 0; i < W; ++i) {
+      float& cell = cells[i / kReachBlockPx];
+      cell = op(cell, columns[i]);
+    }
+  });
   return r;
+}
+
+}  // namespace
+
+ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size) {
+  return PerCell(depth_m, size, 0, size.height_px, -std::numeric_limits<float>::infinity(),
+                 [](float a, float b) { return std::max(a, b); });
+}
+
+std::vector<float> CellMinFromDepth(const std::vector<float>& depth_m,
+                                    const geometry::EquirectSize& size, int row_begin,
+                                    int row_end) {
+  return PerCell(depth_m, size, row_begin, row_end, std::numeric_limits<float>::infinity(),
+                 [](float a, float b) { return std::min(a, b); })
+      .max_depth_m;
 }
 
 bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,

@@ -88,6 +88,12 @@ inline constexpr int kReachBlockPx = 16;
 /// kReachBlockPx² pixels, the maximum depth.
 ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size);
 
+/// Per block of kReachBlockPx² pixels of a depth panorama, the minimum depth, row-major over
+/// the raster ReachFromDepth makes. Pixel rows outside [row_begin, row_end) count as +inf.
+std::vector<float> CellMinFromDepth(const std::vector<float>& depth_m,
+                                    const geometry::EquirectSize& size, int row_begin = 0,
+                                    int row_end = -1);
+
 /// True when some cell of `reach` that `cap` (world frame; the sensor at `T_world_sensor`) may
 /// cover holds a depth ≥ `min_depth_m`: the sensor may see something at that range in the cap.
 /// Conservative: cells are tested by their centre direction and angular half-diagonal.

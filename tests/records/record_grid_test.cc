@@ -96,6 +96,83 @@ double WorstError(const std::vector<float>& a, const std::vector<float>& b, Fn&&
   return worst;
 }
 
+// Claim (records.h): SortByVossel is a stable sort by (vossel, scan, modality). Checked against
+// std::stable_sort of the positions on the arrangements its paths take: records appended to
+// sorted ones (merged in place), a sorted run inside (merged into new arrays), in order
+// already, and tiny sets. Keys repeat (few vossels, scans and modalities), so every record
+// carries its position in `batch` to show the order among equal keys.
+TEST(RecordSetTest, SortByVosselIsAStableSortByItsKey) {
+  std::mt19937_64 rng(5);
+  auto records = [&rng](size_t n, bool sorted) {
+    std::uniform_int_distribution<int> vossel(0, 40), scan(1, 3), mod(1, 2);
+    std::uniform_real_distribution<float> u(0.0f, 1.0f);
+    RecordSet r;
+    for (size_t i = 0; i < n; ++i) {
+      r.vossel.push_back(vossel(rng));
+      r.scan.push_back(scan(rng));
+      r.modality.push_back(static_cast<int8_t>(mod(rng)));
+      for (int c = 0; c < kValueChannels; ++c) r.value.push_back(u(rng));
+      for (auto* a : {&r.range_m, &r.cos_inc, &r.foot_major_m, &r.foot_minor_m, &r.vis}) {
+        a->push_back(u(rng));
+      }
+      r.uv_px.push_back(u(rng));
+      r.uv_px.push_back(u(rng));
+      for (int c = 0; c < kConfidenceCount; ++c) r.conf.push_back(u(rng));
+      r.flags.push_back(static_cast<int8_t>(i % 4));
+      r.batch.push_back(0);
+    }
+    if (sorted) {
+      std::vector<size_t> order(n);
+      std::iota(order.begin(), order.end(), size_t{0});
+      std::stable_sort(order.begin(), order.end(), [&r](size_t a, size_t b) {
+        return std::tie(r.vossel[a], r.scan[a], r.modality[a]) <
+               std::tie(r.vossel[b], r.scan[b], r.modality[b]);
+      });
+      r = r.Select(order);
+    }
+    return r;
+  };
+  auto check = [](RecordSet r, const std::string& what) {
+    for (size_t i = 0; i < r.size(); ++i) r.batch[i] = static_cast<int32_t>(i);
+    std::vector<size_t> order(r.size());
+    std::iota(order.begin(), order.end(), size_t{0});
+    std::stable_sort(order.begin(), order.end(), [&r](size_t a, size_t b) {
+      return std::tie(r.vossel[a], r.scan[a], r.modality[a]) <
+             std::tie(r.vossel[b], r.scan[b], r.modality[b]);
+    });
+    const RecordSet want = r.Select(order);
+    r.SortByVossel();
+    EXPECT_EQ(r.vossel, want.vossel) << what;
+    EXPECT_EQ(r.scan, want.scan) << what;
+    EXPECT_EQ(r.modality, want.modality) << what;
+    EXPECT_EQ(r.batch, want.batch) << what << ": equal keys out of order";
+    EXPECT_EQ(r.value, want.value) << what;
+    EXPECT_EQ(r.range_m, want.range_m) << what;
+    EXPECT_EQ(r.cos_inc, want.cos_inc) << what;
+    EXPECT_EQ(r.foot_major_m, want.foot_major_m) << what;
+    EXPECT_EQ(r.foot_minor_m, want.foot_minor_m) << what;
+    EXPECT_EQ(r.uv_px, want.uv_px) << what;
+    EXPECT_EQ(r.vis, want.vis) << what;
+    EXPECT_EQ(r.conf, want.conf) << what;
+    EXPECT_EQ(r.flags, want.flags) << what;
+  };
+  for (size_t tail : {1, 7, 300}) {
+    RecordSet r = records(2000, true);
+    r.Append(records(tail, false));
+    check(r, "appended " + std::to_string(tail));
+  }
+  {
+    RecordSet r = records(200, false);
+    r.Append(records(2000, true));
+    r.Append(records(300, false));
+    check(r, "a sorted run inside");
+  }
+  check(records(2000, true), "in order");
+  check(records(2000, false), "shuffled");
+  check(records(1, false), "one");
+  check(records(0, false), "none");
+}
+
 // Claim (records.h "Vossel order"): indices run over leaves in tree order, then voxel offset;
 // the returned map is a permutation and every per-vossel array moves with its vossel.
 TEST(CanonicalizeVosselOrderTest, IndicesFollowLeafThenOffsetOrder) {

@@ -7,8 +7,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <random>
 #include <string>
+#include <utility>
 
 #include <Eigen/Geometry>
 
@@ -54,6 +56,44 @@ TEST(DepthPanoramaSize, CellsLineUpWithPixels) {
     // Within half a cell of the asked pitch (a cell is 16 pixels), clamped to [32, 2048] rows.
     const double rows = std::clamp(M_PI / pitch, 32.0, 2048.0);
     EXPECT_LE(std::abs(size.height_px - rows), 0.5 * kReachBlockPx + 1e-9) << "pitch " << pitch;
+  }
+}
+
+TEST(ReachRaster, CellsHoldTheMaxAndMinOfTheirPixels) {
+  // ReachFromDepth's max and CellMinFromDepth's min per cell, against a loop over each cell's
+  // pixels: on whole cells, on a size with partial cells at the right and bottom edges, and
+  // with CellMinFromDepth's rows restricted (rows outside count as +inf).
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> u(0.5f, 20.0f), coin(0.0f, 1.0f);
+  const float inf = std::numeric_limits<float>::infinity();
+  for (const geometry::EquirectSize size :
+       {geometry::EquirectSize{256, 128}, geometry::EquirectSize{200, 75}}) {
+    std::vector<float> depth_m(size_t(size.width_px) * size.height_px);
+    for (float& d : depth_m) d = coin(rng) < 0.1f ? inf : u(rng);
+    const ReachRaster reach = ReachFromDepth(depth_m, size);
+    for (const auto [row_begin, row_end] :
+         {std::pair<int, int>{0, -1}, {5, 40}, {17, 18}, {40, 40}}) {
+      const std::vector<float> mins = CellMinFromDepth(depth_m, size, row_begin, row_end);
+      ASSERT_EQ(mins.size(), reach.max_depth_m.size());
+      const int rows_end = row_end < 0 ? size.height_px : row_end;
+      for (int cj = 0; cj < reach.size.height_px; ++cj) {
+        for (int ci = 0; ci < reach.size.width_px; ++ci) {
+          float most = -inf, least = inf;
+          for (int j = cj * kReachBlockPx; j < std::min(size.height_px, (cj + 1) * kReachBlockPx);
+               ++j) {
+            for (int i = ci * kReachBlockPx;
+                 i < std::min(size.width_px, (ci + 1) * kReachBlockPx); ++i) {
+              const float d = depth_m[size_t(j) * size.width_px + i];
+              most = std::max(most, d);
+              if (j >= row_begin && j < rows_end) least = std::min(least, d);
+            }
+          }
+          const size_t c = size_t(cj) * reach.size.width_px + ci;
+          EXPECT_EQ(reach.max_depth_m[c], most) << "cell " << ci << "," << cj;
+          EXPECT_EQ(mins[c], least) << "cell " << ci << "," << cj << " rows " << row_begin;
+        }
+      }
+    }
   }
 }
 
