@@ -92,14 +92,14 @@ void RecordSet::SortByVossel() {
   // position from the last down takes the greater of the run's last unplaced record and the
   // rest's (the rest's on a tie: it came later); a run record moves only toward the end, so it
   // is read before its position is written. The run's records before the first insertion stay.
-  std::vector<uint32_t> from(n);
+  std::vector<size_t> from(n);
   size_t i = run_end, j = rest.size(), k = n;
   while (j > 0) {
     --k;
     if (i > 0 && key_less(rest[j - 1], i - 1)) {
-      from[k] = uint32_t(--i);
+      from[k] = --i;
     } else {
-      from[k] = uint32_t(n + --j);  // ≥ n: the rest's j-th record
+      from[k] = n + --j;  // ≥ n: the rest's j-th record
     }
   }
   const size_t first = k;
