@@ -5,8 +5,11 @@
 #include <fstream>
 #include <iterator>
 #include <mutex>
+#include <sstream>
+#include <string>
 #include <system_error>
 
+#include <openvdb/io/Archive.h>
 #include <openvdb/io/File.h>
 #include <openvdb/points/PointDataGrid.h>
 
@@ -20,40 +23,58 @@ void EnsureOpenVdbInitialized() {
   std::call_once(once, [] { openvdb::initialize(); });
 }
 
+namespace {
+
+// OpenVDB's file writer (io::File writes the same through an ofstream it opens on a path, in
+// 8 KiB pieces), into any seekable stream.
+class StreamArchive : public openvdb::io::Archive {
+ public:
+  void WriteTo(std::ostream& os, const openvdb::GridCPtrVec& grids,
+               const openvdb::MetaMap& meta) const {
+    Archive::write(os, grids, /*seekable=*/true, meta);
+  }
+};
+
+}  // namespace
+
 absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::GridCPtrVec& grids,
                           const openvdb::MetaMap& meta) {
   EnsureOpenVdbInitialized();
+  // Written in memory, its UUID made deterministic there, then to the file in one write: no
+  // small writes into fresh pages, and no reading the file back.
+  std::string bytes;
   try {
-    openvdb::io::File file(path.string());
+    StreamArchive archive;
     uint32_t compression = openvdb::io::COMPRESS_ACTIVE_MASK;
     compression |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
                                                                : openvdb::io::COMPRESS_ZIP;
-    file.setCompression(compression);
-    file.write(grids, meta);
-    file.close();
+    archive.setCompression(compression);
+    std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
+    archive.WriteTo(stream, grids, meta);
+    bytes = std::move(stream).str();
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("cannot write ", path.string(), ": ", e.what()));
   }
-  return MakeUuidDeterministic(path);
+  if (absl::Status s = MakeUuidDeterministic(bytes, path.string()); !s.ok()) return s;
+  std::ofstream out(path, std::ios::out | std::ios::binary | std::ios::trunc);
+  out.write(bytes.data(), std::streamsize(bytes.size()));
+  out.close();
+  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
+  return absl::OkStatus();
 }
 
-absl::Status MakeUuidDeterministic(const std::filesystem::path& path) {
+absl::Status MakeUuidDeterministic(std::string& bytes, const std::string& where) {
   // OpenVDB's header: magic (8 bytes), file version, library major and minor (4 each), a
   // has-grid-offsets byte, then the UUID as 36 ASCII characters.
-  constexpr std::streamoff kUuidAt = 21, kUuidLen = 36;
-  std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary | std::ios::ate);
-  if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
-  std::string bytes(size_t(f.tellg()), '\0');  // the whole file in one read
-  f.seekg(0);
-  f.read(bytes.data(), std::streamsize(bytes.size()));
-  if (!f || bytes.size() < size_t(kUuidAt + kUuidLen) || bytes.compare(0, 4, " BDV") != 0 ||
+  constexpr size_t kUuidAt = 21, kUuidLen = 36;
+  if (bytes.size() < kUuidAt + kUuidLen || bytes.compare(0, 4, " BDV") != 0 ||
       bytes[kUuidAt + 8] != '-' || bytes[kUuidAt + 13] != '-') {
-    return absl::InternalError(absl::StrCat(path.string(), " has no OpenVDB header UUID"));
+    return absl::InternalError(absl::StrCat(where, " has no OpenVDB header UUID"));
   }
   // Two FNV-1a-style 64-bit hashes of everything after the UUID, 8 bytes a step (then the
   // tail byte by byte), as a version-4-shaped UUID.
   uint64_t a = 0xcbf29ce484222325ull, b = 0x84222325cbf29ce4ull;
-  size_t i = size_t(kUuidAt + kUuidLen);
+  size_t i = kUuidAt + kUuidLen;
   for (; i + 8 <= bytes.size(); i += 8) {
     uint64_t w;
     std::memcpy(&w, bytes.data() + i, 8);
@@ -71,11 +92,7 @@ absl::Status MakeUuidDeterministic(const std::filesystem::path& path) {
   const std::string uuid = absl::StrCat(hex.substr(0, 8), "-", hex.substr(8, 4), "-4",
                                         hex.substr(13, 3), "-a", hex.substr(17, 3), "-",
                                         hex.substr(20, 12));
-  f.clear();
-  f.seekp(kUuidAt);
-  f.write(uuid.data(), kUuidLen);
-  f.close();
-  if (!f) return absl::InternalError(absl::StrCat("cannot rewrite the UUID of ", path.string()));
+  bytes.replace(kUuidAt, kUuidLen, uuid);
   return absl::OkStatus();
 }
 

@@ -16,10 +16,11 @@ namespace vasl::records::internal {
 /// Calls openvdb::initialize() exactly once per process (std::call_once). Thread-safe.
 void EnsureOpenVdbInitialized();
 
-/// Replaces the random UUID OpenVDB writes in a file's header by one derived from the file's
-/// own bytes, so that equal contents give equal files (tile objects are content-addressed:
-/// equal tiles must hash equal). Called by WriteVdbFile.
-absl::Status MakeUuidDeterministic(const std::filesystem::path& path);
+/// Replaces the random UUID OpenVDB writes in a file's header (`bytes`, the whole file) by one
+/// derived from the file's own bytes, so that equal contents give equal files (tile objects are
+/// content-addressed: equal tiles must hash equal). Called by WriteVdbFile. `where` names the
+/// file in errors.
+absl::Status MakeUuidDeterministic(std::string& bytes, const std::string& where);
 
 /// Writes `grids` with file-level `meta` to `path`, blosc-compressed (zip if blosc is absent).
 /// Errors: INTERNAL with the path and the OpenVDB message.
