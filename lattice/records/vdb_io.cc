@@ -25,6 +25,10 @@ void EnsureOpenVdbInitialized() {
 
 namespace {
 
+// OpenVDB's header: magic (8 bytes), file version, library major and minor (4 each), a
+// has-grid-offsets byte, then the UUID as 36 ASCII characters.
+constexpr size_t kUuidAt = 21, kUuidLen = 36;
+
 // OpenVDB's file writer (io::File writes the same through an ofstream it opens on a path, in
 // 8 KiB pieces), into any seekable stream.
 class StreamArchive : public openvdb::io::Archive {
@@ -40,20 +44,45 @@ class StreamArchive : public openvdb::io::Archive {
 absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::GridCPtrVec& grids,
                           const openvdb::MetaMap& meta) {
   EnsureOpenVdbInitialized();
-  // Written in memory, its UUID made deterministic there, then to the file in one write: no
-  // small writes into fresh pages, and no reading the file back.
+  // A file of a few tiles is written in memory, its UUID made deterministic there, then to the
+  // file in one write: no small writes into fresh pages, and no reading the file back. A large
+  // one (a version's export) goes through io::File, so that memory holds it once, not twice.
+  constexpr openvdb::Index64 kInMemoryBytes = openvdb::Index64{64} << 20;
+  openvdb::Index64 in_core = 0;
+  for (const openvdb::GridBase::ConstPtr& grid : grids) in_core += grid ? grid->memUsage() : 0;
+  uint32_t compression = openvdb::io::COMPRESS_ACTIVE_MASK;
+  compression |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
+                                                             : openvdb::io::COMPRESS_ZIP;
   std::string bytes;
   try {
-    StreamArchive archive;
-    uint32_t compression = openvdb::io::COMPRESS_ACTIVE_MASK;
-    compression |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
-                                                               : openvdb::io::COMPRESS_ZIP;
-    archive.setCompression(compression);
-    std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
-    archive.WriteTo(stream, grids, meta);
-    bytes = std::move(stream).str();
+    if (in_core > kInMemoryBytes) {
+      openvdb::io::File file(path.string());
+      file.setCompression(compression);
+      file.write(grids, meta);
+      file.close();
+    } else {
+      StreamArchive archive;
+      archive.setCompression(compression);
+      std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
+      archive.WriteTo(stream, grids, meta);
+      bytes = std::move(stream).str();
+    }
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("cannot write ", path.string(), ": ", e.what()));
+  }
+  if (bytes.empty()) {  // written by io::File: its UUID fixed in place
+    std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary | std::ios::ate);
+    if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
+    bytes.resize(size_t(f.tellg()));
+    f.seekg(0);
+    f.read(bytes.data(), std::streamsize(bytes.size()));
+    if (!f) return absl::InternalError(absl::StrCat("cannot read ", path.string()));
+    if (absl::Status s = MakeUuidDeterministic(bytes, path.string()); !s.ok()) return s;
+    f.seekp(kUuidAt);
+    f.write(bytes.data() + kUuidAt, kUuidLen);
+    f.close();
+    if (!f) return absl::InternalError(absl::StrCat("cannot rewrite the UUID of ", path.string()));
+    return absl::OkStatus();
   }
   if (absl::Status s = MakeUuidDeterministic(bytes, path.string()); !s.ok()) return s;
   std::ofstream out(path, std::ios::out | std::ios::binary | std::ios::trunc);
@@ -64,9 +93,6 @@ absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::Grid
 }
 
 absl::Status MakeUuidDeterministic(std::string& bytes, const std::string& where) {
-  // OpenVDB's header: magic (8 bytes), file version, library major and minor (4 each), a
-  // has-grid-offsets byte, then the UUID as 36 ASCII characters.
-  constexpr size_t kUuidAt = 21, kUuidLen = 36;
   if (bytes.size() < kUuidAt + kUuidLen || bytes.compare(0, 4, " BDV") != 0 ||
       bytes[kUuidAt + 8] != '-' || bytes[kUuidAt + 13] != '-') {
     return absl::InternalError(absl::StrCat(where, " has no OpenVDB header UUID"));
