@@ -344,14 +344,7 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
     const double sigma_m = geometry::SpotSigmaM((centre - o).norm() + sphere_m, spread_rad);
     const tiles::ViewCap cap =
         cap_about(centre, sphere_m + sigma_m, margin_rad, std::sqrt(3.0) * (0.5 * h + sigma_m));
-    bool seen = !bounded;
-    if (bounded) {
-      grid.ForEach(cap, [&](size_t cell, bool) {
-        seen = double(reach->max_depth_m[cell]) >= cap.near_m;
-        return !seen;
-      });
-    }
-    if (seen) splat_to(cap);
+    if (!bounded || grid.Reaches(cap, reach->max_depth_m, cap.near_m)) splat_to(cap);
   }
 
   // 3. The context: blocks whose splats can fall in a splatted cell nearer than its far depth.

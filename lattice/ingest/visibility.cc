@@ -297,10 +297,6 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
     grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, depth.pose);
     farthest = tiles::ReachFromDepth(depth.depth_m, depth.size);
   }
-  // The largest tolerance a vossel at range r can take (cosθ at its floor), for the chunk test.
-  const double tan_max =
-      std::sqrt(1.0 - geometry::kCosIncidenceMin * geometry::kCosIncidenceMin) /
-      geometry::kCosIncidenceMin;
   const double patch_m = kSamplePatchM * h;
   // Whole chunks of kShadowChunk consecutive vossels (neighbours in the lattice's canonical
   // order) first: when the box of their frame centroids lies, beyond the largest tolerance,
@@ -321,14 +317,11 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
     tiles::ViewCap cap = tiles::CapOf({lo, hi}, depth.pose.o_world, patch_m);
     if (cap.everywhere || !(cap.near_m > 2.0 * patch_m)) return false;
     cap.half_angle_rad += pitch_rad;
-    const double behind_m =
-        cap.near_m - patch_m - (tau_m + cap.far_m * pixel_rad * tan_max);
-    bool reached = false;
-    grid->ForEach(cap, [&](size_t cell, bool) {
-      reached = double(farthest.max_depth_m[cell]) >= behind_m;
-      return !reached;
-    });
-    return !reached;
+    // Its vossels' largest tolerance: at its far side, cosθ at its floor.
+    const double behind_m = cap.near_m - patch_m -
+                            SlopeScaledToleranceM(tau_m, cap.far_m, pixel_rad,
+                                                  geometry::kCosIncidenceMin);
+    return !grid->Reaches(cap, farthest.max_depth_m, behind_m);
   };
   tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t k = r.begin(); k != r.end(); ++k) {
@@ -352,12 +345,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
           grid ? SampleCap(x, depth.pose.o_world, h, pitch_rad) : std::nullopt;
       if (cap) {
         const double behind_m = cap->near_m - tolerance_m;  // the nearest sample's threshold
-        bool reached = false;
-        grid->ForEach(*cap, [&](size_t cell, bool) {
-          reached = double(farthest.max_depth_m[cell]) >= behind_m;
-          return !reached;
-        });
-        if (!reached) continue;  // V = 0
+        if (!grid->Reaches(*cap, farthest.max_depth_m, behind_m)) continue;  // V = 0
       }
       const Eigen::Vector3d t1 = geometry::AnyTangent(n), t2 = n.cross(t1);
       int lit = 0;

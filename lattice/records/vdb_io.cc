@@ -29,8 +29,8 @@ namespace {
 // has-grid-offsets byte, then the UUID as 36 ASCII characters.
 constexpr size_t kUuidAt = 21, kUuidLen = 36;
 
-// OpenVDB's file writer (io::File writes the same through an ofstream it opens on a path, in
-// 8 KiB pieces), into any seekable stream.
+// OpenVDB's file writer into any seekable stream (io::File::write is this on an ofstream it
+// opens on its path).
 class StreamArchive : public openvdb::io::Archive {
  public:
   void WriteTo(std::ostream& os, const openvdb::GridCPtrVec& grids,
@@ -46,31 +46,34 @@ absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::Grid
   EnsureOpenVdbInitialized();
   // A file of a few tiles is written in memory, its UUID made deterministic there, then to the
   // file in one write: no small writes into fresh pages, and no reading the file back. A large
-  // one (a version's export) goes through io::File, so that memory holds it once, not twice.
+  // one (a version's export) is written to the file as io::File writes it, so that memory
+  // holds it once, not twice.
   constexpr openvdb::Index64 kInMemoryBytes = openvdb::Index64{64} << 20;
   openvdb::Index64 in_core = 0;
   for (const openvdb::GridBase::ConstPtr& grid : grids) in_core += grid ? grid->memUsage() : 0;
   uint32_t compression = openvdb::io::COMPRESS_ACTIVE_MASK;
   compression |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
                                                              : openvdb::io::COMPRESS_ZIP;
+  const bool in_memory = in_core <= kInMemoryBytes;
   std::string bytes;
   try {
-    if (in_core > kInMemoryBytes) {
-      openvdb::io::File file(path.string());
-      file.setCompression(compression);
-      file.write(grids, meta);
-      file.close();
-    } else {
-      StreamArchive archive;
-      archive.setCompression(compression);
+    StreamArchive archive;
+    archive.setCompression(compression);
+    if (in_memory) {
       std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
       archive.WriteTo(stream, grids, meta);
       bytes = std::move(stream).str();
+    } else {
+      std::ofstream file(path, std::ios::out | std::ios::binary | std::ios::trunc);
+      if (!file) return absl::InternalError(absl::StrCat("cannot open ", path.string()));
+      archive.WriteTo(file, grids, meta);
+      file.close();
+      if (!file) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
     }
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("cannot write ", path.string(), ": ", e.what()));
   }
-  if (bytes.empty()) {  // written by io::File: its UUID fixed in place
+  if (!in_memory) {  // its UUID fixed in place
     std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary | std::ios::ate);
     if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
     bytes.resize(size_t(f.tellg()));

@@ -132,6 +132,16 @@ bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, con
   return false;
 }
 
+bool CapCells::Reaches(const ViewCap& cap, const std::vector<float>& max_depth_m,
+                       double min_depth_m) const {
+  bool reached = false;
+  ForEach(cap, [&](size_t cell, bool) {
+    reached = double(max_depth_m[cell]) >= min_depth_m;
+    return !reached;
+  });
+  return reached;
+}
+
 CapCells::CapCells(const geometry::EquirectSize& size, const geometry::Pose& T_world_sensor)
     : size_(size),
       R_sensor_world_(T_world_sensor.q_world_sensor.conjugate().toRotationMatrix()) {

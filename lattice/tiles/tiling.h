@@ -115,6 +115,10 @@ class CapCells {
   /// cell lies wholly inside the cap) until fn returns false.
   template <typename Fn>
   void ForEach(const ViewCap& cap, Fn&& fn) const;
+  /// True when a cell `cap` may overlap bounds a depth of at least `min_depth_m`
+  /// (`max_depth_m`: a reach raster's bounds over these cells), as Reaches decides it.
+  bool Reaches(const ViewCap& cap, const std::vector<float>& max_depth_m,
+               double min_depth_m) const;
 
  private:
   geometry::EquirectSize size_;
