@@ -1,10 +1,24 @@
 #!/usr/bin/env bash
 # Sets up, builds, then prints the speed figures of ingest, reweight, render and record IO on
-# the synthetic room (tests/bench/vasl_bench.cc). Arguments go to vasl_bench
-# (--panorama-width W, --repeat N, --growth-only, --tile-vossels T, --snapshot-budget-mb M,
-# --revisit-cache-mb M, --growth-passes N).
+# the synthetic room and the growth of the store over the corridor site
+# (tests/bench/vasl_bench.cc), after the kernels under Google Benchmark
+# (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad), whose
+# medians and spread over 5 runs are also written to build/bench-kernels.json.
+# Arguments go to vasl_bench (--panorama-width W, --repeat N, --growth-only, --tile-vossels T,
+# --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./deploy/setup.sh
+# What the benchmarks alone need, from Debian's packages.
+if ! dpkg-query -W -f='${Status}' libbenchmark-dev 2>/dev/null | grep -q "install ok installed"; then
+  SUDO=""
+  [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
+    libbenchmark-dev
+fi
 ./deploy/build.sh
+./build/tests/bench/vasl_kernels_bench --benchmark_repetitions=5 \
+  --benchmark_report_aggregates_only=true --benchmark_out=build/bench-kernels.json \
+  --benchmark_out_format=json
 ./build/tests/bench/vasl_bench "$@"

@@ -1,11 +1,13 @@
 #include "lattice/fusion/fuse.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cctype>
 #include <cmath>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/fusion/weight.h"
@@ -49,8 +51,13 @@ absl::Status ValidateProfile(const WeightingProfile& p) {
 
 std::vector<std::array<float, records::kValueChannels>> DenseChannelGains(
     const WeightingProfile& profile, const records::RecordSet& recs) {
-  int32_t max_id = 0;
-  for (int32_t s : recs.scan) max_id = std::max(max_id, s);
+  int32_t max_id = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, recs.size(), 1 << 16), int32_t(0),
+      [&recs](const tbb::blocked_range<size_t>& r, int32_t m) {
+        for (size_t i = r.begin(); i != r.end(); ++i) m = std::max(m, recs.scan[i]);
+        return m;
+      },
+      [](int32_t a, int32_t b) { return std::max(a, b); });
   for (const auto& [s, a] : profile.channel_gain) max_id = std::max(max_id, s);
   std::vector<std::array<float, records::kValueChannels>> out(size_t(max_id) + 1);
   for (auto& a : out) a.fill(1.0f);
@@ -75,24 +82,20 @@ absl::StatusOr<RecordValues> RecordValues::Of(const WeightingProfile& profile,
       if (source >= 0 && size_t(source) < out.lens_.size()) {
         const LensMap* map = profile.lens->maps[index].get();
         out.lens_[size_t(source)] = {map, &map->source_gain.at(source)};
+        out.has_lens_ = true;
       }
     }
   }
   return out;
 }
 
-LensFactors RecordValues::Read(size_t i, double* out) const {
+LensFactors RecordValues::ReadThroughLens(size_t i, double* out) const {
   const int32_t s = recs_->scan[i];
+  const auto& [map, gain] = lens_[size_t(s)];
   float v[records::kValueChannels];
   std::copy_n(&recs_->value[i * records::kValueChannels], records::kValueChannels, v);
-  LensFactors conf;
-  if (s >= 0 && lens_[size_t(s)].first != nullptr) {
-    const auto& [map, gain] = lens_[size_t(s)];
-    conf = AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
-  }
-  for (int c = 0; c < records::kValueChannels; ++c) {
-    out[c] = (s >= 0 ? double(gain_[size_t(s)][c]) : 1.0) * v[c];
-  }
+  const LensFactors conf = AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
+  for (int c = 0; c < records::kValueChannels; ++c) out[c] = double(gain_[size_t(s)][c]) * v[c];
   return conf;
 }
 
@@ -113,17 +116,80 @@ LensFactors RecordValues::LensConfidence(size_t i) const {
 
 absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& recs,
                                                   size_t vossel_count) {
-  std::vector<size_t> begin(vossel_count + 1, 0);
-  for (size_t i = 0; i < recs.size(); ++i) {
-    const int32_t k = recs.vossel[i];
-    if (k < 0 || size_t(k) >= vossel_count || (i > 0 && recs.vossel[i - 1] > k)) {
-      return absl::InternalError("records are not sorted by a valid vossel index");
+  // Records sorted by vossel: begin[k] is the first record whose vossel is ≥ k, written by
+  // the one record where the vossel index steps past k, so that record chunks fill it apart.
+  const size_t n = recs.size();
+  std::vector<size_t> begin(vossel_count + 1);
+  std::atomic<bool> sorted{true};
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    int64_t previous = r.begin() == 0 ? -1 : int64_t(recs.vossel[r.begin() - 1]);
+    for (size_t i = r.begin(); i != r.end(); ++i) {
+      const int64_t k = recs.vossel[i];
+      if (k < 0 || k < previous || k >= int64_t(vossel_count)) {
+        sorted = false;
+        return;
+      }
+      for (int64_t j = previous + 1; j <= k; ++j) begin[size_t(j)] = i;
+      previous = k;
     }
-    ++begin[size_t(k) + 1];
+  });
+  if (!sorted) return absl::InternalError("records are not sorted by a valid vossel index");
+  for (size_t k = n == 0 ? 0 : size_t(recs.vossel[n - 1]) + 1; k <= vossel_count; ++k) {
+    begin[k] = n;
   }
-  for (size_t k = 0; k < vossel_count; ++k) begin[k + 1] += begin[k];
   return begin;
 }
+
+namespace {
+
+/// w_{k,m} of the records of vossels [k_begin, k_end) into w[0, begin[k_end] − begin[k_begin]):
+/// r_{k,min} per vossel and fused channel when the profile has the proximity term, the §9 lens
+/// factors of conf[dirt] and conf[fog] when it applies lens maps, then the kernel.
+void WeighVossels(const records::RecordSet& recs, const std::vector<size_t>& begin,
+                  size_t k_begin, size_t k_end, const WeightKernel& kernel,
+                  const RecordValues& values, float* w) {
+  constexpr int kF = records::kConfidenceCount;
+  thread_local std::vector<float> range_min, conf;
+  const size_t first = begin[k_begin], end = begin[k_end];
+  WeightColumns columns = WeightColumns::Of(recs, first);
+  if (kernel.uses_range_min()) {
+    range_min.resize(end - first);
+    for (size_t k = k_begin; k != k_end; ++k) {
+      const size_t b = begin[k], e = begin[k + 1];
+      float lowest[records::kModalityCount];
+      std::fill(std::begin(lowest), std::end(lowest), HUGE_VALF);
+      for (size_t i = b; i < e; ++i) {  // every channel's minimum updated by select, in registers
+        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+        const float r = recs.range_m[i];
+        for (int q = 0; q < records::kModalityCount; ++q) {
+          lowest[q] = c == q ? std::min(lowest[q], r) : lowest[q];
+        }
+      }
+      for (size_t i = b; i < e; ++i) {
+        range_min[i - first] = lowest[int(FusedChannelOf(Modality(recs.modality[i])))];
+      }
+    }
+    columns.range_min_m = range_min.data();
+  }
+  if (values.has_lens()) {
+    conf.assign(&recs.conf[first * kF], &recs.conf[end * kF]);
+    for (size_t i = first; i < end; ++i) {
+      if (const LensFactors lens = values.LensConfidence(i); lens != LensFactors{}) {
+        conf[(i - first) * kF + records::kConfDirt] *= lens.dirt;
+        conf[(i - first) * kF + records::kConfFog] *= lens.fog;
+      }
+    }
+    columns.conf = conf.data();
+  }
+  kernel.Evaluate(columns, end - first, w);
+}
+
+/// Vossels per task of the parallel passes over records (simple_partitioner: 512 to 1024), so
+/// that a task's records, ~8 per vossel, and its scratch columns stay in L2.
+constexpr size_t kVosselGrain = 1024;
+
+}  // namespace
 
 absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs, size_t vossel_count,
                                                   double vossel_size_m, const WeightingProfile& profile) {
@@ -132,48 +198,25 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
   if (!begin.ok()) return begin.status();
   RecordWeightsResult out;
   out.begin = std::move(*begin);
-  out.weight.assign(recs.size(), 0.0f);
+  out.weight.resize(recs.size());
   absl::StatusOr<RecordValues> values = RecordValues::Of(profile, recs);
   if (!values.ok()) return values.status();
-  const double target_m = geometry::TargetResolutionM(vossel_size_m);
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
-                    [&](const tbb::blocked_range<size_t>& range) {
-    for (size_t k = range.begin(); k != range.end(); ++k) {
-      const size_t b = out.begin[k], e = out.begin[k + 1];
-      double range_min[records::kModalityCount];
-      std::fill(std::begin(range_min), std::end(range_min), HUGE_VAL);
-      if (profile.proximity_m > 0.0) {
-        for (size_t i = b; i < e; ++i) {
-          const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-          range_min[c] = std::min(range_min[c], double(recs.range_m[i]));
-        }
-      }
-      for (size_t i = b; i < e; ++i) {
-        if (recs.flags[i] & records::kFlagInvalidated) continue;
-        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-        const auto g = profile.scan_gain.find(recs.scan[i]);
-        WeightInputs in = WeightInputsOf(recs, i, float(range_min[c]));
-        float conf[records::kConfidenceCount];
-        if (const LensFactors lens = values->LensConfidence(i); lens != LensFactors{}) {  // §9
-          std::copy(in.conf, in.conf + records::kConfidenceCount, conf);
-          conf[records::kConfDirt] *= lens.dirt;
-          conf[records::kConfFog] *= lens.fog;
-          in.conf = conf;
-        }
-        out.weight[i] = float(RecordWeight(profile, in, target_m,
-                                           g == profile.scan_gain.end() ? 1.0 : g->second));
-      }
-    }
-  });
+  const WeightKernel kernel(profile, geometry::TargetResolutionM(vossel_size_m));
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, kVosselGrain),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    WeighVossels(recs, out.begin, r.begin(), r.end(), kernel, *values,
+                 out.weight.data() + out.begin[r.begin()]);
+  }, tbb::simple_partitioner());
   return out;
 }
 
 absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t vossel_count,
                                           double vossel_size_m, const WeightingProfile& profile) {
-  auto weights = RecordWeights(recs, vossel_count, vossel_size_m, profile);
-  if (!weights.ok()) return weights.status();
-  const std::vector<size_t>& begin = weights->begin;
-  const std::vector<float>& weight = weights->weight;
+  if (absl::Status s = ValidateProfile(profile); !s.ok()) return s;
+  const absl::StatusOr<std::vector<size_t>> offsets = VosselOffsets(recs, vossel_count);
+  if (!offsets.ok()) return offsets.status();
+  const std::vector<size_t>& begin = *offsets;
+  const WeightKernel kernel(profile, geometry::TargetResolutionM(vossel_size_m));
 
   bool present[records::kModalityCount] = {};
   for (int8_t m : recs.modality) present[int(FusedChannelOf(Modality(m)))] = true;
@@ -193,51 +236,59 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
   absl::StatusOr<RecordValues> values = RecordValues::Of(profile, recs);
   if (!values.ok()) return values.status();
 
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, 1024),
+  // One pass: each task weighs its vossels' records into a buffer it then reads, hot in cache.
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, kVosselGrain),
                     [&](const tbb::blocked_range<size_t>& range) {
+    thread_local std::vector<float> weights;
+    const size_t first = begin[range.begin()];
+    weights.resize(begin[range.end()] - first);
+    WeighVossels(recs, begin, range.begin(), range.end(), kernel, *values, weights.data());
     for (size_t k = range.begin(); k != range.end(); ++k) {
-      const size_t b = begin[k], e = begin[k + 1];
-      if (b == e) continue;
-      double sum_w[records::kModalityCount] = {};
-      double sum_wc[records::kModalityCount][records::kValueChannels] = {};
-      double sum_wcc[records::kModalityCount][records::kValueChannels] = {};
-      double best_w[records::kModalityCount] = {};
-      size_t best_i[records::kModalityCount] = {};
-      for (size_t i = b; i < e; ++i) {
-        const double w = weight[i];
+      struct Sums {
+        double w, wc[records::kValueChannels], wcc[records::kValueChannels], best_w;
+        size_t best_i;
+      } sums[records::kModalityCount];
+      unsigned touched = 0;  // channels with a record of weight > 0; their sums start at 0
+      for (size_t i = begin[k], e = begin[k + 1]; i < e; ++i) {
+        const double w = weights[i - first];
         if (!(w > 0.0)) continue;
         const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+        Sums& a = sums[c];
+        if (!((touched >> c) & 1u)) {
+          a = Sums{};
+          touched |= 1u << c;
+        }
         double v[records::kValueChannels];
         values->Read(i, v);
-        sum_w[c] += w;
+        a.w += w;
         for (int ch = 0; ch < records::kValueChannels; ++ch) {
-          const double x = v[ch];
-          sum_wc[c][ch] += w * x;
-          sum_wcc[c][ch] += w * x * x;
+          a.wc[ch] += w * v[ch];
+          a.wcc[ch] += w * v[ch] * v[ch];
         }
-        if (w > best_w[c]) {
-          best_w[c] = w;
-          best_i[c] = i;
+        if (w > a.best_w) {
+          a.best_w = w;
+          a.best_i = i;
         }
       }
-      for (int c = 1; c < records::kModalityCount; ++c) {
-        if (!(sum_w[c] > 0.0)) continue;
+      for (touched &= ~1u; touched != 0; touched &= touched - 1) {  // channel 0 is not fused
+        const int c = __builtin_ctz(touched);
+        const Sums& a = sums[c];
         records::FusedModality& f = *channel[c];
         double variance = 0.0;
         double nearest[records::kValueChannels];
-        if (profile.mode == FusionMode::kNearest) values->Read(best_i[c], nearest);
+        if (profile.mode == FusionMode::kNearest) values->Read(a.best_i, nearest);
         for (int ch = 0; ch < f.channels; ++ch) {
-          const double mean = sum_wc[c][ch] / sum_w[c];
-          variance += std::max(0.0, sum_wcc[c][ch] / sum_w[c] - mean * mean);
+          const double mean = a.wc[ch] / a.w;
+          variance += std::max(0.0, a.wcc[ch] / a.w - mean * mean);
           f.value[k * f.channels + ch] =
               float(profile.mode == FusionMode::kNearest ? nearest[ch] : mean);
         }
         variance /= f.channels;
-        f.weight[k] = float(sum_w[c]);
-        f.uncertainty[k] = float(std::sqrt(variance + 1.0 / sum_w[c]));  // spread ⊕ 1/sqrt(Σw)
+        f.weight[k] = float(a.w);
+        f.uncertainty[k] = float(std::sqrt(variance + 1.0 / a.w));  // spread ⊕ 1/sqrt(Σw)
       }
     }
-  });
+  }, tbb::simple_partitioner());
   return out;
 }
 

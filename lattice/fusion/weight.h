@@ -3,11 +3,12 @@
 ///        (ingest fusion, reweight, render blending) calls.
 #pragma once
 
-#include <cmath>
+#include <array>
 #include <cstddef>
+#include <cstdint>
+#include <vector>
 
 #include "lattice/fusion/profile.h"
-#include "lattice/geometry/footprint.h"
 #include "lattice/records/records.h"
 
 namespace vasl::fusion {
@@ -42,32 +43,58 @@ inline WeightInputs WeightInputsOf(const records::RecordSet& records, size_t i,
   return in;
 }
 
-/// x^e with exact fast paths for the common exponents 0, 1 and 2 (RECORDS-NOTES: the powf calls,
-/// not memory, bound a reweight).
-inline double PowFast(double x, double e) {
-  if (e == 1.0) return x;
-  if (e == 0.0) return 1.0;
-  if (e == 2.0) return x * x;
-  return x > 0.0 ? std::pow(x, e) : 0.0;
-}
+/// The columns of a run of records that the §7 weight reads (§6 fields), structure of arrays:
+/// record i's fields are vis[i], cos_inc[i], …, conf[i * kConfidenceCount + f].
+struct WeightColumns {
+  const float* vis = nullptr;
+  const float* cos_inc = nullptr;
+  const float* foot_major_m = nullptr;
+  const float* foot_minor_m = nullptr;
+  const float* conf = nullptr;  ///< kConfidenceCount per record
+  const int32_t* scan = nullptr;
+  const int8_t* flags = nullptr;  ///< RecordFlag bits: invalidated records weigh 0, derived λ_src
+  const float* range_m = nullptr;      ///< read by the proximity term only
+  const float* range_min_m = nullptr;  ///< r_{k,min} per record; proximity term only
+  /// The columns of records [first, …) of `records` (range_min_m not set).
+  static WeightColumns Of(const records::RecordSet& records, size_t first = 0);
+};
 
 /// §7: w = [V ≥ V_min]·V^β·max(cosθ,0)^α·K_range^ρ·Π_f conf_f^κ_f·g_m·λ_src
-///       [·[θ ≤ θ_max]]·[·exp(−(r − r_min)/ρ_p)], with K_range from §4.2 and s* = h/2.
-/// `target_m` is s*. `gain` is g_m looked up by the caller (1 when the profile has none).
-inline double RecordWeight(const WeightingProfile& p, const WeightInputs& in, double target_m,
-                           double gain) {
-  if (in.vis < p.v_min || in.vis <= 0.0f) return 0.0;
-  const double cos_inc = std::max(0.0, double(in.cos_inc));
-  if (p.theta_max_rad > 0.0 && cos_inc < std::cos(p.theta_max_rad)) return 0.0;
-  const double k_range =
-      geometry::RangeWeight({in.foot_major_m, in.foot_minor_m}, target_m);
-  double w = PowFast(in.vis, p.beta) * PowFast(cos_inc, p.alpha) * PowFast(k_range, p.rho);
-  if (in.conf != nullptr) {
-    for (int f = 0; f < records::kConfidenceCount; ++f) w *= PowFast(in.conf[f], p.kappa[f]);
-  }
-  w *= gain * (in.derived ? p.lambda_src : 1.0);
-  if (p.proximity_m > 0.0) w *= std::exp(-(in.range_m - in.range_min_m) / p.proximity_m);
-  return w;
-}
+///       [·[θ ≤ θ_max]]·[·exp(−(r − r_min)/ρ_p)], with K_range from §4.2 and s* = h/2: the one
+/// implementation, evaluated over runs of records as flat float arrays (RecordWeights) or for
+/// one record (RecordWeight).
+/// @details A factor with exponent 0 is left out (x⁰ = 1, also for x = 0), exponents 1 and 2
+///          multiply, and every other exponent goes into one exponential of a sum of logarithms,
+///          exp(Σ e·ln x + proximity), so that a record costs one exp and no pow whatever the
+///          profile. ln and exp are float polynomials (relative error below 2·10⁻⁷ each); a zero
+///          factor under a positive exponent gives exactly 0.
+class WeightKernel {
+ public:
+  /// `target_m` is s*.
+  WeightKernel(const WeightingProfile& profile, double target_m);
+  /// w[i] for the n records of `columns` (range_min_m is needed only with the proximity term).
+  void Evaluate(const WeightColumns& columns, size_t n, float* w) const;
+  bool uses_range_min() const { return proximity_ > 0.0f; }
+
+ private:
+  /// How one factor x^e enters: left out, multiplied (e = 1, 2) or through ln x (other e).
+  enum class Power : int8_t { kOff, kOne, kTwo, kLog };
+  struct Factor {
+    Power power = Power::kOff;
+    float exponent = 0.0f;
+  };
+  static Factor FactorOf(double exponent);
+  static void Apply(Factor f, const float* x, size_t n, float* product, float* log_sum);
+
+  Factor vis_, cos_, range_;
+  std::array<Factor, records::kConfidenceCount> conf_;
+  bool any_log_ = false, any_conf_ = false;
+  float v_min_ = 0.0f, cos_max_ = -1.0f, target_m_ = 0.0f, lambda_src_ = 1.0f;
+  float proximity_ = 0.0f;  ///< 1/ρ_p; 0: off
+  std::vector<float> gain_;  ///< g_m by source id; ids past its end: 1
+};
+
+/// The §7 weight of one record (WeightKernel over a run of one), g_m from the profile.
+double RecordWeight(const WeightingProfile& p, const WeightInputs& in, double target_m);
 
 }  // namespace vasl::fusion

@@ -64,10 +64,16 @@ inline double MatchedFilterSigmaM(double footprint_m, double target_m) {
   return std::sqrt(std::max(0.0, target_m * target_m - footprint_m * footprint_m));
 }
 
-/// §4.2 range weight: K_range = min(1, s*/s_major) · min(1, s*/s_minor).
+/// §4.2 range weight: K_range = min(1, s*/s_major) · min(1, s*/s_minor), in float or double
+/// (the §7 weight kernel evaluates it in float over runs of records).
+template <typename T>
+inline T RangeWeight(T major_m, T minor_m, T target_m) {
+  const auto share = [target_m](T s) { return s > target_m ? target_m / s : T(1); };
+  return share(major_m) * share(minor_m);
+}
+/// The same for a footprint.
 inline double RangeWeight(const SurfaceFootprint& f, double target_m) {
-  const auto share = [target_m](double s) { return s > target_m ? target_m / s : 1.0; };
-  return share(f.major_m) * share(f.minor_m);
+  return RangeWeight<double>(f.major_m, f.minor_m, target_m);
 }
 
 /// §4.3: per-channel PSFs add in quadrature.

@@ -371,7 +371,7 @@ int main(int argc, char** argv) {
   general.rho = 0.5;
   general.kappa = {2.5, 1.5, 0.5, 1.2};
   general.proximity_m = 2.0;
-  for (const auto& [name, profile] : {std::pair<const char*, fusion::WeightingProfile>{"default exponents (0/1/2 fast path)", unit},
+  for (const auto& [name, profile] : {std::pair<const char*, fusion::WeightingProfile>{"multiply-only (exponents 0/1/2)", unit},
                                       {"general exponents + proximity", general}}) {
     double best = 1e30;
     for (int i = 0; i < repeat; ++i) {

@@ -199,7 +199,7 @@ TEST_F(BackProjectTest, EditChangesExactlyTheVosselsItLandsOnByTheWeights) {
     const size_t i = derived_of[int32_t(k)];
     const fusion::WeightInputs w = fusion::WeightInputsOf(rec, i);
     ASSERT_TRUE(w.derived);
-    const double wd = fusion::RecordWeight(profile, w, geometry::TargetResolutionM(kH), 1.0);
+    const double wd = fusion::RecordWeight(profile, w, geometry::TargetResolutionM(kH));
     const double wb = fb.weight[k];
     for (int c = 0; c < 3; ++c) {
       const double expect = (wb * fb.value[3 * k + c] + wd * rec.value[3 * i + c]) / (wb + wd);

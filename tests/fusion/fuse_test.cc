@@ -1,7 +1,10 @@
 // VASL-MODEL §7: weights, fusion, reweighting from records alone.
 #include "lattice/fusion/fuse.h"
 
+#include <cmath>
+#include <cstdio>
 #include <random>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -40,23 +43,117 @@ TEST(WeightTest, FactorsOfTheWeight) {
   const float conf[records::kConfidenceCount] = {1, 1, 1, 1, 1, 1};
   WeightInputs in{1.0f, 0.5f, 0.005f, 0.005f, conf, 3, false, 2.0f, 2.0f};
   const double h = 0.02, target = h / 2;
-  EXPECT_DOUBLE_EQ(RecordWeight(p, in, target, 1.0), 0.5);  // cosθ^1, K_range = 1
+  EXPECT_DOUBLE_EQ(RecordWeight(p, in, target), 0.5);  // cosθ^1, K_range = 1
   in.vis = 0.49f;
-  EXPECT_EQ(RecordWeight(p, in, target, 1.0), 0.0);  // below V_min = 0.5
+  EXPECT_EQ(RecordWeight(p, in, target), 0.0);  // below V_min = 0.5
   in.vis = 0.8f;
   p.beta = 2.0;
-  EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.64 * 0.5, 1e-7);
+  EXPECT_NEAR(RecordWeight(p, in, target), 0.64 * 0.5, 1e-7);
   in.vis = 1.0f;
   in.foot_major_m = 0.04f;  // 4 s*: K_range = 1/4
-  EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.5 * 0.25, 1e-7);
+  EXPECT_NEAR(RecordWeight(p, in, target), 0.5 * 0.25, 1e-7);
   p.rho = 0.0;
-  EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.5, 1e-7);
+  EXPECT_NEAR(RecordWeight(p, in, target), 0.5, 1e-7);
   in.derived = true;
-  EXPECT_NEAR(RecordWeight(p, in, target, 2.0), 0.5 * 0.5 * 2.0, 1e-7);  // λ_src, g_m
+  p.scan_gain[3] = 2.0;
+  EXPECT_NEAR(RecordWeight(p, in, target), 0.5 * 0.5 * 2.0, 1e-7);  // λ_src, g_m
+  p.scan_gain.clear();
   const float low_conf[records::kConfidenceCount] = {0.5f, 1, 1, 1, 1, 1};
   in.conf = low_conf;
   in.derived = false;
-  EXPECT_NEAR(RecordWeight(p, in, target, 1.0), 0.25, 1e-7);
+  EXPECT_NEAR(RecordWeight(p, in, target), 0.25, 1e-7);
+}
+
+/// §7 in double precision with std::pow, the formula as VASL-MODEL writes it: the reference
+/// the float kernel is held to.
+double ReferenceWeight(const WeightingProfile& p, const records::RecordSet& r, size_t i,
+                       double target_m, double range_min_m) {
+  if (r.vis[i] < p.v_min || r.vis[i] <= 0.0f || (r.flags[i] & records::kFlagInvalidated)) {
+    return 0.0;
+  }
+  const double cos_inc = std::max(0.0, double(r.cos_inc[i]));
+  if (p.theta_max_rad > 0.0 && cos_inc < std::cos(p.theta_max_rad)) return 0.0;
+  const auto pow = [](double x, double e) { return e == 0.0 ? 1.0 : std::pow(x, e); };
+  const double k = std::min(1.0, target_m / r.foot_major_m[i]) *
+                   std::min(1.0, target_m / r.foot_minor_m[i]);
+  double w = pow(r.vis[i], p.beta) * pow(cos_inc, p.alpha) * pow(k, p.rho);
+  for (int f = 0; f < records::kConfidenceCount; ++f) {
+    w *= pow(r.conf[i * records::kConfidenceCount + f], p.kappa[f]);
+  }
+  if (r.flags[i] & records::kFlagDerived) w *= p.lambda_src;
+  const auto g = p.scan_gain.find(r.scan[i]);
+  if (g != p.scan_gain.end()) w *= g->second;
+  if (p.proximity_m > 0.0) w *= std::exp(-(r.range_m[i] - range_min_m) / p.proximity_m);
+  return w;
+}
+
+// Claim (§7, the weight kernel): one exp of a sum of logs gives the weight of std::pow to a
+// relative 2·10⁻⁶ under general exponents (and 10⁻⁶ when every exponent is 0, 1 or 2), a zero
+// factor under a positive exponent gives exactly 0, a zero exponent leaves the factor out even
+// where it is 0, and a record's weight does not depend on the run it is evaluated in.
+TEST(WeightTest, KernelMatchesTheFormulaInDouble) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> u(0.0f, 1.0f);
+  records::RecordSet r;
+  const size_t n = 1003;  // not a multiple of the kernel's runs of 4 and 256 records
+  r.Resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    r.vossel[i] = int32_t(i);
+    r.scan[i] = int32_t(1 + i % 5);
+    r.modality[i] = int8_t(Modality::kRgb);
+    r.range_m[i] = 0.5f + 30.0f * u(rng);
+    r.cos_inc[i] = i % 17 == 0 ? -0.2f : u(rng);
+    r.foot_major_m[i] = 0.03f * u(rng) + 1e-4f;
+    r.foot_minor_m[i] = r.foot_major_m[i] * (0.3f + 0.7f * u(rng));
+    r.vis[i] = i % 7 == 0 ? 1.0f : u(rng);
+    for (int f = 0; f < records::kConfidenceCount; ++f) {
+      const float x = u(rng);
+      r.conf[i * records::kConfidenceCount + f] = x < 0.02f ? 0.0f : x < 0.5f ? 1.0f : x;
+    }
+    r.flags[i] = int8_t(i % 11 == 0   ? records::kFlagDerived
+                        : i % 13 == 0 ? records::kFlagInvalidated
+                                      : 0);
+  }
+  const double target = 0.01;
+  WeightingProfile general;
+  general.alpha = 1.3;
+  general.beta = 0.7;
+  general.rho = 0.5;
+  general.kappa = {2.5, 0.0, 0.5, 1.2, 2.0, 1.7};  // κ = 0 on flare: conf 0 there leaves w alone
+  general.v_min = 0.2;
+  general.theta_max_rad = 1.4;
+  general.proximity_m = 4.0;
+  general.scan_gain = {{2, 0.5}, {4, 3.0}};
+  WeightingProfile products;  // exponents 0, 1 and 2 only: every factor multiplies
+  products.beta = 2.0;
+  products.kappa = {1.0, 0.0, 2.0, 1.0, 1.0, 0.0};
+  for (const auto& [p, tolerance] : {std::pair{general, 2e-6}, std::pair{products, 1e-6}}) {
+    const WeightKernel kernel(p, target);
+    std::vector<float> range_min(n, 0.5f), whole(n), one(n);
+    WeightColumns c = WeightColumns::Of(r);
+    c.range_min_m = range_min.data();
+    kernel.Evaluate(c, n, whole.data());
+    double worst = 0.0;
+    int zeros = 0;
+    for (size_t i = 0; i < n; ++i) {
+      WeightColumns ci = WeightColumns::Of(r, i);
+      ci.range_min_m = &range_min[i];
+      kernel.Evaluate(ci, 1, &one[i]);
+      EXPECT_EQ(one[i], whole[i]) << "record " << i;  // bit for bit, alone or in a run
+      const double expect = ReferenceWeight(p, r, i, target, range_min[i]);
+      if (expect == 0.0) {
+        EXPECT_EQ(whole[i], 0.0f) << "record " << i;
+        ++zeros;
+        continue;
+      }
+      worst = std::max(worst, std::abs(whole[i] / expect - 1.0));
+    }
+    std::printf("weight kernel: %zu records, %d exact zeros, worst relative error %.2g\n", n,
+                zeros, worst);
+    EXPECT_LT(worst, tolerance);
+    EXPECT_GT(zeros, 50);              // gates and zero factors were exercised
+    EXPECT_GT(int(n) - zeros, 300);    // and enough weights to hold the tolerance to
+  }
 }
 
 // Claim (§7): C_k is the weighted mean of its records; U_k = spread ⊕ 1/sqrt(Σw);

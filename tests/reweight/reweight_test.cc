@@ -201,9 +201,7 @@ TEST_F(ReweightTest, RecordsAtAPointCarryTheirWeights) {
       in.conf = r.conf.data();
       in.scan = r.source;
       in.derived = (r.flags & records::kFlagDerived) != 0;
-      const auto g = p.scan_gain.find(r.source);
-      const double w = fusion::RecordWeight(p, in, geometry::TargetResolutionM(kVosselM),
-                                            g == p.scan_gain.end() ? 1.0 : g->second);
+      const double w = fusion::RecordWeight(p, in, geometry::TargetResolutionM(kVosselM));
       EXPECT_FLOAT_EQ(r.weight, float(w));
       ++checked;
     }
