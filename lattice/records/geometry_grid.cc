@@ -368,35 +368,54 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
   return grids;
 }
 
-absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
-  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
-  if (!contents.ok()) return contents.status();
-  Int32Grid::Ptr index = GridAs<Int32Grid>(*contents, "index");
+namespace {
+
+/// The lattice of a geometry file's contents: its index grid, checked, and the coordinates of
+/// its vossels in vossel order.
+absl::StatusOr<VosselGeometry> LatticeOf(const internal::VdbFileContents& contents,
+                                         const std::filesystem::path& path) {
+  Int32Grid::Ptr index = GridAs<Int32Grid>(contents, "index");
   if (!index) {
     return absl::DataLossError(
         absl::StrCat(path.string(), " has no Int32 grid named \"index\"; not a geometry file"));
   }
   absl::StatusOr<size_t> n = internal::CheckCanonicalOrder(*index, path.string());
   if (!n.ok()) return absl::DataLossError(n.status().message());
-
   VosselGeometry g;
   g.vossel_size_m = index->transform().voxelSize()[0];
   g.index_grid = index;
   g.coord.resize(*n);
-  {
-    const auto leaves = ConstLeavesInOrder(index->tree());
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
-                      [&](const tbb::blocked_range<size_t>& r) {
-                        for (size_t i = r.begin(); i < r.end(); ++i) {
-                          for (auto it = leaves[i]->cbeginValueOn(); it; ++it) {
-                            g.coord[*it] = it.getCoord();
-                          }
+  const auto leaves = ConstLeavesInOrder(index->tree());
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        for (auto it = leaves[i]->cbeginValueOn(); it; ++it) {
+                          g.coord[*it] = it.getCoord();
                         }
-                      });
-  }
+                      }
+                    });
+  return g;
+}
+
+}  // namespace
+
+absl::StatusOr<VosselGeometry> ReadLattice(const std::filesystem::path& path) {
+  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbGrids(path, {"index"});
+  if (!contents.ok()) return contents.status();
+  return LatticeOf(*contents, path);
+}
+
+absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
+  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
+  if (!contents.ok()) return contents.status();
+  absl::StatusOr<VosselGeometry> lattice = LatticeOf(*contents, path);
+  if (!lattice.ok()) return lattice.status();
+  VosselGeometry& g = *lattice;
+  const Int32Grid::Ptr index = g.index_grid;
+  const size_t n = g.size();
   // Companion grids are read by active vossel, so any topology that is a subset works.
   if (auto count = GridAs<Int32Grid>(*contents, "count")) {
-    g.point_count.assign(*n, 0);
+    g.point_count.assign(n, 0);
     absl::Status s = ForEachActiveVossel(*index, *count, path,
                                          [&](int32_t v, int32_t c) { g.point_count[v] = c; });
     if (!s.ok()) return s;
@@ -404,7 +423,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
   auto read_vec3 = [&](const char* name, std::vector<Eigen::Vector3f>& out) -> absl::Status {
     auto grid = GridAs<openvdb::Vec3SGrid>(*contents, name);
     if (!grid) return absl::OkStatus();
-    out.assign(*n, Eigen::Vector3f::Zero());
+    out.assign(n, Eigen::Vector3f::Zero());
     return ForEachActiveVossel(*index, *grid, path, [&](int32_t v, const openvdb::Vec3f& c) {
       out[v] = Eigen::Vector3f(c.x(), c.y(), c.z());
     });
@@ -415,13 +434,13 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
   if (absl::Status s = read_vec3("covariance_diag", diag); !s.ok()) return s;
   if (absl::Status s = read_vec3("covariance_off", off); !s.ok()) return s;
   if (!diag.empty() || !off.empty()) {
-    diag.resize(*n, Eigen::Vector3f::Zero());
-    off.resize(*n, Eigen::Vector3f::Zero());
-    g.covariance_m2.resize(*n);
-    for (size_t v = 0; v < *n; ++v) g.covariance_m2[v] = CovarianceFrom(diag[v], off[v]);
+    diag.resize(n, Eigen::Vector3f::Zero());
+    off.resize(n, Eigen::Vector3f::Zero());
+    g.covariance_m2.resize(n);
+    for (size_t v = 0; v < n; ++v) g.covariance_m2[v] = CovarianceFrom(diag[v], off[v]);
   }
   if (GridAs<openvdb::Vec3DGrid>(*contents, "sum")) {
-    g.sums.assign(*n, VosselSums{});
+    g.sums.assign(n, VosselSums{});
     auto read_vec3d = [&](const char* name, auto&& set) -> absl::Status {
       auto grid = GridAs<openvdb::Vec3DGrid>(*contents, name);
       if (!grid) {
@@ -449,7 +468,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     }
   }
   if (auto count = GridAs<Int32Grid>(*contents, "frame_count")) {
-    g.frame.assign(*n, VosselFrame{});
+    g.frame.assign(n, VosselFrame{});
     if (absl::Status s = ForEachActiveVossel(*index, *count, path,
                                              [&](int32_t v, int32_t c) { g.frame[v].count = c; });
         !s.ok()) {
@@ -468,24 +487,24 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
       }
       if (absl::Status s = read_vec3(name, *out); !s.ok()) return s;
     }
-    for (size_t v = 0; v < *n; ++v) {
+    for (size_t v = 0; v < n; ++v) {
       VosselFrame& f = g.frame[v];
       f.centroid_m = centroid[v];
       f.covariance_m2 = CovarianceFrom(cov_diag[v], cov_off[v]);
       f.view = view[v];
       f.normal = normal[v];
     }
-  } else if (!g.sums.empty() && g.point_count.size() == *n && g.centroid_m.size() == *n &&
-             g.normal.size() == *n && g.covariance_m2.size() == *n) {
+  } else if (!g.sums.empty() && g.point_count.size() == n && g.centroid_m.size() == n &&
+             g.normal.size() == n && g.covariance_m2.size() == n) {
     // Written before record frames: each vossel's surface becomes its frame (the records
     // stored with it were evaluated on that surface).
-    g.frame.resize(*n);
-    for (size_t v = 0; v < *n; ++v) {
+    g.frame.resize(n);
+    for (size_t v = 0; v < n; ++v) {
       g.frame[v] = {g.point_count[v], g.centroid_m[v], g.covariance_m2[v],
                     g.sums[v].view_sum.cast<float>(), g.normal[v]};
     }
   }
-  return g;
+  return lattice;
 }
 
 absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused,

@@ -22,6 +22,10 @@ namespace vasl::records {
 absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path);
 /// Reads geometry.vdb; rebuilds the index grid and the flat arrays in vossel order.
 absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path);
+/// Reads only the lattice of geometry.vdb: the index grid and the vossel coordinates, which is
+/// all that reading records (ReadRecords) and writing fused values (WriteFused) take; the other
+/// grids of the file are skipped unread (a reweight's case).
+absl::StatusOr<VosselGeometry> ReadLattice(const std::filesystem::path& path);
 
 /// Writes the records as a PointDataGrid to `path` (records.vdb), blosc-compressed.
 /// `records` must be sorted by vossel (RecordSet::SortByVossel).

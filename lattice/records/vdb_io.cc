@@ -147,6 +147,31 @@ absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path, b
   }
 }
 
+absl::StatusOr<VdbFileContents> ReadVdbGrids(const std::filesystem::path& path,
+                                             const std::vector<std::string>& names) {
+  EnsureOpenVdbInitialized();
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return absl::NotFoundError(absl::StrCat("no such OpenVDB file: ", path.string()));
+  }
+  try {
+    openvdb::io::File file(path.string());
+    file.open(false);
+    VdbFileContents out;
+    out.grids = std::make_shared<openvdb::GridPtrVec>();
+    for (const std::string& name : names) {
+      if (file.hasGrid(name)) out.grids->push_back(file.readGrid(name));
+    }
+    out.meta = file.getMetadata();
+    file.close();
+    if (!out.meta) out.meta = std::make_shared<openvdb::MetaMap>();
+    return out;
+  } catch (const std::exception& e) {
+    return absl::DataLossError(
+        absl::StrCat("cannot read OpenVDB file ", path.string(), ": ", e.what()));
+  }
+}
+
 openvdb::GridBase::Ptr FindGrid(const VdbFileContents& contents, const std::string& name) {
   for (const auto& g : *contents.grids) {
     if (g && g->getName() == name) return g;

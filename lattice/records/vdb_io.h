@@ -6,6 +6,7 @@
 
 #include <filesystem>
 #include <string>
+#include <vector>
 
 #include <openvdb/openvdb.h>
 
@@ -38,6 +39,10 @@ struct VdbFileContents {
 /// cannot parse it (message carries the path and the OpenVDB text).
 absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path,
                                             bool delay_load = false);
+/// Reads only the grids of `path` named in `names` (OpenVDB seeks past the others); a name the
+/// file lacks is left out of the result. Errors as ReadVdbFile.
+absl::StatusOr<VdbFileContents> ReadVdbGrids(const std::filesystem::path& path,
+                                             const std::vector<std::string>& names);
 
 /// Checks that `index` numbers its active voxels 0..n-1 in leaf order, then voxel offset (the
 /// canonical vossel order of records.h); returns n. FAILED_PRECONDITION naming `where` if not.

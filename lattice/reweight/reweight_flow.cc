@@ -76,7 +76,7 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
         if (!g_path.ok()) return g_path.status();
         absl::StatusOr<fs::path> r_path = path_of(store::kLayerRecords);
         if (!r_path.ok()) return r_path.status();
-        absl::StatusOr<records::VosselGeometry> g = records::ReadGeometry(*g_path);
+        absl::StatusOr<records::VosselGeometry> g = records::ReadLattice(*g_path);
         if (!g.ok()) return g.status();
         absl::StatusOr<records::RecordSet> recs = records::ReadRecords(*g, *r_path);
         if (!recs.ok()) return recs.status();

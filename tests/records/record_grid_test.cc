@@ -488,6 +488,24 @@ TEST(GeometryGridTest, RoundTripExact) {
   const std::string cmd = "/usr/bin/vdb_print " + (dir / "geometry.vdb").string() + " > /dev/null";
   EXPECT_EQ(std::system(cmd.c_str()), 0);
 
+  // The lattice alone (a reweight's read): the same index and coordinates, no other array, and
+  // records written against the whole geometry read back against it.
+  absl::StatusOr<VosselGeometry> lattice = ReadLattice(dir / "geometry.vdb");
+  ASSERT_TRUE(lattice.ok()) << lattice.status();
+  EXPECT_NEAR(lattice->vossel_size_m, 0.05, 1e-12);
+  EXPECT_EQ(lattice->coord, g.coord);
+  EXPECT_TRUE(lattice->point_count.empty() && lattice->centroid_m.empty() &&
+              lattice->sums.empty() && lattice->frame.empty());
+  const RecordSet recs = RandomRecords(g.size(), 3);
+  ASSERT_TRUE(WriteRecords(g, recs, dir / "records.vdb").ok());
+  absl::StatusOr<RecordSet> via_lattice = ReadRecords(*lattice, dir / "records.vdb");
+  absl::StatusOr<RecordSet> via_geometry = ReadRecords(*back, dir / "records.vdb");
+  ASSERT_TRUE(via_lattice.ok() && via_geometry.ok());
+  EXPECT_EQ(via_lattice->vossel, via_geometry->vossel);
+  EXPECT_EQ(via_lattice->value, via_geometry->value);
+  EXPECT_EQ(ReadLattice(dir / "missing.vdb").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(ReadLattice(dir / "records.vdb").status().code(), absl::StatusCode::kDataLoss);
+
   // Arrays left empty stay empty.
   VosselGeometry bare;
   bare.coord = g.coord;
