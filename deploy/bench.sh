@@ -4,8 +4,12 @@
 # (tests/bench/vasl_bench.cc), after the kernels under Google Benchmark
 # (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad), whose
 # medians and spread over 5 runs are also written to build/bench-kernels.json.
-# Arguments go to vasl_bench (--panorama-width W, --repeat N, --growth-only, --tile-vossels T,
-# --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
+# Then a site at realistic size (the corridor's first 6 stations, LiDAR 2048×1024 and RGB
+# 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,
+# h = 5 cm, under a minute) ingested, fused, reweighted against a rebuild and rendered, its
+# figures also in build/bench-site.json.
+# Arguments go to the last vasl_bench run (--panorama-width W, --repeat N, --growth-only,
+# --tile-vossels T, --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./deploy/setup.sh
@@ -21,4 +25,6 @@ fi
 ./build/tests/bench/vasl_kernels_bench --benchmark_repetitions=5 \
   --benchmark_report_aggregates_only=true --benchmark_out=build/bench-kernels.json \
   --benchmark_out_format=json
+./build/tests/bench/vasl_bench --site "${BENCH_SITE:-realistic}" --repeat 3 \
+  --json build/bench-site.json
 ./build/tests/bench/vasl_bench "$@"

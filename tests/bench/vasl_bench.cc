@@ -5,6 +5,8 @@
 //                   [--snapshot-budget-mb M]  (the growth engine's EngineLimits::max_snapshot_bytes)
 //                   [--revisit-cache-mb M]    (its EngineLimits::max_revisit_image_bytes)
 //                   [--growth-passes N]       (ingests of the corridor timed N times, default 3)
+//                   [--site realistic|small [--json PATH]]  (issue "Speed": a site at realistic
+//                   size, or small, ingested, fused, reweighted, rebuilt and rendered; alone)
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -301,6 +303,182 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
   return BoundedRender(dir, "growth");
 }
 
+/// Median, least and greatest of `v` (not empty).
+struct Spread {
+  double median, min, max;
+};
+Spread SpreadOf(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return {v[v.size() / 2], v.front(), v.back()};
+}
+std::string Json(const Spread& s) {
+  return absl::StrFormat("{\"median\": %.6g, \"min\": %.6g, \"max\": %.6g}", s.median, s.min,
+                         s.max);
+}
+
+/// Issue "Speed": a site ingested through the library at realistic size (`realistic`: the
+/// corridor's first 6 stations, each a LiDAR grid of 2048×1024 returns and a 4096×2048 RGB
+/// panorama, h = 2 cm) or small (LiDAR 512×256, RGB 1024×512, h = 5 cm: under a minute).
+/// Prints and writes to `json_path`: per scan points/s and seconds per stage; fusion over the
+/// version's records in memory (multiply-only and general exponents with proximity); the
+/// reweight flow from disk against a rebuild; an equirect render; bytes per record on disk;
+/// peak RSS of each step. Medians and spread over `repeat` runs where a step repeats.
+int Site(const std::filesystem::path& dir, bool realistic, int repeat,
+         const std::string& json_path) {
+  using namespace vasl;
+  const int lidar_w = realistic ? 2048 : 512, pano_w = realistic ? 4096 : 1024;
+  const double h = realistic ? 0.02 : 0.05;
+  const size_t stations = 6;
+  const int cores = tbb::info::default_concurrency();
+  auto engine = Engine::Open(dir);
+  if (!engine.ok()) return Fail(engine.status());
+  store::ProjectSettings settings;
+  settings.vossel_size_m = h;
+  if (auto p = (*engine)->CreateProject("site", settings); !p.ok()) return Fail(p.status());
+  const scenes::CorridorSite site = scenes::CorridorSite::Default();
+  scenes::LidarSettings lidar;
+  lidar.azimuth_steps = lidar_w;
+  lidar.elevation_steps = lidar_w / 2;
+  std::printf("\nsite (%s): corridor stations 1-%zu, LiDAR %dx%d, RGB %dx%d, h %.2f m, %d cores\n",
+              realistic ? "realistic" : "small", stations, lidar_w, lidar_w / 2, pano_w,
+              pano_w / 2, h, cores);
+  std::string json = absl::StrFormat(
+      "{\n  \"site\": \"%s\", \"cores\": %d, \"vossel_m\": %.3f, \"lidar\": [%d, %d], "
+      "\"rgb\": [%d, %d],\n  \"ingest\": [",
+      realistic ? "realistic" : "small", cores, h, lidar_w, lidar_w / 2, pano_w, pano_w / 2);
+  int64_t records = 0;
+  double ingest_peak = 0.0;
+  for (size_t n = 0; n < stations; ++n) {
+    lidar.seed = uint64_t(n + 1);
+    auto scan = scenes::MakeScanInput(site, n, lidar, pano_w, 2);
+    if (!scan.ok()) return Fail(scan.status());
+    const size_t points = scan->lidar.xyz_sensor_m.size() / 3;
+    ResetPeakRss();
+    auto r = (*engine)->IngestScan("site", *scan);
+    if (!r.ok()) return Fail(r.status());
+    ingest_peak = std::max(ingest_peak, PeakRssMb());
+    records = r->record_count;
+    std::printf("%-8s %7.2f s %9zu points %6.2f M points/s (%.2f per core) %9lld records  ",
+                scan->scan_name.c_str(), r->seconds, points, points / r->seconds / 1e6,
+                points / r->seconds / 1e6 / cores, (long long)r->record_count);
+    std::string stages;
+    for (const auto& [stage, sec] : r->stage_seconds) {
+      std::printf(" %s %.2f;", stage.c_str(), sec);
+      stages += absl::StrFormat("%s\"%s\": %.4f", stages.empty() ? "" : ", ", stage, sec);
+    }
+    std::printf("\n");
+    json += absl::StrFormat(
+        "%s\n    {\"scan\": \"%s\", \"seconds\": %.4f, \"points\": %zu, \"points_per_s\": %.6g, "
+        "\"records\": %lld, \"peak_rss_mb\": %.0f, \"stages_s\": {%s}}",
+        n == 0 ? "" : ",", scan->scan_name, r->seconds, points, points / r->seconds,
+        (long long)r->record_count, PeakRssMb(), stages);
+  }
+  json += "\n  ],\n";
+
+  // Fusion over the version's records in memory: a reweight's computation (§7).
+  auto st = store::ProjectStore::Open(dir / "site");
+  if (!st.ok()) return Fail(st.status());
+  auto manifest = (*st)->LoadManifest((*st)->head_version());
+  if (!manifest.ok()) return Fail(manifest.status());
+  int64_t record_bytes = 0;
+  for (const auto& [key, layers] : manifest->tiles) {
+    if (auto it = layers.find(store::kLayerRecords); it != layers.end()) {
+      record_bytes += it->second.bytes;
+    }
+  }
+  {
+    auto snap = (*st)->LoadSnapshot((*st)->head_version());
+    if (!snap.ok()) return Fail(snap.status());
+    fusion::WeightingProfile general;
+    general.alpha = 1.3;
+    general.beta = 0.7;
+    general.rho = 0.5;
+    general.kappa = {2.5, 1.5, 0.5, 1.2, 0.8, 1.7};
+    general.proximity_m = 2.0;
+    json += "  \"fusion_in_memory_records_per_s\": {";
+    for (const auto& [name, profile] :
+         {std::pair<const char*, fusion::WeightingProfile>{"multiply_only", {}},
+          {"general", general}}) {
+      std::vector<double> rate;
+      for (int i = 0; i < repeat; ++i) {
+        const auto t0 = Clock::now();
+        auto fused = fusion::Fuse((*snap)->records, (*snap)->geometry.size(), h, profile);
+        if (!fused.ok()) return Fail(fused.status());
+        rate.push_back(double((*snap)->records.size()) / Since(t0));
+      }
+      const Spread r = SpreadOf(rate);
+      std::printf("fusion in memory, %s: %.1f M records/s (%.1f-%.1f)\n", name, r.median / 1e6,
+                  r.min / 1e6, r.max / 1e6);
+      json += absl::StrFormat("%s\"%s\": %s", *name == 'm' ? "" : ", ", name, Json(r));
+    }
+    json += "},\n";
+  }
+
+  // The reweight flow from disk (tile by tile, records read, fused tiles written), each run
+  // under a new revision so that it fuses and commits, against one rebuild.
+  fusion::WeightingProfile p;
+  p.name = "bench";
+  std::vector<double> reweight_s;
+  ResetPeakRss();
+  for (int run = 0; run < std::max(1, repeat); ++run) {
+    p.alpha = 1.1 + 0.1 * run;
+    if (auto made = (*engine)->CreateProfile("site", p); !made.ok()) return Fail(made.status());
+    const auto t0 = Clock::now();
+    auto r = (*engine)->Reweight("site", "bench", 0);
+    if (!r.ok()) return Fail(r.status());
+    reweight_s.push_back(Since(t0));
+  }
+  const double reweight_peak = PeakRssMb();
+  ResetPeakRss();
+  auto rebuilt = (*engine)->Rebuild("site");
+  if (!rebuilt.ok()) return Fail(rebuilt.status());
+  const double rebuild_peak = PeakRssMb();
+  const Spread rw = SpreadOf(reweight_s);
+  std::printf("reweight from disk: %.2f s (%.2f-%.2f), %.1f M records/s, peak %.0f MB; rebuild "
+              "%.1f s (peak %.0f MB) = %.0fx the reweight\n",
+              rw.median, rw.min, rw.max, records / rw.median / 1e6, reweight_peak,
+              rebuilt->seconds, rebuild_peak, rebuilt->seconds / rw.median);
+  json += absl::StrFormat(
+      "  \"reweight_from_disk_s\": %s, \"reweight_records_per_s\": %.6g, "
+      "\"reweight_peak_rss_mb\": %.0f,\n  \"rebuild_s\": %.4f, \"rebuild_peak_rss_mb\": %.0f, "
+      "\"rebuild_over_reweight\": %.4g,\n",
+      Json(rw), records / rw.median, reweight_peak, rebuilt->seconds, rebuild_peak,
+      rebuilt->seconds / rw.median);
+
+  // An equirect render from the first novel view, and the record store's size on disk.
+  RenderRequest req;
+  req.pose = site.NovelViews()[0];
+  req.width_px = pano_w;
+  req.height_px = pano_w / 2;
+  std::vector<double> rays;
+  ResetPeakRss();
+  for (int i = 0; i < std::max(1, repeat); ++i) {
+    const auto t0 = Clock::now();
+    auto image = (*engine)->Render("site", req);
+    if (!image.ok()) return Fail(image.status());
+    rays.push_back(double(req.width_px) * req.height_px / Since(t0));
+  }
+  const Spread ry = SpreadOf(rays);
+  std::printf("render %dx%d: %.2f M rays/s (%.2f-%.2f), peak %.0f MB\n", req.width_px,
+              req.height_px, ry.median / 1e6, ry.min / 1e6, ry.max / 1e6, PeakRssMb());
+  std::printf("records on disk: %lld records, %.1f bytes/record; peak RSS of an ingest %.0f MB\n",
+              (long long)records, double(record_bytes) / records, ingest_peak);
+  json += absl::StrFormat(
+      "  \"render\": {\"width\": %d, \"height\": %d, \"rays_per_s\": %s, \"peak_rss_mb\": %.0f},\n"
+      "  \"records\": %lld, \"record_bytes_on_disk\": %lld, \"bytes_per_record\": %.3f,\n"
+      "  \"ingest_peak_rss_mb\": %.0f\n}\n",
+      req.width_px, req.height_px, Json(ry), PeakRssMb(), (long long)records,
+      (long long)record_bytes, double(record_bytes) / records, ingest_peak);
+  if (!json_path.empty()) {
+    std::FILE* f = std::fopen(json_path.c_str(), "w");
+    if (!f) return Fail(absl::InternalError("cannot write " + json_path));
+    std::fputs(json.c_str(), f);
+    std::fclose(f);
+    std::printf("figures written to %s\n", json_path.c_str());
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -310,6 +488,7 @@ int main(int argc, char** argv) {
   int tile_vossels = 64;
   int64_t budget_mb = 0, revisit_cache_mb = -1;
   int growth_passes = 3;
+  std::string site, json_path;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--growth-only")) growth_only = true;
     else if (i + 1 < argc && !std::strcmp(argv[i], "--panorama-width")) pano_w = std::atoi(argv[++i]);
@@ -320,10 +499,21 @@ int main(int argc, char** argv) {
       revisit_cache_mb = std::atoll(argv[++i]);
     else if (i + 1 < argc && !std::strcmp(argv[i], "--growth-passes"))
       growth_passes = std::max(1, std::atoi(argv[++i]));
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--site")) site = argv[++i];
+    else if (i + 1 < argc && !std::strcmp(argv[i], "--json")) json_path = argv[++i];
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
   std::filesystem::remove_all(dir);
+  if (!site.empty()) {
+    if (site != "realistic" && site != "small") {
+      std::fprintf(stderr, "vasl_bench: --site takes realistic or small, not %s\n", site.c_str());
+      return 2;
+    }
+    const int rc = Site(dir / "site-engine", site == "realistic", std::max(1, repeat), json_path);
+    std::filesystem::remove_all(dir);
+    return rc;
+  }
   std::printf("vasl_bench: %d threads, vossel %.2f m, panoramas %dx%d, LiDAR 1440x720 per scan\n",
               tbb::info::default_concurrency(), h, pano_w, pano_w / 2);
   if (growth_only) {
