@@ -125,7 +125,11 @@ absl::Status MakeUuidDeterministic(std::string& bytes, const std::string& where)
   return absl::OkStatus();
 }
 
-absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path, bool delay_load) {
+namespace {
+
+/// Every grid of `path` (names null) or those named in `*names` that it has.
+absl::StatusOr<VdbFileContents> ReadGrids(const std::filesystem::path& path, bool delay_load,
+                                          const std::vector<std::string>* names) {
   EnsureOpenVdbInitialized();
   std::error_code ec;
   if (!std::filesystem::is_regular_file(path, ec)) {
@@ -135,7 +139,14 @@ absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path, b
     openvdb::io::File file(path.string());
     file.open(delay_load);
     VdbFileContents out;
-    out.grids = file.getGrids();
+    if (names == nullptr) {
+      out.grids = file.getGrids();
+    } else {
+      out.grids = std::make_shared<openvdb::GridPtrVec>();
+      for (const std::string& name : *names) {
+        if (file.hasGrid(name)) out.grids->push_back(file.readGrid(name));
+      }
+    }
     out.meta = file.getMetadata();
     file.close();
     if (!out.grids) out.grids = std::make_shared<openvdb::GridPtrVec>();
@@ -147,29 +158,15 @@ absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path, b
   }
 }
 
+}  // namespace
+
+absl::StatusOr<VdbFileContents> ReadVdbFile(const std::filesystem::path& path, bool delay_load) {
+  return ReadGrids(path, delay_load, nullptr);
+}
+
 absl::StatusOr<VdbFileContents> ReadVdbGrids(const std::filesystem::path& path,
                                              const std::vector<std::string>& names) {
-  EnsureOpenVdbInitialized();
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) {
-    return absl::NotFoundError(absl::StrCat("no such OpenVDB file: ", path.string()));
-  }
-  try {
-    openvdb::io::File file(path.string());
-    file.open(false);
-    VdbFileContents out;
-    out.grids = std::make_shared<openvdb::GridPtrVec>();
-    for (const std::string& name : names) {
-      if (file.hasGrid(name)) out.grids->push_back(file.readGrid(name));
-    }
-    out.meta = file.getMetadata();
-    file.close();
-    if (!out.meta) out.meta = std::make_shared<openvdb::MetaMap>();
-    return out;
-  } catch (const std::exception& e) {
-    return absl::DataLossError(
-        absl::StrCat("cannot read OpenVDB file ", path.string(), ": ", e.what()));
-  }
+  return ReadGrids(path, false, &names);
 }
 
 openvdb::GridBase::Ptr FindGrid(const VdbFileContents& contents, const std::string& name) {
