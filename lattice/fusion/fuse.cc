@@ -89,14 +89,10 @@ absl::StatusOr<RecordValues> RecordValues::Of(const WeightingProfile& profile,
   return out;
 }
 
-LensFactors RecordValues::ReadThroughLens(size_t i, double* out) const {
-  const int32_t s = recs_->scan[i];
-  const auto& [map, gain] = lens_[size_t(s)];
-  float v[records::kValueChannels];
+LensFactors RecordValues::AdjustThroughLens(size_t i, float* v) const {
+  const auto& [map, gain] = lens_[size_t(recs_->scan[i])];
   std::copy_n(&recs_->value[i * records::kValueChannels], records::kValueChannels, v);
-  const LensFactors conf = AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
-  for (int c = 0; c < records::kValueChannels; ++c) out[c] = double(gain_[size_t(s)][c]) * v[c];
-  return conf;
+  return AdjustForLens(*map, *gain, &recs_->uv_px[2 * i], v);
 }
 
 void RecordValues::CorrectImageSample(int32_t source, const float* uv, float* value) const {

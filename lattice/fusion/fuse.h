@@ -30,12 +30,17 @@ class RecordValues {
   /// and conf[fog] take from the lens map (1 for a source without one).
   LensFactors Read(size_t i, double* out) const {
     const int32_t s = recs_->scan[i];
-    if (has_lens_ && s >= 0 && lens_[size_t(s)].first != nullptr) return ReadThroughLens(i, out);
     const float* v = &recs_->value[i * records::kValueChannels];
+    float adjusted[records::kValueChannels];
+    LensFactors conf;
+    if (has_lens_ && s >= 0 && lens_[size_t(s)].first != nullptr) {
+      conf = AdjustThroughLens(i, adjusted);
+      v = adjusted;
+    }
     for (int c = 0; c < records::kValueChannels; ++c) {
       out[c] = (s >= 0 ? double(gain_[size_t(s)][c]) : 1.0) * v[c];
     }
-    return {};
+    return conf;
   }
   /// The lens factors alone.
   LensFactors LensConfidence(size_t i) const;
@@ -47,8 +52,8 @@ class RecordValues {
 
  private:
   RecordValues(const records::RecordSet& records) : recs_(&records) {}
-  /// Read for a record whose source has a lens map.
-  LensFactors ReadThroughLens(size_t i, double* out) const;
+  /// Record i's value, whose source has a lens map, corrected by it into v[kValueChannels].
+  LensFactors AdjustThroughLens(size_t i, float* v) const;
   const records::RecordSet* recs_;
   std::vector<std::array<float, records::kValueChannels>> gain_;
   /// Per source id, its lens map and g_m in it; null map: none.

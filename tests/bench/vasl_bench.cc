@@ -63,10 +63,28 @@ void ResetPeakRss() {
   }
 }
 
-/// The reweight flow (§7) on a stored project: tile by tile from the record objects on disk,
-/// under a new profile revision each time (so that each run fuses and commits), against the
-/// time of a rebuild of the same project.
-int ReweightAgainstRebuild(vasl::Engine& engine, const std::string& project, double rebuild_s) {
+/// Median, least and greatest of `v` (not empty).
+struct Spread {
+  double median, min, max;
+};
+Spread SpreadOf(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return {v[v.size() / 2], v.front(), v.back()};
+}
+std::string Json(const Spread& s) {
+  return absl::StrFormat("{\"median\": %.6g, \"min\": %.6g, \"max\": %.6g}", s.median, s.min,
+                         s.max);
+}
+
+/// Runs of the reweight flow (§7) on a stored project: tile by tile from the record objects on
+/// disk, under a new profile revision each time (so that each run fuses and commits).
+struct ReweightRuns {
+  Spread seconds;
+  int64_t records = 0, tiles = 0;
+  double peak_mb = 0.0;  ///< peak RSS over the runs
+};
+absl::StatusOr<ReweightRuns> TimeReweights(vasl::Engine& engine, const std::string& project,
+                                           int runs) {
   using namespace vasl;
   fusion::WeightingProfile p;
   p.name = "bench";
@@ -74,25 +92,32 @@ int ReweightAgainstRebuild(vasl::Engine& engine, const std::string& project, dou
   p.beta = 0.7;
   p.rho = 0.5;
   std::vector<double> seconds;
-  int64_t records = 0, tiles = 0;
+  ReweightRuns out;
   ResetPeakRss();
-  for (int run = 0; run < 3; ++run) {
+  for (int run = 0; run < std::max(1, runs); ++run) {
     p.alpha += 0.1;
-    auto made = engine.CreateProfile(project, p);
-    if (!made.ok()) return Fail(made.status());
+    if (auto made = engine.CreateProfile(project, p); !made.ok()) return made.status();
     const auto t0 = Clock::now();
     auto r = engine.Reweight(project, "bench", 0);
-    if (!r.ok()) return Fail(r.status());
+    if (!r.ok()) return r.status();
     seconds.push_back(Since(t0));
-    records = r->records;
-    tiles = r->tiles;
+    out.records = r->records;
+    out.tiles = r->tiles;
   }
-  std::sort(seconds.begin(), seconds.end());
-  const double median = seconds[seconds.size() / 2];
+  out.seconds = SpreadOf(seconds);
+  out.peak_mb = PeakRssMb();
+  return out;
+}
+
+/// Three reweights against the time of a rebuild of the same project.
+int ReweightAgainstRebuild(vasl::Engine& engine, const std::string& project, double rebuild_s) {
+  absl::StatusOr<ReweightRuns> rw = TimeReweights(engine, project, 3);
+  if (!rw.ok()) return Fail(rw.status());
+  const Spread& t = rw->seconds;
   std::printf("reweight flow (from disk, %lld tiles): median %.2f s of 3 (%.2f-%.2f), %.1f M "
               "records/s, peak %.0f MB; rebuild / reweight = %.1f\n",
-              (long long)tiles, median, seconds.front(), seconds.back(), records / median / 1e6,
-              PeakRssMb(), rebuild_s / median);
+              (long long)rw->tiles, t.median, t.min, t.max, rw->records / t.median / 1e6,
+              rw->peak_mb, rebuild_s / t.median);
   return 0;
 }
 
@@ -303,19 +328,6 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
   return BoundedRender(dir, "growth");
 }
 
-/// Median, least and greatest of `v` (not empty).
-struct Spread {
-  double median, min, max;
-};
-Spread SpreadOf(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return {v[v.size() / 2], v.front(), v.back()};
-}
-std::string Json(const Spread& s) {
-  return absl::StrFormat("{\"median\": %.6g, \"min\": %.6g, \"max\": %.6g}", s.median, s.min,
-                         s.max);
-}
-
 /// Issue "Speed": a site ingested through the library at realistic size (`realistic`: the
 /// corridor's first 6 stations, each a LiDAR grid of 2048×1024 returns and a 4096×2048 RGB
 /// panorama, h = 2 cm) or small (LiDAR 512×256, RGB 1024×512, h = 5 cm: under a minute).
@@ -414,26 +426,15 @@ int Site(const std::filesystem::path& dir, bool realistic, int repeat,
     json += "},\n";
   }
 
-  // The reweight flow from disk (tile by tile, records read, fused tiles written), each run
-  // under a new revision so that it fuses and commits, against one rebuild.
-  fusion::WeightingProfile p;
-  p.name = "bench";
-  std::vector<double> reweight_s;
-  ResetPeakRss();
-  for (int run = 0; run < std::max(1, repeat); ++run) {
-    p.alpha = 1.1 + 0.1 * run;
-    if (auto made = (*engine)->CreateProfile("site", p); !made.ok()) return Fail(made.status());
-    const auto t0 = Clock::now();
-    auto r = (*engine)->Reweight("site", "bench", 0);
-    if (!r.ok()) return Fail(r.status());
-    reweight_s.push_back(Since(t0));
-  }
-  const double reweight_peak = PeakRssMb();
+  // The reweight flow from disk against one rebuild.
+  absl::StatusOr<ReweightRuns> reweights = TimeReweights(**engine, "site", repeat);
+  if (!reweights.ok()) return Fail(reweights.status());
+  const double reweight_peak = reweights->peak_mb;
   ResetPeakRss();
   auto rebuilt = (*engine)->Rebuild("site");
   if (!rebuilt.ok()) return Fail(rebuilt.status());
   const double rebuild_peak = PeakRssMb();
-  const Spread rw = SpreadOf(reweight_s);
+  const Spread& rw = reweights->seconds;
   std::printf("reweight from disk: %.2f s (%.2f-%.2f), %.1f M records/s, peak %.0f MB; rebuild "
               "%.1f s (peak %.0f MB) = %.0fx the reweight\n",
               rw.median, rw.min, rw.max, records / rw.median / 1e6, reweight_peak,
