@@ -265,13 +265,43 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   return old_to_new;
 }
 
-absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path) {
-  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, path.string());
-  if (!grids.ok()) return grids.status();
+namespace {
+
+// geometry.vdb and fused-<profile>.vdb without blosc (internal::VdbCompression): on the
+// 12-scan corridor blosc made geometry files 4% and fused files 10% smaller, for 30% and 20%
+// of their writing time (OpenVDB compresses each leaf twice).
+constexpr internal::VdbCompression kGeometryCompression =
+    internal::VdbCompression::kActiveMaskOnly;
+constexpr internal::VdbCompression kFusedCompression = internal::VdbCompression::kActiveMaskOnly;
+
+openvdb::MetaMap GeometryFileMeta(const VosselGeometry& geometry) {
   openvdb::MetaMap meta;
   meta.insertMeta("vasl_file", openvdb::StringMetadata("geometry"));
   meta.insertMeta("vossel_size_m", openvdb::DoubleMetadata(geometry.vossel_size_m));
-  return internal::WriteVdbFile(path, *grids, meta);
+  return meta;
+}
+
+openvdb::MetaMap FusedFileMeta(const FusedValues& fused) {
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("fused"));
+  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
+  return meta;
+}
+
+}  // namespace
+
+absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path) {
+  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, path.string());
+  if (!grids.ok()) return grids.status();
+  return internal::WriteVdbFile(path, *grids, GeometryFileMeta(geometry), kGeometryCompression);
+}
+
+absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry) {
+  constexpr char kWhere[] = "geometry object";
+  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, kWhere);
+  if (!grids.ok()) return grids.status();
+  return internal::EncodeVdbFile(*grids, GeometryFileMeta(geometry), kGeometryCompression,
+                                 kWhere);
 }
 
 absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
@@ -511,10 +541,15 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
                         const std::filesystem::path& path) {
   absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(geometry, fused);
   if (!grids.ok()) return grids.status();
-  openvdb::MetaMap meta;
-  meta.insertMeta("vasl_file", openvdb::StringMetadata("fused"));
-  meta.insertMeta("profile", openvdb::StringMetadata(fused.profile));
-  return internal::WriteVdbFile(path, *grids, meta);
+  return internal::WriteVdbFile(path, *grids, FusedFileMeta(fused), kFusedCompression);
+}
+
+absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry,
+                                        const FusedValues& fused) {
+  absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(geometry, fused);
+  if (!grids.ok()) return grids.status();
+  return internal::EncodeVdbFile(*grids, FusedFileMeta(fused), kFusedCompression,
+                                 "fused object");
 }
 
 absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,

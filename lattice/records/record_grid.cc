@@ -212,15 +212,28 @@ struct PlannedAttribute {
 /// has in its first columns, factors it does not know are 1 (not measured).
 constexpr const char* kWidenedAttribute = "conf";
 
+openvdb::MetaMap RecordsFileMeta() {
+  openvdb::MetaMap meta;
+  meta.insertMeta("vasl_file", openvdb::StringMetadata("records"));
+  return meta;
+}
+
 }  // namespace
 
 absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& records,
                           const std::filesystem::path& path) {
   absl::StatusOr<openvdb::GridBase::Ptr> grid = RecordsGrid(geometry, records, path.string());
   if (!grid.ok()) return grid.status();
-  openvdb::MetaMap meta;
-  meta.insertMeta("vasl_file", openvdb::StringMetadata("records"));
-  return internal::WriteVdbFile(path, {*grid}, meta);
+  return internal::WriteVdbFile(path, {*grid}, RecordsFileMeta());
+}
+
+absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
+                                          const RecordSet& records) {
+  constexpr char kWhere[] = "records object";
+  absl::StatusOr<openvdb::GridBase::Ptr> grid = RecordsGrid(geometry, records, kWhere);
+  if (!grid.ok()) return grid.status();
+  return internal::EncodeVdbFile({*grid}, RecordsFileMeta(), internal::VdbCompression::kBlosc,
+                                 kWhere);
 }
 
 absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,

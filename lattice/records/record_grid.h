@@ -11,6 +11,7 @@
 #pragma once
 
 #include <filesystem>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -47,6 +48,15 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
                         const std::filesystem::path& path);
 absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
                                       const std::filesystem::path& path);
+
+/// The bytes of the files WriteGeometry, WriteRecords and WriteFused write, for a writer that
+/// stores them elsewhere (tile objects go into the object store from memory). Geometry and
+/// fused files keep OpenVDB's active-mask compression alone, records add blosc (README
+/// "Storage").
+absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry);
+absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
+                                          const RecordSet& records);
+absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry, const FusedValues& fused);
 
 /// The grids of the files above, for writers that put several layers in one file (export):
 /// the geometry grids, the "records" PointDataGrid and the fused grids. `where` names the data

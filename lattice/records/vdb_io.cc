@@ -41,8 +41,40 @@ class StreamArchive : public openvdb::io::Archive {
 
 }  // namespace
 
+namespace {
+
+// OpenVDB's compression flags for `compression`.
+uint32_t CompressionFlags(VdbCompression compression) {
+  uint32_t flags = openvdb::io::COMPRESS_ACTIVE_MASK;
+  if (compression == VdbCompression::kBlosc) {
+    flags |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
+                                                         : openvdb::io::COMPRESS_ZIP;
+  }
+  return flags;
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> EncodeVdbFile(const openvdb::GridCPtrVec& grids,
+                                          const openvdb::MetaMap& meta,
+                                          VdbCompression compression, const std::string& where) {
+  EnsureOpenVdbInitialized();
+  std::string bytes;
+  try {
+    StreamArchive archive;
+    archive.setCompression(CompressionFlags(compression));
+    std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
+    archive.WriteTo(stream, grids, meta);
+    bytes = std::move(stream).str();
+  } catch (const std::exception& e) {
+    return absl::InternalError(absl::StrCat("cannot write ", where, ": ", e.what()));
+  }
+  if (absl::Status s = MakeUuidDeterministic(bytes, where); !s.ok()) return s;
+  return bytes;
+}
+
 absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::GridCPtrVec& grids,
-                          const openvdb::MetaMap& meta) {
+                          const openvdb::MetaMap& meta, VdbCompression compression) {
   EnsureOpenVdbInitialized();
   // A file of a few tiles is written in memory, its UUID made deterministic there, then to the
   // file in one write: no small writes into fresh pages, and no reading the file back. A large
@@ -51,47 +83,39 @@ absl::Status WriteVdbFile(const std::filesystem::path& path, const openvdb::Grid
   constexpr openvdb::Index64 kInMemoryBytes = openvdb::Index64{64} << 20;
   openvdb::Index64 in_core = 0;
   for (const openvdb::GridBase::ConstPtr& grid : grids) in_core += grid ? grid->memUsage() : 0;
-  uint32_t compression = openvdb::io::COMPRESS_ACTIVE_MASK;
-  compression |= openvdb::io::Archive::hasBloscCompression() ? openvdb::io::COMPRESS_BLOSC
-                                                             : openvdb::io::COMPRESS_ZIP;
-  const bool in_memory = in_core <= kInMemoryBytes;
-  std::string bytes;
+  if (in_core <= kInMemoryBytes) {
+    absl::StatusOr<std::string> bytes = EncodeVdbFile(grids, meta, compression, path.string());
+    if (!bytes.ok()) return bytes.status();
+    std::ofstream out(path, std::ios::out | std::ios::binary | std::ios::trunc);
+    out.write(bytes->data(), std::streamsize(bytes->size()));
+    out.close();
+    if (!out) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
+    return absl::OkStatus();
+  }
   try {
     StreamArchive archive;
-    archive.setCompression(compression);
-    if (in_memory) {
-      std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
-      archive.WriteTo(stream, grids, meta);
-      bytes = std::move(stream).str();
-    } else {
-      std::ofstream file(path, std::ios::out | std::ios::binary | std::ios::trunc);
-      if (!file) return absl::InternalError(absl::StrCat("cannot open ", path.string()));
-      archive.WriteTo(file, grids, meta);
-      file.close();
-      if (!file) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
-    }
+    archive.setCompression(CompressionFlags(compression));
+    std::ofstream file(path, std::ios::out | std::ios::binary | std::ios::trunc);
+    if (!file) return absl::InternalError(absl::StrCat("cannot open ", path.string()));
+    archive.WriteTo(file, grids, meta);
+    file.close();
+    if (!file) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
   } catch (const std::exception& e) {
     return absl::InternalError(absl::StrCat("cannot write ", path.string(), ": ", e.what()));
   }
-  if (!in_memory) {  // its UUID fixed in place
-    std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary | std::ios::ate);
-    if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
-    bytes.resize(size_t(f.tellg()));
-    f.seekg(0);
-    f.read(bytes.data(), std::streamsize(bytes.size()));
-    if (!f) return absl::InternalError(absl::StrCat("cannot read ", path.string()));
-    if (absl::Status s = MakeUuidDeterministic(bytes, path.string()); !s.ok()) return s;
-    f.seekp(kUuidAt);
-    f.write(bytes.data() + kUuidAt, kUuidLen);
-    f.close();
-    if (!f) return absl::InternalError(absl::StrCat("cannot rewrite the UUID of ", path.string()));
-    return absl::OkStatus();
-  }
+  // Its UUID fixed in place.
+  std::string bytes;
+  std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary | std::ios::ate);
+  if (!f) return absl::InternalError(absl::StrCat("cannot reopen ", path.string()));
+  bytes.resize(size_t(f.tellg()));
+  f.seekg(0);
+  f.read(bytes.data(), std::streamsize(bytes.size()));
+  if (!f) return absl::InternalError(absl::StrCat("cannot read ", path.string()));
   if (absl::Status s = MakeUuidDeterministic(bytes, path.string()); !s.ok()) return s;
-  std::ofstream out(path, std::ios::out | std::ios::binary | std::ios::trunc);
-  out.write(bytes.data(), std::streamsize(bytes.size()));
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat("cannot write ", path.string()));
+  f.seekp(kUuidAt);
+  f.write(bytes.data() + kUuidAt, kUuidLen);
+  f.close();
+  if (!f) return absl::InternalError(absl::StrCat("cannot rewrite the UUID of ", path.string()));
   return absl::OkStatus();
 }
 

@@ -82,12 +82,9 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
         if (!recs.ok()) return recs.status();
         absl::StatusOr<records::FusedValues> fused = fusion::Fuse(*recs, g->size(), h, profile);
         if (!fused.ok()) return fused.status();
-        const fs::path staged = objects.StagingPath();
-        if (absl::Status s = records::WriteFused(*g, *fused, staged); !s.ok()) {
-          fs::remove(staged);
-          return s;
-        }
-        absl::StatusOr<store::StoredObject> obj = objects.PutFile(staged);
+        absl::StatusOr<std::string> bytes = records::EncodeFused(*g, *fused);
+        if (!bytes.ok()) return bytes.status();
+        absl::StatusOr<store::StoredObject> obj = objects.PutBytes(*bytes);
         if (!obj.ok()) return obj.status();
         written[t][out.layer] = {obj->sha256, int64_t(g->size()), int64_t(recs->size()), obj->bytes};
         return absl::OkStatus();

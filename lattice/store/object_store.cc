@@ -20,32 +20,22 @@ class LocalObjectStore final : public ObjectStore {
  public:
   explicit LocalObjectStore(fs::path dir) : dir_(std::move(dir)) {}
 
-  fs::path StagingPath() override {
-    return dir_ / absl::StrCat(kStagingPrefix, internal::RandomHex(16));
-  }
-
-  absl::StatusOr<StoredObject> PutFile(const fs::path& staged) override {
-    absl::StatusOr<std::string> bytes = internal::ReadWholeFile(staged);
-    if (!bytes.ok()) return bytes.status();
-    absl::StatusOr<std::string> sha = internal::Sha256Hex(*bytes);
+  absl::StatusOr<StoredObject> PutBytes(std::string_view bytes) override {
+    // Hashed in memory and written once (fsynced), never read back.
+    absl::StatusOr<std::string> sha = internal::Sha256Hex(bytes);
     if (!sha.ok()) return sha.status();
-    if (absl::Status s = internal::FsyncPath(staged); !s.ok()) return s;
+    const fs::path staged = StagingPath();
+    if (absl::Status s = internal::WriteFileDurable(staged, bytes); !s.ok()) {
+      ::unlink(staged.c_str());
+      return s;
+    }
     const fs::path path = dir_ / *sha;
     if (::rename(staged.c_str(), path.c_str()) != 0) {
       const int err = errno;
       ::unlink(staged.c_str());
       return internal::ErrnoError("cannot rename object into place at", path, err);
     }
-    return StoredObject{*sha, int64_t(bytes->size())};
-  }
-
-  absl::StatusOr<StoredObject> PutBytes(std::string_view bytes) override {
-    const fs::path staged = StagingPath();
-    if (absl::Status s = internal::WriteFileDurable(staged, bytes); !s.ok()) {
-      ::unlink(staged.c_str());
-      return s;
-    }
-    return PutFile(staged);
+    return StoredObject{*sha, int64_t(bytes.size())};
   }
 
   absl::StatusOr<fs::path> LocalPath(const std::string& sha) const override {
@@ -99,6 +89,11 @@ class LocalObjectStore final : public ObjectStore {
   }
 
  private:
+  // A fresh staging file's path, beside the objects (same filesystem: taking it in is a rename).
+  fs::path StagingPath() const {
+    return dir_ / absl::StrCat(kStagingPrefix, internal::RandomHex(16));
+  }
+
   fs::path dir_;
 };
 

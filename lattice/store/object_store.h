@@ -26,12 +26,8 @@ struct StoredObject {
 class ObjectStore {
  public:
   virtual ~ObjectStore() = default;
-  /// A fresh local path to write an object's file to before PutFile (OpenVDB writes files).
-  virtual std::filesystem::path StagingPath() = 0;
-  /// Takes a fully written staging file in as an object named by its content hash, durable
-  /// (fsynced) before it returns; the staging file is gone afterwards. Idempotent.
-  virtual absl::StatusOr<StoredObject> PutFile(const std::filesystem::path& staged) = 0;
-  /// Stores bytes as an object (same guarantees as PutFile).
+  /// Stores bytes as an object named by their content hash, durable before it returns.
+  /// Idempotent. (Tile files are made in memory: records::EncodeGeometry and its siblings.)
   virtual absl::StatusOr<StoredObject> PutBytes(std::string_view bytes) = 0;
   /// A local file holding the object, to read it in place (OpenVDB opens files).
   /// NOT_FOUND when there is no such object.

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <map>
 #include <mutex>
+#include <numeric>
 #include <optional>
 #include <system_error>
 #include <utility>
@@ -350,55 +351,53 @@ struct ProjectStore::Impl {
     return *row && st->Int(0) == 0;
   }
 
-  /// Writes the objects of the tiles `keys` cut from `snapshot` (parallel over tiles; each
-  /// tile is cut as it is written, so a commit holds only the tiles its threads are writing).
+  /// Writes the objects of the tiles `geometry_keys` (every layer) and `record_keys` (all but
+  /// the geometry) cut from `snapshot`, in one parallel pass over them, the tiles with most
+  /// work first (geometry, then by vossels) so that no thread is left with a large tile at the
+  /// end; each tile is cut as it is written, so a commit holds only the tiles its threads are
+  /// writing. The result lists the geometry tiles, then the record tiles, each in key order.
   absl::StatusOr<std::vector<WrittenTile>> WriteTiles(const Snapshot& snapshot,
-                                                      const std::set<tiles::TileKey>& keys,
-                                                      bool with_geometry) {
+                                                      const std::set<tiles::TileKey>& geometry_keys,
+                                                      const std::set<tiles::TileKey>& record_keys) {
     const tiles::TileCutter cutter(snapshot.geometry, snapshot.records, snapshot.fused,
                                    settings.tile_vossels, &snapshot.profile_fused);
-    const std::vector<tiles::TileKey> ordered(keys.begin(), keys.end());
+    std::vector<tiles::TileKey> ordered(geometry_keys.begin(), geometry_keys.end());
+    ordered.insert(ordered.end(), record_keys.begin(), record_keys.end());
+    const size_t with_geometry_count = geometry_keys.size();
+    std::vector<size_t> by_work(ordered.size());
+    std::iota(by_work.begin(), by_work.end(), size_t{0});
+    std::stable_sort(by_work.begin(), by_work.end(), [&](size_t a, size_t b) {
+      const bool ga = a < with_geometry_count, gb = b < with_geometry_count;
+      if (ga != gb) return ga;
+      return cutter.VosselsOf(ordered[a]) > cutter.VosselsOf(ordered[b]);
+    });
     std::vector<WrittenTile> out(ordered.size());
     std::vector<absl::Status> status(ordered.size());
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, ordered.size(), 1),
-                      [&](const tbb::blocked_range<size_t>& r) {
-      for (size_t t = r.begin(); t != r.end(); ++t) {
+    std::atomic<size_t> next{0};
+    const int threads = tbb::this_task_arena::max_concurrency();
+    tbb::parallel_for(0, threads, [&](int) {
+      for (size_t i = next++; i < by_work.size(); i = next++) {
+        const size_t t = by_work[i];
+        const bool with_geometry = t < with_geometry_count;
         const tiles::TileContents tile = cutter.Cut(ordered[t]);
         out[t].key = tile.key;
         if (tile.geometry.size() == 0) continue;
-        auto put = [&](const char* layer, auto&& write) -> absl::Status {
-          const fs::path staged = objects->StagingPath();
-          if (absl::Status s = write(staged); !s.ok()) {
-            fs::remove(staged);
-            return s;
-          }
-          absl::StatusOr<StoredObject> obj = objects->PutFile(staged);
+        // Each layer's file is made in memory and put from there (hashed, written once).
+        auto put = [&](const char* layer, const absl::StatusOr<std::string>& bytes) {
+          if (!bytes.ok()) return bytes.status();
+          absl::StatusOr<StoredObject> obj = objects->PutBytes(*bytes);
           if (!obj.ok()) return obj.status();
           out[t].layers[layer] = {obj->sha256, int64_t(tile.geometry.size()),
                                   int64_t(tile.records.size()), obj->bytes};
           return absl::OkStatus();
         };
         absl::Status s;
-        if (with_geometry) {
-          s = put(kLayerGeometry, [&](const fs::path& f) {
-            return records::WriteGeometry(tile.geometry, f);
-          });
-        }
-        if (s.ok()) {
-          s = put(kLayerRecords, [&](const fs::path& f) {
-            return records::WriteRecords(tile.geometry, tile.records, f);
-          });
-        }
-        if (s.ok()) {
-          s = put(kLayerFusedDefault, [&](const fs::path& f) {
-            return records::WriteFused(tile.geometry, tile.fused, f);
-          });
-        }
+        if (with_geometry) s = put(kLayerGeometry, records::EncodeGeometry(tile.geometry));
+        if (s.ok()) s = put(kLayerRecords, records::EncodeRecords(tile.geometry, tile.records));
+        if (s.ok()) s = put(kLayerFusedDefault, records::EncodeFused(tile.geometry, tile.fused));
         for (const auto& [layer, fused] : tile.profile_fused) {
           if (!s.ok()) break;
-          s = put(layer.c_str(), [&](const fs::path& f) {
-            return records::WriteFused(tile.geometry, fused, f);
-          });
+          s = put(layer.c_str(), records::EncodeFused(tile.geometry, fused));
         }
         status[t] = s;
       }
@@ -1178,7 +1177,7 @@ absl::StatusOr<std::map<tiles::TileKey, std::map<std::string, ManifestEntry>>>
 ProjectStore::PutTiles(const Snapshot& snapshot, const std::set<tiles::TileKey>& tiles) {
   if (absl::Status s = SameVosselSize(snapshot, impl_->settings); !s.ok()) return s;
   absl::StatusOr<std::vector<WrittenTile>> written =
-      impl_->WriteTiles(snapshot, tiles, /*with_geometry=*/true);
+      impl_->WriteTiles(snapshot, tiles, /*record_keys=*/{});
   if (!written.ok()) return written.status();
   std::map<tiles::TileKey, std::map<std::string, ManifestEntry>> out;
   for (WrittenTile& w : *written) {
@@ -1296,11 +1295,13 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     geometry_tiles = std::set<tiles::TileKey>(tile_of.begin(), tile_of.end());
   }
   for (const tiles::TileKey& key : geometry_tiles) record_tiles.erase(key);
-  for (const auto* set : {&geometry_tiles, &record_tiles}) {
-    const bool with_geometry = set == &geometry_tiles;
-    absl::StatusOr<std::vector<WrittenTile>> written = im.WriteTiles(snapshot, *set, with_geometry);
+  {
+    absl::StatusOr<std::vector<WrittenTile>> written =
+        im.WriteTiles(snapshot, geometry_tiles, record_tiles);
     if (!written.ok()) return written.status();
-    for (WrittenTile& w : *written) {
+    for (size_t i = 0; i < written->size(); ++i) {
+      WrittenTile& w = (*written)[i];
+      const bool with_geometry = i < geometry_tiles.size();
       if (w.layers.empty()) {
         manifest.tiles.erase(w.key);
         continue;

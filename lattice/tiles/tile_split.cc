@@ -101,6 +101,11 @@ TileCutter::TileCutter(const records::VosselGeometry& g, const records::RecordSe
   for (size_t k = 0; k < g.size(); ++k) begin_[k + 1] += begin_[k];
 }
 
+size_t TileCutter::VosselsOf(const TileKey& key) const {
+  auto it = by_tile_.find(key);
+  return it == by_tile_.end() ? 0 : it->second.size();
+}
+
 TileContents TileCutter::Cut(const TileKey& key) const {
   const records::VosselGeometry& g = geometry_;
   TileContents tile;

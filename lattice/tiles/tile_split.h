@@ -50,6 +50,8 @@ class TileCutter {
              const records::FusedValues& fused, int tile_vossels,
              const std::map<std::string, records::FusedValues>* profile_fused = nullptr);
   TileContents Cut(const TileKey& key) const;
+  /// The vossels tile `key` holds.
+  size_t VosselsOf(const TileKey& key) const;
 
  private:
   const records::VosselGeometry& geometry_;
