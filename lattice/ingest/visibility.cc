@@ -25,6 +25,9 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
 
 namespace {
 
+/// What SplatRow leaves at a pixel the splat does not reach (and RenderDepthPanorama skips).
+constexpr float kNoSplat = std::numeric_limits<float>::infinity();
+
 /// One vossel's splat across one panorama row (RenderDepthPanorama): what a pixel's direction
 /// q = cosφ·a + sinφ·b + c (world frame) is tested against.
 struct RowSplat {
@@ -41,7 +44,7 @@ struct RowSplat {
 /// The depth the splat `s` leaves at `n` contiguous pixels of a row whose columns have
 /// cos φ = `cos_phi[x]` and sin φ = `sin_phi[x]`: the range where the pixel's ray crosses the
 /// vossel's plane, where that crossing lies inside the dilated cell and the pixel inside the
-/// cap; +inf where it does not. Branch-free over the columns so that it runs 4 pixels a step
+/// cap; kNoSplat (+inf) where it does not. Branch-free over the columns so that it runs 4 pixels a step
 /// with AVX2; each pixel takes the operations of a pixel-by-pixel evaluation in the same order
 /// and without fused multiply-adds, so the depths are the same bits either way. (GCC vectorises
 /// its selects only when told that floating-point operations do not trap, which they do not
@@ -49,7 +52,6 @@ struct RowSplat {
 [[gnu::target_clones("avx2", "default"), gnu::optimize("no-trapping-math")]]
 void SplatRow(const RowSplat& s, const double* cos_phi, const double* sin_phi, int n,
               float* out) {
-  constexpr float kInf = std::numeric_limits<float>::infinity();
   const double a0 = s.a[0], a1 = s.a[1], a2 = s.a[2], b0 = s.b[0], b1 = s.b[1], b2 = s.b[2];
   const double c0 = s.c[0], c1 = s.c[1], c2 = s.c[2], d0 = s.d[0], d1 = s.d[1], d2 = s.d[2];
   const double cos_a = s.cos_a;
@@ -60,7 +62,7 @@ void SplatRow(const RowSplat& s, const double* cos_phi, const double* sin_phi, i
       const double q0 = cp * a0 + sp * b0 + c0;
       const double q1 = cp * a1 + sp * b1 + c1;
       const double q2 = cp * a2 + sp * b2 + c2;
-      out[x] = q0 * d0 + q1 * d1 + q2 * d2 < cos_a ? kInf : range;
+      out[x] = q0 * d0 + q1 * d1 + q2 * d2 < cos_a ? kNoSplat : range;
     }
     return;
   }
@@ -79,7 +81,7 @@ void SplatRow(const RowSplat& s, const double* cos_phi, const double* sin_phi, i
     const double far = x01 < x2 ? x2 : x01;
     const bool miss = (q0 * d0 + q1 * d1 + q2 * d2 < cos_a) | (__builtin_fabs(nq) < 1e-9) |
                       !(t > 0.0) | (far > half);
-    out[x] = float(miss ? double(kInf) : t);
+    out[x] = float(miss ? double(kNoSplat) : t);
   }
 }
 
@@ -158,7 +160,6 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const tbb::blocked_range<size_t> vossels(0, g.size(), 1024);
   tbb::parallel_for(vossels, [&](const tbb::blocked_range<size_t>& r) {
     std::vector<float> splat;  // one row's run of splatted depths
-    constexpr float kNoSplat = std::numeric_limits<float>::infinity();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (splat_only != nullptr && !(*splat_only)[k]) continue;
       const Eigen::Vector3d c_w =
