@@ -2,7 +2,9 @@
 # Sets up, builds, then prints the speed figures of ingest, reweight, render and record IO on
 # the synthetic room and the growth of the store over the corridor site
 # (tests/bench/vasl_bench.cc), after the kernels under Google Benchmark
-# (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad), whose
+# (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad;
+# tests/bench/visibility_bench.cc: the §5 depth panorama, dilation and visibility test on the
+# corridor site), whose
 # medians and spread over 5 runs are also written to build/bench-kernels.json.
 # Then a site at realistic size (the corridor's first 6 stations, LiDAR 2048×1024 and RGB
 # 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,

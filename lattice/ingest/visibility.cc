@@ -6,6 +6,7 @@
 #include <optional>
 
 #include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 
 #include "lattice/tiles/tiling.h"
@@ -25,44 +26,51 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px) {
 
 namespace {
 
-/// What SplatRow leaves at a pixel the splat does not reach (and RenderDepthPanorama skips).
-constexpr float kNoSplat = std::numeric_limits<float>::infinity();
-
-/// One vossel's splat across one panorama row (RenderDepthPanorama): what a pixel's direction
-/// q = cosφ·a + sinφ·b + c (world frame) is tested against.
-struct RowSplat {
-  double a[3], b[3], c[3];  ///< the row's A_j, B_j, C_j
-  double d[3];              ///< unit direction to the vossel's centre
-  double cos_a;             ///< the cap: q·d ≥ cos a
-  bool has_plane;           ///< a surfel (else the centre's range everywhere in the cap)
-  double n[3], plane_d;     ///< its plane n·x = plane_d (sensor at the origin)
-  double centre[3];         ///< the cell's centre, relative to the sensor
-  double half_cell_m;       ///< the cell's half edge dilated by σ
-  double range_m;           ///< the centre's range
+/// The pixel-centre directions of a row j (RenderDepthPanorama): q = cosφ·a + sinφ·b + c in the
+/// world frame, with a = cosψ_j·R x̂, b = cosψ_j·R ŷ, c = sinψ_j·R ẑ (R world-from-sensor).
+struct RowBasis {
+  double a[3], b[3], c[3];
 };
 
-/// The depth the splat `s` leaves at `n` contiguous pixels of a row whose columns have
-/// cos φ = `cos_phi[x]` and sin φ = `sin_phi[x]`: the range where the pixel's ray crosses the
-/// vossel's plane, where that crossing lies inside the dilated cell and the pixel inside the
-/// cap; kNoSplat (+inf) where it does not. Branch-free over the columns so that it runs 4 pixels a step
-/// with AVX2; each pixel takes the operations of a pixel-by-pixel evaluation in the same order
-/// and without fused multiply-adds, so the depths are the same bits either way. (GCC vectorises
-/// its selects only when told that floating-point operations do not trap, which they do not
-/// here: no FP exception is ever unmasked; the values are IEEE's either way.)
+/// One vossel's splat (RenderDepthPanorama), set up once for every row it covers.
+struct VosselSplat {
+  double d[3];         ///< unit direction to the vossel's centre (world frame)
+  double cos_a;        ///< the cap: q·d ≥ cos a
+  double n[3];         ///< its surfel's normal (zero: none)
+  double plane_d;      ///< its plane n·x = plane_d (sensor at the origin)
+  double centre[3];    ///< the cell's centre, relative to the sensor
+  double half_cell_m;  ///< the cell's half edge dilated by σ
+  double range_m;      ///< the centre's range
+  double rho;          ///< |d_xy| in the sensor frame (cos ψ of d)
+  double d_z;          ///< d_z in the sensor frame (sin ψ of d)
+  double u;            ///< d's column coordinate (EquirectProject)
+  int j0, j1;          ///< the rows whose centres can lie in the cap
+  bool has_plane;      ///< a surfel (else the centre's range everywhere in the cap)
+};
+
+/// Keeps, at each of a row's run of n contiguous columns, the min of its depth and a vossel's
+/// splat there: the range at which the pixel's direction q (cos_phi, sin_phi of the columns,
+/// the row's basis) crosses the splat's plane, where q lies in its cap and the crossing lies
+/// within its dilated cell; the centre's range everywhere in the cap for a splat without a
+/// plane. Branch-free over contiguous memory, so that it vectorises (AVX2 where the CPU has it;
+/// no FMA: the same bits on every CPU); a min is order-free, so the panorama does not depend on
+/// the order splats come in.
 [[gnu::target_clones("avx2", "default"), gnu::optimize("no-trapping-math")]]
-void SplatRow(const RowSplat& s, const double* cos_phi, const double* sin_phi, int n,
-              float* out) {
-  const double a0 = s.a[0], a1 = s.a[1], a2 = s.a[2], b0 = s.b[0], b1 = s.b[1], b2 = s.b[2];
-  const double c0 = s.c[0], c1 = s.c[1], c2 = s.c[2], d0 = s.d[0], d1 = s.d[1], d2 = s.d[2];
+void SplatRow(const RowBasis& r, const VosselSplat& s, const double* cos_phi,
+              const double* sin_phi, int n, float* depth) {
+  const double a0 = r.a[0], a1 = r.a[1], a2 = r.a[2], b0 = r.b[0], b1 = r.b[1], b2 = r.b[2];
+  const double c0 = r.c[0], c1 = r.c[1], c2 = r.c[2], d0 = s.d[0], d1 = s.d[1], d2 = s.d[2];
   const double cos_a = s.cos_a;
+  constexpr double kNone = std::numeric_limits<double>::infinity();
   if (!s.has_plane) {
-    const float range = float(s.range_m);
+    const double range = double(float(s.range_m));
     for (int x = 0; x < n; ++x) {
       const double cp = cos_phi[x], sp = sin_phi[x];
       const double q0 = cp * a0 + sp * b0 + c0;
       const double q1 = cp * a1 + sp * b1 + c1;
       const double q2 = cp * a2 + sp * b2 + c2;
-      out[x] = q0 * d0 + q1 * d1 + q2 * d2 < cos_a ? kNoSplat : range;
+      const float v = float(q0 * d0 + q1 * d1 + q2 * d2 < cos_a ? kNone : range);
+      depth[x] = v < depth[x] ? v : depth[x];
     }
     return;
   }
@@ -81,9 +89,24 @@ void SplatRow(const RowSplat& s, const double* cos_phi, const double* sin_phi, i
     const double far = x01 < x2 ? x2 : x01;
     const bool miss = (q0 * d0 + q1 * d1 + q2 * d2 < cos_a) | (__builtin_fabs(nq) < 1e-9) |
                       !(t > 0.0) | (far > half);
-    out[x] = float(miss ? double(kNoSplat) : t);
+    const float v = float(miss ? kNone : t);
+    depth[x] = v < depth[x] ? v : depth[x];
   }
 }
+
+/// acos(x), x in [−1, 1], to within kAcosBoundErrRad (Abramowitz & Stegun 4.4.45, whose error
+/// is at most 5e-5 rad): a bound of a splat's chord in a row, not a depth.
+constexpr double kAcosBoundErrRad = 1e-4;
+inline double AcosBound(double x) {
+  const double ax = x < 0.0 ? -x : x;
+  const double r =
+      std::sqrt(1.0 - ax) * (1.5707288 + ax * (-0.2121144 + ax * (0.0742610 + ax * -0.0187293)));
+  return x < 0.0 ? M_PI - r : r;
+}
+
+/// Rows of a band: each band of the panorama is splatted by one task into its own rows, which
+/// stay in the core's cache (2048 columns: 128 KB), without atomics.
+constexpr int kBandRows = 16;
 
 }  // namespace
 
@@ -102,8 +125,6 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   out.size = size;
   const int W = size.width_px, H = size.height_px;
   const size_t npix = size_t(W) * H;
-  // Splats keep each pixel's min by an atomic compare-and-swap on the panorama's own floats
-  // (GCC's generic __atomic builtins on plain words, compared bit for bit).
   std::vector<float>& depth = out.depth_m;
   depth.assign(npix, std::numeric_limits<float>::infinity());
   // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie
@@ -130,9 +151,9 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   };
 
   // Pixel-centre directions, separable: q = (cosψ cosφ, cosψ sinφ, sinψ) in the sensor frame,
-  // and in the world frame q_w = cosφ·A_j + sinφ·B_j + C_j with the rows' A_j = cosψ_j·R x̂,
-  // B_j = cosψ_j·R ŷ, C_j = sinψ_j·R ẑ (R world-from-sensor): a pixel's tests then take a few
-  // products, with every vossel quantity in the world frame (rotations keep the dot products).
+  // and in the world frame q_w = cosφ·A_j + sinφ·B_j + C_j (RowBasis): a pixel's tests then
+  // take a few products, with every vossel quantity in the world frame (rotations keep the
+  // dot products).
   std::vector<double> cos_phi(W), sin_phi(W), cos_psi(H), sin_psi(H);
   for (int i = 0; i < W; ++i) {
     const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
@@ -146,20 +167,25 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   }
   const Eigen::Matrix3d R_world_sensor = pose.q_world_sensor.toRotationMatrix();
   const Eigen::Matrix3d R_sensor_world = R_world_sensor.transpose();
-  std::vector<Eigen::Vector3d> row_a(H), row_b(H), row_c(H);
+  std::vector<RowBasis> basis(H);
   for (int j = 0; j < H; ++j) {
-    row_a[j] = cos_psi[j] * R_world_sensor.col(0);
-    row_b[j] = cos_psi[j] * R_world_sensor.col(1);
-    row_c[j] = sin_psi[j] * R_world_sensor.col(2);
+    for (int e = 0; e < 3; ++e) {
+      basis[j].a[e] = cos_psi[j] * R_world_sensor(e, 0);
+      basis[j].b[e] = cos_psi[j] * R_world_sensor(e, 1);
+      basis[j].c[e] = sin_psi[j] * R_world_sensor(e, 2);
+    }
   }
   const double h = g.vossel_size_m;
   const double sphere_m = 0.5 * std::sqrt(3.0) * h;  // bounding sphere of a vossel (§5)
   const double dpsi = geometry::ElevationPitchRad(size);
   const double px_per_rad = W / (2.0 * M_PI);
 
-  const tbb::blocked_range<size_t> vossels(0, g.size(), 1024);
-  tbb::parallel_for(vossels, [&](const tbb::blocked_range<size_t>& r) {
-    std::vector<float> splat;  // one row's run of splatted depths
+  // 1. Every vossel's splat set up once, in parallel; those that cannot fall in a flagged cell
+  //    (or that hold the sensor) left out.
+  tbb::enumerable_thread_specific<std::vector<VosselSplat>> set_up;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    std::vector<VosselSplat>& mine = set_up.local();
     for (size_t k = r.begin(); k != r.end(); ++k) {
       if (splat_only != nullptr && !(*splat_only)[k]) continue;
       const Eigen::Vector3d c_w =
@@ -172,13 +198,11 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
       const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
       const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
-      // The rows whose centres can lie within a of d (floor and ceil keep them conservative);
-      // in each, the columns of the cap's chord: with ρ = |d_xy|, a pixel of row j is within a
-      // when cos(φ − φ_d) ≥ (cos a − sinψ_j d_z) / (cosψ_j ρ). One pixel of slack either side,
-      // the cap test below decides.
+      // The rows whose centres can lie within a of d (floor and ceil keep them conservative).
       const double rows = a / dpsi;
       const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
       const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
+      if (j0 > j1) continue;
       const double rho = std::hypot(d.x(), d.y());
       if (cells != nullptr) {
         // The cap's columns: clear of the poles it spans the azimuths within asin(sin a / ρ)
@@ -210,62 +234,90 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       // Surfel splat: the range where a pixel's ray crosses the vossel's plane, kept only where
       // that crossing lies inside the vossel's cell dilated by σ; a ray that grazes the plane
       // outside the vossel does not see it, and silhouettes are not inflated.
-      RowSplat row;
-      row.has_plane = n_w.squaredNorm() > 0.5;
-      row.plane_d = n_w.dot(x_w);
-      row.cos_a = std::cos(a);
-      row.half_cell_m = 0.5 * h + sigma_m;
-      row.range_m = range;
+      VosselSplat s;
+      s.has_plane = n_w.squaredNorm() > 0.5;
+      s.plane_d = n_w.dot(x_w);
+      s.cos_a = std::cos(a);
+      s.half_cell_m = 0.5 * h + sigma_m;
+      s.range_m = range;
       for (int e = 0; e < 3; ++e) {
-        row.d[e] = d_w[e];
-        row.n[e] = n_w[e];
-        row.centre[e] = c_w[e];
+        s.d[e] = d_w[e];
+        s.n[e] = n_w[e];
+        s.centre[e] = c_w[e];
       }
-      for (int j = j0; j <= j1; ++j) {
+      s.rho = rho;
+      s.d_z = d.z();
+      s.u = uv.x();
+      s.j0 = j0;
+      s.j1 = j1;
+      mine.push_back(s);
+    }
+  });
+
+  // 2. The splats of each band of rows (a splat spanning several bands is in each).
+  const int bands = (H + kBandRows - 1) / kBandRows;
+  std::vector<size_t> band_begin(size_t(bands) + 1, 0);
+  for (const std::vector<VosselSplat>& list : set_up) {
+    for (const VosselSplat& s : list) {
+      for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) ++band_begin[size_t(b) + 1];
+    }
+  }
+  for (int b = 0; b < bands; ++b) band_begin[size_t(b) + 1] += band_begin[size_t(b)];
+  std::vector<const VosselSplat*> in_band(band_begin.back());
+  {
+    std::vector<size_t> fill(band_begin.begin(), band_begin.end() - 1);
+    for (const std::vector<VosselSplat>& list : set_up) {
+      for (const VosselSplat& s : list) {
+        for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) in_band[fill[size_t(b)]++] = &s;
+      }
+    }
+  }
+
+  // 3. Each band splatted by one task: in each row of a splat, the columns of the cap's chord:
+  //    with ρ = |d_xy|, a pixel of row j is within a when cos(φ − φ_d) ≥ (cos a − sinψ_j d_z) /
+  //    (cosψ_j ρ); the chord's half width bounded from above (AcosBound) and one pixel of slack
+  //    either side, SplatRow's cap test decides.
+  tbb::parallel_for(0, bands, [&](int b) {
+    const int band_j0 = b * kBandRows, band_j1 = std::min(H, band_j0 + kBandRows) - 1;
+    for (size_t n = band_begin[size_t(b)]; n != band_begin[size_t(b) + 1]; ++n) {
+      const VosselSplat& s = *in_band[n];
+      for (int j = std::max(s.j0, band_j0); j <= std::min(s.j1, band_j1); ++j) {
         int i0 = 0, i1 = W - 1;
-        const double across = cos_psi[j] * rho;
+        const double across = cos_psi[j] * s.rho;
         if (across > 1e-9) {
-          const double c = (row.cos_a - sin_psi[j] * d.z()) / across;
+          const double c = (s.cos_a - sin_psi[j] * s.d_z) / across;
           if (c > 1.0 + 1e-9) continue;  // the cap misses this row's centres
           if (c > -1.0) {
-            const double half_px = std::acos(std::min(c, 1.0)) * px_per_rad + 1.0;
+            const double half_px =
+                (AcosBound(std::min(c, 1.0)) + kAcosBoundErrRad) * px_per_rad + 1.0;
             if (2.0 * half_px + 2.0 < double(W)) {
-              i0 = int(std::floor(uv.x() - 0.5 - half_px));
-              i1 = int(std::ceil(uv.x() - 0.5 + half_px));
+              i0 = int(std::floor(s.u - 0.5 - half_px));
+              i1 = int(std::ceil(s.u - 0.5 + half_px));
             }
           }
-        }
-        const uint8_t* cell_row =
-            cells != nullptr ? &(*cells)[size_t(j / kCell) * size_t(cells_w)] : nullptr;
-        for (int e = 0; e < 3; ++e) {
-          row.a[e] = row_a[j][e];
-          row.b[e] = row_b[j][e];
-          row.c[e] = row_c[j][e];
         }
         float* depth_row = &depth[size_t(j) * W];
         // The columns i0..i1 wrap at most once (the chord is narrower than the panorama): one
-        // or two runs of contiguous columns, each splatted as a whole, then merged by min.
+        // or two runs of contiguous columns.
         const int first = geometry::WrapColumn(i0, W);
         const int count = std::min(i1 - i0 + 1, W);
         for (int begin = first, left = count; left > 0;) {
-          const int n = std::min(left, W - begin);
-          splat.resize(size_t(n));
-          SplatRow(row, &cos_phi[begin], &sin_phi[begin], n, splat.data());
-          for (int x = 0; x < n; ++x) {
-            float splat_m = splat[size_t(x)];
-            if (splat_m == kNoSplat) continue;  // most of a run's pixels miss the splat
-            const int i = begin + x;
-            if (cell_row != nullptr && !cell_row[i / kCell]) continue;
-            float* word = &depth_row[i];
-            float cur;
-            __atomic_load(word, &cur, __ATOMIC_RELAXED);
-            while (splat_m < cur && !__atomic_compare_exchange(word, &cur, &splat_m, true,
-                                                               __ATOMIC_RELAXED,
-                                                               __ATOMIC_RELAXED)) {
-            }
-          }
-          left -= n;
+          const int n_px = std::min(left, W - begin);
+          SplatRow(basis[j], s, &cos_phi[begin], &sin_phi[begin], n_px, depth_row + begin);
+          left -= n_px;
           begin = 0;
+        }
+      }
+    }
+    // A revisit reads flagged cells only: the others stay +inf.
+    if (cells != nullptr) {
+      for (int j = band_j0; j <= band_j1; ++j) {
+        const uint8_t* cell_row = &(*cells)[size_t(j / kCell) * size_t(cells_w)];
+        float* depth_row = &depth[size_t(j) * W];
+        for (int ci = 0; ci < cells_w; ++ci) {
+          if (cell_row[ci]) continue;
+          std::fill(depth_row + ci * kCell, depth_row + (ci + 1) * kCell,
+                    std::numeric_limits<float>::infinity());
         }
       }
     }

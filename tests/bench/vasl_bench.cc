@@ -16,6 +16,7 @@
 #include <string>
 
 #include <malloc.h>
+#include <sys/resource.h>
 #include <tbb/info.h>
 
 #include "absl/strings/str_format.h"
@@ -61,6 +62,14 @@ void ResetPeakRss() {
     std::fputs("5", f);
     std::fclose(f);
   }
+}
+
+/// CPU seconds (user and system) this process has spent on all its threads.
+double CpuSeconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
+         1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
 }
 
 /// Median, least and greatest of `v` (not empty).
@@ -207,8 +216,10 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
     auto scan = scenes::MakeScanInput(site, n, lidar, pano_w, 2);
     if (!scan.ok()) return Fail(scan.status());
     ResetPeakRss();
+    const double cpu0 = CpuSeconds();
     auto r = (*engine)->IngestScan("growth", *scan);
     if (!r.ok()) return Fail(r.status());
+    const double cpu = CpuSeconds() - cpu0;
     const double peak = PeakRssMb();
     auto versions = (*engine)->ListVersions("growth");
     if (!versions.ok()) return Fail(versions.status());
@@ -227,7 +238,7 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
       }
     }
     std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.1f %9.0f %11.1f %11.1f   "
-                "revisits %.2f; own sources %.2f (%s);%s\n",
+                "cpu %.2f s (%.2f cores); revisits %.2f; own sources %.2f (%s);%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
                 (long long)r->sources_refreshed, (long long)r->pairs_revisited,
@@ -236,7 +247,8 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
                     double(std::max<int64_t>(1, r->vossels_in_blocks)),
                 peak,
                 r->bytes_written / 1e6,
-                versions->back().bytes_total / 1e6, revisit, own, each.c_str(), rest.c_str());
+                versions->back().bytes_total / 1e6, cpu, cpu / std::max(1e-9, r->seconds), revisit, own, each.c_str(),
+                rest.c_str());
     auto st = store::ProjectStore::Open(dir / "growth");
     if (!st.ok()) return Fail(st.status());
     auto manifest = (*st)->LoadManifest(r->version);

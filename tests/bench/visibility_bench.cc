@@ -1,0 +1,110 @@
+// The §5 kernels an ingest and its revisits spend most of their time in, under Google
+// Benchmark (deploy/bench.sh): a source's depth panorama splatted from every vossel of the
+// lattice, its dilation, and the visibility test of every vossel, on the corridor site
+// (tests/scenes/corridor_site.h) voxelised from all 12 stations as the growth benchmark's last
+// scan sees it (LiDAR 1440×720 per station, h = 5 cm), from the last station and from the
+// second. Items are vossels.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+
+#include <benchmark/benchmark.h>
+
+#include "lattice/ingest/visibility.h"
+#include "lattice/ingest/voxelise.h"
+#include "tests/scenes/corridor_site.h"
+
+namespace {
+
+using vasl::ingest::DepthPanorama;
+
+constexpr double kVosselM = 0.05;
+/// A camera's depth panorama as the growth benchmark's 2048×1024 panoramas give it, and the
+/// LiDAR's (1440×720 returns: LidarDepthPitchRad).
+constexpr double kCameraPitchRad = 2.0 * M_PI / 2048;
+constexpr double kLidarPitchRad = M_PI / 720;
+constexpr double kCameraDivergenceRad = 2.0 * M_PI / 2048;
+constexpr double kLidarDivergenceRad = 0.3e-3;
+
+const vasl::scenes::CorridorSite& Site() {
+  static const vasl::scenes::CorridorSite site = vasl::scenes::CorridorSite::Default();
+  return site;
+}
+
+const vasl::records::VosselGeometry& Geometry() {
+  static const vasl::records::VosselGeometry g = [] {
+    vasl::scenes::LidarSettings settings;
+    settings.azimuth_steps = 1440;
+    settings.elevation_steps = 720;
+    auto built =
+        vasl::ingest::BuildGeometry(vasl::scenes::StationLidars(Site(), settings), kVosselM);
+    if (!built.ok()) {
+      std::fprintf(stderr, "corridor geometry: %s\n", built.status().ToString().c_str());
+      std::exit(1);
+    }
+    return std::move(*built);
+  }();
+  return g;
+}
+
+DepthPanorama Render(size_t station, double pitch_rad, double divergence_rad) {
+  return vasl::ingest::RenderDepthPanorama(Geometry(), Site().Stations()[station],
+                                           vasl::ingest::DepthPanoramaSize(pitch_rad),
+                                           divergence_rad);
+}
+
+/// The depth panorama of every vossel from `station`.
+void BM_DepthPanorama(benchmark::State& state, size_t station, double pitch_rad,
+                      double divergence_rad) {
+  Geometry();  // built once, outside the timing
+  for (auto _ : state) {
+    DepthPanorama d = Render(station, pitch_rad, divergence_rad);
+    benchmark::DoNotOptimize(d.depth_m.data());
+  }
+  state.SetItemsProcessed(int64_t(state.iterations()) * int64_t(Geometry().size()));
+  state.counters["vossels"] = double(Geometry().size());
+}
+
+/// A camera's dilation (2 pixels) of that panorama.
+void BM_Dilate(benchmark::State& state, size_t station) {
+  const DepthPanorama d = Render(station, kCameraPitchRad, kCameraDivergenceRad);
+  for (auto _ : state) {
+    state.PauseTiming();
+    DepthPanorama copy = d;
+    state.ResumeTiming();
+    vasl::ingest::DilateDepthPanorama(copy, 2);
+    benchmark::DoNotOptimize(copy.depth_m.data());
+  }
+  state.SetItemsProcessed(int64_t(state.iterations()) * int64_t(d.depth_m.size()));
+}
+
+/// The visibility test of every vossel on that panorama (a LiDAR's: one slope pixel).
+void BM_Visibility(benchmark::State& state, size_t station, double pitch_rad,
+                   double divergence_rad, int slope_pixels) {
+  const DepthPanorama d = Render(station, pitch_rad, divergence_rad);
+  const double tau = vasl::ingest::DepthToleranceM(kVosselM);
+  size_t shadow = 0;
+  for (auto _ : state) {
+    const std::vector<float> v =
+        vasl::ingest::ComputeVisibility(Geometry(), d, tau, nullptr, slope_pixels);
+    shadow = size_t(std::count(v.begin(), v.end(), 0.0f));
+    benchmark::DoNotOptimize(v.data());
+  }
+  state.SetItemsProcessed(int64_t(state.iterations()) * int64_t(Geometry().size()));
+  state.counters["shadow"] = double(shadow);
+}
+
+BENCHMARK_CAPTURE(BM_DepthPanorama, camera_station_12, 11, kCameraPitchRad, kCameraDivergenceRad)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_DepthPanorama, camera_station_2, 1, kCameraPitchRad, kCameraDivergenceRad)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_DepthPanorama, lidar_station_12, 11, kLidarPitchRad, kLidarDivergenceRad)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Dilate, camera_station_12, 11)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Visibility, camera_station_12, 11, kCameraPitchRad, kCameraDivergenceRad, 3)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Visibility, lidar_station_12, 11, kLidarPitchRad, kLidarDivergenceRad, 1)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+
+}  // namespace
