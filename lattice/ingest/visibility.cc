@@ -108,6 +108,13 @@ inline double AcosBound(double x) {
 /// stay in the core's cache (2048 columns: 128 KB), without atomics.
 constexpr int kBandRows = 16;
 
+/// Front-to-back culling of RenderDepthPanorama: blocks of consecutive vossels, tested against
+/// the farthest depth per reach cell of the passes before; the shares of the blocks (nearest
+/// first) splatted by the end of each pass; not below kCullMinVossels splatted vossels.
+constexpr size_t kCullBlock = 64;
+constexpr double kCullPassShares[] = {0.125, 0.25, 0.5, 1.0};
+constexpr size_t kCullMinVossels = 16384;
+
 }  // namespace
 
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geometry::Pose& pose,
@@ -180,148 +187,233 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const double dpsi = geometry::ElevationPitchRad(size);
   const double px_per_rad = W / (2.0 * M_PI);
 
-  // 1. Every vossel's splat set up once, in parallel; those that cannot fall in a flagged cell
-  //    (or that hold the sensor) left out.
-  tbb::enumerable_thread_specific<std::vector<VosselSplat>> set_up;
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024),
-                    [&](const tbb::blocked_range<size_t>& r) {
-    std::vector<VosselSplat>& mine = set_up.local();
-    for (size_t k = r.begin(); k != r.end(); ++k) {
-      if (splat_only != nullptr && !(*splat_only)[k]) continue;
-      const Eigen::Vector3d c_w =
-          h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z()) - pose.o_world;
-      const double range = c_w.norm();
-      if (range <= sphere_m) continue;  // the sensor sits inside this vossel
-      const Eigen::Vector3d d_w = c_w / range;
-      const Eigen::Vector3d d = R_sensor_world * d_w;
-      // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
-      const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
-      const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
-      const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
-      // The rows whose centres can lie within a of d (floor and ceil keep them conservative).
-      const double rows = a / dpsi;
-      const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
-      const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
-      if (j0 > j1) continue;
-      const double rho = std::hypot(d.x(), d.y());
-      if (cells != nullptr) {
-        // The cap's columns: clear of the poles it spans the azimuths within asin(sin a / ρ)
-        // of d's (ρ = cos ψ_d); one pixel of slack either side.
-        int c0 = 0, c1 = cells_w - 1;
-        const double sin_a = std::sin(a);
-        if (sin_a < rho && std::asin(std::min(1.0, d.z() < 0 ? -d.z() : d.z())) + a <
-                               0.5 * M_PI - 1e-9) {
-          const double half_px = std::asin(sin_a / rho) * px_per_rad + 1.0;
-          if (2.0 * half_px + 2.0 < double(W)) {
-            c0 = int(std::floor((uv.x() - 0.5 - half_px) / kCell));
-            c1 = int(std::floor((uv.x() - 0.5 + half_px) / kCell));
-          }
+  // A vossel's splat set up once (appended to `mine`), unless it cannot fall in a flagged cell
+  // or holds the sensor.
+  auto set_up = [&](size_t k, std::vector<VosselSplat>& mine) {
+    const Eigen::Vector3d c_w =
+        h * Eigen::Vector3d(g.coord[k].x(), g.coord[k].y(), g.coord[k].z()) - pose.o_world;
+    const double range = c_w.norm();
+    if (range <= sphere_m) return;  // the sensor sits inside this vossel
+    const Eigen::Vector3d d_w = c_w / range;
+    const Eigen::Vector3d d = R_sensor_world * d_w;
+    // The splat: the vossel's bounding sphere dilated by the footprint σ(r) = r·tan(θ/2) (§3).
+    const double sigma_m = geometry::SpotSigmaM(range, divergence_rad);
+    const double a = std::asin(std::min(1.0, (sphere_m + sigma_m) / range));
+    const Eigen::Vector2d uv = geometry::EquirectProject(d, size);
+    // The rows whose centres can lie within a of d (floor and ceil keep them conservative).
+    const double rows = a / dpsi;
+    const int j0 = std::max(0, int(std::floor(uv.y() - 0.5 - rows)));
+    const int j1 = std::min(H - 1, int(std::ceil(uv.y() - 0.5 + rows)));
+    if (j0 > j1) return;
+    const double rho = std::hypot(d.x(), d.y());
+    if (cells != nullptr) {
+      // The cap's columns: clear of the poles it spans the azimuths within asin(sin a / ρ)
+      // of d's (ρ = cos ψ_d); one pixel of slack either side.
+      int c0 = 0, c1 = cells_w - 1;
+      const double sin_a = std::sin(a);
+      if (sin_a < rho && std::asin(std::min(1.0, d.z() < 0 ? -d.z() : d.z())) + a <
+                             0.5 * M_PI - 1e-9) {
+        const double half_px = std::asin(sin_a / rho) * px_per_rad + 1.0;
+        if (2.0 * half_px + 2.0 < double(W)) {
+          c0 = int(std::floor((uv.x() - 0.5 - half_px) / kCell));
+          c1 = int(std::floor((uv.x() - 0.5 + half_px) / kCell));
         }
-        const int r0 = j0 / kCell, r1 = j1 / kCell;
-        int hits;
-        if (c1 - c0 + 1 >= cells_w) {
-          hits = flagged_in(r0, r1, 0, cells_w - 1);
-        } else {
-          const int w0 = ((c0 % cells_w) + cells_w) % cells_w;
-          const int w1 = ((c1 % cells_w) + cells_w) % cells_w;
-          hits = w0 <= w1 ? flagged_in(r0, r1, w0, w1)
-                          : flagged_in(r0, r1, w0, cells_w - 1) + flagged_in(r0, r1, 0, w1);
-        }
-        if (hits == 0) continue;
       }
-      const Eigen::Vector3d x_w = g.FrameCentroid(k).cast<double>() - pose.o_world;
-      const Eigen::Vector3d n_w = g.FrameNormal(k).cast<double>();
-      // Surfel splat: the range where a pixel's ray crosses the vossel's plane, kept only where
-      // that crossing lies inside the vossel's cell dilated by σ; a ray that grazes the plane
-      // outside the vossel does not see it, and silhouettes are not inflated.
-      VosselSplat s;
-      s.has_plane = n_w.squaredNorm() > 0.5;
-      s.plane_d = n_w.dot(x_w);
-      s.cos_a = std::cos(a);
-      s.half_cell_m = 0.5 * h + sigma_m;
-      s.range_m = range;
-      for (int e = 0; e < 3; ++e) {
-        s.d[e] = d_w[e];
-        s.n[e] = n_w[e];
-        s.centre[e] = c_w[e];
+      const int r0 = j0 / kCell, r1 = j1 / kCell;
+      int hits;
+      if (c1 - c0 + 1 >= cells_w) {
+        hits = flagged_in(r0, r1, 0, cells_w - 1);
+      } else {
+        const int w0 = ((c0 % cells_w) + cells_w) % cells_w;
+        const int w1 = ((c1 % cells_w) + cells_w) % cells_w;
+        hits = w0 <= w1 ? flagged_in(r0, r1, w0, w1)
+                        : flagged_in(r0, r1, w0, cells_w - 1) + flagged_in(r0, r1, 0, w1);
       }
-      s.rho = rho;
-      s.d_z = d.z();
-      s.u = uv.x();
-      s.j0 = j0;
-      s.j1 = j1;
-      mine.push_back(s);
+      if (hits == 0) return;
     }
-  });
+    const Eigen::Vector3d x_w = g.FrameCentroid(k).cast<double>() - pose.o_world;
+    const Eigen::Vector3d n_w = g.FrameNormal(k).cast<double>();
+    // Surfel splat: the range where a pixel's ray crosses the vossel's plane, kept only where
+    // that crossing lies inside the vossel's cell dilated by σ; a ray that grazes the plane
+    // outside the vossel does not see it, and silhouettes are not inflated.
+    VosselSplat s;
+    s.has_plane = n_w.squaredNorm() > 0.5;
+    s.plane_d = n_w.dot(x_w);
+    s.cos_a = std::cos(a);
+    s.half_cell_m = 0.5 * h + sigma_m;
+    s.range_m = range;
+    for (int e = 0; e < 3; ++e) {
+      s.d[e] = d_w[e];
+      s.n[e] = n_w[e];
+      s.centre[e] = c_w[e];
+    }
+    s.rho = rho;
+    s.d_z = d.z();
+    s.u = uv.x();
+    s.j0 = j0;
+    s.j1 = j1;
+    mine.push_back(s);
+  };
 
-  // 2. The splats of each band of rows (a splat spanning several bands is in each).
-  const int bands = (H + kBandRows - 1) / kBandRows;
-  std::vector<size_t> band_begin(size_t(bands) + 1, 0);
-  for (const std::vector<VosselSplat>& list : set_up) {
-    for (const VosselSplat& s : list) {
-      for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) ++band_begin[size_t(b) + 1];
-    }
-  }
-  for (int b = 0; b < bands; ++b) band_begin[size_t(b) + 1] += band_begin[size_t(b)];
-  std::vector<const VosselSplat*> in_band(band_begin.back());
-  {
-    std::vector<size_t> fill(band_begin.begin(), band_begin.end() - 1);
+  // The splats set up (per thread), binned by bands of rows (a splat spanning several bands
+  // is in each) and splatted band by band.
+  auto splat_bands = [&](tbb::enumerable_thread_specific<std::vector<VosselSplat>>& set_up) {
+    const int bands = (H + kBandRows - 1) / kBandRows;
+    std::vector<size_t> band_begin(size_t(bands) + 1, 0);
     for (const std::vector<VosselSplat>& list : set_up) {
       for (const VosselSplat& s : list) {
-        for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) in_band[fill[size_t(b)]++] = &s;
+        for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) ++band_begin[size_t(b) + 1];
       }
+    }
+    for (int b = 0; b < bands; ++b) band_begin[size_t(b) + 1] += band_begin[size_t(b)];
+    std::vector<const VosselSplat*> in_band(band_begin.back());
+    {
+      std::vector<size_t> fill(band_begin.begin(), band_begin.end() - 1);
+      for (const std::vector<VosselSplat>& list : set_up) {
+        for (const VosselSplat& s : list) {
+          for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) {
+            in_band[fill[size_t(b)]++] = &s;
+          }
+        }
+      }
+    }
+
+    // Each band splatted by one task: in each row of a splat, the columns of the cap's chord:
+    // with ρ = |d_xy|, a pixel of row j is within a when cos(φ − φ_d) ≥ (cos a − sinψ_j d_z) /
+    // (cosψ_j ρ); the chord's half width bounded from above (AcosBound) and one pixel of slack
+    // either side, SplatRow's cap test decides.
+    tbb::parallel_for(0, bands, [&](int b) {
+      const int band_j0 = b * kBandRows, band_j1 = std::min(H, band_j0 + kBandRows) - 1;
+      for (size_t n = band_begin[size_t(b)]; n != band_begin[size_t(b) + 1]; ++n) {
+        const VosselSplat& s = *in_band[n];
+        for (int j = std::max(s.j0, band_j0); j <= std::min(s.j1, band_j1); ++j) {
+          int i0 = 0, i1 = W - 1;
+          const double across = cos_psi[j] * s.rho;
+          if (across > 1e-9) {
+            const double c = (s.cos_a - sin_psi[j] * s.d_z) / across;
+            if (c > 1.0 + 1e-9) continue;  // the cap misses this row's centres
+            if (c > -1.0) {
+              const double half_px =
+                  (AcosBound(std::min(c, 1.0)) + kAcosBoundErrRad) * px_per_rad + 1.0;
+              if (2.0 * half_px + 2.0 < double(W)) {
+                i0 = int(std::floor(s.u - 0.5 - half_px));
+                i1 = int(std::ceil(s.u - 0.5 + half_px));
+              }
+            }
+          }
+          float* depth_row = &depth[size_t(j) * W];
+          // The columns i0..i1 wrap at most once (the chord is narrower than the panorama): one
+          // or two runs of contiguous columns.
+          const int first = geometry::WrapColumn(i0, W);
+          const int count = std::min(i1 - i0 + 1, W);
+          for (int begin = first, left = count; left > 0;) {
+            const int n_px = std::min(left, W - begin);
+            SplatRow(basis[j], s, &cos_phi[begin], &sin_phi[begin], n_px, depth_row + begin);
+            left -= n_px;
+            begin = 0;
+          }
+        }
+      }
+    });
+  };
+
+  // Front to back: blocks of kCullBlock consecutive vossels (neighbours in the lattice's
+  // order) in passes of growing distance; from the second pass on, a block whose splats all
+  // lie behind the farthest depth already splatted in every reach cell they can fall in is left
+  // out (exact: splats only lower a depth, so they would lie behind the final one too).
+  const size_t splatted =
+      splat_only == nullptr ? g.size()
+                            : size_t(std::count(splat_only->begin(), splat_only->end(), 1));
+  if (splatted < kCullMinVossels || W % kCell != 0 || H % kCell != 0) {
+    tbb::enumerable_thread_specific<std::vector<VosselSplat>> all;
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024),
+                      [&](const tbb::blocked_range<size_t>& r) {
+      std::vector<VosselSplat>& mine = all.local();
+      for (size_t k = r.begin(); k != r.end(); ++k) {
+        if (splat_only == nullptr || (*splat_only)[k]) set_up(k, mine);
+      }
+    });
+    splat_bands(all);
+  } else {
+    struct Block {
+      size_t begin = 0, end = 0, vossels = 0;
+      tiles::ViewCap cap;
+      double behind_m = 0.0;  ///< every splat of the block lies at least this far
+    };
+    std::vector<Block> blocks((g.size() + kCullBlock - 1) / kCullBlock);
+    tbb::parallel_for(size_t(0), blocks.size(), [&](size_t b) {
+      Block& block = blocks[b];
+      block.begin = b * kCullBlock;
+      block.end = std::min(g.size(), block.begin + kCullBlock);
+      tiles::Box box{Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity()),
+                     Eigen::Vector3d::Constant(-std::numeric_limits<double>::infinity())};
+      for (size_t k = block.begin; k != block.end; ++k) {
+        if (splat_only != nullptr && !(*splat_only)[k]) continue;
+        const openvdb::Coord& ijk = g.coord[k];
+        const Eigen::Vector3d c = h * Eigen::Vector3d(ijk.x(), ijk.y(), ijk.z());
+        box.min_m = box.min_m.cwiseMin(c);
+        box.max_m = box.max_m.cwiseMax(c);
+        ++block.vossels;
+      }
+      if (block.vossels == 0) return;
+      // Each splat lies in its centre's cap of the bounding sphere grown by σ at its range,
+      // at depths of at least its centre's range less the dilated cell's half-diagonal.
+      const double sigma_m = geometry::SpotSigmaM(tiles::CapOf(box, pose.o_world, 0.0).far_m,
+                                                  divergence_rad);
+      block.cap = tiles::CapOf(box, pose.o_world, sphere_m + sigma_m);
+      block.behind_m = block.cap.near_m - std::sqrt(3.0) * (0.5 * h + sigma_m) -
+                       1e-6 * (1.0 + block.cap.far_m);
+    });
+    std::vector<size_t> order;
+    for (size_t b = 0; b < blocks.size(); ++b) {
+      if (blocks[b].vossels > 0) order.push_back(b);
+    }
+    std::sort(order.begin(), order.end(), [&](size_t x, size_t y) {
+      return blocks[x].cap.near_m != blocks[y].cap.near_m
+                 ? blocks[x].cap.near_m < blocks[y].cap.near_m
+                 : x < y;
+    });
+    const tiles::CapCells grid({W / kCell, H / kCell}, pose);
+    size_t done = 0;  // blocks of `order` passed
+    for (double share : kCullPassShares) {
+      const size_t end =
+          std::min(order.size(), size_t(std::ceil(share * double(order.size()))));
+      if (end <= done) continue;
+      std::vector<uint8_t> keep(end - done, 1);
+      if (done > 0) {
+        const tiles::ReachRaster farthest = tiles::ReachFromDepth(depth, size);
+        tbb::parallel_for(done, end, [&](size_t n) {
+          const Block& block = blocks[order[n]];
+          keep[n - done] = block.cap.everywhere ||
+                           grid.Reaches(block.cap, farthest.max_depth_m, block.behind_m);
+        });
+      }
+      tbb::enumerable_thread_specific<std::vector<VosselSplat>> pass;
+      tbb::parallel_for(done, end, [&](size_t n) {
+        if (!keep[n - done]) return;
+        const Block& block = blocks[order[n]];
+        std::vector<VosselSplat>& mine = pass.local();
+        for (size_t k = block.begin; k != block.end; ++k) {
+          if (splat_only == nullptr || (*splat_only)[k]) set_up(k, mine);
+        }
+      });
+      splat_bands(pass);
+      done = end;
     }
   }
 
-  // 3. Each band splatted by one task: in each row of a splat, the columns of the cap's chord:
-  //    with ρ = |d_xy|, a pixel of row j is within a when cos(φ − φ_d) ≥ (cos a − sinψ_j d_z) /
-  //    (cosψ_j ρ); the chord's half width bounded from above (AcosBound) and one pixel of slack
-  //    either side, SplatRow's cap test decides.
-  tbb::parallel_for(0, bands, [&](int b) {
-    const int band_j0 = b * kBandRows, band_j1 = std::min(H, band_j0 + kBandRows) - 1;
-    for (size_t n = band_begin[size_t(b)]; n != band_begin[size_t(b) + 1]; ++n) {
-      const VosselSplat& s = *in_band[n];
-      for (int j = std::max(s.j0, band_j0); j <= std::min(s.j1, band_j1); ++j) {
-        int i0 = 0, i1 = W - 1;
-        const double across = cos_psi[j] * s.rho;
-        if (across > 1e-9) {
-          const double c = (s.cos_a - sin_psi[j] * s.d_z) / across;
-          if (c > 1.0 + 1e-9) continue;  // the cap misses this row's centres
-          if (c > -1.0) {
-            const double half_px =
-                (AcosBound(std::min(c, 1.0)) + kAcosBoundErrRad) * px_per_rad + 1.0;
-            if (2.0 * half_px + 2.0 < double(W)) {
-              i0 = int(std::floor(s.u - 0.5 - half_px));
-              i1 = int(std::ceil(s.u - 0.5 + half_px));
-            }
-          }
-        }
-        float* depth_row = &depth[size_t(j) * W];
-        // The columns i0..i1 wrap at most once (the chord is narrower than the panorama): one
-        // or two runs of contiguous columns.
-        const int first = geometry::WrapColumn(i0, W);
-        const int count = std::min(i1 - i0 + 1, W);
-        for (int begin = first, left = count; left > 0;) {
-          const int n_px = std::min(left, W - begin);
-          SplatRow(basis[j], s, &cos_phi[begin], &sin_phi[begin], n_px, depth_row + begin);
-          left -= n_px;
-          begin = 0;
-        }
+  // A revisit reads flagged cells only: the others stay +inf.
+  if (cells != nullptr) {
+    tbb::parallel_for(0, H, [&](int j) {
+      const uint8_t* cell_row = &(*cells)[size_t(j / kCell) * size_t(cells_w)];
+      float* depth_row = &depth[size_t(j) * W];
+      for (int ci = 0; ci < cells_w; ++ci) {
+        if (cell_row[ci]) continue;
+        std::fill(depth_row + ci * kCell, depth_row + (ci + 1) * kCell,
+                  std::numeric_limits<float>::infinity());
       }
-    }
-    // A revisit reads flagged cells only: the others stay +inf.
-    if (cells != nullptr) {
-      for (int j = band_j0; j <= band_j1; ++j) {
-        const uint8_t* cell_row = &(*cells)[size_t(j / kCell) * size_t(cells_w)];
-        float* depth_row = &depth[size_t(j) * W];
-        for (int ci = 0; ci < cells_w; ++ci) {
-          if (cell_row[ci]) continue;
-          std::fill(depth_row + ci * kCell, depth_row + (ci + 1) * kCell,
-                    std::numeric_limits<float>::infinity());
-        }
-      }
-    }
-  });
+    });
+  }
   return out;
 }
 

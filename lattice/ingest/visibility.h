@@ -62,8 +62,11 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// choice): a surface then does not shadow itself at grazing incidence. The paper uses the
 /// measured range image for LiDAR; the splatted lattice is used for every source here
 /// (choice): it has no holes between returns and equals the range image where returns exist,
-/// and a new object in front of an older LiDAR's records shadows them. Parallel (TBB, atomic
-/// min).
+/// and a new object in front of an older LiDAR's records shadows them. Parallel (TBB): splats
+/// are binned by bands of rows, each band splatted by one task; of a large set of vossels,
+/// blocks of neighbours are splatted nearest first, and a block lying behind the farthest
+/// depth splatted so far in every reach cell it can fall in is left out (the same panorama:
+/// its splats would lie behind the final depth everywhere).
 /// With `splat_only` (a flag per vossel) only the flagged vossels are splatted: the panorama is
 /// then exact wherever every vossel whose splat can fall is flagged (a revisit's cone).
 /// With `cells` (a flag per reach cell, tiles::kReachBlockPx² pixels, row-major over the
