@@ -113,7 +113,6 @@ constexpr int kBandRows = 16;
 /// first) splatted by the end of each pass; not below kCullMinVossels splatted vossels.
 constexpr size_t kCullBlock = 64;
 constexpr double kCullPassShares[] = {0.125, 0.25, 0.5, 1.0};
-constexpr size_t kCullMinVossels = 16384;
 
 }  // namespace
 

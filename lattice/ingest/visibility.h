@@ -72,6 +72,9 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// With `cells` (a flag per reach cell, tiles::kReachBlockPx² pixels, row-major over the
 /// panorama's cells; `size` whole cells, as DepthPanoramaSize gives) only the pixels of flagged
 /// cells are splatted; the others stay +inf (a revisit reads no other).
+/// RenderDepthPanorama culls front to back from this many splatted vossels (below, the passes
+/// would cost more than they save).
+inline constexpr size_t kCullMinVossels = 16384;
 DepthPanorama RenderDepthPanorama(const records::VosselGeometry& geometry,
                                   const geometry::Pose& T_world_sensor,
                                   const geometry::EquirectSize& size, double divergence_rad,

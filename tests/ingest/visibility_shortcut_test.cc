@@ -1,7 +1,8 @@
 // VASL-MODEL §5 on the corridor site, where the walls near a sensor hide most of the lattice:
 // the shortcuts of the visibility test give the same answer as the plain computation.
-// Visibility with the shadow-by-cells test equals the sample-by-sample test; the separable
-// dilation equals a brute-force min over its window.
+// Visibility with the shadow-by-cells test equals the sample-by-sample test; the depth panorama
+// culled front to back equals the min of unculled ones; the separable dilation equals a
+// brute-force min over its window.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -73,6 +74,52 @@ TEST_F(VisibilityShortcutTest, ShadowByCellsEqualsSampleTests) {
     EXPECT_GT(shadow, n / 2);
     EXPECT_GT(lit, n / 20);
   }
+}
+
+// Claim: the front-to-back culling of RenderDepthPanorama (taken from kCullMinVossels splatted
+// vossels) leaves the panorama as it is: the panorama of every vossel equals, pixel for pixel,
+// the min over panoramas of chunks too small to be culled; and with reach cells flagged it
+// equals that panorama on the flagged cells (+inf elsewhere). Most of the site lies behind
+// nearer walls from one station, so the culling is taken for many blocks.
+TEST_F(VisibilityShortcutTest, FrontToBackCullingKeepsThePanorama) {
+  const size_t n = geometry_->size();
+  ASSERT_GE(n, 4 * kCullMinVossels);
+  const geometry::Pose pose = site_->Stations()[4];
+  const geometry::EquirectSize size = DepthPanoramaSize(2.0 * M_PI / 1024);
+  const double divergence = 0.3e-3;
+  const DepthPanorama culled = RenderDepthPanorama(*geometry_, pose, size, divergence);
+  std::vector<float> merged(culled.depth_m.size(), INFINITY);
+  const size_t chunk = kCullMinVossels - 1;
+  for (size_t begin = 0; begin < n; begin += chunk) {
+    std::vector<uint8_t> only(n, 0);
+    std::fill(only.begin() + begin, only.begin() + std::min(n, begin + chunk), 1);
+    const DepthPanorama part = RenderDepthPanorama(*geometry_, pose, size, divergence, &only);
+    for (size_t p = 0; p < merged.size(); ++p) merged[p] = std::min(merged[p], part.depth_m[p]);
+  }
+  size_t differ = 0, finite = 0;
+  for (size_t p = 0; p < merged.size(); ++p) {
+    differ += culled.depth_m[p] != merged[p] ? 1 : 0;
+    finite += std::isfinite(merged[p]) ? 1 : 0;
+  }
+  std::printf("%zu pixels, %zu with depth, %zu differ\n", merged.size(), finite, differ);
+  EXPECT_EQ(differ, 0u);
+  EXPECT_GT(finite, merged.size() / 2);
+
+  constexpr int kCell = tiles::kReachBlockPx;
+  const int cells_w = size.width_px / kCell;
+  std::vector<uint8_t> cells(size_t(cells_w) * (size.height_px / kCell), 0);
+  for (size_t c = 0; c < cells.size(); c += 3) cells[c] = 1;
+  const DepthPanorama within =
+      RenderDepthPanorama(*geometry_, pose, size, divergence, nullptr, &cells);
+  size_t wrong = 0;
+  for (int j = 0; j < size.height_px; ++j) {
+    for (int i = 0; i < size.width_px; ++i) {
+      const bool flagged = cells[size_t(j / kCell) * cells_w + i / kCell] != 0;
+      const float want = flagged ? merged[size_t(j) * size.width_px + i] : INFINITY;
+      wrong += within.At(i, j) != want ? 1 : 0;
+    }
+  }
+  EXPECT_EQ(wrong, 0u);
 }
 
 // Claim: the dilation is the min over the (2r+1)² window, columns wrapping at the seam and rows
