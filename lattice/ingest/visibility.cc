@@ -53,8 +53,9 @@ struct VosselSplat {
 /// the row's basis) crosses the splat's plane, where q lies in its cap and the crossing lies
 /// within its dilated cell; the centre's range everywhere in the cap for a splat without a
 /// plane. Branch-free over contiguous memory, so that it vectorises (AVX2 where the CPU has it;
-/// no FMA: the same bits on every CPU); a min is order-free, so the panorama does not depend on
-/// the order splats come in.
+/// no FMA: the same bits on every CPU; GCC vectorises the selects only when told that
+/// floating-point operations do not trap, which they do not here: no FP exception is unmasked);
+/// a min is order-free, so the panorama does not depend on the order splats come in.
 [[gnu::target_clones("avx2", "default"), gnu::optimize("no-trapping-math")]]
 void SplatRow(const RowBasis& r, const VosselSplat& s, const double* cos_phi,
               const double* sin_phi, int n, float* depth) {
@@ -94,8 +95,9 @@ void SplatRow(const RowBasis& r, const VosselSplat& s, const double* cos_phi,
   }
 }
 
-/// acos(x), x in [−1, 1], to within kAcosBoundErrRad (Abramowitz & Stegun 4.4.45, whose error
-/// is at most 5e-5 rad): a bound of a splat's chord in a row, not a depth.
+/// acos(x), x in [−1, 1], to within kAcosBoundErrRad (Abramowitz & Stegun 4.4.45: at most
+/// 6.8e-5 rad, measured over 2·10⁶ points of [−1, 1]): a bound of a splat's chord in a row,
+/// never a depth.
 constexpr double kAcosBoundErrRad = 1e-4;
 inline double AcosBound(double x) {
   const double ax = x < 0.0 ? -x : x;
