@@ -321,86 +321,80 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   // Front to back: blocks of kCullBlock consecutive vossels (neighbours in the lattice's
   // order) in passes of growing distance; from the second pass on, a block whose splats all
   // lie behind the farthest depth already splatted in every reach cell they can fall in is left
-  // out (exact: splats only lower a depth, so they would lie behind the final one too).
+  // out (exact: splats only lower a depth, so they would lie behind the final one too). Below
+  // kCullMinVossels, or on a panorama of partial reach cells, one pass of every block.
   const size_t splatted =
       splat_only == nullptr ? g.size()
                             : size_t(std::count(splat_only->begin(), splat_only->end(), 1));
-  if (splatted < kCullMinVossels || W % kCell != 0 || H % kCell != 0) {
-    tbb::enumerable_thread_specific<std::vector<VosselSplat>> all;
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 1024),
-                      [&](const tbb::blocked_range<size_t>& r) {
-      std::vector<VosselSplat>& mine = all.local();
-      for (size_t k = r.begin(); k != r.end(); ++k) {
-        if (splat_only == nullptr || (*splat_only)[k]) set_up(k, mine);
-      }
-    });
-    splat_bands(all);
-  } else {
-    struct Block {
-      size_t begin = 0, end = 0, vossels = 0;
-      tiles::ViewCap cap;
-      double behind_m = 0.0;  ///< every splat of the block lies at least this far
-    };
-    std::vector<Block> blocks((g.size() + kCullBlock - 1) / kCullBlock);
-    tbb::parallel_for(size_t(0), blocks.size(), [&](size_t b) {
-      Block& block = blocks[b];
-      block.begin = b * kCullBlock;
-      block.end = std::min(g.size(), block.begin + kCullBlock);
-      tiles::Box box{Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity()),
-                     Eigen::Vector3d::Constant(-std::numeric_limits<double>::infinity())};
-      for (size_t k = block.begin; k != block.end; ++k) {
-        if (splat_only != nullptr && !(*splat_only)[k]) continue;
-        const openvdb::Coord& ijk = g.coord[k];
-        const Eigen::Vector3d c = h * Eigen::Vector3d(ijk.x(), ijk.y(), ijk.z());
-        box.min_m = box.min_m.cwiseMin(c);
-        box.max_m = box.max_m.cwiseMax(c);
-        ++block.vossels;
-      }
-      if (block.vossels == 0) return;
-      // Each splat lies in its centre's cap of the bounding sphere grown by σ at its range,
-      // at depths of at least its centre's range less the dilated cell's half-diagonal.
-      const double sigma_m = geometry::SpotSigmaM(tiles::CapOf(box, pose.o_world, 0.0).far_m,
-                                                  divergence_rad);
-      block.cap = tiles::CapOf(box, pose.o_world, sphere_m + sigma_m);
-      block.behind_m = block.cap.near_m - std::sqrt(3.0) * (0.5 * h + sigma_m) -
-                       1e-6 * (1.0 + block.cap.far_m);
-    });
-    std::vector<size_t> order;
-    for (size_t b = 0; b < blocks.size(); ++b) {
-      if (blocks[b].vossels > 0) order.push_back(b);
+  const bool cull = splatted >= kCullMinVossels && W % kCell == 0 && H % kCell == 0;
+  struct Block {
+    size_t begin = 0, end = 0, vossels = 0;
+    tiles::ViewCap cap;
+    double behind_m = 0.0;  ///< every splat of the block lies at least this far
+  };
+  std::vector<Block> blocks((g.size() + kCullBlock - 1) / kCullBlock);
+  tbb::parallel_for(size_t(0), blocks.size(), [&](size_t b) {
+    Block& block = blocks[b];
+    block.begin = b * kCullBlock;
+    block.end = std::min(g.size(), block.begin + kCullBlock);
+    tiles::Box box{Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity()),
+                   Eigen::Vector3d::Constant(-std::numeric_limits<double>::infinity())};
+    for (size_t k = block.begin; k != block.end; ++k) {
+      if (splat_only != nullptr && !(*splat_only)[k]) continue;
+      const openvdb::Coord& ijk = g.coord[k];
+      const Eigen::Vector3d c = h * Eigen::Vector3d(ijk.x(), ijk.y(), ijk.z());
+      box.min_m = box.min_m.cwiseMin(c);
+      box.max_m = box.max_m.cwiseMax(c);
+      ++block.vossels;
     }
+    if (!cull || block.vossels == 0) return;
+    // Each splat lies in its centre's cap of the bounding sphere grown by σ at its range,
+    // at depths of at least its centre's range less the dilated cell's half-diagonal.
+    const double sigma_m =
+        geometry::SpotSigmaM(tiles::CapOf(box, pose.o_world, 0.0).far_m, divergence_rad);
+    block.cap = tiles::CapOf(box, pose.o_world, sphere_m + sigma_m);
+    block.behind_m = block.cap.near_m - std::sqrt(3.0) * (0.5 * h + sigma_m) -
+                     1e-6 * (1.0 + block.cap.far_m);
+  });
+  std::vector<size_t> order;
+  for (size_t b = 0; b < blocks.size(); ++b) {
+    if (blocks[b].vossels > 0) order.push_back(b);
+  }
+  std::vector<double> shares{1.0};  // without culling: one pass, in the lattice's order
+  std::optional<tiles::CapCells> grid;
+  if (cull) {
     std::sort(order.begin(), order.end(), [&](size_t x, size_t y) {
       return blocks[x].cap.near_m != blocks[y].cap.near_m
                  ? blocks[x].cap.near_m < blocks[y].cap.near_m
                  : x < y;
     });
-    const tiles::CapCells grid({W / kCell, H / kCell}, pose);
-    size_t done = 0;  // blocks of `order` passed
-    for (double share : kCullPassShares) {
-      const size_t end =
-          std::min(order.size(), size_t(std::ceil(share * double(order.size()))));
-      if (end <= done) continue;
-      std::vector<uint8_t> keep(end - done, 1);
-      if (done > 0) {
-        const tiles::ReachRaster farthest = tiles::ReachFromDepth(depth, size);
-        tbb::parallel_for(done, end, [&](size_t n) {
-          const Block& block = blocks[order[n]];
-          keep[n - done] = block.cap.everywhere ||
-                           grid.Reaches(block.cap, farthest.max_depth_m, block.behind_m);
-        });
-      }
-      tbb::enumerable_thread_specific<std::vector<VosselSplat>> pass;
+    shares.assign(std::begin(kCullPassShares), std::end(kCullPassShares));
+    grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, pose);
+  }
+  size_t done = 0;  // blocks of `order` passed
+  for (double share : shares) {
+    const size_t end = std::min(order.size(), size_t(std::ceil(share * double(order.size()))));
+    if (end <= done) continue;
+    std::vector<uint8_t> keep(end - done, 1);
+    if (done > 0) {
+      const tiles::ReachRaster farthest = tiles::ReachFromDepth(depth, size);
       tbb::parallel_for(done, end, [&](size_t n) {
-        if (!keep[n - done]) return;
         const Block& block = blocks[order[n]];
-        std::vector<VosselSplat>& mine = pass.local();
-        for (size_t k = block.begin; k != block.end; ++k) {
-          if (splat_only == nullptr || (*splat_only)[k]) set_up(k, mine);
-        }
+        keep[n - done] = block.cap.everywhere ||
+                         grid->Reaches(block.cap, farthest.max_depth_m, block.behind_m);
       });
-      splat_bands(pass);
-      done = end;
     }
+    tbb::enumerable_thread_specific<std::vector<VosselSplat>> pass;
+    tbb::parallel_for(done, end, [&](size_t n) {
+      if (!keep[n - done]) return;
+      const Block& block = blocks[order[n]];
+      std::vector<VosselSplat>& mine = pass.local();
+      for (size_t k = block.begin; k != block.end; ++k) {
+        if (splat_only == nullptr || (*splat_only)[k]) set_up(k, mine);
+      }
+    });
+    splat_bands(pass);
+    done = end;
   }
 
   // A revisit reads flagged cells only: the others stay +inf.
