@@ -8,20 +8,26 @@
 # medians and spread over 5 runs are also written to build/bench-kernels.json.
 # Then a site at realistic size (the corridor's first 6 stations, LiDAR 2048×1024 and RGB
 # 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,
-# h = 5 cm, under a minute) ingested, fused, reweighted against a rebuild and rendered, its
-# figures also in build/bench-site.json.
+# h = 5 cm, under a minute) ingested, fused, reweighted against a rebuild and rendered beside
+# Embree tracing the same site as triangles (the analytic boxes and the lattice's surfels,
+# rtcIntersect1 and rtcIntersect8, same threads), its figures also in build/bench-site.json.
 # Arguments go to the last vasl_bench run (--panorama-width W, --repeat N, --growth-only,
 # --tile-vossels T, --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./deploy/setup.sh
 # What the benchmarks alone need, from Debian's packages.
-if ! dpkg-query -W -f='${Status}' libbenchmark-dev 2>/dev/null | grep -q "install ok installed"; then
+missing=""
+for pkg in libbenchmark-dev libembree-dev; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" ||
+    missing="$missing $pkg"
+done
+if [ -n "$missing" ]; then
   SUDO=""
   [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
-    libbenchmark-dev
+  # shellcheck disable=SC2086
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $missing
 fi
 ./deploy/build.sh
 ./build/tests/bench/vasl_kernels_bench --benchmark_repetitions=5 \

@@ -28,6 +28,9 @@
 #include "lattice/store/project_store.h"
 #include "tests/scenes/corridor_site.h"
 #include "tests/scenes/synthetic_scene.h"
+#ifdef VASL_HAVE_EMBREE
+#include "tests/bench/embree_peer.h"
+#endif
 
 namespace {
 
@@ -340,6 +343,81 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
   return BoundedRender(dir, "growth");
 }
 
+/// Issue "Speed": the render's peer. Embree traces the same site as triangles with the same
+/// equirect rays on the same TBB threads (tests/bench/embree_peer.h): the analytic scene's boxes
+/// and the stored lattice's surfels (the data vasl marches), each with rtcIntersect1 per ray and
+/// rtcIntersect8 per packet, `repeat` runs. Prints rays/s beside vasl's, and how far vasl's
+/// depth lies from Embree's on the analytic boxes; returns the figures as a JSON object
+/// ("null" where libembree-dev is not installed).
+absl::StatusOr<std::string> EmbreePeers(const vasl::scenes::CorridorSite& site,
+                                        vasl::store::ProjectStore& st,
+                                        const vasl::RenderRequest& req, int repeat,
+                                        const std::vector<float>& vasl_depth_m, double h) {
+#ifdef VASL_HAVE_EMBREE
+  using namespace vasl;
+  std::vector<scenes::Aabb> boxes{site.Bounds()};
+  for (const scenes::CorridorSolid& solid : site.Solids()) boxes.push_back(solid.box);
+  auto snap = st.LoadSnapshot(st.head_version());
+  if (!snap.ok()) return snap.status();
+  const double surfel_scale = 1.5;  // overlapping squares: no gaps between neighbours
+  std::string json = "{";
+  for (const auto& [name, mesh] :
+       {std::pair<std::string, bench::TriangleMesh>{"boxes", bench::BoxesAsTriangles(boxes)},
+        {"surfels", bench::SurfelsAsTriangles((*snap)->geometry, surfel_scale)}}) {
+    const bench::EmbreeScene scene(mesh);
+    json += absl::StrFormat("%s\"%s\": {\"triangles\": %zu, \"build_s\": %.4f", 
+                            json.size() > 1 ? ", " : "", name, mesh.TriangleCount(),
+                            scene.build_seconds());
+    for (const int packet : {1, 8}) {
+      std::vector<double> rate;
+      bench::PeerTrace trace;
+      for (int i = 0; i < std::max(1, repeat); ++i) {
+        trace = scene.TraceEquirect(req.pose, req.width_px, req.height_px, packet,
+                                    req.max_range_m);
+        rate.push_back(double(req.width_px) * req.height_px / trace.seconds);
+      }
+      const Spread r = SpreadOf(rate);
+      std::printf("embree %-7s (%zu triangles, BVH %.2f s), rtcIntersect%d: %.2f M rays/s "
+                  "(%.2f-%.2f), %.1f%% of pixels hit\n",
+                  name.c_str(), mesh.TriangleCount(), scene.build_seconds(), packet,
+                  r.median / 1e6, r.min / 1e6, r.max / 1e6,
+                  100.0 * trace.hit_pixels / trace.depth_m.size());
+      json += absl::StrFormat(", \"intersect%d_rays_per_s\": %s", packet, Json(r));
+      if (name != "boxes" || packet != 1) continue;
+      // vasl's depth against the analytic scene's: where both hit, and where one alone does.
+      std::vector<double> diff;
+      int64_t only_vasl = 0, only_embree = 0;
+      for (size_t p = 0; p < trace.depth_m.size(); ++p) {
+        const bool a = std::isfinite(vasl_depth_m[p]), b = std::isfinite(trace.depth_m[p]);
+        if (a && b) diff.push_back(std::abs(double(vasl_depth_m[p]) - trace.depth_m[p]));
+        only_vasl += a && !b;
+        only_embree += b && !a;
+      }
+      std::sort(diff.begin(), diff.end());
+      const auto within = [&](double tol) {
+        return double(std::upper_bound(diff.begin(), diff.end(), tol) - diff.begin()) /
+               std::max<size_t>(1, diff.size());
+      };
+      const double median = diff.empty() ? 0.0 : diff[diff.size() / 2];
+      std::printf("  vasl's depth vs the boxes': median |dz| %.4f m, %.2f%% within h, %.2f%% "
+                  "within 2h; pixels hit by vasl alone %lld, by Embree alone %lld\n",
+                  median, 100.0 * within(h), 100.0 * within(2 * h), (long long)only_vasl,
+                  (long long)only_embree);
+      json += absl::StrFormat(
+          ", \"vasl_depth_median_abs_diff_m\": %.5f, \"vasl_depth_within_h\": %.5f, "
+          "\"vasl_depth_within_2h\": %.5f",
+          median, within(h), within(2 * h));
+    }
+    json += "}";
+  }
+  return json + "}";
+#else
+  (void)site, (void)st, (void)req, (void)repeat, (void)vasl_depth_m, (void)h;
+  std::printf("embree: not installed (deploy/bench.sh installs libembree-dev): no render peer\n");
+  return std::string("null");
+#endif
+}
+
 /// Issue "Speed": a site ingested through the library at realistic size (`realistic`: the
 /// corridor's first 6 stations, each a LiDAR grid of 2048×1024 returns and a 4096×2048 RGB
 /// panorama, h = 2 cm) or small (LiDAR 512×256, RGB 1024×512, h = 5 cm: under a minute).
@@ -464,23 +542,30 @@ int Site(const std::filesystem::path& dir, bool realistic, int repeat,
   req.width_px = pano_w;
   req.height_px = pano_w / 2;
   std::vector<double> rays;
+  std::vector<float> depth_m;  // the last render's, for the peer's agreement
   ResetPeakRss();
   for (int i = 0; i < std::max(1, repeat); ++i) {
     const auto t0 = Clock::now();
     auto image = (*engine)->Render("site", req);
     if (!image.ok()) return Fail(image.status());
     rays.push_back(double(req.width_px) * req.height_px / Since(t0));
+    depth_m = std::move(image->depth_m);
   }
   const Spread ry = SpreadOf(rays);
-  std::printf("render %dx%d: %.2f M rays/s (%.2f-%.2f), peak %.0f MB\n", req.width_px,
-              req.height_px, ry.median / 1e6, ry.min / 1e6, ry.max / 1e6, PeakRssMb());
+  const double render_peak = PeakRssMb();
+  std::printf("render %dx%d: %.2f M rays/s (%.2f-%.2f) on %d threads, peak %.0f MB\n",
+              req.width_px, req.height_px, ry.median / 1e6, ry.min / 1e6, ry.max / 1e6, cores,
+              render_peak);
+  absl::StatusOr<std::string> peers = EmbreePeers(site, **st, req, repeat, depth_m, h);
+  if (!peers.ok()) return Fail(peers.status());
   std::printf("records on disk: %lld records, %.1f bytes/record; peak RSS of an ingest %.0f MB\n",
               (long long)records, double(record_bytes) / records, ingest_peak);
   json += absl::StrFormat(
-      "  \"render\": {\"width\": %d, \"height\": %d, \"rays_per_s\": %s, \"peak_rss_mb\": %.0f},\n"
+      "  \"render\": {\"width\": %d, \"height\": %d, \"threads\": %d, \"rays_per_s\": %s, "
+      "\"peak_rss_mb\": %.0f},\n  \"render_peers\": %s,\n"
       "  \"records\": %lld, \"record_bytes_on_disk\": %lld, \"bytes_per_record\": %.3f,\n"
       "  \"ingest_peak_rss_mb\": %.0f\n}\n",
-      req.width_px, req.height_px, Json(ry), PeakRssMb(), (long long)records,
+      req.width_px, req.height_px, cores, Json(ry), render_peak, *peers, (long long)records,
       (long long)record_bytes, double(record_bytes) / records, ingest_peak);
   if (!json_path.empty()) {
     std::FILE* f = std::fopen(json_path.c_str(), "w");
