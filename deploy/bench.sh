@@ -10,7 +10,8 @@
 # 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,
 # h = 5 cm, under a minute) ingested, fused, reweighted against a rebuild and rendered beside
 # Embree tracing the same site as triangles (the analytic boxes and the lattice's surfels,
-# rtcIntersect1 and rtcIntersect8, same threads), its figures also in build/bench-site.json.
+# rtcIntersect1 and rtcIntersect8, same threads), its figures also in build/bench-site.json;
+# then the same site through vasld over gRPC (build/bench-e2e.json).
 # Arguments go to the last vasl_bench run (--panorama-width W, --repeat N, --growth-only,
 # --tile-vossels T, --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
 set -euo pipefail
@@ -35,4 +36,8 @@ fi
   --benchmark_out_format=json
 ./build/tests/bench/vasl_bench --site "${BENCH_SITE:-realistic}" --repeat 3 \
   --json build/bench-site.json
+# The same site through vasld over gRPC on loopback: ingest points/s, reweight, a render from
+# request to files beside the march, vasld's peak RSS (tests/bench/e2e_bench.py).
+.venv/bin/python tests/bench/e2e_bench.py --site "${BENCH_SITE:-realistic}" --repeat 3 \
+  --json build/bench-e2e.json
 ./build/tests/bench/vasl_bench "$@"
