@@ -21,10 +21,9 @@ Eigen::Vector2d EquirectProject(const Eigen::Vector3d& d_sensor, const EquirectS
 }
 
 Eigen::Vector3d EquirectUnproject(double u_px, double v_px, const EquirectSize& size) {
-  const double phi = 2.0 * M_PI * (0.5 - u_px / size.width_px);
-  const double psi = M_PI * (0.5 - v_px / size.height_px);
-  const double c = std::cos(psi);
-  return {c * std::cos(phi), c * std::sin(phi), std::sin(psi)};
+  const double phi = EquirectAzimuthRad(u_px, size);
+  const double psi = EquirectElevationRad(v_px, size);
+  return EquirectDirection(std::cos(phi), std::sin(phi), std::cos(psi), std::sin(psi));
 }
 
 double EquirectPixelAngleRad(double elevation_rad, const EquirectSize& size) {

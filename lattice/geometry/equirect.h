@@ -25,6 +25,20 @@ Eigen::Vector2d EquirectProject(const Eigen::Vector3d& d_sensor, const EquirectS
 /// §2.1 inverse: continuous pixel coordinates to a unit sensor-frame direction.
 Eigen::Vector3d EquirectUnproject(double u_px, double v_px, const EquirectSize& size);
 
+/// §2.1: the azimuth φ of continuous column u and the elevation ψ of continuous row v, radians.
+inline double EquirectAzimuthRad(double u_px, const EquirectSize& size) {
+  return 2.0 * M_PI * (0.5 - u_px / size.width_px);
+}
+inline double EquirectElevationRad(double v_px, const EquirectSize& size) {
+  return M_PI * (0.5 - v_px / size.height_px);
+}
+/// §2.1 inverse from the angles' cosines and sines: (cos ψ cos φ, cos ψ sin φ, sin ψ), the unit
+/// direction EquirectUnproject gives (for a caller that computes them once per column and row).
+inline Eigen::Vector3d EquirectDirection(double cos_phi, double sin_phi, double cos_psi,
+                                         double sin_psi) {
+  return {cos_psi * cos_phi, cos_psi * sin_phi, sin_psi};
+}
+
 /// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1).
 Eigen::Vector2d EquirectAngles(const Eigen::Vector3d& d_sensor);
 

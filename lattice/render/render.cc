@@ -121,6 +121,9 @@ class Bands {
 struct Scene {
   const TreeT* tree = nullptr;
   const openvdb::math::Transform* xform = nullptr;
+  /// The transform's map, which it owns: taken once per render, since Transform::baseMap()
+  /// returns a shared_ptr whose copy per ray is an atomic count the threads share.
+  const openvdb::math::MapBase* map = nullptr;
   const records::VosselGeometry* geometry = nullptr;
   const records::FusedModality* rgb = nullptr;  ///< null: no rgb modality fused
   /// Index-space box of the active voxels in the DDA's corner convention: [min, max + 1].
@@ -215,7 +218,7 @@ bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vect
               int32_t* bad_index) {
   const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
   const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
-  openvdb::Vec3d dir_idx = scene.xform->baseMap()->applyInverseJacobian(d);
+  openvdb::Vec3d dir_idx = scene.map->applyInverseJacobian(d);
   const double scale = dir_idx.length();  // index units per metre
   dir_idx /= scale;
   const openvdb::Vec3d eye_dda = scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
@@ -328,28 +331,60 @@ bool BlendConsistent(const ViewBlendInputs* blend, const records::VosselGeometry
           blend->value->size() == blend->records->size() * records::kValueChannels);
 }
 
-/// The unit world ray through pixel (i, j)'s centre: the projection's inverse (§2.1 or §2.2)
-/// rotated by the pose. `intrinsics` carries the request's size.
-Eigen::Vector3d PixelRay(const RenderRequest& request, const geometry::PinholeIntrinsics& intrinsics,
-                         int i, int j) {
-  const Eigen::Vector3d d_sensor =
-      request.projection == Projection::kPinhole
-          ? geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics)
-          : geometry::EquirectUnproject(i + 0.5, j + 0.5, {request.width_px, request.height_px});
-  return request.pose.DirectionToWorld(d_sensor).normalized();
-}
-
-/// A render of `request` keeps each pixel's vossel index (RenderImage::vossel_index).
-bool KeepsVosselIndex(const RenderRequest& request) {
-  return request.colour_detail == ColourDetail::kSourceImages || request.keep_vossel_index;
-}
-
 /// The request's pinhole intrinsics with the request's size.
 geometry::PinholeIntrinsics RequestIntrinsics(const RenderRequest& request) {
   geometry::PinholeIntrinsics k = request.pinhole;
   k.width_px = request.width_px;
   k.height_px = request.height_px;
   return k;
+}
+
+/// The unit world rays through pixel centres: the projection's inverse (§2.1 or §2.2) rotated
+/// by the pose. An equirect image's azimuth and elevation are turned into cosines and sines
+/// once per column and row, not per pixel (the same directions EquirectUnproject gives).
+class PixelRays {
+ public:
+  explicit PixelRays(const RenderRequest& request)
+      : request_(request), intrinsics_(RequestIntrinsics(request)) {
+    if (request.projection == Projection::kPinhole) return;
+    const geometry::EquirectSize size{request.width_px, request.height_px};
+    column_.resize(size_t(request.width_px));
+    for (int i = 0; i < request.width_px; ++i) {
+      const double phi = geometry::EquirectAzimuthRad(i + 0.5, size);
+      column_[size_t(i)] = {std::cos(phi), std::sin(phi)};
+    }
+    row_.resize(size_t(request.height_px));
+    for (int j = 0; j < request.height_px; ++j) {
+      const double psi = geometry::EquirectElevationRad(j + 0.5, size);
+      row_[size_t(j)] = {std::cos(psi), std::sin(psi)};
+    }
+  }
+
+  /// The ray through pixel (i, j)'s centre.
+  Eigen::Vector3d operator()(int i, int j) const {
+    Eigen::Vector3d d_sensor;
+    if (request_.projection == Projection::kPinhole) {
+      d_sensor = geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics_);
+    } else {
+      const auto& [cos_phi, sin_phi] = column_[size_t(i)];
+      const auto& [cos_psi, sin_psi] = row_[size_t(j)];
+      d_sensor = geometry::EquirectDirection(cos_phi, sin_phi, cos_psi, sin_psi);
+    }
+    return request_.pose.DirectionToWorld(d_sensor).normalized();
+  }
+
+  /// The request's pinhole intrinsics, of the request's size.
+  const geometry::PinholeIntrinsics& intrinsics() const { return intrinsics_; }
+
+ private:
+  const RenderRequest& request_;
+  const geometry::PinholeIntrinsics intrinsics_;
+  std::vector<std::pair<double, double>> column_, row_;  ///< equirect: (cos, sin) of φ, of ψ
+};
+
+/// A render of `request` keeps each pixel's vossel index (RenderImage::vossel_index).
+bool KeepsVosselIndex(const RenderRequest& request) {
+  return request.colour_detail == ColourDetail::kSourceImages || request.keep_vossel_index;
 }
 
 absl::Status ValidateInputs(const records::VosselGeometry& geometry,
@@ -463,6 +498,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   Scene scene;
   scene.tree = &geometry.index_grid->tree();
   scene.xform = &geometry.index_grid->transform();
+  scene.map = scene.xform->baseMap().get();
   scene.geometry = &geometry;
   const auto it = fused.by_modality.find(records::Modality::kRgb);
   scene.rgb = it == fused.by_modality.end() ? nullptr : &it->second;
@@ -473,7 +509,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
       active_box.min().asVec3d(), active_box.max().asVec3d() + openvdb::Vec3d(1.0));
 
   std::atomic<int64_t> hit_pixels{0}, colourless_pixels{0};
-  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const PixelRays rays(request);
   std::atomic<bool> bad{false};
   std::atomic<int32_t> bad_index{0};
   std::atomic<bool> interrupted{false};
@@ -498,7 +534,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const size_t p = static_cast<size_t>(j) * width + i;
         const double start_m = request.start_range_m ? (*request.start_range_m)[p] : 0.0;
         if (!(start_m < std::numeric_limits<double>::infinity())) continue;
-        const Eigen::Vector3d d_world = PixelRay(request, intrinsics, i, j);
+        const Eigen::Vector3d d_world = rays(i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;
         if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, start_m, &hit,
@@ -588,7 +624,7 @@ absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
     return absl::InvalidArgumentError(
         "colour detail inputs disagree with the records or the geometry");
   }
-  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const PixelRays rays(request);
   const int32_t n = int32_t(geometry.size());
   tbb::enumerable_thread_specific<std::vector<uint8_t>> used_parts(
       std::vector<uint8_t>(blend.images.size(), 0));
@@ -601,7 +637,7 @@ absl::Status ApplyColourDetail(const records::VosselGeometry& geometry,
         const int32_t k = image->vossel_index[p];
         if (k < 0 || k >= n || !(image->alpha[p] > 0.0f)) continue;  // no hit, or no colour
         const Eigen::Vector3d x =
-            request.pose.o_world + double(image->depth_m[p]) * PixelRay(request, intrinsics, i, j);
+            request.pose.o_world + double(image->depth_m[p]) * rays(i, j);
         BlendRecords(blend, geometry, size_t(k), request, &x, &image->rgb[3 * p], &used);
       }
     }
@@ -659,7 +695,7 @@ absl::Status CompositeNearer(const RenderRequest& request,
         "a composite needs renders of the request's size that kept their vossel indices");
   }
   if (entry->empty()) entry->assign(pixels, std::numeric_limits<double>::infinity());
-  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const PixelRays rays(request);
   const double h = part_geometry.vossel_size_m;
   const size_t part_layers = size_t(part.layers), into_layers = size_t(into->layers);
   tbb::parallel_for(tbb::blocked_range<int>(0, request.height_px, 4),
@@ -670,7 +706,7 @@ absl::Status CompositeNearer(const RenderRequest& request,
         const int32_t v = part.vossel_index[p];
         if (v < 0 || size_t(v) >= part_geometry.size()) continue;
         // Where the ray enters v's cell [h(k - ½), h(k + ½)] (slabs; the DDA's order).
-        const Eigen::Vector3d d = PixelRay(request, intrinsics, i, j);
+        const Eigen::Vector3d d = rays(i, j);
         const openvdb::Coord& k = part_geometry.coord[size_t(v)];
         double t_in = 0.0;
         for (int a = 0; a < 3; ++a) {
@@ -722,12 +758,12 @@ RayReach::RayReach(const RenderRequest& request)
   axis_.resize(n);
   half_rad_.resize(n);
   farthest_m_.assign(n, std::numeric_limits<double>::infinity());
-  const geometry::PinholeIntrinsics intrinsics = RequestIntrinsics(request);
+  const PixelRays rays(request);
   // One pixel's angular pitch at most (the pinhole's at its centre is the largest; an
   // equirect row's is π / H): the pad that keeps a distorted block's cone conservative.
   const double pad =
       request.projection == Projection::kPinhole
-          ? 2.0 / std::min(intrinsics.fx_px, intrinsics.fy_px)
+          ? 2.0 / std::min(rays.intrinsics().fx_px, rays.intrinsics().fy_px)
           : 2.0 * M_PI / double(std::max(1, request.height_px));
   tbb::parallel_for(size_t(0), n, [&](size_t b) {
     const int i0 = int(b % size_t(blocks_x_)) * kReachBlockPx;
@@ -736,12 +772,12 @@ RayReach::RayReach(const RenderRequest& request)
     const int j1 = std::min(height_, j0 + kReachBlockPx) - 1;
     // The centre ray, and the farthest of the rays round the block's edge (a 5 × 5 grid of its
     // pixel centres: corners, midpoints and quarter points).
-    const Eigen::Vector3d c = PixelRay(request, intrinsics, (i0 + i1) / 2, (j0 + j1) / 2);
+    const Eigen::Vector3d c = rays((i0 + i1) / 2, (j0 + j1) / 2);
     double widest = 0.0;
     for (int a = 0; a <= 4; ++a) {
       for (int e = 0; e <= 4; ++e) {
         const int i = i0 + (i1 - i0) * a / 4, j = j0 + (j1 - j0) * e / 4;
-        const double cos_to_c = std::clamp(PixelRay(request, intrinsics, i, j).dot(c), -1.0, 1.0);
+        const double cos_to_c = std::clamp(rays(i, j).dot(c), -1.0, 1.0);
         widest = std::max(widest, std::acos(cos_to_c));
       }
     }
