@@ -3,15 +3,17 @@
 # the synthetic room and the growth of the store over the corridor site
 # (tests/bench/vasl_bench.cc), after the kernels under Google Benchmark
 # (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad;
-# tests/bench/visibility_bench.cc: the §5 depth panorama, dilation and visibility test on the
-# corridor site), whose
-# medians and spread over 5 runs are also written to build/bench-kernels.json.
+# tests/bench/visibility_bench.cc: the §5 depth panorama, dilation and visibility test, and the
+# §8 render's march, on the corridor site), whose medians and spread over 5 runs are also
+# written to build/bench-kernels.json.
 # Then a site at realistic size (the corridor's first 6 stations, LiDAR 2048×1024 and RGB
 # 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,
 # h = 5 cm, under a minute) ingested, fused, reweighted against a rebuild and rendered beside
 # Embree tracing the same site as triangles (the analytic boxes and the lattice's surfels,
 # rtcIntersect1 and rtcIntersect8, same threads), its figures also in build/bench-site.json;
-# then the same site through vasld over gRPC (build/bench-e2e.json).
+# then the same site through vasld over gRPC (build/bench-e2e.json; its scans are kept in
+# build/bench-scene-<site> and written again only when that is removed), and Open3D integrating
+# the same scans into its VoxelBlockGrid and ray casting it (build/bench-open3d.json).
 # Arguments go to the last vasl_bench run (--panorama-width W, --repeat N, --growth-only,
 # --tile-vossels T, --snapshot-budget-mb M, --revisit-cache-mb M, --growth-passes N).
 set -euo pipefail
@@ -38,6 +40,18 @@ fi
   --json build/bench-site.json
 # The same site through vasld over gRPC on loopback: ingest points/s, reweight, a render from
 # request to files beside the march, vasld's peak RSS (tests/bench/e2e_bench.py).
-.venv/bin/python tests/bench/e2e_bench.py --site "${BENCH_SITE:-realistic}" --repeat 3 \
+site="${BENCH_SITE:-realistic}"
+scene="build/bench-scene-$site"
+.venv/bin/python tests/bench/e2e_bench.py --site "$site" --repeat 3 --scene "$scene" \
   --json build/bench-e2e.json
+# Open3D on the same scans (tests/bench/open3d_peer.py): open3d-cpu from PyPI in a virtual
+# environment of its own, so that the client's stays lean.
+if [ ! -x build/open3d-venv/bin/python ] ||
+   ! build/open3d-venv/bin/python -c "import open3d" 2>/dev/null; then
+  python3 -m venv build/open3d-venv
+  build/open3d-venv/bin/pip install -q --upgrade pip
+  build/open3d-venv/bin/pip install -q "open3d-cpu==0.20.*"
+fi
+build/open3d-venv/bin/python tests/bench/open3d_peer.py --scene "$scene" --repeat 3 \
+  --json build/bench-open3d.json
 ./build/tests/bench/vasl_bench "$@"

@@ -19,7 +19,7 @@ a free loopback port with a temporary data directory. Printed and written to --j
     ingest, reweight and render.
 
 Usage: python tests/bench/e2e_bench.py [--site realistic|small] [--repeat N] [--json PATH]
-       [--build DIR] [--work DIR] [--library-json PATH]. Run by deploy/bench.sh with the client's virtual environment.
+       [--build DIR] [--work DIR] [--scene DIR] [--library-json PATH]. Run by deploy/bench.sh with the client's virtual environment.
 """
 from __future__ import annotations
 
@@ -110,6 +110,8 @@ def main() -> int:
     ap.add_argument("--build", default=os.environ.get("VASL_BUILD_DIR", os.path.join(REPO, "build")))
     ap.add_argument("--work", default="", help="directory for the scene and the data (default: a "
                     "temporary one, removed at the end)")
+    ap.add_argument("--scene", default="", help="the site's scans: written there by vasl_scene "
+                    "unless it already holds them (scene.json), and kept (default: in --work)")
     ap.add_argument("--library-json", default=os.path.join(REPO, "build", "bench-site.json"),
                     help="vasl_bench --site figures whose render this one's end to end is set "
                     "against (skipped when absent or of another site)")
@@ -122,13 +124,14 @@ def main() -> int:
     owned = None if args.work else tempfile.TemporaryDirectory(prefix="vasl-e2e-bench-")
     work = args.work or owned.name
     os.makedirs(work, exist_ok=True)
-    scene = os.path.join(work, "scene")
+    scene = args.scene or os.path.join(work, "scene")
     t0 = time.monotonic()
-    subprocess.run([os.path.join(args.build, "tests", "scenes", "vasl_scene"), "--out", scene,
-                    "--site", "corridor", "--stations", str(STATIONS), "--pano-width",
-                    str(pano_w), "--lidar-azimuth-steps", str(lidar_w),
-                    "--lidar-elevation-steps", str(lidar_w // 2), "--supersample", "2",
-                    "--vossel-size", str(h)], check=True, stdout=subprocess.DEVNULL)
+    if not os.path.exists(os.path.join(scene, "scene.json")):
+        subprocess.run([os.path.join(args.build, "tests", "scenes", "vasl_scene"), "--out", scene,
+                        "--site", "corridor", "--stations", str(STATIONS), "--pano-width",
+                        str(pano_w), "--lidar-azimuth-steps", str(lidar_w),
+                        "--lidar-elevation-steps", str(lidar_w // 2), "--supersample", "2",
+                        "--vossel-size", str(h)], check=True, stdout=subprocess.DEVNULL)
     cores = os.cpu_count()
     print(f"\ne2e through vasld ({args.site}): corridor stations 1-{STATIONS}, LiDAR "
           f"{lidar_w}x{lidar_w // 2}, RGB {pano_w}x{pano_w // 2}, h {h} m, {cores} cores "
