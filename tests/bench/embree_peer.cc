@@ -13,6 +13,8 @@
 
 #include <Eigen/Geometry>
 
+#include "lattice/geometry/equirect.h"
+
 namespace vasl::bench {
 namespace {
 
@@ -104,9 +106,10 @@ PeerTrace EmbreeScene::TraceEquirect(const geometry::Pose& pose, int width_px, i
   const auto t0 = Clock::now();
   // §2.1's pixel-centre directions, as EquirectUnproject gives them: azimuth per column (a
   // table shared by the rows), elevation per row, turned into the world by the pose.
+  const geometry::EquirectSize size{width_px, height_px};
   std::vector<double> cos_phi(width_px), sin_phi(width_px);
   for (int i = 0; i < width_px; ++i) {
-    const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / width_px);
+    const double phi = geometry::EquirectAzimuthRad(i + 0.5, size);
     cos_phi[i] = std::cos(phi);
     sin_phi[i] = std::sin(phi);
   }
@@ -121,11 +124,13 @@ PeerTrace EmbreeScene::TraceEquirect(const geometry::Pose& pose, int width_px, i
     context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;  // the rays of a row are
     int64_t& hit_count = hits.local();
     for (int j = rows.begin(); j < rows.end(); ++j) {
-      const double psi = M_PI * (0.5 - (j + 0.5) / height_px);
-      const double c = std::cos(psi), s = std::sin(psi);
+      const double psi = geometry::EquirectElevationRad(j + 0.5, size);
+      const double cos_psi = std::cos(psi), sin_psi = std::sin(psi);
       float* depth = out.depth_m.data() + size_t(j) * width_px;
       auto direction = [&](int i) {
-        return (r * Eigen::Vector3d(c * cos_phi[i], c * sin_phi[i], s)).cast<float>().eval();
+        return (r * geometry::EquirectDirection(cos_phi[i], sin_phi[i], cos_psi, sin_psi))
+            .cast<float>()
+            .eval();
       };
       if (packet == 1) {
         for (int i = 0; i < width_px; ++i) {
