@@ -688,6 +688,7 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
     request->interrupt = [context = this->context()] { return StillWanted(context); };
     std::vector<render::RowEncoder*> encoders;
     for (Output& out : outputs) encoders.push_back(out.encoder.get());
+    int rows_sent = 0;  // the last progress sent: rows whose bytes every format has sent
     request->rows_done = [&](const RenderImage& image, int row_begin, int row_end) {
       const Clock::time_point encode_start = Clock::now();
       if (absl::Status s = render::WriteRows(encoders, image, row_begin, row_end); !s.ok()) {
@@ -695,8 +696,12 @@ class RenderReactor final : public ChunkStreamReactor<v1::RenderResponse> {
       }
       encode_seconds += SecondsSince(encode_start);
       if (!streamed) return absl::OkStatus();
+      int sent = row_end;
+      for (const render::RowEncoder* e : encoders) sent = std::min(sent, e->rows_sent());
+      if (sent <= rows_sent) return absl::OkStatus();  // no new rows reached the client
+      rows_sent = sent;
       v1::RenderResponse progress;
-      progress.mutable_progress()->set_rows_done(row_end);
+      progress.mutable_progress()->set_rows_done(sent);
       progress.mutable_progress()->set_rows_total(rows_total);
       return Send(std::move(progress));
     };

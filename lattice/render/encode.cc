@@ -165,6 +165,7 @@ class EncoderBase : public RowEncoder {
  public:
   EncoderBase(int width_px, int height_px, ByteSink sink)
       : width_(width_px), height_(height_px), buffer_(std::move(sink)) {}
+  int rows_sent() const override { return next_row_; }
 
  protected:
   absl::Status CheckRows(const RenderImage& image, int row_begin, int row_end) const {
@@ -279,6 +280,7 @@ class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
   using OpenExrEncoder::OpenExrEncoder;
 
   absl::Status Open() { return OpenFile(Imf::ZIP_COMPRESSION, kChannels); }
+  int rows_sent() const override { return pending_row_; }
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
     if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;

@@ -45,12 +45,16 @@ class RowEncoder {
   virtual ~RowEncoder() = default;
   /// Encodes rows [row_begin, row_end) of `image`, which has the encoder's size; calls come in
   /// row order, each starting where the previous ended (0 first), and send the bytes they
-  /// complete to the sink before they return.
+  /// complete to the sink before they return. An encoder may hold rows back to encode them
+  /// with later ones (rows_sent says how far its bytes have gone); the last row sends all.
   /// @return INVALID_ARGUMENT for rows out of order or an image whose arrays disagree with its
   ///         size; the sink's status when it stopped; INTERNAL when the codec fails.
   virtual absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) = 0;
   /// Writes what follows the last row (EXR's offset table, PNG's end) once every row is written.
   virtual absl::Status Finish() = 0;
+  /// Rows [0, rows_sent()) have been encoded and their bytes handed to the sink (as far as
+  /// the codec emits them: a PNG's compressor may still hold the last few).
+  virtual int rows_sent() const = 0;
 };
 
 /// Encodes rows [row_begin, row_end) of `image` with every encoder at once (one task per
