@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <exception>
 #include <limits>
 #include <memory>
@@ -138,17 +139,38 @@ void ForEachAttribute(RS& r, Fn&& fn) {
   fn("cos_inc", r.cos_inc, 1, Kind::kUnit16);
   fn("foot_major", r.foot_major_m, 1, Kind::kHalf);
   fn("foot_minor", r.foot_minor_m, 1, Kind::kHalf);
-  fn("uv", r.uv_px, 2, Kind::kFloat);
+  fn("uv", r.uv_px, 2, Kind::kUnit16);  // in units of kUvUnitPx (UnitOf): a quarter pixel
   fn("vis", r.vis, 1, Kind::kUnit8);
   fn("conf", r.conf, kConfidenceCount, Kind::kUnit8);
   fn("flags", r.flags, 1, Kind::kInt8);
   fn("batch", r.batch, 1, Kind::kInt32);
 }
 
+/// The pixel coordinates of a record's sample are stored as 16-bit fractions of this span
+/// (16384 = 2^14 px, so that scaling is exact in float): steps of 0.25 px, for images up to
+/// 16384 px wide. They place a sample in its image for the lens model (§7), whose terms vary
+/// over hundreds of pixels; a file with a coordinate outside [0, 16384) keeps float.
+constexpr float kUvUnitPx = 16384.0f;
+
+/// What a stored value of 1 of attribute `name` stands for in the record: kUvUnitPx for the
+/// pixel coordinates in a fixed-point kind, 1 otherwise.
+float UnitOf(const char* name, Kind kind) {
+  return (kind == Kind::kUnit8 || kind == Kind::kUnit16) && std::strcmp(name, "uv") == 0
+             ? kUvUnitPx
+             : 1.0f;
+}
+
 /// int32 ids are stored as int16 when every value fits; half is widened to float when a finite
-/// value exceeds the half range (65504), e.g. raw LiDAR intensities.
+/// value exceeds the half range (65504), e.g. raw LiDAR intensities; a scaled fixed-point
+/// attribute (UnitOf) is widened to float when a value lies outside [0, its unit).
 template <typename T>
-Kind ChooseKind(const std::vector<T>& a, Kind preferred) {
+Kind ChooseKind(const std::vector<T>& a, Kind preferred, float unit) {
+  if (unit != 1.0f) {
+    for (T v : a) {
+      if (!(v >= 0.0f && v < unit)) return Kind::kFloat;
+    }
+    return preferred;
+  }
   if (preferred == Kind::kInt32) {
     for (T v : a) {
       if (v < std::numeric_limits<int16_t>::min() || v > std::numeric_limits<int16_t>::max()) {
@@ -170,7 +192,7 @@ Kind ChooseKind(const std::vector<T>& a, Kind preferred) {
 }  // namespace
 
 void RoundToStorage(RecordSet& records) {
-  ForEachAttribute(records, [](const char*, auto& values, int, Kind kind) {
+  ForEachAttribute(records, [](const char* name, auto& values, int, Kind kind) {
     using T = typename std::decay_t<decltype(values)>::value_type;
     if constexpr (std::is_floating_point_v<T>) {
       if (kind == Kind::kHalf) {
@@ -182,7 +204,15 @@ void RoundToStorage(RecordSet& records) {
         Dispatch(kind, [&](auto tag) {
           using S = Storage<typename decltype(tag)::type>;
           if constexpr (std::is_same_v<typename S::S, uint8_t> || std::is_same_v<typename S::S, uint16_t>) {
-            for (T& v : values) v = S::Decode(S::Encode(v));
+            const float unit = UnitOf(name, kind), inv = 1.0f / unit;  // powers of two: exact
+            if (unit == 1.0f) {
+              for (T& v : values) v = S::Decode(S::Encode(v));
+            } else {
+              // Values outside [0, unit) stay float: ChooseKind widens such a file to float.
+              for (T& v : values) {
+                if (v >= 0.0f && v < unit) v = S::Decode(S::Encode(float(v) * inv)) * unit;
+              }
+            }
           }
         });
       }
@@ -273,7 +303,7 @@ absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometr
 
   std::vector<PlannedAttribute> plan;
   ForEachAttribute(records, [&](const char* name, const auto& a, int stride, Kind preferred) {
-    plan.push_back({name, ChooseKind(a, preferred), stride});
+    plan.push_back({name, ChooseKind(a, preferred, UnitOf(name, preferred)), stride});
   });
 
   try {
@@ -355,7 +385,12 @@ absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometr
                   auto* out = const_cast<typename St::S*>(array.constData());
                   const auto* in = src.data() + begin * stride;
                   const size_t values = size_t(count) * stride;
-                  for (size_t k = 0; k < values; ++k) out[k] = St::Encode(in[k]);
+                  if (const float unit = UnitOf(name, a->kind); unit == 1.0f) {
+                    for (size_t k = 0; k < values; ++k) out[k] = St::Encode(in[k]);
+                  } else {
+                    const float inv = 1.0f / unit;
+                    for (size_t k = 0; k < values; ++k) out[k] = St::Encode(float(in[k]) * inv);
+                  }
                 });
               });
               auto leaf = std::make_unique<PointLeaf>(index_leaf->origin());
@@ -483,7 +518,12 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                 if (array.isUniform()) array.expand();
                 const auto* in = array.constData();
                 Elem* o = dst.data() + begin * stride;
-                if (a->stored_stride == stride) {
+                if (const float unit = UnitOf(name, a->kind); unit != 1.0f) {
+                  const size_t values = count * stride;  // scaled kinds: uv, never widened
+                  for (size_t v = 0; v < values; ++v) {
+                    o[v] = static_cast<Elem>(St::Decode(in[v]) * unit);
+                  }
+                } else if (a->stored_stride == stride) {
                   const size_t values = count * stride;
                   for (size_t v = 0; v < values; ++v) o[v] = static_cast<Elem>(St::Decode(in[v]));
                 } else {

@@ -151,7 +151,9 @@ struct RecordSet {
   std::vector<float> cos_inc;         ///< cosθ_{k,m} in [0, 1]
   std::vector<float> foot_major_m;    ///< s_major, metres (§3)
   std::vector<float> foot_minor_m;    ///< s_minor, metres (§3)
-  std::vector<float> uv_px;           ///< 2 per record: continuous pixel coords in the source image
+  /// 2 per record: continuous pixel coords in the source image; stored in 16 bits, steps of
+  /// 16384/65535 px (≈ 0.25 px) within [0, 16384) px (record_grid.cc: kUvUnitPx)
+  std::vector<float> uv_px;
   std::vector<float> vis;             ///< V_{k,m} in [0, 1] (§5)
   std::vector<float> conf;            ///< kConfidenceCount per record, each in [0, 1] (§9)
   std::vector<int8_t> flags;          ///< RecordFlag bits

@@ -227,8 +227,9 @@ TEST(CanonicalizeVosselOrderTest, EmptyArraysStayEmpty) {
 }
 
 // Claim (§6): records.vdb reproduces every record within its codec's precision:
-//   scan, modality, flags, batch, uv, range: exact; value, foot: half, |Δ| ≤ 2⁻¹¹·|x| + 6e-8;
-//   cos_inc: 16-bit unit range, |Δ| ≤ 0.5/65535; vis, conf: 8-bit unit range, |Δ| ≤ 0.5/255,
+//   scan, modality, flags, batch, range: exact; value, foot: half, |Δ| ≤ 2⁻¹¹·|x| + 6e-8;
+//   cos_inc: 16-bit unit range, |Δ| ≤ 0.5/65535; uv: 16-bit fractions of 16384 px,
+//   |Δ| ≤ 0.5·16384/65535 px = 0.125 px; vis, conf: 8-bit unit range, |Δ| ≤ 0.5/255,
 //   and vis = 0.5 reads back ≥ 0.5 (RECORDS-NOTES pitfall 6).
 TEST(RecordGridTest, RoundTripWithinCodecPrecision) {
   const fs::path dir = TestDir("roundtrip");
@@ -246,7 +247,6 @@ TEST(RecordGridTest, RoundTripWithinCodecPrecision) {
   EXPECT_EQ(out->modality, in.modality);
   EXPECT_EQ(out->flags, in.flags);
   EXPECT_EQ(out->batch, in.batch);
-  EXPECT_EQ(out->uv_px, in.uv_px);
   auto rel = [](float x) { return std::fabs(double(x)) + 6e-8 * 2048.0; };
   auto abs1 = [](float) { return 1.0; };
   const double value_rel = WorstError(in.value, out->value, rel);
@@ -256,6 +256,9 @@ TEST(RecordGridTest, RoundTripWithinCodecPrecision) {
   const double cos_abs = WorstError(in.cos_inc, out->cos_inc, abs1);
   const double vis_abs = WorstError(in.vis, out->vis, abs1);
   const double conf_abs = WorstError(in.conf, out->conf, abs1);
+  const double uv_px = WorstError(in.uv_px, out->uv_px, abs1);
+  EXPECT_LE(uv_px, 0.5 * 16384.0 / 65535.0 + 1e-3);
+  std::printf("  worst uv error %.4f px (bound 0.125)\n", uv_px);
   const double half_rel = std::ldexp(1.0, -11);
   EXPECT_LE(value_rel, half_rel);
   EXPECT_EQ(range_rel, 0.0) << "range is stored as float";
@@ -326,7 +329,7 @@ TEST(RecordGridTest, ListsAttributesWithTypeCodecStride) {
       {"modality", "int8", "null", 1},   {"value", "float", "trnc", 3},
       {"range", "float", "null", 1},     {"cos_inc", "float", "ufxpt16", 1},
       {"foot_major", "float", "trnc", 1}, {"foot_minor", "float", "trnc", 1},
-      {"uv", "float", "null", 2},        {"vis", "float", "ufxpt8", 1},
+      {"uv", "float", "ufxpt16", 2},     {"vis", "float", "ufxpt8", 1},
       {"conf", "float", "ufxpt8", 6},    {"flags", "int8", "null", 1},
       {"batch", "int16", "null", 1}};
   EXPECT_EQ(list->size(), expect.size());
@@ -606,8 +609,49 @@ TEST(RecordGridTest, WeightInputsKeepTheirPrecision) {
   EXPECT_EQ(rounded.foot_minor_m, out->foot_minor_m);
   EXPECT_EQ(rounded.vis, out->vis);
   EXPECT_EQ(rounded.conf, out->conf);
+  EXPECT_EQ(rounded.uv_px, out->uv_px);
   std::printf("weight inputs: %zu records, worst range error %.3g m to 300 m; %zu V >= V_min "
               "tests, %zu flipped\n", in.size(), worst_range, tests, flips);
+}
+
+// Claim: pixel coordinates outside the 16-bit span [0, 16384) px (a wider image, or a sample
+// off its image's edge) keep float for the whole file, exactly; within it, RoundToStorage gives
+// what a write and read give, bit for bit.
+TEST(RecordGridTest, UvOutsideTheSixteenBitSpanKeepsFloat) {
+  const fs::path dir = TestDir("uv-wide");
+  VosselGeometry g = RandomGeometry(1000, 12);
+  CanonicalizeVosselOrder(g);
+  RecordSet in = RandomRecords(g.size(), 13);
+  ASSERT_GT(in.size(), 4u);
+  in.uv_px[0] = 20000.5f;   // a 24k-wide panorama
+  in.uv_px[3] = -0.25f;     // off the edge
+  RecordSet rounded = in;
+  RoundToStorage(rounded);
+  EXPECT_EQ(rounded.uv_px[0], 20000.5f);
+  EXPECT_EQ(rounded.uv_px[3], -0.25f);
+  ASSERT_TRUE(WriteRecords(g, in, dir / "records.vdb").ok());
+  absl::StatusOr<std::vector<AttributeInfo>> list = ListRecordAttributes(dir / "records.vdb");
+  ASSERT_TRUE(list.ok()) << list.status();
+  for (const AttributeInfo& a : *list) {
+    if (a.name == "uv") EXPECT_EQ(a.codec, "null") << "a file with such a uv keeps float";
+  }
+  absl::StatusOr<RecordSet> out = ReadRecords(g, dir / "records.vdb");
+  ASSERT_TRUE(out.ok()) << out.status();
+  EXPECT_EQ(out->uv_px, in.uv_px);  // float: exact, rounded nowhere
+  // A file within the span: the rounding in memory is the file's.
+  RecordSet narrow = RandomRecords(g.size(), 14);
+  RecordSet narrow_rounded = narrow;
+  RoundToStorage(narrow_rounded);
+  ASSERT_TRUE(WriteRecords(g, narrow, dir / "narrow.vdb").ok());
+  absl::StatusOr<RecordSet> back = ReadRecords(g, dir / "narrow.vdb");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->uv_px, narrow_rounded.uv_px);
+  size_t moved = 0;
+  for (size_t i = 0; i < narrow.uv_px.size(); ++i) moved += narrow.uv_px[i] != back->uv_px[i];
+  std::printf("uv: %zu of %zu coordinates rounded to the 16-bit step\n", moved,
+              narrow.uv_px.size());
+  EXPECT_GT(moved, 0u);
+  fs::remove_all(dir);
 }
 
 }  // namespace
