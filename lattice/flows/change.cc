@@ -858,8 +858,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     }
     absl::StatusOr<ingest::SourceRecords> r = ingest::CameraRecords(g, cam);
     // CameraRecords decoded the panorama and freed it, or read the one the calibration check
-    // kept with the camera: freed here.
+    // kept with the camera: freed here (a shared one stays while the revisit cache keeps it).
     ingest::LinearImage().pixels.swap(cam.image.pixels);
+    cam.kept_image.reset();
+    cam.artefacts.reset();
     if (!r.ok()) return r.status();
     add_new(std::move(*r), cam.id);
   }

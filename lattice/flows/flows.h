@@ -115,6 +115,12 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
                                                   const store::SourceInfo& source,
                                                   int32_t batch, int64_t max_image_pixels,
                                                   SourceImageCache* images);
+/// Hands the image a scan's camera `cam` (of catalog source `source`) holds decoded to the
+/// cameras that read it next: as LoadedCamera would keep it in `images` (artefacts found, channel
+/// shift corrected) and on `cam` as its kept image, so that the next ingest's revisit of the
+/// camera finds it decoded. Nothing when `cam` holds no decoded image or there is no cache.
+void KeepDecodedCamera(const store::SourceInfo& source, int64_t max_image_pixels,
+                       SourceImageCache* images, ingest::CameraSource& cam);
 /// A stored camera whose image is decoded from its blob on demand (`load`).
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,

@@ -211,7 +211,8 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
 
   // §2.3: each camera against the scan's own LiDAR, before its colours are fused. The decoded
   // image stays with the camera for its records (Propagate frees it once they are sampled)
-  // while the scan's kept images fit kKeepDecodedBytes; a camera beyond it decodes again.
+  // while the scan's kept images fit kKeepDecodedBytes; a camera beyond it decodes again. A
+  // kept image goes to the revisit cache too, as a revisit would decode it (KeepDecodedCamera).
   if (!change.new_sources.lidars.empty()) {
     const ingest::LidarSource& l = change.new_sources.lidars[0];
     int64_t kept_bytes = 0;
@@ -225,15 +226,19 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
       absl::StatusOr<ingest::LinearImage> image = cam.load();
       if (!image.ok()) return image.status();
       records::CalibrationHealth health = ingest::CheckCalibration(l, cam, *image);
+      const store::SourceInfo* info = nullptr;
       for (store::SourceInfo& src : plan.add_scan->sources) {
         if (src.id != cam.id) continue;
         result.calibration.emplace_back(src.name, health);
         src.calibration = std::move(health);
+        info = &src;
       }
       const int64_t bytes = int64_t(image->pixels.size() * sizeof(float));
       if (cam.image.pixels.empty() && kept_bytes + bytes <= kKeepDecodedBytes) {
         kept_bytes += bytes;
         cam.image = std::move(*image);
+        // Shared with the revisit cache: the next ingest revisits this camera first.
+        if (info != nullptr) KeepDecodedCamera(*info, max_image_pixels, images, cam);
       }
     }
   }

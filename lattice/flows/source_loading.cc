@@ -206,32 +206,61 @@ absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
   return loaded;
 }
 
+namespace {
+
+// What a camera's decode and its detectors read: the blob, IR or not, the pixel limit, and
+// whether the image wraps (an equirect panorama) or not (a pinhole photo).
+std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pinhole) {
+  return absl::StrCat(src.blob_sha256, src.modality == records::Modality::kIr ? " ir " : " rgb ",
+                      max_pixels, pinhole ? " pinhole" : " equirect");
+}
+
+// `decoded` as cameras share it (CameraSource::kept_image): its artefact maps found and then
+// its channel shift corrected once, on the whole image (§9; each corrected row reads the image
+// as decoded, so its rows are those a camera's records would correct), set on `cam` and kept
+// in `images` under `key` when it fits.
+void ShareDecoded(ingest::LinearImage decoded, const std::string& key, SourceImageCache& images,
+                  ingest::CameraSource& cam) {
+  auto artefacts = std::make_shared<const ingest::ArtefactMaps>(
+      ingest::DetectArtefacts(decoded, /*wrap=*/!cam.pinhole));
+  ingest::CorrectChannelShift(decoded, artefacts->fringing);
+  auto image = std::make_shared<const geometry::LinearImage>(std::move(decoded));
+  images.Put(key, image, artefacts);
+  cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
+  cam.artefacts = std::move(artefacts);
+}
+
+}  // namespace
+
 absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
                                                   const store::SourceInfo& src, int32_t batch,
                                                   int64_t max_pixels, SourceImageCache* images) {
   ingest::CameraSource cam = StoredCamera(store, src, batch, max_pixels);
   if (images == nullptr || images->budget_bytes() <= 0) return cam;
-  // What the decode and the detectors read: the blob, IR or not, the pixel limit, and whether
-  // the image wraps (an equirect panorama) or not (a pinhole photo).
-  const std::string key =
-      absl::StrCat(src.blob_sha256, src.modality == records::Modality::kIr ? " ir " : " rgb ",
-                   max_pixels, cam.pinhole ? " pinhole" : " equirect");
+  const std::string key = CameraKey(src, max_pixels, cam.pinhole.has_value());
   std::shared_ptr<const ingest::ArtefactMaps> artefacts;
   std::shared_ptr<const geometry::LinearImage> image = images->Find(key, &artefacts);
-  if (image == nullptr || artefacts == nullptr) {
-    absl::StatusOr<ingest::LinearImage> decoded = cam.load();
-    if (!decoded.ok()) return decoded.status();
-    artefacts = std::make_shared<const ingest::ArtefactMaps>(
-        ingest::DetectArtefacts(*decoded, /*wrap=*/!cam.pinhole));
-    // §9: the channel shift corrected once, on the whole image, for every later revisit (each
-    // corrected row reads the image as decoded, so its rows are those a revisit would correct).
-    ingest::CorrectChannelShift(*decoded, artefacts->fringing);
-    image = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
-    images->Put(key, image, artefacts);
+  if (image != nullptr && artefacts != nullptr) {
+    cam.kept_image = std::move(image);
+    cam.artefacts = std::move(artefacts);
+    return cam;
   }
-  cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
-  cam.artefacts = std::move(artefacts);
+  absl::StatusOr<ingest::LinearImage> decoded = cam.load();
+  if (!decoded.ok()) return decoded.status();
+  ShareDecoded(std::move(*decoded), key, *images, cam);
   return cam;
+}
+
+void KeepDecodedCamera(const store::SourceInfo& src, int64_t max_pixels, SourceImageCache* images,
+                       ingest::CameraSource& cam) {
+  if (images == nullptr || images->budget_bytes() <= 0 || cam.image.pixels.empty() ||
+      cam.kept_image != nullptr) {
+    return;
+  }
+  ingest::LinearImage decoded = std::move(cam.image);
+  cam.image = ingest::LinearImage();
+  ShareDecoded(std::move(decoded), CameraKey(src, max_pixels, cam.pinhole.has_value()), *images,
+               cam);
 }
 
 }  // namespace vasl::flows
