@@ -39,7 +39,11 @@ inline Eigen::Vector3d EquirectDirection(double cos_phi, double sin_phi, double 
   return {cos_psi * cos_phi, cos_psi * sin_phi, sin_psi};
 }
 
-/// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1).
+/// atan2(y, x) in (−π, π], as the C library's to within 2e-16 rad (a few ulp), without its
+/// rounding-mode guard: the angles of every sample a visibility test or a splat projects.
+double Atan2(double y, double x);
+
+/// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1), of any length.
 Eigen::Vector2d EquirectAngles(const Eigen::Vector3d& d_sensor);
 
 /// Wraps a column index into [0, W) across the seam (§2.1).

@@ -1,6 +1,7 @@
 // VASL-MODEL §2.1 equirectangular projection, §2.2 pinhole projection.
 #include "lattice/geometry/equirect.h"
 
+#include <cmath>
 #include <random>
 
 #include <gtest/gtest.h>
@@ -32,6 +33,47 @@ TEST(EquirectTest, ForwardInverseRoundTrip) {
   }
   std::printf("equirect round trip: worst angular error %.3g rad over 100000 directions\n", worst);
   EXPECT_LT(worst, 1e-9);
+}
+
+// Claim: Atan2 is the C library's atan2 to within 2 ulp of π (8.9e-16 rad) over random
+// directions of every octant and scale, near the axes and the diagonals, and at the signed
+// zeros and the seam (±π for y = ±0, x < 0); EquirectAngles' elevation is the C library's
+// atan2(z, hypot(x, y)) to within the same, for directions of any length. (asin(z/|d|), the
+// elevation before, errs by up to 2e-10 rad near the poles, where asin amplifies rounding.)
+TEST(EquirectTest, Atan2AgreesWithTheCLibrary) {
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> n(0.0, 1.0);
+  std::uniform_real_distribution<double> exponent(-30.0, 30.0), tiny(-1e-9, 1e-9);
+  double worst = 0.0, worst_elevation = 0.0;
+  for (int i = 0; i < 2000000; ++i) {
+    double x = n(rng), y = n(rng);
+    switch (i % 4) {
+      case 1: y = x * (1.0 + tiny(rng)); break;   // the diagonal |y| = |x|
+      case 2: y = x * tiny(rng); break;           // near the x axis
+      case 3: x = y * tiny(rng); break;           // near the y axis
+      default: break;
+    }
+    const double scale = std::exp2(exponent(rng));
+    x *= scale;
+    y *= scale;
+    worst = std::max(worst, std::fabs(Atan2(y, x) - std::atan2(y, x)));
+    const Eigen::Vector3d d(x, y, n(rng) * scale);
+    const double psi = std::atan2(d.z(), std::hypot(d.x(), d.y()));
+    worst_elevation = std::max(worst_elevation, std::fabs(EquirectAngles(d)[1] - psi));
+  }
+  std::printf("Atan2: worst |Δ| %.3g rad over 2e6 points; elevation %.3g rad\n", worst,
+              worst_elevation);
+  EXPECT_LE(worst, 8.9e-16);
+  EXPECT_LE(worst_elevation, 8.9e-16);
+  for (double x : {1.0, -1.0, 0.0, -0.0, 3.5, -2.0}) {
+    for (double y : {1.0, -1.0, 0.0, -0.0, 7.0, -0.25}) {
+      const double want = std::atan2(y, x), got = Atan2(y, x);
+      EXPECT_NEAR(got, want, 8.9e-16) << "atan2(" << y << ", " << x << ")";
+      EXPECT_EQ(std::signbit(got), std::signbit(want)) << "atan2(" << y << ", " << x << ")";
+    }
+  }
+  EXPECT_EQ(Atan2(0.0, -1.0), M_PI);
+  EXPECT_EQ(Atan2(-0.0, -1.0), -M_PI);
 }
 
 // Claim (§2.1): the axis conventions: +x at the centre column, +y to the left of it (u < W/2),
