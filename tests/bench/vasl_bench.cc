@@ -34,6 +34,26 @@
 
 namespace {
 
+// Profiles the corridor's ingests alone, without the scenes' generation around them:
+//   mkfifo ctl ack; VASL_PERF_CTL=ctl VASL_PERF_ACK=ack \
+//     perf record -D -1 --control=fifo:ctl,ack -o ingest.perf vasl_bench --growth-only
+// perf starts with its counters off; each ingest turns them on and off again.
+void PerfControl(const char* command) {
+  static const char* ctl = std::getenv("VASL_PERF_CTL");
+  static const char* ack = std::getenv("VASL_PERF_ACK");
+  if (ctl == nullptr) return;
+  if (FILE* f = std::fopen(ctl, "w")) {
+    std::fprintf(f, "%s\n", command);
+    std::fclose(f);
+  }
+  if (ack == nullptr) return;
+  if (FILE* f = std::fopen(ack, "r")) {  // perf answers "ack" once the command took effect
+    char answer[16];
+    (void)std::fgets(answer, sizeof answer, f);
+    std::fclose(f);
+  }
+}
+
 using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
@@ -220,7 +240,9 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
     if (!scan.ok()) return Fail(scan.status());
     ResetPeakRss();
     const double cpu0 = CpuSeconds();
+    PerfControl("enable");
     auto r = (*engine)->IngestScan("growth", *scan);
+    PerfControl("disable");
     if (!r.ok()) return Fail(r.status());
     const double cpu = CpuSeconds() - cpu0;
     const double peak = PeakRssMb();
