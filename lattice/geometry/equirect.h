@@ -39,8 +39,9 @@ inline Eigen::Vector3d EquirectDirection(double cos_phi, double sin_phi, double 
   return {cos_psi * cos_phi, cos_psi * sin_phi, sin_psi};
 }
 
-/// atan2(y, x) in (−π, π], as the C library's to within 2e-16 rad (a few ulp), without its
-/// rounding-mode guard: the angles of every sample a visibility test or a splat projects.
+/// atan2(y, x) in [−π, π], as the C library's to within 2 ulp of π (8.9e-16 rad; 4.4e-16
+/// measured), signed zeros included, without its rounding-mode guard: the angles of every
+/// sample a visibility test or a splat projects.
 double Atan2(double y, double x);
 
 /// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1), of any length.
