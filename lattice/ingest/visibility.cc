@@ -164,12 +164,12 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   // dot products).
   std::vector<double> cos_phi(W), sin_phi(W), cos_psi(H), sin_psi(H);
   for (int i = 0; i < W; ++i) {
-    const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+    const double phi = geometry::EquirectAzimuthRad(i + 0.5, size);
     cos_phi[i] = std::cos(phi);
     sin_phi[i] = std::sin(phi);
   }
   for (int j = 0; j < H; ++j) {
-    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    const double psi = geometry::EquirectElevationRad(j + 0.5, size);
     cos_psi[j] = std::cos(psi);
     sin_psi[j] = std::sin(psi);
   }

@@ -119,12 +119,12 @@ bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, con
   const int j0 = std::max(0, int(std::floor((0.5 - (psi_c + reach_rad) / M_PI) * H)) - 1);
   const int j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - reach_rad) / M_PI) * H)) + 1);
   for (int j = j0; j <= j1; ++j) {
-    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    const double psi = geometry::EquirectElevationRad(j + 0.5, reach.size);
     const double cpsi = std::cos(psi), spsi = std::sin(psi);
     const float* row = &reach.max_depth_m[size_t(j) * W];
     for (int i = 0; i < W; ++i) {
       if (row[i] < min_depth_m) continue;
-      const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+      const double phi = geometry::EquirectAzimuthRad(i + 0.5, reach.size);
       const Eigen::Vector3d d(cpsi * std::cos(phi), cpsi * std::sin(phi), spsi);
       if (d.dot(dir_s) >= cos_reach) return true;
     }
@@ -150,9 +150,9 @@ CapCells::CapCells(const geometry::EquirectSize& size, const geometry::Pose& T_w
   half_diag_ = 0.5 * std::hypot(2.0 * M_PI / W, M_PI / H);
   dir_.resize(size_t(W) * size_t(H));
   for (int j = 0; j < H; ++j) {
-    const double psi = M_PI * (0.5 - (j + 0.5) / H);
+    const double psi = geometry::EquirectElevationRad(j + 0.5, size);
     for (int i = 0; i < W; ++i) {
-      const double phi = 2.0 * M_PI * (0.5 - (i + 0.5) / W);
+      const double phi = geometry::EquirectAzimuthRad(i + 0.5, size);
       dir_[size_t(j) * W + i] = Eigen::Vector3d(std::cos(psi) * std::cos(phi),
                                                 std::cos(psi) * std::sin(phi), std::sin(psi));
     }
