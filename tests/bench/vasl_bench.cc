@@ -13,13 +13,16 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <map>
 #include <string>
 
 #include <malloc.h>
 #include <sys/resource.h>
 #include <tbb/info.h>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
 
 #include "lattice/engine.h"
 #include "lattice/flows/tile_budget.h"
@@ -37,7 +40,17 @@ namespace {
 // Profiles the corridor's ingests alone, without the scenes' generation around them:
 //   mkfifo ctl ack; VASL_PERF_CTL=ctl VASL_PERF_ACK=ack \
 //     perf record -D -1 --control=fifo:ctl,ack -o ingest.perf vasl_bench --growth-only
-// perf starts with its counters off; each ingest turns them on and off again.
+// perf starts with its counters off; each ingest turns them on and off again. With
+// VASL_PERF_SCANS=2,12 (scan numbers from 1) only those ingests are sampled.
+bool PerfScan(size_t scan_number) {
+  static const char* scans = std::getenv("VASL_PERF_SCANS");
+  if (scans == nullptr) return true;
+  for (absl::string_view n : absl::StrSplit(scans, ',')) {
+    size_t k = 0;
+    if (absl::SimpleAtoi(n, &k) && k == scan_number) return true;
+  }
+  return false;
+}
 void PerfControl(const char* command) {
   static const char* ctl = std::getenv("VASL_PERF_CTL");
   static const char* ack = std::getenv("VASL_PERF_ACK");
@@ -240,9 +253,10 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
     if (!scan.ok()) return Fail(scan.status());
     ResetPeakRss();
     const double cpu0 = CpuSeconds();
-    PerfControl("enable");
+    const bool sampled = PerfScan(n + 1);
+    if (sampled) PerfControl("enable");
     auto r = (*engine)->IngestScan("growth", *scan);
-    PerfControl("disable");
+    if (sampled) PerfControl("disable");
     if (!r.ok()) return Fail(r.status());
     const double cpu = CpuSeconds() - cpu0;
     const double peak = PeakRssMb();
@@ -279,21 +293,30 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
     auto manifest = (*st)->LoadManifest(r->version);
     if (!manifest.ok()) return Fail(manifest.status());
     double records_mb = 0.0;
+    std::map<std::string, double> layer_mb;  // every layer's objects this commit wrote
     for (const auto& [key, layers] : manifest->tiles) {
-      const store::ManifestEntry& rec = layers.at(store::kLayerRecords);
       auto was = previous.tiles.find(key);
-      if (was == previous.tiles.end() ||
-          was->second.at(store::kLayerRecords).object != rec.object) {
-        records_mb += rec.bytes / 1e6;
+      for (const auto& [layer, entry] : layers) {
+        auto before = was == previous.tiles.end() ? nullptr : &was->second;
+        if (before == nullptr || !before->count(layer) ||
+            before->at(layer).object != entry.object) {
+          layer_mb[layer] += entry.bytes / 1e6;
+        }
       }
+    }
+    records_mb = layer_mb[store::kLayerRecords];
+    std::string layers_written;
+    for (const auto& [layer, mb] : layer_mb) {
+      layers_written += absl::StrFormat(" %s %.1f;", layer, mb);
     }
     const double share =
         r->records_rewritten > 0 ? double(r->records_computed) / double(r->records_rewritten)
                                  : 1.0;
     std::printf("         records: %lld computed of %lld in the rewritten tiles; %.1f MB of "
-                "records objects written, %.1f MB as segments per batch\n",
+                "records objects written, %.1f MB as segments per batch; tile objects written "
+                "(MB):%s\n",
                 (long long)r->records_computed, (long long)r->records_rewritten, records_mb,
-                records_mb * share);
+                records_mb * share, layers_written.c_str());
     records_written_mb += records_mb;
     segments_mb += records_mb * share;
     previous = std::move(*manifest);
