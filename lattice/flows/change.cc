@@ -269,35 +269,54 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
     ingest::DepthPanorama s = ingest::RenderDepthPanorama(changes.splats, source.info.pose,
                                                           view.size, view.divergence_rad);
     // The rows the splats reach (+inf stays +inf elsewhere, dilated or not).
-    const int W = view.size.width_px, H = view.size.height_px;
-    using Rows = std::pair<int, int>;
-    const Rows reached = tbb::parallel_reduce(
-        tbb::blocked_range<int>(0, H, 16), Rows{H, -1},
-        [&](const tbb::blocked_range<int>& r, Rows rows) {
-          for (int j = r.begin(); j != r.end(); ++j) {
-            const float* row = &s.depth_m[size_t(j) * W];
-            if (std::any_of(row, row + W, [](float d) { return std::isfinite(d); })) {
-              rows = {std::min(rows.first, j), std::max(rows.second, j)};
-            }
-          }
-          return rows;
-        },
-        [](Rows a, Rows b) {
-          return Rows{std::min(a.first, b.first), std::max(a.second, b.second)};
-        });
-    const int first = reached.first - view.dilate_px, end = reached.second + view.dilate_px + 1;
-    if (view.dilate_px > 0 && reached.second >= 0) {
-      ingest::DilateDepthPanorama(s, view.dilate_px, first, end);
-    }
+    const int H = view.size.height_px;
+    const bool reached = s.splat_row_begin < std::min(s.splat_row_end, H);
+    const int first = s.splat_row_begin - view.dilate_px;
+    const int end = std::min(s.splat_row_end, H) + view.dilate_px;
+    if (view.dilate_px > 0 && reached) ingest::DilateDepthPanorama(s, view.dilate_px, first, end);
     // Tested sample by sample only where S may lie nearer than the vossel's farthest sample
     // in a reach cell its tests can read (S's min per cell, over ingest::SampleCap).
     const std::vector<float> cell_min =
-        tiles::CellMinFromDepth(s.depth_m, view.size, first, reached.second >= 0 ? end : first);
+        tiles::CellMinFromDepth(s.depth_m, view.size, first, reached ? end : first);
     const double pitch_rad =
         std::max(geometry::AzimuthPitchRad(view.size), geometry::ElevationPitchRad(view.size));
+    const double patch_m = ingest::kSamplePatchM * h;
+    // Whole runs of kChunk consecutive vossels (neighbours in the lattice's order) first: when
+    // S lies nowhere nearer than the far side of the cap of their frame centroids' box (grown
+    // by the patch, one pixel wider), which holds each one's SampleCap, none is tested.
+    constexpr size_t kChunk = 64;
+    auto chunk_behind = [&](size_t begin, size_t end) {
+      Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+      Eigen::Vector3d hi = -lo;
+      for (size_t k = begin; k != end; ++k) {
+        if (!unchanged[k]) continue;
+        const Eigen::Vector3d x = g.FrameCentroid(k).cast<double>();
+        lo = lo.cwiseMin(x);
+        hi = hi.cwiseMax(x);
+      }
+      if (!(lo.x() <= hi.x())) return true;  // none of them to test
+      tiles::ViewCap cap = tiles::CapOf({lo, hi}, o, patch_m);
+      if (cap.everywhere || !(cap.near_m > 2.0 * patch_m)) return false;  // test one by one
+      cap.half_angle_rad += pitch_rad;
+      const double far_m = cap.far_m + patch_m;  // CapOf's far side is the box's
+      bool nearer = false;
+      grid.ForEach(cap, [&](size_t cell, bool) {
+        nearer = double(cell_min[cell]) < far_m;
+        return !nearer;
+      });
+      return !nearer;
+    };
     tbb::parallel_for(tbb::blocked_range<size_t>(0, g.size(), 4096),
                       [&](const tbb::blocked_range<size_t>& r) {
       for (size_t k = r.begin(); k != r.end(); ++k) {
+        if (k == r.begin() || k % kChunk == 0) {
+          const size_t chunk_end = std::min(r.end(), (k / kChunk + 1) * kChunk);
+          if (chunk_behind(k, chunk_end)) {
+            std::fill(unchanged.begin() + k, unchanged.begin() + chunk_end, uint8_t{0});
+            k = chunk_end - 1;  // S lies behind every test of the run
+            continue;
+          }
+        }
         if (!unchanged[k]) continue;
         const std::optional<tiles::ViewCap> cap =
             ingest::SampleCap(g.FrameCentroid(k).cast<double>(), o, h, pitch_rad);

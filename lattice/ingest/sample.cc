@@ -429,7 +429,8 @@ SourceVisibility LidarVisibility(const records::VosselGeometry& g, const geometr
   out.depth = RenderDepthPanorama(g, pose, view.size, view.divergence_rad, context, read_cells);
   out.vis = ComputeVisibility(g, out.depth, DepthToleranceM(g.vossel_size_m), only,
                               view.slope_pixels);
-  out.reach = tiles::ReachFromDepth(out.depth.depth_m, out.depth.size);
+  // A revisit's panorama is +inf outside its cells: so is its reach there.
+  out.reach = ReachInCells(out.depth, read_cells, std::numeric_limits<float>::infinity());
   return out;
 }
 
@@ -530,7 +531,9 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
     MaskOutsideCone(depth, Eigen::Vector3d::UnitZ(),
                     proj.HalfFieldRad() + patch_rad + (kCameraSampleRadiusPx + 2) * pitch);
   }
-  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size);
+  // A revisit's panorama is +inf outside its cells (a pinhole's is masked there: read whole).
+  out.reach = ReachInCells(depth, cam.pinhole ? nullptr : read_cells,
+                           std::numeric_limits<float>::infinity());
   return out;
 }
 

@@ -135,6 +135,8 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const size_t npix = size_t(W) * H;
   std::vector<float>& depth = out.depth_m;
   depth.assign(npix, std::numeric_limits<float>::infinity());
+  out.splat_row_begin = H;  // no row splatted yet
+  out.splat_row_end = 0;
   // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie
   // in unflagged cells only is passed over before any per-row work.
   const int cells_h = cells != nullptr ? size.height_px / kCell : 0;
@@ -264,6 +266,8 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     for (const std::vector<VosselSplat>& list : set_up) {
       for (const VosselSplat& s : list) {
         for (int b = s.j0 / kBandRows; b <= s.j1 / kBandRows; ++b) ++band_begin[size_t(b) + 1];
+        out.splat_row_begin = std::min(out.splat_row_begin, s.j0);
+        out.splat_row_end = std::max(out.splat_row_end, s.j1 + 1);
       }
     }
     for (int b = 0; b < bands; ++b) band_begin[size_t(b) + 1] += band_begin[size_t(b)];
@@ -327,6 +331,10 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       splat_only == nullptr ? g.size()
                             : size_t(std::count(splat_only->begin(), splat_only->end(), 1));
   const bool cull = splatted >= kCullMinVossels && W % kCell == 0 && H % kCell == 0;
+  // With `cells`, every block's cap is tested against the flagged cells before its vossels are
+  // set up one by one, and the culling passes read the flagged cells alone (their depth is all
+  // a revisit keeps): -inf in the others, which no block then reaches.
+  const bool by_cells = cells != nullptr;
   struct Block {
     size_t begin = 0, end = 0, vossels = 0;
     tiles::ViewCap cap;
@@ -347,7 +355,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
       box.max_m = box.max_m.cwiseMax(c);
       ++block.vossels;
     }
-    if (!cull || block.vossels == 0) return;
+    if (!(cull || by_cells) || block.vossels == 0) return;
     // Each splat lies in its centre's cap of the bounding sphere grown by σ at its range,
     // at depths of at least its centre's range less the dilated cell's half-diagonal.
     const double sigma_m =
@@ -369,15 +377,18 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
                  : x < y;
     });
     shares.assign(std::begin(kCullPassShares), std::end(kCullPassShares));
-    grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, pose);
   }
+  if (cull || by_cells) grid.emplace(geometry::EquirectSize{W / kCell, H / kCell}, pose);
   size_t done = 0;  // blocks of `order` passed
   for (double share : shares) {
     const size_t end = std::min(order.size(), size_t(std::ceil(share * double(order.size()))));
     if (end <= done) continue;
     std::vector<uint8_t> keep(end - done, 1);
-    if (done > 0) {
-      const tiles::ReachRaster farthest = tiles::ReachFromDepth(depth, size);
+    if (done > 0 || by_cells) {
+      const tiles::ReachRaster farthest =
+          !by_cells ? tiles::ReachFromDepth(depth, size)
+                    : ReachInCells(out, cells,
+                                   -std::numeric_limits<float>::infinity());  // +inf unsplatted
       tbb::parallel_for(done, end, [&](size_t n) {
         const Block& block = blocks[order[n]];
         keep[n - done] = block.cap.everywhere ||
@@ -397,9 +408,9 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     done = end;
   }
 
-  // A revisit reads flagged cells only: the others stay +inf.
-  if (cells != nullptr) {
-    tbb::parallel_for(0, H, [&](int j) {
+  // A revisit reads flagged cells only: the others stay +inf (rows no splat reached are).
+  if (cells != nullptr && out.splat_row_begin < out.splat_row_end) {
+    tbb::parallel_for(out.splat_row_begin, out.splat_row_end, [&](int j) {
       const uint8_t* cell_row = &(*cells)[size_t(j / kCell) * size_t(cells_w)];
       float* depth_row = &depth[size_t(j) * W];
       for (int ci = 0; ci < cells_w; ++ci) {
@@ -410,6 +421,35 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     });
   }
   return out;
+}
+
+tiles::ReachRaster ReachInCells(const DepthPanorama& depth, const std::vector<uint8_t>* cells,
+                                float elsewhere) {
+  constexpr int kCell = tiles::kReachBlockPx;
+  const int W = depth.size.width_px, H = depth.size.height_px;
+  const int cells_w = W / kCell, cells_h = H / kCell;
+  if (cells == nullptr || W % kCell != 0 || H % kCell != 0 ||
+      cells->size() != size_t(cells_w) * size_t(cells_h)) {
+    return tiles::ReachFromDepth(depth.depth_m, depth.size);
+  }
+  tiles::ReachRaster r;
+  r.size = {cells_w, cells_h};
+  r.max_depth_m.assign(cells->size(), elsewhere);
+  tbb::parallel_for(tbb::blocked_range<int>(0, cells_h), [&](const tbb::blocked_range<int>& rows) {
+    for (int cj = rows.begin(); cj != rows.end(); ++cj) {
+      for (int ci = 0; ci < cells_w; ++ci) {
+        const size_t c = size_t(cj) * size_t(cells_w) + size_t(ci);
+        if ((*cells)[c] == 0) continue;
+        float farthest = -std::numeric_limits<float>::infinity();  // as ReachFromDepth's max
+        for (int j = cj * kCell; j < (cj + 1) * kCell; ++j) {
+          const float* row = &depth.depth_m[size_t(j) * W + size_t(ci) * kCell];
+          for (int i = 0; i < kCell; ++i) farthest = std::max(farthest, row[i]);
+        }
+        r.max_depth_m[c] = farthest;
+      }
+    }
+  });
+  return r;
 }
 
 void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double half_angle_rad) {

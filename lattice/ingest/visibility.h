@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <limits>
 #include <optional>
 #include <vector>
 
@@ -45,9 +46,19 @@ struct DepthPanorama {
   geometry::Pose pose;          ///< T_world_sensor of the source
   geometry::EquirectSize size;  ///< raster size (independent of the source image's size)
   std::vector<float> depth_m;   ///< row-major, row 0 up
+  /// Rows [splat_row_begin, splat_row_end) hold every pixel that is not +inf (a bound: some
+  /// may hold none); RenderDepthPanorama's are the rows its splats reached (empty: none).
+  int splat_row_begin = 0, splat_row_end = std::numeric_limits<int>::max();
 
   float At(int i, int j) const { return depth_m[size_t(j) * size.width_px + i]; }
 };
+
+/// The reach raster (tiles::ReachFromDepth) of `depth` in the reach cells `cells` flags (as
+/// RenderDepthPanorama's), and `elsewhere` in every other cell: a revisit's, whose panorama
+/// holds nothing outside its flagged cells, at the cost of those cells alone. Without `cells`,
+/// or when they are not the panorama's whole cells, ReachFromDepth's.
+tiles::ReachRaster ReachInCells(const DepthPanorama& depth, const std::vector<uint8_t>* cells,
+                                float elsewhere);
 
 /// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad` (within
 /// half a reach cell), capped to `max_width_px` columns: whole reach cells (tiles::
@@ -71,7 +82,9 @@ geometry::EquirectSize DepthPanoramaSize(double pitch_rad, int max_width_px = 40
 /// then exact wherever every vossel whose splat can fall is flagged (a revisit's cone).
 /// With `cells` (a flag per reach cell, tiles::kReachBlockPx² pixels, row-major over the
 /// panorama's cells; `size` whole cells, as DepthPanoramaSize gives) only the pixels of flagged
-/// cells are splatted; the others stay +inf (a revisit reads no other).
+/// cells are splatted; the others stay +inf (a revisit reads no other). Its cost then follows
+/// the flagged cells, not the panorama: blocks whose splats cannot fall in a flagged cell are
+/// passed over whole, and the culling passes read the flagged cells alone.
 /// RenderDepthPanorama culls front to back from this many splatted vossels (below, the passes
 /// would cost more than they save).
 inline constexpr size_t kCullMinVossels = 16384;

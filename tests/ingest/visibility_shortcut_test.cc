@@ -105,21 +105,44 @@ TEST_F(VisibilityShortcutTest, FrontToBackCullingKeepsThePanorama) {
   EXPECT_EQ(differ, 0u);
   EXPECT_GT(finite, merged.size() / 2);
 
+  // Flagged cells: every third one, and (as a revisit's) a small patch of them alone, where
+  // whole blocks are passed over by the flagged cells and the culling reads those cells alone.
   constexpr int kCell = tiles::kReachBlockPx;
-  const int cells_w = size.width_px / kCell;
-  std::vector<uint8_t> cells(size_t(cells_w) * (size.height_px / kCell), 0);
-  for (size_t c = 0; c < cells.size(); c += 3) cells[c] = 1;
-  const DepthPanorama within =
-      RenderDepthPanorama(*geometry_, pose, size, divergence, nullptr, &cells);
-  size_t wrong = 0;
-  for (int j = 0; j < size.height_px; ++j) {
-    for (int i = 0; i < size.width_px; ++i) {
-      const bool flagged = cells[size_t(j / kCell) * cells_w + i / kCell] != 0;
-      const float want = flagged ? merged[size_t(j) * size.width_px + i] : INFINITY;
-      wrong += within.At(i, j) != want ? 1 : 0;
-    }
+  const int cells_w = size.width_px / kCell, cells_h = size.height_px / kCell;
+  const tiles::ReachRaster reach_all = tiles::ReachFromDepth(merged, size);
+  std::vector<uint8_t> every_third(size_t(cells_w) * cells_h, 0), patch = every_third;
+  for (size_t c = 0; c < every_third.size(); c += 3) every_third[c] = 1;
+  for (int cj = cells_h / 2 - 2; cj < cells_h / 2 + 2; ++cj) {
+    for (int ci = 5; ci < 11; ++ci) patch[size_t(cj) * cells_w + ci] = 1;
   }
-  EXPECT_EQ(wrong, 0u);
+  for (const std::vector<uint8_t>* cells : {&every_third, &patch}) {
+    const DepthPanorama within =
+        RenderDepthPanorama(*geometry_, pose, size, divergence, nullptr, cells);
+    size_t wrong = 0, outside_rows = 0, flagged_finite = 0;
+    for (int j = 0; j < size.height_px; ++j) {
+      for (int i = 0; i < size.width_px; ++i) {
+        const bool flagged = (*cells)[size_t(j / kCell) * cells_w + i / kCell] != 0;
+        const float want = flagged ? merged[size_t(j) * size.width_px + i] : INFINITY;
+        wrong += within.At(i, j) != want ? 1 : 0;
+        flagged_finite += flagged && std::isfinite(want) ? 1 : 0;
+        const bool in_rows = j >= within.splat_row_begin && j < within.splat_row_end;
+        outside_rows += !in_rows && std::isfinite(within.At(i, j)) ? 1 : 0;
+      }
+    }
+    // The reach of the flagged cells alone: ReachFromDepth's there, `elsewhere` in the others.
+    const tiles::ReachRaster reach = ReachInCells(within, cells, -1.0f);
+    size_t reach_wrong = 0;
+    for (size_t c = 0; c < cells->size(); ++c) {
+      reach_wrong += reach.max_depth_m[c] != ((*cells)[c] ? reach_all.max_depth_m[c] : -1.0f);
+    }
+    std::printf("%zu flagged cells: %zu flagged pixels with depth, %zu differ, rows %d-%d\n",
+                size_t(std::count(cells->begin(), cells->end(), uint8_t{1})), flagged_finite,
+                wrong, within.splat_row_begin, within.splat_row_end);
+    EXPECT_EQ(wrong, 0u);
+    EXPECT_GT(flagged_finite, 0u);
+    EXPECT_EQ(outside_rows, 0u);
+    EXPECT_EQ(reach_wrong, 0u);
+  }
 }
 
 // Claim: the dilation is the min over the (2r+1)² window, columns wrapping at the seam and rows
