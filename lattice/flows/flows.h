@@ -119,8 +119,10 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
 /// cameras that read it next: as LoadedCamera would keep it in `images` (artefacts found, channel
 /// shift corrected) and on `cam` as its kept image, so that the next ingest's revisit of the
 /// camera finds it decoded. Nothing when `cam` holds no decoded image or there is no cache.
+/// `decode_seconds`: what its decode took (with the maps' and the correction's, its worth there).
 void KeepDecodedCamera(const store::SourceInfo& source, int64_t max_image_pixels,
-                       SourceImageCache* images, ingest::CameraSource& cam);
+                       SourceImageCache* images, ingest::CameraSource& cam,
+                       double decode_seconds = 0.0);
 /// A stored camera whose image is decoded from its blob on demand (`load`).
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
@@ -207,9 +209,15 @@ class FusedLayerCache {
   std::map<std::string, std::shared_ptr<const records::FusedValues>> layers_;
 };
 
-/// Decoded camera images within a byte budget, the least recently used going first: those of
-/// renders with ColourDetail::kSourceImages (§8), by blob hash, and those revisits read (with
-/// their artefact maps, §9: LoadedCamera). Thread-safe.
+/// Decoded camera images within a byte budget: those of renders with ColourDetail::
+/// kSourceImages (§8), by blob hash, and those revisits read (with their artefact maps, §9:
+/// LoadedCamera), and LiDARs' points. What goes first is chosen by GreedyDual-Size (Cao and
+/// Irani, 1997): each entry is worth the seconds it took to make per byte it holds, raised on
+/// every use to the worth of the last entry evicted, and the least worth goes, the least
+/// recently used among equals; entries of equal cost per byte go least recently used first.
+/// A LiDAR reloads in a tenth of a camera's decode for half its bytes: a revisit that reads
+/// more sources than the budget holds keeps its cameras (on the 12-station corridor, LRU
+/// evicted each source just before its next use). Thread-safe.
 class SourceImageCache {
  public:
   explicit SourceImageCache(int64_t budget_bytes) : budget_bytes_(budget_bytes) {}
@@ -219,24 +227,30 @@ class SourceImageCache {
       const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts = nullptr);
   /// Keeps `image` (and its `artefacts`, if any) under `key`, evicting others to stay within
   /// the budget; one larger than it is not kept, nor one under a key already kept.
+  /// `cost_seconds`: what making it took (its decode), its worth per byte.
   void Put(const std::string& key, std::shared_ptr<const geometry::LinearImage> image,
-           std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr);
+           std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr,
+           double cost_seconds = 0.0);
   /// A LiDAR's points (with its range grid and gap fill) kept under `key`, or null; kept as
   /// images are, in the same budget.
   std::shared_ptr<const ingest::LidarSource> FindLidar(const std::string& key);
-  void PutLidar(const std::string& key, std::shared_ptr<const ingest::LidarSource> lidar);
+  void PutLidar(const std::string& key, std::shared_ptr<const ingest::LidarSource> lidar,
+                double cost_seconds = 0.0);
 
  private:
   std::mutex mu_;
   const int64_t budget_bytes_;
   int64_t bytes_ = 0;
   uint64_t clock_ = 0;
+  double inflation_ = 0.0;  ///< the worth of the last entry evicted (GreedyDual's L)
   struct Entry {
     std::shared_ptr<const geometry::LinearImage> image;
     std::shared_ptr<const ingest::ArtefactMaps> artefacts;
     std::shared_ptr<const ingest::LidarSource> lidar;
     int64_t bytes = 0;
     uint64_t used = 0;
+    double cost_per_byte = 0.0;
+    double worth = 0.0;  ///< L at its last use plus its cost per byte
   };
   /// Keeps `entry` (its bytes counted) under `key`, evicting the least recently used.
   void Keep(const std::string& key, Entry entry);

@@ -1,6 +1,7 @@
 // The incremental ingest flow (flows.h): a scan's own points merged into the lattice, normals
 // recomputed where a neighbourhood changed, records of its own sources, and older sources
 // revisited only where the new geometry reaches them (change.h).
+#include <chrono>
 #include <cstring>
 #include <numeric>
 
@@ -223,8 +224,11 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
           !stop.ok()) {
         return stop;
       }
+      const auto decode_t0 = std::chrono::steady_clock::now();
       absl::StatusOr<ingest::LinearImage> image = cam.load();
       if (!image.ok()) return image.status();
+      const double decode_seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - decode_t0).count();
       records::CalibrationHealth health = ingest::CheckCalibration(l, cam, *image);
       const store::SourceInfo* info = nullptr;
       for (store::SourceInfo& src : plan.add_scan->sources) {
@@ -238,7 +242,9 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
         kept_bytes += bytes;
         cam.image = std::move(*image);
         // Shared with the revisit cache: the next ingest revisits this camera first.
-        if (info != nullptr) KeepDecodedCamera(*info, max_image_pixels, images, cam);
+        if (info != nullptr) {
+          KeepDecodedCamera(*info, max_image_pixels, images, cam, decode_seconds);
+        }
       }
     }
   }

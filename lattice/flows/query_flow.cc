@@ -1,6 +1,8 @@
 // The query flows (flows.h): renders (§8) and provenance queries of a loaded version under a
 // weighting profile (§7). They read; they never change a project.
 #include <algorithm>
+#include <chrono>
+#include <tuple>
 #include <cmath>
 #include <map>
 #include <memory>
@@ -103,6 +105,7 @@ SourceImageCache::Entry SourceImageCache::Use(const std::string& key) {
   auto it = entries_.find(key);
   if (it == entries_.end()) return Entry{};
   it->second.used = ++clock_;
+  it->second.worth = inflation_ + it->second.cost_per_byte;
   return it->second;
 }
 
@@ -115,7 +118,8 @@ std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(
 
 void SourceImageCache::Put(const std::string& key,
                            std::shared_ptr<const geometry::LinearImage> image,
-                           std::shared_ptr<const ingest::ArtefactMaps> artefacts) {
+                           std::shared_ptr<const ingest::ArtefactMaps> artefacts,
+                           double cost_seconds) {
   int64_t bytes = int64_t(image->ByteSize());
   if (artefacts != nullptr) {
     for (const geometry::LinearImage* map :
@@ -128,6 +132,7 @@ void SourceImageCache::Put(const std::string& key,
   entry.image = std::move(image);
   entry.artefacts = std::move(artefacts);
   entry.bytes = bytes;
+  entry.cost_per_byte = std::max(0.0, cost_seconds) / double(std::max<int64_t>(1, bytes));
   Keep(key, std::move(entry));
 }
 
@@ -136,7 +141,8 @@ std::shared_ptr<const ingest::LidarSource> SourceImageCache::FindLidar(const std
 }
 
 void SourceImageCache::PutLidar(const std::string& key,
-                                std::shared_ptr<const ingest::LidarSource> lidar) {
+                                std::shared_ptr<const ingest::LidarSource> lidar,
+                                double cost_seconds) {
   Entry entry;
   entry.bytes = int64_t(sizeof(float) * (lidar->xyz_sensor_m.size() + lidar->intensity.size() +
                                          lidar->rgb.size()) +
@@ -147,6 +153,7 @@ void SourceImageCache::PutLidar(const std::string& key,
                             sizeof(std::array<float, 3>)));
   }
   entry.lidar = std::move(lidar);
+  entry.cost_per_byte = std::max(0.0, cost_seconds) / double(std::max<int64_t>(1, entry.bytes));
   Keep(key, std::move(entry));
 }
 
@@ -155,15 +162,21 @@ void SourceImageCache::Keep(const std::string& key, Entry entry) {
   std::lock_guard<std::mutex> lock(mu_);
   if (entries_.count(key) != 0) return;
   while (bytes_ + entry.bytes > budget_bytes_ && !entries_.empty()) {
-    auto oldest = entries_.begin();
+    auto oldest = entries_.begin();  // the least worth, the least recently used among equals
     for (auto it = entries_.begin(); it != entries_.end(); ++it) {
-      if (it->second.used < oldest->second.used) oldest = it;
+      if (std::tie(it->second.worth, it->second.used) <
+          std::tie(oldest->second.worth, oldest->second.used)) {
+        oldest = it;
+      }
     }
+    inflation_ = std::max(inflation_, oldest->second.worth);
     bytes_ -= oldest->second.bytes;
+    if (std::getenv("VASL_DEBUG_REVISIT")) std::fprintf(stderr, "CACHE evict %s %lld MB\n", oldest->second.lidar ? "lidar" : "cam", (long long)(oldest->second.bytes >> 20));
     entries_.erase(oldest);
   }
   bytes_ += entry.bytes;
   entry.used = ++clock_;
+  entry.worth = inflation_ + entry.cost_per_byte;
   entries_[key] = std::move(entry);
 }
 
@@ -223,6 +236,7 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
     const store::SourceInfo& src = *chosen[c];
     std::shared_ptr<const geometry::LinearImage> img = caches.images->Find(src.blob_sha256);
     if (!img) {
+      const auto t0 = std::chrono::steady_clock::now();
       const ingest::CameraSource cam = StoredCamera(store, src, 0, caches.max_image_pixels);
       absl::StatusOr<ingest::LinearImage> decoded = cam.load();
       if (!decoded.ok()) {
@@ -232,7 +246,9 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
       // As its records read it (ingest::CameraRecords): fringing corrected (§9).
       ingest::CorrectChannelShift(*decoded, ingest::EstimateChannelShift(*decoded, !cam.pinhole));
       img = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
-      caches.images->Put(src.blob_sha256, img);
+      caches.images->Put(src.blob_sha256, img, nullptr,  // worth what its decode took
+                         std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+                             .count());
     }
     render::DetailImage& d = out[size_t(src.id)];
     d.pose = src.pose;

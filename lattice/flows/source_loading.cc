@@ -1,4 +1,5 @@
 // Sources of a stored project, read back from their blobs (flows.h).
+#include <chrono>
 #include <cstring>
 #include <string>
 #include <vector>
@@ -13,6 +14,14 @@
 #include "lattice/ingest/voxelise.h"
 
 namespace vasl::flows {
+namespace {
+
+/// What a source cost to make since `t0`: its worth in the revisit cache (SourceImageCache).
+double SecondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+}  // namespace
 
 ingest::LidarSource LidarOf(const store::SourceInfo& s, int32_t batch) {
   ingest::LidarSource out;
@@ -198,11 +207,12 @@ absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
   if (caching) {
     if (std::shared_ptr<const ingest::LidarSource> kept = images->FindLidar(key)) return kept;
   }
+  const auto t0 = std::chrono::steady_clock::now();
   absl::StatusOr<ingest::LidarSource> lidar = LoadLidar(store, src, batch);
   if (!lidar.ok()) return lidar.status();
   lidar->gap_fill = ingest::GapFill(*lidar, h);
   auto loaded = std::make_shared<const ingest::LidarSource>(std::move(*lidar));
-  if (caching) images->PutLidar(key, loaded);
+  if (caching) images->PutLidar(key, loaded, SecondsSince(t0));
   return loaded;
 }
 
@@ -220,12 +230,13 @@ std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pin
 // as decoded, so its rows are those a camera's records would correct), set on `cam` and kept
 // in `images` under `key` when it fits.
 void ShareDecoded(ingest::LinearImage decoded, const std::string& key, SourceImageCache& images,
-                  ingest::CameraSource& cam) {
+                  ingest::CameraSource& cam, double decode_seconds) {
+  const auto t0 = std::chrono::steady_clock::now();
   auto artefacts = std::make_shared<const ingest::ArtefactMaps>(
       ingest::DetectArtefacts(decoded, /*wrap=*/!cam.pinhole));
   ingest::CorrectChannelShift(decoded, artefacts->fringing);
   auto image = std::make_shared<const geometry::LinearImage>(std::move(decoded));
-  images.Put(key, image, artefacts);
+  images.Put(key, image, artefacts, decode_seconds + SecondsSince(t0));
   cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
   cam.artefacts = std::move(artefacts);
 }
@@ -245,14 +256,15 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
     cam.artefacts = std::move(artefacts);
     return cam;
   }
+  const auto t0 = std::chrono::steady_clock::now();
   absl::StatusOr<ingest::LinearImage> decoded = cam.load();
   if (!decoded.ok()) return decoded.status();
-  ShareDecoded(std::move(*decoded), key, *images, cam);
+  ShareDecoded(std::move(*decoded), key, *images, cam, SecondsSince(t0));
   return cam;
 }
 
 void KeepDecodedCamera(const store::SourceInfo& src, int64_t max_pixels, SourceImageCache* images,
-                       ingest::CameraSource& cam) {
+                       ingest::CameraSource& cam, double decode_seconds) {
   if (images == nullptr || images->budget_bytes() <= 0 || cam.image.pixels.empty() ||
       cam.kept_image != nullptr) {
     return;
@@ -260,7 +272,7 @@ void KeepDecodedCamera(const store::SourceInfo& src, int64_t max_pixels, SourceI
   ingest::LinearImage decoded = std::move(cam.image);
   cam.image = ingest::LinearImage();
   ShareDecoded(std::move(decoded), CameraKey(src, max_pixels, cam.pinhole.has_value()), *images,
-               cam);
+               cam, decode_seconds);
 }
 
 }  // namespace vasl::flows

@@ -54,6 +54,36 @@ TEST(SourceImageCache, KeepsTheMostRecentlyUsedWithinItsBudgetArtefactsIncluded)
   EXPECT_EQ(none.Find("a"), nullptr);
 }
 
+// GreedyDual-Size: an entry that cost more per byte to make outlives cheaper ones, however
+// recently those were used (a revisit's cameras stay, its LiDARs reload); among entries of
+// equal cost per byte the least recently used goes; and one left unused long enough goes too,
+// as every eviction raises the worth a use gives.
+TEST(SourceImageCache, KeepsWhatCostMostPerByteAndAgesWhatIsNotUsed) {
+  const int64_t one = 100 * 100 * 3 * int64_t(sizeof(float));
+  flows::SourceImageCache cache(3 * one);
+  cache.Put("dear1", Image(100, 100, 0.1f), nullptr, 1.0);
+  cache.Put("cheap", Image(100, 100, 0.2f), nullptr, 0.01);
+  cache.Put("dear2", Image(100, 100, 0.3f), nullptr, 1.0);
+  ASSERT_NE(cache.Find("cheap"), nullptr);  // the most recently used
+  cache.Put("dear3", Image(100, 100, 0.4f), nullptr, 1.0);
+  EXPECT_EQ(cache.Find("cheap"), nullptr);  // the least worth went, not the least recent
+  EXPECT_NE(cache.Find("dear2"), nullptr);
+  EXPECT_NE(cache.Find("dear3"), nullptr);
+  EXPECT_NE(cache.Find("dear1"), nullptr);  // now the most recently used of equals
+  cache.Put("dear4", Image(100, 100, 0.5f), nullptr, 1.0);
+  EXPECT_EQ(cache.Find("dear2"), nullptr);  // equal cost per byte: the least recently used
+  EXPECT_NE(cache.Find("dear1"), nullptr);
+  // Cheap entries coming and going raise the worth a use gives, until the dear ones left
+  // unused are worth less than a fresh cheap one: they go too.
+  for (int i = 0; i < 400; ++i) {
+    cache.Put("cheap" + std::to_string(i), Image(100, 100, 0.6f), nullptr, 0.01);
+  }
+  EXPECT_EQ(cache.Find("dear1"), nullptr);
+  EXPECT_EQ(cache.Find("dear3"), nullptr);
+  EXPECT_EQ(cache.Find("dear4"), nullptr);
+  EXPECT_NE(cache.Find("cheap399"), nullptr);
+}
+
 // One scan of the synthetic room, with its range grid, ingested into a project; its store open.
 class StoredRoom : public ::testing::Test {
  protected:
