@@ -171,7 +171,6 @@ void SourceImageCache::Keep(const std::string& key, Entry entry) {
     }
     inflation_ = std::max(inflation_, oldest->second.worth);
     bytes_ -= oldest->second.bytes;
-    if (std::getenv("VASL_DEBUG_REVISIT")) std::fprintf(stderr, "CACHE evict %s %lld MB\n", oldest->second.lidar ? "lidar" : "cam", (long long)(oldest->second.bytes >> 20));
     entries_.erase(oldest);
   }
   bytes_ += entry.bytes;
