@@ -252,7 +252,7 @@ class SourceImageCache {
     double cost_per_byte = 0.0;
     double worth = 0.0;  ///< L at its last use plus its cost per byte
   };
-  /// Keeps `entry` (its bytes counted) under `key`, evicting the least recently used.
+  /// Keeps `entry` (its bytes counted) under `key`, evicting the least worth first.
   void Keep(const std::string& key, Entry entry);
   /// The entry kept under `key`, marked most recently used; empty when none.
   Entry Use(const std::string& key);

@@ -2,10 +2,10 @@
 // weighting profile (§7). They read; they never change a project.
 #include <algorithm>
 #include <chrono>
-#include <tuple>
 #include <cmath>
 #include <map>
 #include <memory>
+#include <tuple>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>

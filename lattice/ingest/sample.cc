@@ -531,7 +531,8 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
     MaskOutsideCone(depth, Eigen::Vector3d::UnitZ(),
                     proj.HalfFieldRad() + patch_rad + (kCameraSampleRadiusPx + 2) * pitch);
   }
-  // A revisit's panorama is +inf outside its cells (a pinhole's is masked there: read whole).
+  // A revisit's reach in its cells alone, +inf elsewhere, where MergeReach keeps the old one
+  // (the dilation may spill past them: no exact depth); a pinhole's mask is read whole.
   out.reach = ReachInCells(depth, cam.pinhole ? nullptr : read_cells,
                            std::numeric_limits<float>::infinity());
   return out;
