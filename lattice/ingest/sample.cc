@@ -430,7 +430,8 @@ SourceVisibility LidarVisibility(const records::VosselGeometry& g, const geometr
   out.vis = ComputeVisibility(g, out.depth, DepthToleranceM(g.vossel_size_m), only,
                               view.slope_pixels);
   // A revisit's panorama is +inf outside its cells: so is its reach there.
-  out.reach = ReachInCells(out.depth, read_cells, std::numeric_limits<float>::infinity());
+  out.reach = tiles::ReachFromDepth(out.depth.depth_m, out.depth.size, read_cells,
+                                    std::numeric_limits<float>::infinity());
   return out;
 }
 
@@ -533,8 +534,9 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
   }
   // A revisit's reach in its cells alone, +inf elsewhere, where MergeReach keeps the old one
   // (the dilation may spill past them: no exact depth); a pinhole's mask is read whole.
-  out.reach = ReachInCells(depth, cam.pinhole ? nullptr : read_cells,
-                           std::numeric_limits<float>::infinity());
+  out.reach = tiles::ReachFromDepth(depth.depth_m, depth.size,
+                                    cam.pinhole ? nullptr : read_cells,
+                                    std::numeric_limits<float>::infinity());
   return out;
 }
 

@@ -385,10 +385,10 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     if (end <= done) continue;
     std::vector<uint8_t> keep(end - done, 1);
     if (done > 0 || by_cells) {
-      const tiles::ReachRaster farthest =
-          !by_cells ? tiles::ReachFromDepth(depth, size)
-                    : ReachInCells(out, cells,
-                                   -std::numeric_limits<float>::infinity());  // +inf unsplatted
+      // With cells: the flagged cells' farthest depth (+inf before any splat), -inf in the
+      // others, which no block reaches.
+      const tiles::ReachRaster farthest = tiles::ReachFromDepth(
+          depth, size, cells, -std::numeric_limits<float>::infinity());
       tbb::parallel_for(done, end, [&](size_t n) {
         const Block& block = blocks[order[n]];
         keep[n - done] = block.cap.everywhere ||
@@ -421,35 +421,6 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
     });
   }
   return out;
-}
-
-tiles::ReachRaster ReachInCells(const DepthPanorama& depth, const std::vector<uint8_t>* cells,
-                                float elsewhere) {
-  constexpr int kCell = tiles::kReachBlockPx;
-  const int W = depth.size.width_px, H = depth.size.height_px;
-  const int cells_w = W / kCell, cells_h = H / kCell;
-  if (cells == nullptr || W % kCell != 0 || H % kCell != 0 ||
-      cells->size() != size_t(cells_w) * size_t(cells_h)) {
-    return tiles::ReachFromDepth(depth.depth_m, depth.size);
-  }
-  tiles::ReachRaster r;
-  r.size = {cells_w, cells_h};
-  r.max_depth_m.assign(cells->size(), elsewhere);
-  tbb::parallel_for(tbb::blocked_range<int>(0, cells_h), [&](const tbb::blocked_range<int>& rows) {
-    for (int cj = rows.begin(); cj != rows.end(); ++cj) {
-      for (int ci = 0; ci < cells_w; ++ci) {
-        const size_t c = size_t(cj) * size_t(cells_w) + size_t(ci);
-        if ((*cells)[c] == 0) continue;
-        float farthest = -std::numeric_limits<float>::infinity();  // as ReachFromDepth's max
-        for (int j = cj * kCell; j < (cj + 1) * kCell; ++j) {
-          const float* row = &depth.depth_m[size_t(j) * W + size_t(ci) * kCell];
-          for (int i = 0; i < kCell; ++i) farthest = std::max(farthest, row[i]);
-        }
-        r.max_depth_m[c] = farthest;
-      }
-    }
-  });
-  return r;
 }
 
 void MaskOutsideCone(DepthPanorama& depth, const Eigen::Vector3d& axis, double half_angle_rad) {

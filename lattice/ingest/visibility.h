@@ -53,13 +53,6 @@ struct DepthPanorama {
   float At(int i, int j) const { return depth_m[size_t(j) * size.width_px + i]; }
 };
 
-/// The reach raster (tiles::ReachFromDepth) of `depth` in the reach cells `cells` flags (as
-/// RenderDepthPanorama's), and `elsewhere` in every other cell: a revisit's, whose panorama
-/// holds nothing outside its flagged cells, at the cost of those cells alone. Without `cells`,
-/// or when they are not the panorama's whole cells, ReachFromDepth's.
-tiles::ReachRaster ReachInCells(const DepthPanorama& depth, const std::vector<uint8_t>* cells,
-                                float elsewhere);
-
 /// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad` (within
 /// half a reach cell), capped to `max_width_px` columns: whole reach cells (tiles::
 /// kReachBlockPx pixels) along both axes, so that a source's reach raster lines up with it.

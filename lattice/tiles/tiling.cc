@@ -57,21 +57,40 @@ namespace {
 // Per block of kReachBlockPx² pixels, `op` (min or max) over its pixels of rows
 // [row_begin, row_end), from `init`: parallel over rows of blocks; each pixel row is folded
 // column by column into the block row's columns (contiguous, vectorised), then per block.
+// With `cells` (a flag per block, as many as the raster's) only the flagged blocks are folded,
+// each over its own pixels, and the others hold `elsewhere`.
 template <typename Op>
 ReachRaster PerCell(const std::vector<float>& depth_m, const geometry::EquirectSize& size,
-                    int row_begin, int row_end, float init, Op op) {
+                    int row_begin, int row_end, float init, Op op,
+                    const std::vector<uint8_t>* cells = nullptr, float elsewhere = 0.0f) {
   const int W = size.width_px, H = size.height_px;
   ReachRaster r;
   r.size = {(W + kReachBlockPx - 1) / kReachBlockPx, (H + kReachBlockPx - 1) / kReachBlockPx};
-  r.max_depth_m.assign(size_t(r.size.width_px) * r.size.height_px, init);
+  const size_t cell_count = size_t(r.size.width_px) * r.size.height_px;
+  if (cells != nullptr && cells->size() != cell_count) cells = nullptr;
+  r.max_depth_m.assign(cell_count, cells != nullptr ? elsewhere : init);
   row_begin = std::clamp(row_begin, 0, H);
   row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
   if (row_begin >= row_end || W <= 0) return r;
   const int first = row_begin / kReachBlockPx, last = (row_end - 1) / kReachBlockPx;
   tbb::parallel_for(first, last + 1, [&](int cj) {
-    std::vector<float> columns(size_t(W), init);
     const int j0 = std::max(row_begin, cj * kReachBlockPx);
     const int j1 = std::min(row_end, (cj + 1) * kReachBlockPx);
+    if (cells != nullptr) {
+      for (int ci = 0; ci < r.size.width_px; ++ci) {
+        const size_t c = size_t(cj) * r.size.width_px + ci;
+        if ((*cells)[c] == 0) continue;
+        const int i0 = ci * kReachBlockPx, i1 = std::min(W, i0 + kReachBlockPx);
+        float cell = init;
+        for (int j = j0; j < j1; ++j) {
+          const float* in = &depth_m[size_t(j) * W];
+          for (int i = i0; i < i1; ++i) cell = op(cell, in[i]);
+        }
+        r.max_depth_m[c] = cell;
+      }
+      return;
+    }
+    std::vector<float> columns(size_t(W), init);
     for (int j = j0; j < j1; ++j) {
       const float* in = &depth_m[size_t(j) * W];
       for (int i = 0; i < W; ++i) columns[i] = op(columns[i], in[i]);
@@ -87,9 +106,10 @@ ReachRaster PerCell(const std::vector<float>& depth_m, const geometry::EquirectS
 
 }  // namespace
 
-ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size) {
+ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size,
+                           const std::vector<uint8_t>* cells, float elsewhere) {
   return PerCell(depth_m, size, 0, size.height_px, -std::numeric_limits<float>::infinity(),
-                 [](float a, float b) { return std::max(a, b); });
+                 [](float a, float b) { return std::max(a, b); }, cells, elsewhere);
 }
 
 std::vector<float> CellMinFromDepth(const std::vector<float>& depth_m,

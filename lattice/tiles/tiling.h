@@ -85,8 +85,12 @@ struct ReachRaster {
 inline constexpr int kReachBlockPx = 16;
 
 /// The reach raster of a depth panorama (`depth_m` row-major over `size`): per block of
-/// kReachBlockPx² pixels, the maximum depth.
-ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size);
+/// kReachBlockPx² pixels, the maximum depth. With `cells` (a flag per cell, row-major over the
+/// raster) only the flagged cells are computed, at their cost alone, and every other cell holds
+/// `elsewhere` (a revisit's panorama, which holds nothing outside its flagged cells); `cells`
+/// of another count are taken as none.
+ReachRaster ReachFromDepth(const std::vector<float>& depth_m, const geometry::EquirectSize& size,
+                           const std::vector<uint8_t>* cells = nullptr, float elsewhere = 0.0f);
 
 /// Per block of kReachBlockPx² pixels of a depth panorama, the minimum depth, row-major over
 /// the raster ReachFromDepth makes. Pixel rows outside [row_begin, row_end) count as +inf.

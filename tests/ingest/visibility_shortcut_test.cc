@@ -129,8 +129,8 @@ TEST_F(VisibilityShortcutTest, FrontToBackCullingKeepsThePanorama) {
         outside_rows += !in_rows && std::isfinite(within.At(i, j)) ? 1 : 0;
       }
     }
-    // The reach of the flagged cells alone: ReachFromDepth's there, `elsewhere` in the others.
-    const tiles::ReachRaster reach = ReachInCells(within, cells, -1.0f);
+    // The reach of the flagged cells alone: the whole one's there, `elsewhere` in the others.
+    const tiles::ReachRaster reach = tiles::ReachFromDepth(within.depth_m, size, cells, -1.0f);
     size_t reach_wrong = 0;
     for (size_t c = 0; c < cells->size(); ++c) {
       reach_wrong += reach.max_depth_m[c] != ((*cells)[c] ? reach_all.max_depth_m[c] : -1.0f);
