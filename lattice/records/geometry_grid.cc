@@ -301,7 +301,7 @@ absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry) {
   absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, kWhere);
   if (!grids.ok()) return grids.status();
   return internal::EncodeVdbFile(*grids, GeometryFileMeta(geometry), kGeometryCompression,
-                                 kWhere);
+                                 kWhere, internal::VdbGridStats::kSkip);
 }
 
 absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
@@ -549,7 +549,7 @@ absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry,
   absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(geometry, fused);
   if (!grids.ok()) return grids.status();
   return internal::EncodeVdbFile(*grids, FusedFileMeta(fused), kFusedCompression,
-                                 "fused object");
+                                 "fused object", internal::VdbGridStats::kSkip);
 }
 
 absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,

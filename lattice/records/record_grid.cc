@@ -263,7 +263,7 @@ absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
   absl::StatusOr<openvdb::GridBase::Ptr> grid = RecordsGrid(geometry, records, kWhere);
   if (!grid.ok()) return grid.status();
   return internal::EncodeVdbFile({*grid}, RecordsFileMeta(), internal::VdbCompression::kBlosc,
-                                 kWhere);
+                                 kWhere, internal::VdbGridStats::kSkip);
 }
 
 absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,

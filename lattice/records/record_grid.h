@@ -52,7 +52,7 @@ absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
 /// The bytes of the files WriteGeometry, WriteRecords and WriteFused write, for a writer that
 /// stores them elsewhere (tile objects go into the object store from memory). Geometry and
 /// fused files keep OpenVDB's active-mask compression alone, records add blosc (README
-/// "Storage").
+/// "Storage"). Their grids carry no statistics metadata (internal::VdbGridStats).
 absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry);
 absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
                                           const RecordSet& records);

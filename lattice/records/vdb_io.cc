@@ -57,12 +57,14 @@ uint32_t CompressionFlags(VdbCompression compression) {
 
 absl::StatusOr<std::string> EncodeVdbFile(const openvdb::GridCPtrVec& grids,
                                           const openvdb::MetaMap& meta,
-                                          VdbCompression compression, const std::string& where) {
+                                          VdbCompression compression, const std::string& where,
+                                          VdbGridStats stats) {
   EnsureOpenVdbInitialized();
   std::string bytes;
   try {
     StreamArchive archive;
     archive.setCompression(CompressionFlags(compression));
+    archive.setGridStatsMetadataEnabled(stats == VdbGridStats::kWrite);
     std::stringstream stream(std::ios::in | std::ios::out | std::ios::binary);
     archive.WriteTo(stream, grids, meta);
     bytes = std::move(stream).str();

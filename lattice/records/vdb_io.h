@@ -31,12 +31,20 @@ absl::Status MakeUuidDeterministic(std::string& bytes, const std::string& where)
 /// nothing; kActiveMaskOnly is for such grids.
 enum class VdbCompression { kBlosc, kActiveMaskOnly };
 
+/// Whether each grid of a file carries OpenVDB's statistics (file_bbox_min/max,
+/// file_voxel_count, file_mem_bytes: what `vdb_print -l` and `-m` show). OpenVDB computes them
+/// in passes over the whole tree as it writes: a sixth of a geometry tile's encoding. A tile
+/// object's are read by nothing (the manifest counts its vossels and records); a file a user
+/// opens (an export) keeps them.
+enum class VdbGridStats { kWrite, kSkip };
+
 /// The bytes of a .vdb file of `grids` with file-level `meta`, its UUID deterministic
 /// (MakeUuidDeterministic): what WriteVdbFile writes, for a caller that puts them elsewhere
 /// (a tile object). Errors: INTERNAL naming `where` with the OpenVDB message.
 absl::StatusOr<std::string> EncodeVdbFile(const openvdb::GridCPtrVec& grids,
                                           const openvdb::MetaMap& meta,
-                                          VdbCompression compression, const std::string& where);
+                                          VdbCompression compression, const std::string& where,
+                                          VdbGridStats stats = VdbGridStats::kWrite);
 
 /// Writes `grids` with file-level `meta` to `path`, compressed as `compression` says.
 /// Errors: INTERNAL with the path and the OpenVDB message.
