@@ -257,21 +257,6 @@ std::shared_ptr<const GapFillPoints> GapFill(const LidarSource& src, double h) {
   return std::make_shared<const GapFillPoints>(FillGaps(src, h, R, src.pose.o_world, keyed, end));
 }
 
-records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,
-                             double h) {
-  records::VosselFrame f;
-  f.count = count;
-  const double n = std::max(1, count);
-  const Eigen::Vector3d mu = s.sum_m / n;
-  f.centroid_m = (h * Eigen::Vector3d(k.x(), k.y(), k.z()) + mu).cast<float>();
-  const auto& q = s.sum_xx_m2;
-  f.covariance_m2 = {float(q[0] / n - mu.x() * mu.x()), float(q[1] / n - mu.x() * mu.y()),
-                     float(q[2] / n - mu.x() * mu.z()), float(q[3] / n - mu.y() * mu.y()),
-                     float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
-  f.view = s.view_sum.cast<float>();
-  return f;
-}
-
 records::VosselGeometry EmptyGeometry(double h) {
   records::VosselGeometry g;
   g.vossel_size_m = h;
@@ -299,7 +284,7 @@ MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
     g.coord.push_back(add.coord[i]);
     g.point_count.push_back(0);
     g.sums.emplace_back();
-    g.frame.push_back(FrameOf(add.coord[i], add.count[i], add.sums[i], g.vossel_size_m));
+    g.frame.push_back(records::FrameOf(add.coord[i], add.count[i], add.sums[i], g.vossel_size_m));
   }
   result.new_vossels = g.coord.size() - before;
   std::vector<uint8_t> touched(g.coord.size(), 0);
@@ -328,7 +313,7 @@ void DeriveCentroidAndCovariance(records::VosselGeometry& g) {
   g.covariance_m2.resize(nv);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t v = r.begin(); v != r.end(); ++v) {
-      const records::VosselFrame all = FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
+      const records::VosselFrame all = records::FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
       g.centroid_m[v] = all.centroid_m;
       g.covariance_m2[v] = all.covariance_m2;
     }

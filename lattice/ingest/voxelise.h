@@ -80,11 +80,6 @@ struct MergeResult {
   size_t new_vossels = 0;           ///< vossels the merge created
 };
 
-/// The surface estimate of `count` points with sums `s` in vossel k (§1): centroid h·k + Σ/n,
-/// covariance Σxxᵀ/n − μμᵀ, view Σ unit vectors to the sensors; normal left zero.
-records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const records::VosselSums& s,
-                             double vossel_size_m);
-
 /// Adds one LiDAR's binned returns into `geometry`: counts and sums of the vossels it hit grow
 /// (existing sums + the LiDAR's, in that order: merging scans in source-id order gives the same
 /// bits whatever the grouping), new vossels are created with this LiDAR's returns as their
@@ -93,7 +88,8 @@ records::VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const recor
 /// DeriveCentroidAndCovariance, ComputeNormals). `geometry` must carry sums.
 MergeResult MergeBinned(records::VosselGeometry& geometry, const BinnedLidar& add);
 
-/// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel from its sums.
+/// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel from its sums
+/// (records::FrameOf).
 void DeriveCentroidAndCovariance(records::VosselGeometry& geometry);
 
 /// §1, the whole path: every LiDAR binned and merged in the given order (callers pass source-id

@@ -298,14 +298,16 @@ absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem
 
 absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry) {
   constexpr char kWhere[] = "geometry object";
-  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(geometry, kWhere);
+  absl::StatusOr<openvdb::GridCPtrVec> grids =
+      GeometryGrids(geometry, kWhere, GeometryGridSet::kStoredOnly);
   if (!grids.ok()) return grids.status();
   return internal::EncodeVdbFile(*grids, GeometryFileMeta(geometry), kGeometryCompression,
                                  kWhere, internal::VdbGridStats::kSkip);
 }
 
 absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
-                                                   const std::string& where) {
+                                                   const std::string& where,
+                                                   GeometryGridSet set) {
   internal::EnsureOpenVdbInitialized();
   const std::filesystem::path path(where);
   if (!geometry.index_grid) {
@@ -340,7 +342,9 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
     grids.push_back(GridOverVossels<Int32Grid>(
         index, "count", [&](int32_t v) { return geometry.point_count[v]; }));
   }
-  if (!geometry.centroid_m.empty()) {
+  // Centroid and covariance are kept only where the sums they come from are not.
+  const bool derived = set == GeometryGridSet::kEvery || geometry.sums.empty();
+  if (derived && !geometry.centroid_m.empty()) {
     grids.push_back(GridOverVossels<Vec3SGrid>(index, "centroid", [&](int32_t v) {
       const Eigen::Vector3f& c = geometry.centroid_m[v];
       return Vec3f(c.x(), c.y(), c.z());
@@ -352,7 +356,7 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
       return Vec3f(c.x(), c.y(), c.z());
     }));
   }
-  if (!geometry.covariance_m2.empty()) {
+  if (derived && !geometry.covariance_m2.empty()) {
     PushCovarianceGrids(grids, index, "covariance",
                         [&](int32_t v) -> const std::array<float, 6>& {
                           return geometry.covariance_m2[v];
@@ -495,6 +499,20 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
                g.sums[v].view_sum = Eigen::Vector3d(c.x(), c.y(), c.z());
              })}) {
       if (!s.ok()) return s;
+    }
+    if (g.centroid_m.empty() && g.covariance_m2.empty() && g.point_count.size() == n) {
+      // Written with the sums alone (GeometryGridSet::kStoredOnly): what they give, derived.
+      g.centroid_m.resize(n);
+      g.covariance_m2.resize(n);
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 4096),
+                        [&](const tbb::blocked_range<size_t>& r) {
+                          for (size_t v = r.begin(); v != r.end(); ++v) {
+                            const VosselFrame all = FrameOf(g.coord[v], g.point_count[v],
+                                                            g.sums[v], g.vossel_size_m);
+                            g.centroid_m[v] = all.centroid_m;
+                            g.covariance_m2[v] = all.covariance_m2;
+                          }
+                        });
     }
   }
   if (auto count = GridAs<Int32Grid>(*contents, "frame_count")) {

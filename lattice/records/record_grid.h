@@ -21,7 +21,9 @@ namespace vasl::records {
 
 /// Writes geometry (all vossels) to `path` (geometry.vdb).
 absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path);
-/// Reads geometry.vdb; rebuilds the index grid and the flat arrays in vossel order.
+/// Reads geometry.vdb; rebuilds the index grid and the flat arrays in vossel order. A file with
+/// the exact sums and without centroid and covariance grids (a tile object: EncodeGeometry) has
+/// them derived from its sums (FrameOf), the bits an ingest derived before writing it.
 absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path);
 /// Reads only the lattice of geometry.vdb: the index grid and the vossel coordinates, which is
 /// all that reading records (ReadRecords) and writing fused values (WriteFused) take; the other
@@ -52,17 +54,26 @@ absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
 /// The bytes of the files WriteGeometry, WriteRecords and WriteFused write, for a writer that
 /// stores them elsewhere (tile objects go into the object store from memory). Geometry and
 /// fused files keep OpenVDB's active-mask compression alone, records add blosc (README
-/// "Storage"). Their grids carry no statistics metadata (internal::VdbGridStats).
+/// "Storage"). Their grids carry no statistics metadata (internal::VdbGridStats), and a geometry
+/// object with sums keeps no centroid or covariance grid (GeometryGridSet::kStoredOnly).
 absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry);
 absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
                                           const RecordSet& records);
 absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry, const FusedValues& fused);
 
+/// Which geometry grids GeometryGrids makes. kEvery: every array the geometry has (files a
+/// user opens: WriteGeometry, export). kStoredOnly: where the geometry has its exact sums,
+/// not the centroid and covariance grids, exact functions of them (FrameOf) that ReadGeometry
+/// derives again: 36 of a vossel's ~220 bytes and a sixth of a geometry tile's encoding, in
+/// every object an ingest's commit writes.
+enum class GeometryGridSet { kEvery, kStoredOnly };
+
 /// The grids of the files above, for writers that put several layers in one file (export):
 /// the geometry grids, the "records" PointDataGrid and the fused grids. `where` names the data
 /// in error messages.
 absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
-                                                   const std::string& where);
+                                                   const std::string& where,
+                                                   GeometryGridSet set = GeometryGridSet::kEvery);
 absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,
                                                    const RecordSet& records,
                                                    const std::string& where);

@@ -20,6 +20,20 @@ const char* ModalityName(Modality m) {
   }
 }
 
+VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const VosselSums& s, double h) {
+  VosselFrame f;
+  f.count = count;
+  const double n = std::max(1, count);
+  const Eigen::Vector3d mu = s.sum_m / n;
+  f.centroid_m = (h * Eigen::Vector3d(k.x(), k.y(), k.z()) + mu).cast<float>();
+  const auto& q = s.sum_xx_m2;
+  f.covariance_m2 = {float(q[0] / n - mu.x() * mu.x()), float(q[1] / n - mu.x() * mu.y()),
+                     float(q[2] / n - mu.x() * mu.z()), float(q[3] / n - mu.y() * mu.y()),
+                     float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
+  f.view = s.view_sum.cast<float>();
+  return f;
+}
+
 namespace {
 // Applies `fn(a.member, b.member, stride)` to every array of two RecordSets, so that the
 // operations below list the fields once (pass the same set twice for single-set operations).

@@ -108,6 +108,13 @@ struct VosselFrame {
   bool operator!=(const VosselFrame& o) const { return !(*this == o); }
 };
 
+/// The surface estimate of `count` points with sums `s` in vossel k (§1): centroid h·k + Σ/n,
+/// covariance Σxxᵀ/n − μμᵀ, view Σ unit vectors to the sensors; normal left zero. The one
+/// implementation: an ingest derives each vossel's surface and new frames with it, and a
+/// geometry object, which keeps the sums and not what they give, is read back through it.
+VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const VosselSums& s,
+                    double vossel_size_m);
+
 /// Geometry of the vossels of one version (§1), indexed by vossel index.
 struct VosselGeometry {
   /// Vossel edge h, metres; the grid transform is createLinearTransform(h) (cell-centred).

@@ -37,7 +37,8 @@
 
 namespace {
 
-// Profiles the corridor's ingests alone, without the scenes' generation around them:
+// Profiles the corridor's (or the --site's) ingests alone, without the scenes' generation
+// around them:
 //   mkfifo ctl ack; VASL_PERF_CTL=ctl VASL_PERF_ACK=ack \
 //     perf record -D -1 --control=fifo:ctl,ack -o ingest.perf vasl_bench --growth-only
 // perf starts with its counters off; each ingest turns them on and off again. With
@@ -501,7 +502,10 @@ int Site(const std::filesystem::path& dir, bool realistic, int repeat,
     if (!scan.ok()) return Fail(scan.status());
     const size_t points = scan->lidar.xyz_sensor_m.size() / 3;
     ResetPeakRss();
+    const bool sampled = PerfScan(n + 1);
+    if (sampled) PerfControl("enable");
     auto r = (*engine)->IngestScan("site", *scan);
+    if (sampled) PerfControl("disable");
     if (!r.ok()) return Fail(r.status());
     ingest_peak = std::max(ingest_peak, PeakRssMb());
     records = r->record_count;

@@ -522,6 +522,78 @@ TEST(GeometryGridTest, RoundTripExact) {
   fs::remove_all(dir);
 }
 
+// Claim (§1 on disk): a geometry object (EncodeGeometry) keeps the exact sums and not the
+// centroid and covariance they give; read back, those are derived again (FrameOf) to the same
+// bits an ingest derived before writing it. The file a user opens (WriteGeometry) keeps them.
+TEST(GeometryGridTest, ObjectsKeepTheSumsAndDeriveWhatTheyGive) {
+  const fs::path dir = TestDir("geometry-object");
+  VosselGeometry g = RandomGeometry(20000, 23);
+  g.vossel_size_m = 0.05;
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(-0.025, 0.025);
+  g.sums.resize(g.size());
+  for (size_t v = 0; v < g.size(); ++v) {
+    const int32_t n = 1 + g.point_count[v] % 40;
+    g.point_count[v] = n;
+    for (int p = 0; p < n; ++p) {  // points in the vossel, relative to its centre
+      const Eigen::Vector3d x(u(rng), u(rng), u(rng));
+      g.sums[v].sum_m += x;
+      const double xx[6] = {x.x() * x.x(), x.x() * x.y(), x.x() * x.z(),
+                            x.y() * x.y(), x.y() * x.z(), x.z() * x.z()};
+      for (int i = 0; i < 6; ++i) g.sums[v].sum_xx_m2[i] += xx[i];
+      g.sums[v].view_sum += Eigen::Vector3d(u(rng), u(rng), 1.0).normalized();
+    }
+    const VosselFrame all = FrameOf(g.coord[v], n, g.sums[v], g.vossel_size_m);
+    g.centroid_m[v] = all.centroid_m;
+    g.covariance_m2[v] = all.covariance_m2;
+  }
+  CanonicalizeVosselOrder(g);
+  absl::StatusOr<std::string> bytes = EncodeGeometry(g);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  const fs::path object = dir / "object.vdb";
+  {
+    std::FILE* f = std::fopen(object.c_str(), "wb");
+    ASSERT_NE(f, nullptr);
+    ASSERT_EQ(std::fwrite(bytes->data(), 1, bytes->size(), f), bytes->size());
+    std::fclose(f);
+  }
+  ASSERT_TRUE(WriteGeometry(g, dir / "file.vdb").ok());
+  std::set<std::string> in_object, in_file;
+  for (auto [path, names] : {std::pair{object, &in_object}, std::pair{dir / "file.vdb", &in_file}}) {
+    openvdb::io::File file(path.string());
+    file.open();
+    for (auto it = file.beginName(); it != file.endName(); ++it) names->insert(*it);
+    file.close();
+  }
+  for (const char* name : {"centroid", "covariance_diag", "covariance_off"}) {
+    EXPECT_EQ(in_object.count(name), 0u) << name;
+    EXPECT_EQ(in_file.count(name), 1u) << name;
+  }
+  EXPECT_EQ(in_object.count("sum"), 1u);
+  EXPECT_EQ(in_object.count("normal"), 1u);
+  const double object_b = double(bytes->size()) / g.size();
+  const double file_b = double(fs::file_size(dir / "file.vdb")) / g.size();
+  std::printf("geometry object %.1f B/vossel, file with centroid and covariance %.1f B/vossel\n",
+              object_b, file_b);
+  EXPECT_LT(object_b, file_b - 30.0);  // 36 bytes of values a vossel, less the leaves' masks
+
+  absl::StatusOr<VosselGeometry> back = ReadGeometry(object);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->coord, g.coord);
+  EXPECT_EQ(back->point_count, g.point_count);
+  EXPECT_EQ(back->centroid_m, g.centroid_m);  // bit for bit
+  EXPECT_EQ(back->covariance_m2, g.covariance_m2);
+  EXPECT_EQ(back->normal, g.normal);
+  ASSERT_EQ(back->sums.size(), g.size());
+  for (size_t v = 0; v < g.size(); ++v) ASSERT_TRUE(back->sums[v] == g.sums[v]) << v;
+  // A file with the grids reads them as stored.
+  absl::StatusOr<VosselGeometry> file_back = ReadGeometry(dir / "file.vdb");
+  ASSERT_TRUE(file_back.ok());
+  EXPECT_EQ(file_back->centroid_m, g.centroid_m);
+  EXPECT_EQ(file_back->covariance_m2, g.covariance_m2);
+  fs::remove_all(dir);
+}
+
 // Claim (§7 on disk): fused values round-trip exactly where weight > 0 and read back as zeros
 // elsewhere; only weighted vossels are active; the profile name survives.
 TEST(FusedGridTest, RoundTripWeightedVossels) {
