@@ -926,6 +926,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   //    source id and block number.
   const BlockNumbers block_numbers(block_of, all_blocks);
   std::map<int32_t, std::vector<size_t>> revisited_records;  // source → its records on its blocks
+  std::vector<size_t> keep;  // the rows of *old_records carried over as they are
   {
     const records::RecordSet& before = *old_records;
     int32_t ids = 0;
@@ -954,7 +955,6 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
                        : kKeep;
       }
     });
-    std::vector<size_t> keep;
     keep.reserve(before.size());
     for (size_t i = 0; i < before.size(); ++i) {
       switch (klass[i]) {
@@ -966,13 +966,9 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
         default: break;  // its vossel vanished (its tile is a changed one)
       }
     }
-    // Room for the records the revisits and the new sources append (a revisit recomputes
-    // about as many as it had; a quarter more is kept free), so that they copy nothing.
-    size_t appended = fresh.size();
-    for (const auto& [source, rows] : revisited_records) appended += rows.size();
-    next.records =
-        Renumbered(before, keep, change.old_to_new, keep.size() + appended + appended / 4);
   }
+  // next.records gathers the records the revisits and the new sources make; the kept ones
+  // join them at the end, each copied once (records::MergeRenumbered).
   for (const auto& [source, raster] : old.reach) {
     if (!change.dropped_sources.count(source)) next.reach[source] = raster;
   }
@@ -991,7 +987,8 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   }
 
   next.records.Append(fresh);  // 5.
-  next.records.SortByVossel();
+  next.records = records::MergeRenumbered(*old_records, keep, change.old_to_new,
+                                          std::move(next.records));
   result.records_computed += int64_t(fresh.size());
   {
     std::vector<uint8_t> rewritten(g.size(), 0);  // per vossel: its tile is rewritten

@@ -4,6 +4,7 @@
 #include <cstdint>
 #include <numeric>
 #include <tuple>
+#include <utility>
 
 #include <tbb/task_group.h>
 
@@ -35,23 +36,29 @@ VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const VosselSums& s,
 }
 
 namespace {
-// Applies `fn(a.member, b.member, stride)` to every array of two RecordSets, so that the
-// operations below list the fields once (pass the same set twice for single-set operations).
+// Applies `fn(stride, s.member...)` to every array of the RecordSets `s`, so that the
+// operations below list the fields once.
+template <typename Fn, typename... Sets>
+void ForEachArrayOf(Fn&& fn, Sets&... s) {
+  fn(1, s.vossel...);
+  fn(1, s.scan...);
+  fn(1, s.modality...);
+  fn(kValueChannels, s.value...);
+  fn(1, s.range_m...);
+  fn(1, s.cos_inc...);
+  fn(1, s.foot_major_m...);
+  fn(1, s.foot_minor_m...);
+  fn(2, s.uv_px...);
+  fn(1, s.vis...);
+  fn(kConfidenceCount, s.conf...);
+  fn(1, s.flags...);
+  fn(1, s.batch...);
+}
+// `fn(a.member, b.member, stride)` for every array of two RecordSets (pass the same set twice
+// for single-set operations).
 template <typename A, typename B, typename Fn>
 void ForEachArray(A& a, B& b, Fn&& fn) {
-  fn(a.vossel, b.vossel, 1);
-  fn(a.scan, b.scan, 1);
-  fn(a.modality, b.modality, 1);
-  fn(a.value, b.value, kValueChannels);
-  fn(a.range_m, b.range_m, 1);
-  fn(a.cos_inc, b.cos_inc, 1);
-  fn(a.foot_major_m, b.foot_major_m, 1);
-  fn(a.foot_minor_m, b.foot_minor_m, 1);
-  fn(a.uv_px, b.uv_px, 2);
-  fn(a.vis, b.vis, 1);
-  fn(a.conf, b.conf, kConfidenceCount);
-  fn(a.flags, b.flags, 1);
-  fn(a.batch, b.batch, 1);
+  ForEachArrayOf([&fn](int stride, auto& x, auto& y) { fn(x, y, stride); }, a, b);
 }
 }  // namespace
 
@@ -136,6 +143,60 @@ void RecordSet::SortByVossel() {
     });
   });
   arrays.wait();
+}
+
+RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows,
+                          const std::vector<int32_t>& renumber, RecordSet added) {
+  auto kept_key = [&](size_t r) {
+    return std::make_tuple(renumber[size_t(kept.vossel[r])], kept.scan[r], kept.modality[r]);
+  };
+  for (size_t i = 1; i < rows.size(); ++i) {
+    if (kept_key(rows[i]) < kept_key(rows[i - 1])) {  // out of order: the general path
+      RecordSet out = kept.Select(rows, rows.size() + added.size());
+      for (int32_t& v : out.vossel) v = renumber[size_t(v)];
+      out.Append(added);
+      out.SortByVossel();
+      return out;
+    }
+  }
+  added.SortByVossel();
+  // The merged order: entry p names a kept row (< kAdded) or an added record (kAdded + j).
+  constexpr size_t kAdded = size_t{1} << 62;
+  const size_t n = rows.size() + added.size();
+  std::vector<size_t> from(n);
+  {
+    size_t i = 0, j = 0, p = 0;
+    while (i < rows.size() && j < added.size()) {
+      const auto a = std::make_tuple(added.vossel[j], added.scan[j], added.modality[j]);
+      if (a < kept_key(rows[i])) {
+        from[p++] = kAdded + j++;
+      } else {
+        from[p++] = rows[i++];
+      }
+    }
+    while (i < rows.size()) from[p++] = rows[i++];
+    while (j < added.size()) from[p++] = kAdded + j++;
+  }
+  RecordSet out;
+  tbb::task_group arrays;  // one task per array, as Select
+  ForEachArrayOf(
+      [&](int stride, auto& dst, const auto& old, const auto& more) {
+        arrays.run([&dst, &old, &more, stride, &from, n] {
+          dst.resize(n * size_t(stride));
+          for (size_t p = 0; p < n; ++p) {
+            const size_t f = from[p];
+            const auto* src = f >= kAdded ? &more[(f - kAdded) * size_t(stride)]
+                                          : &old[f * size_t(stride)];
+            std::copy_n(src, stride, &dst[p * size_t(stride)]);
+          }
+        });
+      },
+      out, std::as_const(kept), std::as_const(added));
+  arrays.wait();
+  for (size_t p = 0; p < n; ++p) {  // the kept rows' vossels, renumbered
+    if (from[p] < kAdded) out.vossel[p] = renumber[size_t(out.vossel[p])];
+  }
+  return out;
 }
 
 RecordSet RecordSet::Select(const std::vector<size_t>& indices, size_t capacity) const {

@@ -178,6 +178,15 @@ struct RecordSet {
   RecordSet Select(const std::vector<size_t>& indices, size_t capacity = 0) const;
 };
 
+/// The records `rows` of `kept` (in increasing order), their vossels renumbered by
+/// `renumber[vossel]`, and the records of `added`, as one set sorted by (vossel, scan,
+/// modality): what Select, Append and SortByVossel give, with each record copied once (a
+/// change keeps most of a project's records and adds a few). Stable: on equal keys the kept
+/// records come first, then the added ones in their order. When the renumbered kept rows are
+/// out of order (a renumbering that does not keep the vossels' order) it sorts them too.
+RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows,
+                          const std::vector<int32_t>& renumber, RecordSet added);
+
 /// Fused values of one modality under one profile (§7), per vossel.
 struct FusedModality {
   int channels = 0;

@@ -21,6 +21,8 @@
 #include <openvdb/points/PointAttribute.h>
 #include <openvdb/points/PointDataGrid.h>
 
+#include "absl/strings/str_cat.h"
+
 namespace vasl::records {
 namespace {
 
@@ -101,60 +103,74 @@ double WorstError(const std::vector<float>& a, const std::vector<float>& b, Fn&&
 // sorted ones (merged in place), a sorted run inside (merged into new arrays), in order
 // already, and tiny sets. Keys repeat (few vossels, scans and modalities), so every record
 // carries its position in `batch` to show the order among equal keys.
-TEST(RecordSetTest, SortByVosselIsAStableSortByItsKey) {
-  std::mt19937_64 rng(5);
-  auto records = [&rng](size_t n, bool sorted) {
-    std::uniform_int_distribution<int> vossel(0, 40), scan(1, 3), mod(1, 2);
-    std::uniform_real_distribution<float> u(0.0f, 1.0f);
-    RecordSet r;
-    for (size_t i = 0; i < n; ++i) {
-      r.vossel.push_back(vossel(rng));
-      r.scan.push_back(scan(rng));
-      r.modality.push_back(static_cast<int8_t>(mod(rng)));
-      for (int c = 0; c < kValueChannels; ++c) r.value.push_back(u(rng));
-      for (auto* a : {&r.range_m, &r.cos_inc, &r.foot_major_m, &r.foot_minor_m, &r.vis}) {
-        a->push_back(u(rng));
-      }
-      r.uv_px.push_back(u(rng));
-      r.uv_px.push_back(u(rng));
-      for (int c = 0; c < kConfidenceCount; ++c) r.conf.push_back(u(rng));
-      r.flags.push_back(static_cast<int8_t>(i % 4));
-      r.batch.push_back(0);
+/// `n` records of keys drawn from 41 vossels, 3 scans and 2 modalities (many equal keys), every
+/// other field random; sorted by key (stably) when `sorted`.
+RecordSet KeyedRecords(std::mt19937_64& rng, size_t n, bool sorted) {
+  std::uniform_int_distribution<int> vossel(0, 40), scan(1, 3), mod(1, 2);
+  std::uniform_real_distribution<float> u(0.0f, 1.0f);
+  RecordSet r;
+  for (size_t i = 0; i < n; ++i) {
+    r.vossel.push_back(vossel(rng));
+    r.scan.push_back(scan(rng));
+    r.modality.push_back(static_cast<int8_t>(mod(rng)));
+    for (int c = 0; c < kValueChannels; ++c) r.value.push_back(u(rng));
+    for (auto* a : {&r.range_m, &r.cos_inc, &r.foot_major_m, &r.foot_minor_m, &r.vis}) {
+      a->push_back(u(rng));
     }
-    if (sorted) {
-      std::vector<size_t> order(n);
-      std::iota(order.begin(), order.end(), size_t{0});
-      std::stable_sort(order.begin(), order.end(), [&r](size_t a, size_t b) {
-        return std::tie(r.vossel[a], r.scan[a], r.modality[a]) <
-               std::tie(r.vossel[b], r.scan[b], r.modality[b]);
-      });
-      r = r.Select(order);
-    }
-    return r;
-  };
-  auto check = [](RecordSet r, const std::string& what) {
-    for (size_t i = 0; i < r.size(); ++i) r.batch[i] = static_cast<int32_t>(i);
-    std::vector<size_t> order(r.size());
+    r.uv_px.push_back(u(rng));
+    r.uv_px.push_back(u(rng));
+    for (int c = 0; c < kConfidenceCount; ++c) r.conf.push_back(u(rng));
+    r.flags.push_back(static_cast<int8_t>(i % 4));
+    r.batch.push_back(0);
+  }
+  if (sorted) {
+    std::vector<size_t> order(n);
     std::iota(order.begin(), order.end(), size_t{0});
     std::stable_sort(order.begin(), order.end(), [&r](size_t a, size_t b) {
       return std::tie(r.vossel[a], r.scan[a], r.modality[a]) <
              std::tie(r.vossel[b], r.scan[b], r.modality[b]);
     });
-    const RecordSet want = r.Select(order);
+    r = r.Select(order);
+  }
+  return r;
+}
+
+/// Every array of `got` equals `want`'s.
+void ExpectSameRecords(const RecordSet& got, const RecordSet& want, const std::string& what) {
+  EXPECT_EQ(got.vossel, want.vossel) << what;
+  EXPECT_EQ(got.scan, want.scan) << what;
+  EXPECT_EQ(got.modality, want.modality) << what;
+  EXPECT_EQ(got.batch, want.batch) << what << ": equal keys out of order";
+  EXPECT_EQ(got.value, want.value) << what;
+  EXPECT_EQ(got.range_m, want.range_m) << what;
+  EXPECT_EQ(got.cos_inc, want.cos_inc) << what;
+  EXPECT_EQ(got.foot_major_m, want.foot_major_m) << what;
+  EXPECT_EQ(got.foot_minor_m, want.foot_minor_m) << what;
+  EXPECT_EQ(got.uv_px, want.uv_px) << what;
+  EXPECT_EQ(got.vis, want.vis) << what;
+  EXPECT_EQ(got.conf, want.conf) << what;
+  EXPECT_EQ(got.flags, want.flags) << what;
+}
+
+/// `r` stably sorted by (vossel, scan, modality), by index.
+RecordSet StablySorted(const RecordSet& r) {
+  std::vector<size_t> order(r.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::stable_sort(order.begin(), order.end(), [&r](size_t a, size_t b) {
+    return std::tie(r.vossel[a], r.scan[a], r.modality[a]) <
+           std::tie(r.vossel[b], r.scan[b], r.modality[b]);
+  });
+  return r.Select(order);
+}
+
+TEST(RecordSetTest, SortByVosselIsAStableSortByItsKey) {
+  std::mt19937_64 rng(5);
+  auto records = [&rng](size_t n, bool sorted) { return KeyedRecords(rng, n, sorted); };
+  auto check = [](RecordSet r, const std::string& what) {
+    for (size_t i = 0; i < r.size(); ++i) r.batch[i] = static_cast<int32_t>(i);
+    const RecordSet want = StablySorted(r);
     r.SortByVossel();
-    EXPECT_EQ(r.vossel, want.vossel) << what;
-    EXPECT_EQ(r.scan, want.scan) << what;
-    EXPECT_EQ(r.modality, want.modality) << what;
-    EXPECT_EQ(r.batch, want.batch) << what << ": equal keys out of order";
-    EXPECT_EQ(r.value, want.value) << what;
-    EXPECT_EQ(r.range_m, want.range_m) << what;
-    EXPECT_EQ(r.cos_inc, want.cos_inc) << what;
-    EXPECT_EQ(r.foot_major_m, want.foot_major_m) << what;
-    EXPECT_EQ(r.foot_minor_m, want.foot_minor_m) << what;
-    EXPECT_EQ(r.uv_px, want.uv_px) << what;
-    EXPECT_EQ(r.vis, want.vis) << what;
-    EXPECT_EQ(r.conf, want.conf) << what;
-    EXPECT_EQ(r.flags, want.flags) << what;
+    ExpectSameRecords(r, want, what);
   };
   for (size_t tail : {1, 7, 300}) {
     RecordSet r = records(2000, true);
@@ -171,6 +187,39 @@ TEST(RecordSetTest, SortByVosselIsAStableSortByItsKey) {
   check(records(2000, false), "shuffled");
   check(records(1, false), "one");
   check(records(0, false), "none");
+}
+
+// Claim (records.h): MergeRenumbered is Select of the kept rows, their vossels renumbered, then
+// Append of the added records and a stable SortByVossel, record for record; with a renumbering
+// that keeps the vossels' order (an ingest's) and one that does not.
+TEST(RecordSetTest, MergeRenumberedIsSelectAppendAndStableSort) {
+  std::mt19937_64 rng(9);
+  for (bool monotonic : {true, false}) {
+    for (auto [kept_n, added_n] : {std::pair<size_t, size_t>{3000, 400}, {3000, 0}, {0, 500},
+                                   {1, 1}, {0, 0}}) {
+      RecordSet kept = KeyedRecords(rng, kept_n, true);
+      RecordSet added = KeyedRecords(rng, added_n, false);
+      for (size_t i = 0; i < kept.size(); ++i) kept.batch[i] = static_cast<int32_t>(i);
+      for (size_t i = 0; i < added.size(); ++i) added.batch[i] = static_cast<int32_t>(100000 + i);
+      // Vossels 0..40 renumbered into 0..90: spread out (vossels appeared between them), or
+      // reversed.
+      std::vector<int32_t> renumber(41);
+      for (int32_t v = 0; v < 41; ++v) renumber[size_t(v)] = monotonic ? 2 * v + v % 3 : 90 - 2 * v;
+      for (int32_t& v : added.vossel) v = 2 * v;  // the added ones are numbered in the new order
+      std::vector<size_t> rows;
+      for (size_t i = 0; i < kept.size(); ++i) {
+        if (rng() % 4 != 0) rows.push_back(i);  // a quarter dropped (revisited, vanished)
+      }
+      RecordSet want = kept.Select(rows);
+      for (int32_t& v : want.vossel) v = renumber[size_t(v)];
+      want.Append(added);
+      want = StablySorted(want);
+      const RecordSet got = MergeRenumbered(kept, rows, renumber, added);
+      ExpectSameRecords(got, want,
+                        absl::StrCat(monotonic ? "monotonic" : "reversed", " renumbering, ",
+                                     rows.size(), " kept and ", added.size(), " added"));
+    }
+  }
 }
 
 // Claim (records.h "Vossel order"): indices run over leaves in tree order, then voxel offset;
