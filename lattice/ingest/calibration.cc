@@ -128,7 +128,13 @@ size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
     Splat& level = (*levels)[l];
     level.cells = CellsAt(s0 << l, W, H, wrap);
     level.nearest = std::vector<std::atomic<uint64_t>>(size_t(level.cells.width) * level.cells.height);
-    for (auto& a : level.nearest) a.store(kNoReturn, std::memory_order_relaxed);
+    // The finest scale of a large image has a cell per pixel (8 M of them): filled in parallel.
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, level.nearest.size(), 1 << 16),
+                      [&level](const tbb::blocked_range<size_t>& r) {
+                        for (size_t k = r.begin(); k != r.end(); ++k) {
+                          level.nearest[k].store(kNoReturn, std::memory_order_relaxed);
+                        }
+                      });
   }
   std::atomic<int64_t> seen_total{0};
   tbb::parallel_for(tbb::blocked_range<size_t>(0, view.size(), 1 << 14), [&](const auto& range) {
@@ -154,26 +160,43 @@ size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
   for (size_t l = 0; l < levels->size(); ++l) {
     const Splat& level = (*levels)[l];
     const Cells& c = level.cells;
-    const auto filled = [&](int x, int y) {
-      const int64_t k = c.At(x, y);
-      return k >= 0 && level.nearest[size_t(k)].load(std::memory_order_relaxed) != kNoReturn;
-    };
+    // A cell is near a return when one of the 3×3 cells about it (columns wrapping on a
+    // panorama) holds one: the OR of a row's cell and its two neighbours, then of three such
+    // rows, in flat passes over bytes (a cell per pixel at the finest scale of a large image).
+    const size_t w = size_t(c.width);
+    std::vector<uint8_t> filled(w * size_t(c.height)), across(filled.size());
+    tbb::parallel_for(tbb::blocked_range<int>(0, c.height), [&](const tbb::blocked_range<int>& rows) {
+      for (int y = rows.begin(); y != rows.end(); ++y) {
+        const size_t row = size_t(y) * w;
+        for (size_t x = 0; x < w; ++x) {
+          filled[row + x] = level.nearest[row + x].load(std::memory_order_relaxed) != kNoReturn;
+        }
+        const uint8_t* f = &filled[row];
+        uint8_t* a = &across[row];
+        for (size_t x = 1; x + 1 < w; ++x) a[x] = f[x - 1] | f[x] | f[x + 1];
+        const auto at = [&](int64_t x) -> uint8_t {  // 0 off the raster
+          const int64_t k = c.At(int(x), y);
+          return k < 0 ? 0 : filled[size_t(k)];
+        };
+        for (size_t x : {size_t{0}, w - 1}) a[x] = at(int64_t(x) - 1) | f[x] | at(int64_t(x) + 1);
+      }
+    });
     using Counts = std::pair<int64_t, int64_t>;  // cells with a return, cells near one
     const Counts counts = tbb::parallel_reduce(
         tbb::blocked_range<int>(0, c.height), Counts{0, 0},
         [&](const tbb::blocked_range<int>& rows, Counts n) {
           for (int y = rows.begin(); y != rows.end(); ++y) {
-            for (int x = 0; x < c.width; ++x) {
-              if (filled(x, y)) {
-                ++n.first;
-                ++n.second;
-                continue;
-              }
-              bool near = false;
-              for (int dy = -1; dy <= 1 && !near; ++dy)
-                for (int dx = -1; dx <= 1 && !near; ++dx) near = filled(x + dx, y + dy);
-              n.second += near;
+            const uint8_t* f = &filled[size_t(y) * w];
+            const uint8_t* mid = &across[size_t(y) * w];
+            const uint8_t* up = y > 0 ? mid - w : nullptr;
+            const uint8_t* down = y + 1 < c.height ? mid + w : nullptr;
+            int64_t with = 0, near = 0;
+            for (size_t x = 0; x < w; ++x) {
+              with += f[x];
+              near += mid[x] | (up != nullptr ? up[x] : 0) | (down != nullptr ? down[x] : 0);
             }
+            n.first += with;
+            n.second += near;
           }
           return n;
         },
