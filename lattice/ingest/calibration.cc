@@ -115,10 +115,11 @@ struct Splat {
   std::vector<std::atomic<uint64_t>> nearest;  // NearestKey, kNoReturn for none
 };
 
-// The returns splatted at every candidate scale in one pass (s0 the smallest scale that keeps
-// the raster within max_width cells, then 2·s0, … 32·s0); the index of the smallest scale
-// whose cells the returns fill: where, of the cells within one of a return, kFillWanted hold
-// one (else the coarsest). `in_view`: the returns the camera sees.
+// The returns splatted at every candidate scale (s0 the smallest scale that keeps the raster
+// within max_width cells, then 2·s0, … 32·s0: the finest splatted, each coarser one pooled
+// from the one before, exactly as a splat of its own would fill it); the index of the
+// smallest scale whose cells the returns fill: where, of the cells within one of a return,
+// kFillWanted hold one (else the coarsest). `in_view`: the returns the camera sees.
 size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
                       std::vector<Splat>* levels, int64_t* in_view) {
   int s0 = 1;
@@ -128,14 +129,16 @@ size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
     Splat& level = (*levels)[l];
     level.cells = CellsAt(s0 << l, W, H, wrap);
     level.nearest = std::vector<std::atomic<uint64_t>>(size_t(level.cells.width) * level.cells.height);
-    // The finest scale of a large image has a cell per pixel (8 M of them): filled in parallel.
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, level.nearest.size(), 1 << 16),
-                      [&level](const tbb::blocked_range<size_t>& r) {
-                        for (size_t k = r.begin(); k != r.end(); ++k) {
-                          level.nearest[k].store(kNoReturn, std::memory_order_relaxed);
-                        }
-                      });
   }
+  // The returns go into the finest scale's cells (a cell per pixel of a large image: 8 M of
+  // them, set in parallel); the coarser ones are made from it below.
+  std::vector<std::atomic<uint64_t>>& finest = levels->front().nearest;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, finest.size(), 1 << 16),
+                    [&finest](const tbb::blocked_range<size_t>& r) {
+                      for (size_t k = r.begin(); k != r.end(); ++k) {
+                        finest[k].store(kNoReturn, std::memory_order_relaxed);
+                      }
+                    });
   std::atomic<int64_t> seen_total{0};
   tbb::parallel_for(tbb::blocked_range<size_t>(0, view.size(), 1 << 14), [&](const auto& range) {
     Eigen::Vector3d x;
@@ -146,17 +149,40 @@ size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
       if (i > std::numeric_limits<uint32_t>::max() || !view.Project(i, &x, &uv, &r)) continue;
       ++seen_here;
       const uint64_t key = NearestKey(r, i);
-      for (Splat& level : *levels) {
-        const Cells& c = level.cells;
-        std::atomic<uint64_t>& slot = level.nearest[size_t(c.At(c.Column(uv.x()), c.Row(uv.y())))];
-        uint64_t seen = slot.load(std::memory_order_relaxed);
-        while (key < seen && !slot.compare_exchange_weak(seen, key, std::memory_order_relaxed)) {
-        }
+      Splat& finest = levels->front();
+      const Cells& c = finest.cells;
+      std::atomic<uint64_t>& slot = finest.nearest[size_t(c.At(c.Column(uv.x()), c.Row(uv.y())))];
+      uint64_t seen = slot.load(std::memory_order_relaxed);
+      while (key < seen && !slot.compare_exchange_weak(seen, key, std::memory_order_relaxed)) {
       }
     }
     seen_total += seen_here;
   });
   *in_view = seen_total.load();
+  // Each coarser scale's nearest return per cell: the nearest of the 2×2 finer cells it covers
+  // (floor(u / 2s) = floor(floor(u / s) / 2), and the clamp to the last cell halves alike).
+  for (size_t l = 1; l < levels->size(); ++l) {
+    const Splat& fine = (*levels)[l - 1];
+    Splat& coarse = (*levels)[l];
+    const int fw = fine.cells.width, fh = fine.cells.height, cw = coarse.cells.width;
+    tbb::parallel_for(tbb::blocked_range<int>(0, coarse.cells.height),
+                      [&](const tbb::blocked_range<int>& rows) {
+      for (int y = rows.begin(); y != rows.end(); ++y) {
+        for (int x = 0; x < cw; ++x) {
+          uint64_t nearest = kNoReturn;
+          for (int fy = 2 * y; fy < std::min(2 * y + 2, fh); ++fy) {
+            for (int fx = 2 * x; fx < std::min(2 * x + 2, fw); ++fx) {
+              nearest = std::min(
+                  nearest, fine.nearest[size_t(fy) * size_t(fw) + size_t(fx)].load(
+                               std::memory_order_relaxed));
+            }
+          }
+          coarse.nearest[size_t(y) * size_t(cw) + size_t(x)].store(nearest,
+                                                                    std::memory_order_relaxed);
+        }
+      }
+    });
+  }
   for (size_t l = 0; l < levels->size(); ++l) {
     const Splat& level = (*levels)[l];
     const Cells& c = level.cells;
