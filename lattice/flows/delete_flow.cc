@@ -85,7 +85,7 @@ absl::StatusOr<FlowResult> DeleteScan(store::ProjectStore& store, const store::S
     }
     ingest::MergeBinned(g, inside);
   }
-  ingest::DeriveCentroidAndCovariance(g);
+  records::DeriveCentroidAndCovariance(g);
 
   // Old → new numbering by coordinate (vossels of emptied tiles may be gone).
   change.old_to_new.assign(old.size(), -1);

@@ -180,7 +180,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     for (ingest::LidarSource& c : change.new_sources.point_colours) c.gap_fill = binned->fill;
     change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
     const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
-    ingest::DeriveCentroidAndCovariance(change.geometry);
+    records::DeriveCentroidAndCovariance(change.geometry);
     change.old_to_new = merged.old_to_new;
 
     // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.

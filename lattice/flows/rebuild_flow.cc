@@ -84,7 +84,7 @@ absl::StatusOr<FlowResult> Rebuild(store::ProjectStore& store, int64_t max_image
     ingest::MergeBinned(next.geometry, *binned);
   }
   if (absl::Status stop = clock.Start("normals", 0.3); !stop.ok()) return stop;
-  ingest::DeriveCentroidAndCovariance(next.geometry);
+  records::DeriveCentroidAndCovariance(next.geometry);
   ingest::ComputeNormals(next.geometry);
 
   // The tiles in groups within the budget; one group (the whole version, held and committed

@@ -306,20 +306,6 @@ MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
   return result;
 }
 
-void DeriveCentroidAndCovariance(records::VosselGeometry& g) {
-  const size_t nv = g.size();
-  const double h = g.vossel_size_m;
-  g.centroid_m.resize(nv);
-  g.covariance_m2.resize(nv);
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t v = r.begin(); v != r.end(); ++v) {
-      const records::VosselFrame all = records::FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
-      g.centroid_m[v] = all.centroid_m;
-      g.covariance_m2[v] = all.covariance_m2;
-    }
-  });
-}
-
 absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSource>& lidars,
                                                       double h) {
   records::VosselGeometry g = EmptyGeometry(h);
@@ -328,7 +314,7 @@ absl::StatusOr<records::VosselGeometry> BuildGeometry(const std::vector<LidarSou
     if (!binned.ok()) return binned.status();
     MergeBinned(g, *binned);
   }
-  DeriveCentroidAndCovariance(g);
+  records::DeriveCentroidAndCovariance(g);
   ComputeNormals(g);
   return g;
 }

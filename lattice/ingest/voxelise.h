@@ -88,10 +88,6 @@ struct MergeResult {
 /// DeriveCentroidAndCovariance, ComputeNormals). `geometry` must carry sums.
 MergeResult MergeBinned(records::VosselGeometry& geometry, const BinnedLidar& add);
 
-/// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel from its sums
-/// (records::FrameOf).
-void DeriveCentroidAndCovariance(records::VosselGeometry& geometry);
-
 /// §1, the whole path: every LiDAR binned and merged in the given order (callers pass source-id
 /// order), centroids and covariances derived, and a PCA normal for every vossel over its
 /// 3×3×3 neighbourhood (ComputeNormals). Vossels come in canonical order (records::

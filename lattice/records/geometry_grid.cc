@@ -502,17 +502,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     }
     if (g.centroid_m.empty() && g.covariance_m2.empty() && g.point_count.size() == n) {
       // Written with the sums alone (GeometryGridSet::kStoredOnly): what they give, derived.
-      g.centroid_m.resize(n);
-      g.covariance_m2.resize(n);
-      tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 4096),
-                        [&](const tbb::blocked_range<size_t>& r) {
-                          for (size_t v = r.begin(); v != r.end(); ++v) {
-                            const VosselFrame all = FrameOf(g.coord[v], g.point_count[v],
-                                                            g.sums[v], g.vossel_size_m);
-                            g.centroid_m[v] = all.centroid_m;
-                            g.covariance_m2[v] = all.covariance_m2;
-                          }
-                        });
+      DeriveCentroidAndCovariance(g);
     }
   }
   if (auto count = GridAs<Int32Grid>(*contents, "frame_count")) {

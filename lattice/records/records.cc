@@ -6,6 +6,8 @@
 #include <tuple>
 #include <utility>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 #include <tbb/task_group.h>
 
 namespace vasl::records {
@@ -33,6 +35,20 @@ VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const VosselSums& s,
                      float(q[4] / n - mu.y() * mu.z()), float(q[5] / n - mu.z() * mu.z())};
   f.view = s.view_sum.cast<float>();
   return f;
+}
+
+void DeriveCentroidAndCovariance(VosselGeometry& g) {
+  const size_t nv = g.size();
+  const double h = g.vossel_size_m;
+  g.centroid_m.resize(nv);
+  g.covariance_m2.resize(nv);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t v = r.begin(); v != r.end(); ++v) {
+      const VosselFrame all = FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
+      g.centroid_m[v] = all.centroid_m;
+      g.covariance_m2[v] = all.covariance_m2;
+    }
+  });
 }
 
 namespace {

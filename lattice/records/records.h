@@ -148,6 +148,11 @@ struct VosselGeometry {
   }
 };
 
+/// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel of `geometry`, which
+/// must carry counts and sums, from them (FrameOf): after a merge of scans, and when a geometry
+/// object that keeps the sums alone is read (ReadGeometry).
+void DeriveCentroidAndCovariance(VosselGeometry& geometry);
+
 /// The observation records of a version (§6), structure of arrays, sorted by (vossel, scan).
 struct RecordSet {
   std::vector<int32_t> vossel;        ///< vossel index into VosselGeometry
