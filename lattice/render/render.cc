@@ -24,7 +24,9 @@
 
 #include <openvdb/math/DDA.h>
 #include <openvdb/math/Ray.h>
+#include <openvdb/tree/LeafManager.h>
 #include <tbb/blocked_range.h>
+#include <tbb/combinable.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 #include <tbb/partitioner.h>
@@ -37,6 +39,7 @@
 #include "lattice/geometry/pinhole.h"
 #include "lattice/render/render.h"
 #include "lattice/render/render_internal.h"
+#include "lattice/tiles/tiling.h"
 
 namespace vasl::render {
 namespace {
@@ -130,6 +133,138 @@ struct Scene {
   openvdb::math::BBox<openvdb::Vec3d> bbox_dda;
   double cell_margin_vox = 0.0;
   double max_range_m = 0.0;
+};
+
+/// Pixels per side of a NearRanges block.
+constexpr int kNearBlockPx = 8;
+
+/// Empty space skipped before the march *(choice: §8 leaves the traversal free)*: per block of
+/// kNearBlockPx² pixels, a lower bound of the range at which any of its rays can meet an
+/// active vossel, the least distance from the eye to the box of a leaf node's active cells
+/// (each widened by the cell margin, as CrossesVossel accepts hits) over the leaves whose image
+/// can cover a pixel of the block. A hit of pixel p is a point inside a vossel's widened cell,
+/// so inside its leaf's box, on p's ray: its range is at least the box's distance and the box's
+/// image covers p. A ray may start its march there and meets the same vossels in the same
+/// order (a hit's range, not the march's start, decides it; only where a ray passes exactly
+/// through a cell's edge may the DDA's tie between the two cells there fall the other way, as
+/// its times are rounded from another start); +inf: no ray of the block can hit. The HDDA skips
+/// empty nodes and leaves one by one along each ray; this skips, for a whole block of rays at
+/// once, the eye's side of the nearest leaf they can meet.
+/// A box's image: for an equirect view the rows and columns of its bounding cap (§2.1), for a
+/// pinhole without distortion the rectangle of its corners' pixels (§2.2, when all lie in
+/// front), else the whole image; one pixel of slack round each. Pinhole views with distortion
+/// are not skipped (every block 0): their images of a box are not bounded by its corners.
+class NearRanges {
+ public:
+  NearRanges(const Scene& scene, const RenderRequest& request)
+      : blocks_x_((request.width_px + kNearBlockPx - 1) / kNearBlockPx),
+        blocks_y_((request.height_px + kNearBlockPx - 1) / kNearBlockPx) {
+    const int W = request.width_px, H = request.height_px;
+    const size_t n = size_t(blocks_x_) * size_t(blocks_y_);
+    const geometry::PinholeIntrinsics& k = request.pinhole;
+    const bool pinhole = request.projection == Projection::kPinhole;
+    if (pinhole && (k.k1 != 0.0 || k.k2 != 0.0 || k.k3 != 0.0 || k.p1 != 0.0 || k.p2 != 0.0)) {
+      near_m_.assign(n, 0.0f);
+      return;
+    }
+    const Eigen::Vector3d o = request.pose.o_world;
+    const Eigen::Matrix3d R_sensor_world =
+        request.pose.q_world_sensor.conjugate().toRotationMatrix();
+    const double widen = 0.5 + scene.cell_margin_vox;
+    tbb::combinable<std::vector<float>> local(
+        [n] { return std::vector<float>(n, std::numeric_limits<float>::infinity()); });
+    openvdb::tree::LeafManager<const TreeT> leaves(*scene.tree);
+    tbb::parallel_for(leaves.leafRange(), [&](const auto& range) {
+      std::vector<float>& near = local.local();
+      for (auto leaf = range.begin(); leaf; ++leaf) {
+        openvdb::CoordBBox active;
+        leaf->evalActiveBoundingBox(active, /*visitVoxels=*/true);
+        if (active.empty()) continue;
+        // The box of its widened cells in world metres (corners through the index transform).
+        tiles::Box box{Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity()),
+                       Eigen::Vector3d::Constant(-std::numeric_limits<double>::infinity())};
+        for (int c = 0; c < 8; ++c) {
+          const openvdb::Vec3d corner((c & 1) ? active.max().x() + widen : active.min().x() - widen,
+                                      (c & 2) ? active.max().y() + widen : active.min().y() - widen,
+                                      (c & 4) ? active.max().z() + widen : active.min().z() - widen);
+          const openvdb::Vec3d w = scene.xform->indexToWorld(corner);
+          box.min_m = box.min_m.cwiseMin(Eigen::Vector3d(w.x(), w.y(), w.z()));
+          box.max_m = box.max_m.cwiseMax(Eigen::Vector3d(w.x(), w.y(), w.z()));
+        }
+        const tiles::ViewCap cap = tiles::CapOf(box, o, 0.0);
+        if (cap.near_m > scene.max_range_m) continue;  // beyond every ray's reach
+        // Rounded down: a hit's range, computed along the ray, may fall a few ulp short of it.
+        const float near_m = float(cap.near_m * (1.0 - 1e-9)) * (1.0f - 4e-7f);
+        int i0 = 0, span = W, j0 = 0, j1 = H - 1;  // the whole image
+        if (cap.everywhere) {
+          // The eye lies within the box's bounding sphere: any direction.
+        } else if (pinhole) {
+          double u_lo = HUGE_VAL, u_hi = -HUGE_VAL, v_lo = HUGE_VAL, v_hi = -HUGE_VAL;
+          bool front = true;
+          for (int c = 0; c < 8 && front; ++c) {
+            const Eigen::Vector3d x((c & 1) ? box.max_m.x() : box.min_m.x(),
+                                    (c & 2) ? box.max_m.y() : box.min_m.y(),
+                                    (c & 4) ? box.max_m.z() : box.min_m.z());
+            const std::optional<Eigen::Vector2d> uv =
+                geometry::PinholeProject(R_sensor_world * (x - o), k);
+            front = uv.has_value();
+            if (!front) break;
+            u_lo = std::min(u_lo, uv->x());
+            u_hi = std::max(u_hi, uv->x());
+            v_lo = std::min(v_lo, uv->y());
+            v_hi = std::max(v_hi, uv->y());
+          }
+          if (front) {
+            if (u_hi < -1.0 || v_hi < -1.0 || u_lo > W + 1.0 || v_lo > H + 1.0) {
+              continue;  // wholly outside the image
+            }
+            i0 = std::max(0, int(std::floor(u_lo)) - 1);
+            span = std::min(W - 1, int(std::floor(u_hi)) + 1) - i0 + 1;
+            j0 = std::max(0, int(std::floor(v_lo)) - 1);
+            j1 = std::min(H - 1, int(std::floor(v_hi)) + 1);
+          }
+        } else {
+          const Eigen::Vector3d d = R_sensor_world * cap.dir;
+          const double psi_c = std::asin(std::clamp(d.z(), -1.0, 1.0));
+          const double a = cap.half_angle_rad + 1e-9;
+          j0 = std::max(0, int(std::floor((0.5 - (psi_c + a) / M_PI) * H)) - 1);
+          j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - a) / M_PI) * H)) + 1);
+          // A cap of radius a clear of both poles spans the azimuths within
+          // asin(sin a / cos ψ_c) of its centre's (as tiles::CapCells::ForEach).
+          if (std::abs(psi_c) + a < 0.5 * M_PI - 1e-9) {
+            const double half_px =
+                std::asin(std::min(1.0, std::sin(a) / std::cos(psi_c))) / (2.0 * M_PI) * W;
+            const double u_c = (0.5 - geometry::Atan2(d.y(), d.x()) / (2.0 * M_PI)) * W;
+            if (2.0 * half_px + 4.0 < double(W)) {
+              i0 = int(std::floor(u_c - half_px)) - 1;
+              span = int(std::floor(u_c + half_px)) + 1 - i0 + 1;
+            }
+          }
+        }
+        for (int bj = j0 / kNearBlockPx; bj <= j1 / kNearBlockPx; ++bj) {
+          float* row = &near[size_t(bj) * size_t(blocks_x_)];
+          for (int done = 0; done < span;) {  // the columns, wrapped across the seam
+            const int i = geometry::WrapColumn(i0 + done, W);
+            float& b = row[i / kNearBlockPx];
+            b = std::min(b, near_m);
+            done += kNearBlockPx - i % kNearBlockPx;
+          }
+        }
+      }
+    });
+    near_m_.assign(n, std::numeric_limits<float>::infinity());
+    local.combine_each([this](const std::vector<float>& near) {
+      for (size_t b = 0; b < near_m_.size(); ++b) near_m_[b] = std::min(near_m_[b], near[b]);
+    });
+  }
+  /// The range pixel (i, j)'s march may start at; +inf: its ray hits nothing.
+  double operator()(int i, int j) const {
+    return near_m_[size_t(j / kNearBlockPx) * size_t(blocks_x_) + size_t(i / kNearBlockPx)];
+  }
+
+ private:
+  int blocks_x_ = 0, blocks_y_ = 0;
+  std::vector<float> near_m_;  ///< per block, row-major
 };
 
 /// WithinPointExtent's bound, its widening (vossels) and the points it needs.
@@ -479,7 +614,8 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
                                                      const records::FusedValues& fused,
                                                      const RenderRequest& request,
                                                      double cell_margin_vox,
-                                                     const ViewBlendInputs* blend) {
+                                                     const ViewBlendInputs* blend,
+                                                     bool skip_to_near_ranges) {
   if (absl::Status s = ValidateInputs(geometry, fused, request, cell_margin_vox, blend); !s.ok()) {
     return s;
   }
@@ -516,6 +652,8 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   std::mutex interrupt_mu;
   absl::Status interrupt;  // the first answer of request.interrupt that stopped the render
   tbb::enumerable_thread_specific<AccessorT> accessors(std::cref(*scene.tree));
+  std::optional<NearRanges> near;
+  if (skip_to_near_ranges) near.emplace(scene, request);
   const absl::Status emitted = bands.ForEach([&](int row_begin, int row_end) {
     AccessorT& acc = accessors.local();
     HddaT hdda;
@@ -532,7 +670,8 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
       }
       for (int i = 0; i < width; ++i) {
         const size_t p = static_cast<size_t>(j) * width + i;
-        const double start_m = request.start_range_m ? (*request.start_range_m)[p] : 0.0;
+        double start_m = request.start_range_m ? (*request.start_range_m)[p] : 0.0;
+        if (near) start_m = std::max(start_m, (*near)(i, j));
         if (!(start_m < std::numeric_limits<double>::infinity())) continue;
         const Eigen::Vector3d d_world = rays(i, j);
         SurfaceHit hit;

@@ -23,11 +23,15 @@ namespace vasl::render::internal {
 ///          resolution of the lattice itself.
 inline constexpr double kDefaultCellMarginVox = 0.25;
 
-/// RenderEquirect (§8) with an explicit cell margin, vossel units (≥ 0).
+/// RenderEquirect (§8) with an explicit cell margin, vossel units (≥ 0); with
+/// `skip_to_near_ranges` false every ray marches from the eye (or its start range), without the
+/// per-block skip of the empty space before the nearest leaf (render.cc NearRanges), so that a
+/// test can show the skip changes no pixel.
 absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeometry& geometry,
                                                      const records::FusedValues& fused,
                                                      const RenderRequest& request,
                                                      double cell_margin_vox,
-                                                     const ViewBlendInputs* blend = nullptr);
+                                                     const ViewBlendInputs* blend = nullptr,
+                                                     bool skip_to_near_ranges = true);
 
 }  // namespace vasl::render::internal
