@@ -9,8 +9,9 @@
 ///          - Index-space ray time t_idx relates to world range by t_idx = s · r_m, where s is
 ///            the length of the inverse Jacobian applied to the unit world direction (1/h for
 ///            createLinearTransform(h)).
-///          - Empty space is skipped at node level by OpenVDB's VolumeHDDA (root children →
-///            internal nodes → leaves); inside each run of leaves a voxel DDA visits the cells in
+///          - Empty space is skipped per block of rays up to the nearest leaf they can meet
+///            (NearRanges), then along each ray by 128³ cells without an internal node and 8³
+///            cells without a leaf (MarchRay); inside a leaf a voxel DDA visits the cells in
 ///            ray order.
 #include <algorithm>
 #include <atomic>
@@ -22,7 +23,6 @@
 #include <string>
 #include <vector>
 
-#include <openvdb/math/DDA.h>
 #include <openvdb/math/Ray.h>
 #include <openvdb/tree/LeafManager.h>
 #include <tbb/blocked_range.h>
@@ -47,8 +47,6 @@ namespace {
 using RayT = openvdb::math::Ray<double>;
 using TreeT = openvdb::Int32Tree;
 using AccessorT = openvdb::tree::ValueAccessor<const TreeT>;
-/// Node-level march from the root's children down to leaves (as VolumeRayIntersector does).
-using HddaT = openvdb::math::VolumeHDDA<TreeT, RayT, TreeT::RootNodeType::ChildNodeType::LEVEL>;
 
 /// Largest raster RenderEquirect allocates (8 floats per pixel: 8.6 GB at this size).
 constexpr int64_t kMaxPixels = int64_t{1} << 28;
@@ -145,11 +143,10 @@ constexpr int kNearBlockPx = 8;
 /// can cover a pixel of the block. A hit of pixel p is a point inside a vossel's widened cell,
 /// so inside its leaf's box, on p's ray: its range is at least the box's distance and the box's
 /// image covers p. A ray may start its march there and meets the same vossels in the same
-/// order (a hit's range, not the march's start, decides it; only where a ray passes exactly
-/// through a cell's edge may the DDA's tie between the two cells there fall the other way, as
-/// its times are rounded from another start); +inf: no ray of the block can hit. The HDDA skips
-/// empty nodes and leaves one by one along each ray; this skips, for a whole block of rays at
-/// once, the eye's side of the nearest leaf they can meet.
+/// order, entering each at the same time (MarchRay takes every time from the eye); +inf: no
+/// ray of the block can hit. The march skips empty nodes and leaves one by one along each
+/// ray; this skips, for a whole block of rays at once, the eye's side of the nearest leaf they
+/// can meet.
 /// A box's image: for an equirect view the rows and columns of its bounding cap (§2.1), for a
 /// pinhole without distortion the rectangle of its corners' pixels (§2.2, when all lie in
 /// front), else the whole image; one pixel of slack round each. Pinhole views with distortion
@@ -346,44 +343,110 @@ bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
   return true;
 }
 
+/// The time at which `ray` (shifted index space; `step` the signs of its direction) leaves the
+/// cell of edge `dim` (a power of two) holding voxel `c`, and the axis it leaves by.
+double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int dim, int* axis) {
+  double t = std::numeric_limits<double>::infinity();
+  for (int a = 0; a < 3; ++a) {
+    if (step[a] == 0) continue;
+    const int lo = c[a] & ~(dim - 1);
+    const double ta = (double(step[a] > 0 ? lo + dim : lo) - ray.eye()[a]) * ray.invDir()[a];
+    if (ta < t) {
+      t = ta;
+      *axis = a;
+    }
+  }
+  return t;
+}
+
 /// Marches one world ray to its first surface (§8). Returns false for no hit within range.
 /// Sets `*bad_index` to an out-of-range index value met in the grid (the caller reports it).
-bool MarchRay(const Scene& scene, AccessorT& acc, HddaT& hdda, const Eigen::Vector3d& o_world,
+/// A three-level DDA over the index tree, in the shifted index space where voxel k is
+/// [k, k + 1): a 128³ cell without an internal node or an 8³ cell without a leaf is crossed in
+/// one step, a leaf voxel by voxel, testing each active voxel's bit and index in the leaf
+/// itself. Every time is taken from the eye (a face's crossing is (face − eye)/dir), so the
+/// voxels a ray visits, their order and the times it enters them do not depend on where its
+/// march began.
+bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world,
               const Eigen::Vector3d& d_world, double min_range_m, SurfaceHit* hit,
               int32_t* bad_index) {
+  using LeafT = TreeT::LeafNodeType;
+  using InternalT = TreeT::RootNodeType::ChildNodeType::ChildNodeType;  // parent of leaves
   const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
   const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
   openvdb::Vec3d dir_idx = scene.map->applyInverseJacobian(d);
   const double scale = dir_idx.length();  // index units per metre
   dir_idx /= scale;
   const openvdb::Vec3d eye_dda = scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
-  const double t_max = scene.max_range_m * scale;
   RayT ray(eye_dda, dir_idx, std::max(openvdb::math::Delta<double>::value(), min_range_m * scale),
-           t_max);
+           scene.max_range_m * scale);
   if (!ray.clip(scene.bbox_dda)) return false;
-  // Ray over its clipped span; the HDDA rewrites the ray's times as it descends.
-  const RayT ray_dda(eye_dda, dir_idx);
   const double t_end = ray.t1();
+  double t = ray.t0();
+  int step[3];
+  for (int a = 0; a < 3; ++a) step[a] = dir_idx[a] > 0.0 ? 1 : (dir_idx[a] < 0.0 ? -1 : 0);
+  const openvdb::Vec3d inv = ray.invDir();
+  // The voxel at the start: on a face, the one the ray enters.
+  const openvdb::Vec3d start = ray(t);
+  openvdb::Coord c = openvdb::Coord::floor(start);
+  for (int a = 0; a < 3; ++a) {
+    if (step[a] < 0 && double(c[a]) == start[a]) --c[a];
+  }
   const int32_t n_vossels = static_cast<int32_t>(scene.geometry->size());
   while (true) {
-    const RayT::TimeSpan span = hdda.march(ray, acc);
-    if (!span.valid(0.0)) return false;
-    openvdb::math::DDA<RayT, 0> dda(ray_dda, span.t0, span.t1);
-    do {
-      int32_t vossel = -1;
-      if (acc.probeValue(dda.voxel(), vossel)) {
+    const LeafT* leaf = acc.probeConstLeaf(c);
+    if (leaf == nullptr) {
+      // Empty: leave the 8³ cell, or the 128³ cell of a missing internal node, at once. The
+      // cell entered is its face neighbour: the other axes from the point, kept inside it.
+      const int dim = acc.template probeConstNode<InternalT>(c) == nullptr ? int(InternalT::DIM)
+                                                                             : int(LeafT::DIM);
+      int axis = 0;
+      t = std::max(t, CellExit(ray, step, c, dim, &axis));
+      if (!(t <= t_end)) return false;
+      const openvdb::Vec3d p = ray(t);
+      openvdb::Coord next;
+      for (int a = 0; a < 3; ++a) {
+        const int lo = c[a] & ~(dim - 1);
+        next[a] = a == axis ? (step[a] > 0 ? lo + dim : lo - 1)
+                            : std::clamp(int(std::floor(p[a])), lo, lo + dim - 1);
+      }
+      c = next;
+      continue;
+    }
+    const openvdb::Coord origin = leaf->origin();
+    const LeafT::NodeMaskType& mask = leaf->valueMask();
+    double next[3];
+    for (int a = 0; a < 3; ++a) {
+      next[a] = step[a] == 0 ? std::numeric_limits<double>::infinity()
+                             : (double(c[a] + (step[a] > 0)) - eye_dda[a]) * inv[a];
+    }
+    while (true) {
+      const openvdb::Index n = LeafT::coordToOffset(c);
+      if (mask.isOn(n)) {
+        const int32_t vossel = leaf->getValue(n);
         if (vossel < 0 || vossel >= n_vossels) {
           *bad_index = vossel;
           return false;
         }
-        if (CrossesVossel(scene, o_world, d_world, ray_dda, scale, dda.voxel(), vossel,
-                          dda.time() / scale, min_range_m, hit)) {
+        if (CrossesVossel(scene, o_world, d_world, ray, scale, c, vossel, t / scale,
+                          min_range_m, hit)) {
           return true;
         }
       }
-    } while (dda.step());
-    if (span.t1 >= t_end) return false;
-    ray.setTimes(span.t1 + openvdb::math::Delta<double>::value(), t_end);
+      // The axis whose face comes first (each branch with its own constants in registers).
+      int axis;
+      if (next[0] < next[1]) {
+        axis = next[0] < next[2] ? 0 : 2;
+      } else {
+        axis = next[1] < next[2] ? 1 : 2;
+      }
+      t = std::max(t, next[axis]);
+      if (!(t <= t_end)) return false;
+      const int k = c[axis] + step[axis];
+      c[axis] = k;
+      next[axis] = (double(k + (step[axis] > 0)) - eye_dda[axis]) * inv[axis];
+      if ((k & ~int(LeafT::DIM - 1)) != origin[axis]) break;  // into the next leaf
+    }
   }
 }
 
@@ -656,7 +719,6 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   if (skip_to_near_ranges) near.emplace(scene, request);
   const absl::Status emitted = bands.ForEach([&](int row_begin, int row_end) {
     AccessorT& acc = accessors.local();
-    HddaT hdda;
     int64_t hits = 0, colourless = 0;
     for (int j = row_begin; j != row_end; ++j) {
       if (interrupted.load(std::memory_order_relaxed)) break;
@@ -676,7 +738,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const Eigen::Vector3d d_world = rays(i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;
-        if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world, start_m, &hit,
+        if (!MarchRay(scene, acc, request.pose.o_world, d_world, start_m, &hit,
                       &bad_value)) {
           if (bad_value != 0) {
             bad_index.store(bad_value);
@@ -706,7 +768,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
           for (size_t layer = 1; layer < L; ++layer) {
             SurfaceHit next;
             int32_t bad_next = 0;
-            if (!MarchRay(scene, acc, hdda, request.pose.o_world, d_world,
+            if (!MarchRay(scene, acc, request.pose.o_world, d_world,
                           behind.range_m + kLayerGapVox * geometry.vossel_size_m, &next, &bad_next)) {
               break;
             }

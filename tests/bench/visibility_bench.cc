@@ -139,5 +139,6 @@ BENCHMARK_CAPTURE(BM_Visibility, lidar_station_12, 11, kLidarPitchRad, kLidarDiv
 
 BENCHMARK_CAPTURE(BM_Render, h5cm_2048, 0.05, 2048)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_Render, h2cm_2048, 0.02, 2048)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Render, h2cm_4096, 0.02, 4096)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
