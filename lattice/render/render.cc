@@ -3,9 +3,10 @@
 ///        the lattice by hierarchical DDA, sub-vossel depth from each vossel's plane.
 /// @details Conventions.
 ///          - Rays are marched in the index space of the index grid. Vossel k's cell is
-///            [k − 0.5, k + 0.5] there (cell-centred, §1), but OpenVDB's DDA treats voxel k as
-///            [k, k + 1) (`Coord::floor`). The index-space ray's eye is therefore shifted by
-///            +0.5 on every axis: floor(p + 0.5) = k exactly when p lies in k's cell.
+///            [k − 0.5, k + 0.5] there (cell-centred, §1), but the march, like OpenVDB's nodes,
+///            takes voxel k as [k, k + 1) (`Coord::floor`). The index-space ray's eye is
+///            therefore shifted by +0.5 on every axis: floor(p + 0.5) = k exactly when p lies in
+///            k's cell.
 ///          - Index-space ray time t_idx relates to world range by t_idx = s · r_m, where s is
 ///            the length of the inverse Jacobian applied to the unit world direction (1/h for
 ///            createLinearTransform(h)).
@@ -343,6 +344,17 @@ bool CrossesVossel(const Scene& scene, const Eigen::Vector3d& o_world,
   return true;
 }
 
+/// Whether the 4³ octant of a leaf holding voxel `c` has no active voxel: the leaf's mask
+/// holds x in its word (LeafNode::coordToOffset: x·64 + y·8 + z), y and z in the word's bits.
+bool OctantEmpty(const TreeT::LeafNodeType::NodeMaskType& mask, const openvdb::Coord& c) {
+  static constexpr uint64_t kYZ[4] = {0x000000000F0F0F0FULL, 0x00000000F0F0F0F0ULL,
+                                      0x0F0F0F0F00000000ULL, 0xF0F0F0F000000000ULL};
+  const int x0 = c.x() & 4;
+  const uint64_t words = mask.getWord<uint64_t>(x0) | mask.getWord<uint64_t>(x0 + 1) |
+                         mask.getWord<uint64_t>(x0 + 2) | mask.getWord<uint64_t>(x0 + 3);
+  return (words & kYZ[((c.y() & 4) >> 1) | ((c.z() & 4) >> 2)]) == 0;
+}
+
 /// The time at which `ray` (shifted index space; `step` the signs of its direction) leaves the
 /// cell of edge `dim` (a power of two) holding voxel `c`, and the axis it leaves by.
 double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int dim, int* axis) {
@@ -361,10 +373,10 @@ double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int
 
 /// Marches one world ray to its first surface (§8). Returns false for no hit within range.
 /// Sets `*bad_index` to an out-of-range index value met in the grid (the caller reports it).
-/// A three-level DDA over the index tree, in the shifted index space where voxel k is
-/// [k, k + 1): a 128³ cell without an internal node or an 8³ cell without a leaf is crossed in
-/// one step, a leaf voxel by voxel, testing each active voxel's bit and index in the leaf
-/// itself. Every time is taken from the eye (a face's crossing is (face − eye)/dir), so the
+/// A four-level DDA over the index tree, in the shifted index space where voxel k is
+/// [k, k + 1): a 128³ cell without an internal node, an 8³ cell without a leaf or a 4³ octant
+/// of a leaf without an active voxel is crossed in one step, the other octants voxel by voxel,
+/// testing each active voxel's bit and index in the leaf itself. Every time is taken from the eye (a face's crossing is (face − eye)/dir), so the
 /// voxels a ray visits, their order and the times it enters them do not depend on where its
 /// march began.
 bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world,
@@ -393,59 +405,82 @@ bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world
     if (step[a] < 0 && double(c[a]) == start[a]) --c[a];
   }
   const int32_t n_vossels = static_cast<int32_t>(scene.geometry->size());
+  // Leaves the cell of edge `dim` holding c: t to its exit, c to the face neighbour it enters
+  // (the other axes from the point, kept inside the cell); false beyond the ray's end.
+  auto leave = [&](int dim) {
+    int axis = 0;
+    t = std::max(t, CellExit(ray, step, c, dim, &axis));
+    if (!(t <= t_end)) return false;
+    const openvdb::Vec3d p = ray(t);
+    openvdb::Coord next;
+    for (int a = 0; a < 3; ++a) {
+      const int lo = c[a] & ~(dim - 1);
+      next[a] = a == axis ? (step[a] > 0 ? lo + dim : lo - 1)
+                          : std::clamp(int(std::floor(p[a])), lo, lo + dim - 1);
+    }
+    c = next;
+    return true;
+  };
+  auto in_leaf = [](const openvdb::Coord& c, const openvdb::Coord& origin) {
+    return (c.x() & ~int(LeafT::DIM - 1)) == origin.x() &&
+           (c.y() & ~int(LeafT::DIM - 1)) == origin.y() &&
+           (c.z() & ~int(LeafT::DIM - 1)) == origin.z();
+  };
   while (true) {
     const LeafT* leaf = acc.probeConstLeaf(c);
     if (leaf == nullptr) {
-      // Empty: leave the 8³ cell, or the 128³ cell of a missing internal node, at once. The
-      // cell entered is its face neighbour: the other axes from the point, kept inside it.
-      const int dim = acc.template probeConstNode<InternalT>(c) == nullptr ? int(InternalT::DIM)
-                                                                             : int(LeafT::DIM);
-      int axis = 0;
-      t = std::max(t, CellExit(ray, step, c, dim, &axis));
-      if (!(t <= t_end)) return false;
-      const openvdb::Vec3d p = ray(t);
-      openvdb::Coord next;
-      for (int a = 0; a < 3; ++a) {
-        const int lo = c[a] & ~(dim - 1);
-        next[a] = a == axis ? (step[a] > 0 ? lo + dim : lo - 1)
-                            : std::clamp(int(std::floor(p[a])), lo, lo + dim - 1);
+      // Empty: leave the 8³ cell, or the 128³ cell of a missing internal node, at once.
+      if (!leave(acc.template probeConstNode<InternalT>(c) == nullptr ? int(InternalT::DIM)
+                                                                      : int(LeafT::DIM))) {
+        return false;
       }
-      c = next;
       continue;
     }
     const openvdb::Coord origin = leaf->origin();
     const LeafT::NodeMaskType& mask = leaf->valueMask();
-    double next[3];
-    for (int a = 0; a < 3; ++a) {
-      next[a] = step[a] == 0 ? std::numeric_limits<double>::infinity()
-                             : (double(c[a] + (step[a] > 0)) - eye_dda[a]) * inv[a];
-    }
-    while (true) {
-      const openvdb::Index n = LeafT::coordToOffset(c);
-      if (mask.isOn(n)) {
-        const int32_t vossel = leaf->getValue(n);
-        if (vossel < 0 || vossel >= n_vossels) {
-          *bad_index = vossel;
-          return false;
-        }
-        if (CrossesVossel(scene, o_world, d_world, ray, scale, c, vossel, t / scale,
-                          min_range_m, hit)) {
-          return true;
-        }
+    bool inside = true;
+    while (inside) {
+      if (OctantEmpty(mask, c)) {  // an empty 4³ octant of the leaf: left at once too
+        if (!leave(4)) return false;
+        inside = in_leaf(c, origin);
+        continue;
       }
-      // The axis whose face comes first (each branch with its own constants in registers).
-      int axis;
-      if (next[0] < next[1]) {
-        axis = next[0] < next[2] ? 0 : 2;
-      } else {
-        axis = next[1] < next[2] ? 1 : 2;
+      double next[3];
+      for (int a = 0; a < 3; ++a) {
+        next[a] = step[a] == 0 ? std::numeric_limits<double>::infinity()
+                               : (double(c[a] + (step[a] > 0)) - eye_dda[a]) * inv[a];
       }
-      t = std::max(t, next[axis]);
-      if (!(t <= t_end)) return false;
-      const int k = c[axis] + step[axis];
-      c[axis] = k;
-      next[axis] = (double(k + (step[axis] > 0)) - eye_dda[axis]) * inv[axis];
-      if ((k & ~int(LeafT::DIM - 1)) != origin[axis]) break;  // into the next leaf
+      while (true) {  // voxel by voxel through the octant
+        const openvdb::Index n = LeafT::coordToOffset(c);
+        if (mask.isOn(n)) {
+          const int32_t vossel = leaf->getValue(n);
+          if (vossel < 0 || vossel >= n_vossels) {
+            *bad_index = vossel;
+            return false;
+          }
+          if (CrossesVossel(scene, o_world, d_world, ray, scale, c, vossel, t / scale,
+                            min_range_m, hit)) {
+            return true;
+          }
+        }
+        // The axis whose face comes first.
+        int axis;
+        if (next[0] < next[1]) {
+          axis = next[0] < next[2] ? 0 : 2;
+        } else {
+          axis = next[1] < next[2] ? 1 : 2;
+        }
+        t = std::max(t, next[axis]);
+        if (!(t <= t_end)) return false;
+        const int k = c[axis] + step[axis];
+        c[axis] = k;
+        next[axis] = (double(k + (step[axis] > 0)) - eye_dda[axis]) * inv[axis];
+        if ((k & ~int(LeafT::DIM - 1)) != origin[axis]) {  // into the next leaf
+          inside = false;
+          break;
+        }
+        if ((k & ~3) != ((k - step[axis]) & ~3)) break;  // into another octant of this leaf
+      }
     }
   }
 }
