@@ -11,9 +11,9 @@
 ///            the length of the inverse Jacobian applied to the unit world direction (1/h for
 ///            createLinearTransform(h)).
 ///          - Empty space is skipped per block of rays up to the nearest leaf they can meet
-///            (NearRanges), then along each ray by 128³ cells without an internal node and 8³
-///            cells without a leaf (MarchRay); inside a leaf a voxel DDA visits the cells in
-///            ray order.
+///            (NearRanges), then along each ray by 128³ cells without an internal node, 8³
+///            cells without a leaf and 4³ octants of a leaf without an active voxel (MarchRay);
+///            in the other octants a voxel DDA visits the cells in ray order.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -181,11 +181,11 @@ class NearRanges {
         // The box of its widened cells in world metres (corners through the index transform).
         tiles::Box box{Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity()),
                        Eigen::Vector3d::Constant(-std::numeric_limits<double>::infinity())};
+        const openvdb::Vec3d lo = active.min().asVec3d() - openvdb::Vec3d(widen);
+        const openvdb::Vec3d hi = active.max().asVec3d() + openvdb::Vec3d(widen);
         for (int c = 0; c < 8; ++c) {
-          const openvdb::Vec3d corner((c & 1) ? active.max().x() + widen : active.min().x() - widen,
-                                      (c & 2) ? active.max().y() + widen : active.min().y() - widen,
-                                      (c & 4) ? active.max().z() + widen : active.min().z() - widen);
-          const openvdb::Vec3d w = scene.xform->indexToWorld(corner);
+          const openvdb::Vec3d w = scene.xform->indexToWorld(openvdb::Vec3d(
+              (c & 1) ? hi.x() : lo.x(), (c & 2) ? hi.y() : lo.y(), (c & 4) ? hi.z() : lo.z()));
           box.min_m = box.min_m.cwiseMin(Eigen::Vector3d(w.x(), w.y(), w.z()));
           box.max_m = box.max_m.cwiseMax(Eigen::Vector3d(w.x(), w.y(), w.z()));
         }
@@ -376,9 +376,9 @@ double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int
 /// A four-level DDA over the index tree, in the shifted index space where voxel k is
 /// [k, k + 1): a 128³ cell without an internal node, an 8³ cell without a leaf or a 4³ octant
 /// of a leaf without an active voxel is crossed in one step, the other octants voxel by voxel,
-/// testing each active voxel's bit and index in the leaf itself. Every time is taken from the eye (a face's crossing is (face − eye)/dir), so the
-/// voxels a ray visits, their order and the times it enters them do not depend on where its
-/// march began.
+/// testing each active voxel's bit and index in the leaf itself. Every time is taken from the
+/// eye (a face's crossing is (face − eye)/dir), so the voxels a ray visits, their order and the
+/// times it enters them do not depend on where its march began.
 bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world,
               const Eigen::Vector3d& d_world, double min_range_m, SurfaceHit* hit,
               int32_t* bad_index) {
