@@ -144,8 +144,10 @@ constexpr int kNearBlockPx = 8;
 /// can cover a pixel of the block. A hit of pixel p is a point inside a vossel's widened cell,
 /// so inside its leaf's box, on p's ray: its range is at least the box's distance and the box's
 /// image covers p. A ray may start its march there and meets the same vossels in the same
-/// order, entering each at the same time (MarchRay takes every time from the eye); +inf: no
-/// ray of the block can hit. The march skips empty nodes and leaves one by one along each
+/// order, entering each at the same time (MarchRay takes every time from the eye), unless it
+/// passes exactly through a cell's edge, where either neighbour is the ray's and a march that
+/// crosses an empty cell at once may take the other one first; +inf: no ray of the block can
+/// hit. The march skips empty nodes and leaves one by one along each
 /// ray; this skips, for a whole block of rays at once, the eye's side of the nearest leaf they
 /// can meet.
 /// A box's image: for an equirect view the rows and columns of its bounding cap (§2.1), for a
