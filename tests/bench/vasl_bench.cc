@@ -42,8 +42,14 @@ namespace {
 //   mkfifo ctl ack; VASL_PERF_CTL=ctl VASL_PERF_ACK=ack \
 //     perf record -D -1 --control=fifo:ctl,ack -o ingest.perf vasl_bench --growth-only
 // perf starts with its counters off; each ingest turns them on and off again. With
-// VASL_PERF_SCANS=2,12 (scan numbers from 1) only those ingests are sampled.
+// VASL_PERF_SCANS=2,12 (scan numbers from 1) only those ingests are sampled; with
+// VASL_PERF_STEP=reweight the reweight flow's runs are sampled instead of the ingests.
+bool PerfReweights() {
+  static const char* step = std::getenv("VASL_PERF_STEP");
+  return step != nullptr && std::strcmp(step, "reweight") == 0;
+}
 bool PerfScan(size_t scan_number) {
+  if (PerfReweights()) return false;
   static const char* scans = std::getenv("VASL_PERF_SCANS");
   if (scans == nullptr) return true;
   for (absl::string_view n : absl::StrSplit(scans, ',')) {
@@ -144,7 +150,9 @@ absl::StatusOr<ReweightRuns> TimeReweights(vasl::Engine& engine, const std::stri
     p.alpha += 0.1;
     if (auto made = engine.CreateProfile(project, p); !made.ok()) return made.status();
     const auto t0 = Clock::now();
+    if (PerfReweights()) PerfControl("enable");
     auto r = engine.Reweight(project, "bench", 0);
+    if (PerfReweights()) PerfControl("disable");
     if (!r.ok()) return r.status();
     seconds.push_back(Since(t0));
     out.records = r->records;

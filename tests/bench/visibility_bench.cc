@@ -14,8 +14,10 @@
 
 #include <benchmark/benchmark.h>
 
+#include "lattice/geometry/equirect.h"
 #include "lattice/ingest/visibility.h"
 #include "lattice/ingest/voxelise.h"
+#include "lattice/render/encode.h"
 #include "lattice/render/render.h"
 #include "tests/scenes/corridor_site.h"
 
@@ -125,6 +127,69 @@ void BM_Render(benchmark::State& state, double h, int width_px) {
   state.counters["hit_pixels"] = double(hits);
 }
 
+/// The march's W×W/2 image at h = 2 cm coloured as a render of the site shows it: the site's
+/// albedo where a ray hits (linear, textured), black and uncovered where it misses. Built once.
+const vasl::render::RenderImage& ColouredRender(int width_px) {
+  static std::map<int, vasl::render::RenderImage> by_width;
+  static std::mutex mu;
+  std::lock_guard<std::mutex> lock(mu);
+  if (auto it = by_width.find(width_px); it != by_width.end()) return it->second;
+  vasl::render::RenderRequest request;
+  request.pose = Site().NovelViews()[0];
+  request.width_px = width_px;
+  request.height_px = width_px / 2;
+  auto image = vasl::render::RenderEquirect(Geometry(0.02), vasl::records::FusedValues{}, request);
+  if (!image.ok()) {
+    std::fprintf(stderr, "render: %s\n", image.status().ToString().c_str());
+    std::exit(1);
+  }
+  const size_t n = image->depth_m.size();
+  image->rgb.assign(3 * n, 0.0f);
+  image->alpha.assign(n, 0.0f);
+  image->uncertainty.assign(n, 0.0f);
+  const vasl::geometry::EquirectSize size{image->width_px, image->height_px};
+  for (size_t p = 0; p < n; ++p) {
+    if (!std::isfinite(image->depth_m[p])) continue;
+    const Eigen::Vector3d d_world =
+        request.pose.q_world_sensor *
+        vasl::geometry::EquirectUnproject(double(p % size_t(size.width_px)) + 0.5,
+                                          double(p / size_t(size.width_px)) + 0.5, size);
+    const vasl::scenes::SceneHit hit = Site().Intersect(request.pose.o_world, d_world, 1000.0);
+    if (!hit.valid) continue;
+    const Eigen::Vector3f albedo = Site().Albedo(hit.x_world, hit.face);
+    // A fused vossel's colour: the albedo at its centre, off by up to ±3% per vossel and
+    // channel as a capture's noise leaves it (a fixed hash of the vossel's coordinates).
+    const Eigen::Vector3i cell = (hit.x_world / 0.02).array().floor().cast<int>();
+    for (int c = 0; c < 3; ++c) {
+      const uint32_t hash = (uint32_t(cell.x()) * 73856093u) ^ (uint32_t(cell.y()) * 19349663u) ^
+                            (uint32_t(cell.z()) * 83492791u) ^ (uint32_t(c) * 2654435761u);
+      const uint32_t mixed = hash * 2654435761u;
+      image->rgb[3 * p + c] = albedo[c] * (0.97f + 0.06f * float(mixed >> 8) / float(1u << 24));
+    }
+    image->alpha[p] = 1.0f;
+    image->uncertainty[p] = 0.01f;
+  }
+  return by_width.emplace(width_px, std::move(*image)).first->second;
+}
+
+/// A render's file made from its image, whole (render::Encode: the rows a streamed render
+/// encodes as they finish, all at once). Items are pixels; bytes the file's.
+void BM_Encode(benchmark::State& state, vasl::render::ImageFormat format, int width_px) {
+  const vasl::render::RenderImage& image = ColouredRender(width_px);
+  size_t bytes = 0;
+  for (auto _ : state) {
+    auto file = vasl::render::Encode(format, image);
+    if (!file.ok()) {
+      state.SkipWithError(file.status().ToString().c_str());
+      return;
+    }
+    bytes = file->size();
+    benchmark::DoNotOptimize(file->data());
+  }
+  state.SetItemsProcessed(int64_t(state.iterations()) * width_px * (width_px / 2));
+  state.counters["file_MB"] = double(bytes) / 1e6;
+}
+
 BENCHMARK_CAPTURE(BM_DepthPanorama, camera_station_12, 11, kCameraPitchRad, kCameraDivergenceRad)
     ->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_DepthPanorama, camera_station_2, 1, kCameraPitchRad, kCameraDivergenceRad)
@@ -140,5 +205,9 @@ BENCHMARK_CAPTURE(BM_Visibility, lidar_station_12, 11, kLidarPitchRad, kLidarDiv
 BENCHMARK_CAPTURE(BM_Render, h5cm_2048, 0.05, 2048)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_Render, h2cm_2048, 0.02, 2048)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_Render, h2cm_4096, 0.02, 4096)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Encode, png_4096, vasl::render::ImageFormat::kPng, 4096)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_Encode, exr_4096, vasl::render::ImageFormat::kExr, 4096)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
