@@ -1,8 +1,11 @@
 #include "lattice/geometry/linear_image.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstddef>
+#include <cstring>
+#include <limits>
 
 #include "lattice/geometry/equirect.h"
 
@@ -17,6 +20,55 @@ float LinearToSrgb(float linear) {
   if (linear >= 1.0f) return 1.0f;
   if (linear <= 0.0031308f) return 12.92f * linear;
   return 1.055f * std::pow(linear, 1.0f / 2.4f) - 0.055f;
+}
+
+namespace {
+
+/// LinearToSrgb8's tables. The code of x, lround(255·LinearToSrgb(x)), does not decrease with
+/// x, so it is the number of thresholds t_b ≤ x (t_b: the least float whose code is ≥ b,
+/// b = 1..255, found by bisection over the floats' bit patterns, which order the positive
+/// floats). Each run of floats sharing their top 16 bits (an exponent and 7 bits of mantissa:
+/// the first code in `by_bucket`) meets at most one threshold: the curve's steepest slope
+/// over such a run, near 1 or in the linear toe, is under half a code.
+struct Srgb8Tables {
+  static constexpr uint32_t kOneBits = 0x3f800000u;  // 1.0f
+  std::array<float, 257> threshold{};                // t_b; t_256 = +inf
+  std::array<uint8_t, (kOneBits >> 16) + 1> by_bucket{};
+
+  static int Code(float x) { return int(std::lround(LinearToSrgb(x) * 255.0f)); }
+  static float OfBits(uint32_t bits) {
+    float f;
+    std::memcpy(&f, &bits, sizeof f);
+    return f;
+  }
+
+  Srgb8Tables() {
+    threshold[0] = 0.0f;
+    for (int b = 1; b <= 255; ++b) {
+      uint32_t lo = 0, hi = kOneBits;  // Code(lo) < b ≤ Code(hi)
+      while (hi - lo > 1) {
+        const uint32_t mid = lo + (hi - lo) / 2;
+        (Code(OfBits(mid)) >= b ? hi : lo) = mid;
+      }
+      threshold[size_t(b)] = OfBits(hi);
+    }
+    threshold[256] = std::numeric_limits<float>::infinity();
+    for (uint32_t i = 0; i < by_bucket.size(); ++i) {
+      by_bucket[i] = uint8_t(Code(OfBits(i << 16)));
+    }
+  }
+};
+
+}  // namespace
+
+uint8_t LinearToSrgb8(float linear) {
+  static const Srgb8Tables tables;
+  if (!(linear > 0.0f)) return 0;  // also NaN
+  if (linear >= 1.0f) return 255;
+  uint32_t bits;
+  std::memcpy(&bits, &linear, sizeof bits);
+  const int code = tables.by_bucket[bits >> 16];
+  return uint8_t(linear >= tables.threshold[size_t(code) + 1] ? code + 1 : code);
 }
 
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {

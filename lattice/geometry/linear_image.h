@@ -42,6 +42,10 @@ float SrgbToLinear(float encoded);
 /// else 1.055·c^(1/2.4) − 0.055. Input clamped to [0, 1]; NaN → 0. How renders are written
 /// (render::EncodePng) and a JPEG's codes are recovered (ingest::DetectCodec).
 float LinearToSrgb(float linear);
+/// The 8-bit sRGB code of a linear value, lround(255·LinearToSrgb(linear)) exactly, by two
+/// small tables instead of a pow: how PNG renders are written (render::RowEncoder), 25 M
+/// channels for a 4096×2048 image.
+uint8_t LinearToSrgb8(float linear);
 
 /// Bilinear read of `img` at continuous pixel coordinates (u, v): `img.channels` values into
 /// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation

@@ -207,10 +207,10 @@ class EncoderBase : public RowEncoder {
   SinkBuffer buffer_;
 };
 
-/// zlib's level for the EXRs' ZIP and ZIPS chunks (a reader needs no setting: the level is not
+/// zlib's level for the deep EXRs' ZIPS chunks (a reader needs no setting: the level is not
 /// in the file). Level 1 rather than OpenEXR's default 4, since a user waits for the encoding:
 /// a 4096×2048 render of the realistic corridor site took 2.3 s to encode instead of 3.3 s, its
-/// file 74 MB instead of 68 MB (tests/bench/e2e_bench.py; 2026-11-27).
+/// file 74 MB instead of 68 MB (ZIP then; tests/bench/e2e_bench.py; 2026-11-27).
 constexpr int kZipLevel = 1;
 
 /// What the flat and the deep EXR encoders share: the stream into the sink, the OpenEXR file
@@ -270,16 +270,19 @@ class OpenExrEncoder : public EncoderBase {
   std::unique_ptr<File> file_;
 };
 
-/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; ZIP compression, row 0 on top.
-/// Bands are gathered into runs of several ZIP chunks (16 rows each) before OpenEXR writes
-/// them, so that its thread pool compresses those chunks in parallel: a band alone is one
-/// chunk, compressed on one thread while the caller waits. The file's bytes are the same
+/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; PIZ compression, row 0 on top.
+/// PIZ (lossless wavelet and Huffman) rather than ZIP at level 1: a 4096×2048 render of the
+/// corridor site (BM_Encode/exr_4096: the site's albedo with ±3% per vossel) 2.9 → 2.2 s to
+/// encode on 2 cores, its file 106.4 → 105.5 MB; every EXR reader decodes it.
+/// Bands are gathered into runs of several PIZ chunks (32 rows each) before OpenEXR writes
+/// them, so that its thread pool compresses those chunks in parallel: a band alone is part of
+/// one chunk, compressed on one thread while the caller waits. The file's bytes are the same
 /// either way (the same chunks, in the same order).
 class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
  public:
   using OpenExrEncoder::OpenExrEncoder;
 
-  absl::Status Open() { return OpenFile(Imf::ZIP_COMPRESSION, kChannels); }
+  absl::Status Open() { return OpenFile(kCompression, kChannels); }
   int rows_sent() const override { return pending_row_; }
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
@@ -321,8 +324,10 @@ class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
  private:
   static constexpr const char* kChannels[] = {"R", "G", "B", "Z", "N.x", "N.y", "N.z", "U", "A"};
   static constexpr size_t kChannelCount = std::size(kChannels);
-  /// Rows OpenEXR is given at once: two ZIP chunks of 16 rows per thread of its pool.
-  static int RowsPerWrite() { return 2 * 16 * ExrThreads(); }
+  static constexpr Imf::Compression kCompression = Imf::PIZ_COMPRESSION;
+  static constexpr int kChunkRows = 32;  ///< rows per PIZ chunk (OpenEXR's format)
+  /// Rows OpenEXR is given at once: two chunks per thread of its pool.
+  static int RowsPerWrite() { return 2 * kChunkRows * ExrThreads(); }
 
   int pending_row_ = 0;         ///< the first row not yet written
   std::vector<float> pending_;  ///< rows [pending_row_, next row), kChannels interleaved
@@ -393,6 +398,11 @@ class DeepExrEncoder final : public OpenExrEncoder<Imf::DeepScanLineOutputFile> 
   std::vector<char*> pointers_[5];      ///< per channel and pixel: its first sample
 };
 
+/// zlib's level for the PNG (OpenImageIO's default is 6), libpng's adaptive row filters kept:
+/// a 4096×2048 render of the corridor site (BM_Encode/png_4096) 0.93 → 0.55 s to encode, its
+/// file 2.6 → 3.3 MB (levels 1 and 2 took the same time; level 3 0.62 s, 3.1 MB).
+constexpr int kPngZlibLevel = 2;
+
 /// PNG: RGBA 8-bit sRGB; alpha 0 where the ray hit nothing (black) or a vossel without colour
 /// (neutral grey 128: a viewer shows it as transparent; one that ignores alpha, as grey).
 class PngEncoder final : public EncoderBase {
@@ -413,6 +423,7 @@ class PngEncoder final : public EncoderBase {
     }
     OIIO::ImageSpec spec(width_, height_, 4, OIIO::TypeDesc::UINT8);
     spec.alpha_channel = 3;
+    spec.attribute("png:compressionLevel", kPngZlibLevel);
     if (!out_->open("render.png", spec)) return Failed("OpenImageIO", out_->geterror());
     return Sent(0);
   }
@@ -428,8 +439,7 @@ class PngEncoder final : public EncoderBase {
       for (int c = 0; c < 3; ++c) {
         srgb_[4 * i + c] = colourless ? uint8_t{128}
                            : !covered ? uint8_t{0}
-                                      : static_cast<uint8_t>(std::lround(
-                                            LinearToSrgb(image.rgb[3 * p + c]) * 255.0f));
+                                      : geometry::LinearToSrgb8(image.rgb[3 * p + c]);
       }
       srgb_[4 * i + 3] = covered ? 255 : 0;
     }

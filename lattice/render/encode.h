@@ -65,14 +65,14 @@ absl::Status WriteRows(const std::vector<RowEncoder*>& encoders, const RenderIma
 
 /// EXR bytes: float channels R, G, B (linear), Z (metres, +inf no hit), N.x, N.y, N.z
 /// (world), U (+inf where the hit vossel has no colour) and A (coverage: 1 where the pixel has
-/// a colour); ZIP compression.
+/// a colour); PIZ compression (lossless).
 absl::StatusOr<std::string> EncodeExr(const RenderImage& image);
 /// Deep OpenEXR bytes (multi-layer depth, §8): per pixel its surface hits front to back as
 /// samples with float channels R, G, B, A (1 where the surface has colour) and Z (metres along
 /// the ray); a render with one layer gives one sample per hit pixel. ZIPS compression.
 absl::StatusOr<std::string> EncodeDeepExr(const RenderImage& image);
-/// PNG bytes: RGBA 8-bit, sRGB transfer; alpha 0 where the ray hit nothing (RGB black) or a
-/// vossel without colour (RGB neutral grey 128).
+/// PNG bytes: RGBA 8-bit, sRGB transfer (geometry::LinearToSrgb8); alpha 0 where the ray hit
+/// nothing (RGB black) or a vossel without colour (RGB neutral grey 128).
 absl::StatusOr<std::string> EncodePng(const RenderImage& image);
 /// The whole image in `format` (one RowEncoder over every row).
 absl::StatusOr<std::string> Encode(ImageFormat format, const RenderImage& image);

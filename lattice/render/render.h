@@ -79,7 +79,7 @@ struct RenderRequest {
 /// (a wall two vossels thick) are not a layer of their own.
 inline constexpr double kLayerGapVox = 1.5;
 /// Rows per band of a render's march: the unit of its work and of RenderRequest::rows_done
-/// (a multiple of the 16 rows OpenEXR's ZIP compression packs into one chunk).
+/// (half the 32 rows of an EXR's PIZ chunk; the EXR encoder gathers bands into whole chunks).
 inline constexpr int kBandRows = 16;
 
 /// A rendered equirectangular RGBZ + normal + uncertainty image (§8), row-major, row 0 up.

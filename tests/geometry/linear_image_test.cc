@@ -1,0 +1,71 @@
+// LinearToSrgb8 (how PNG renders are coded) against its definition, lround(255·LinearToSrgb).
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <limits>
+
+#include <gtest/gtest.h>
+
+#include "lattice/geometry/linear_image.h"
+
+namespace vasl::geometry {
+namespace {
+
+int Definition(float x) { return int(std::lround(LinearToSrgb(x) * 255.0f)); }
+
+float OfBits(uint32_t bits) {
+  float f;
+  std::memcpy(&f, &bits, sizeof f);
+  return f;
+}
+
+// Claim: the table-driven code equals the definition for every input: a stride through every
+// float of [0, 1] (their bit patterns 0 to 0x3f800000, every 37th), the 256 floats on each
+// side of each code's first float (where a table could be off), and the inputs outside (0, 1):
+// negatives, zeros, NaN, infinities, values above 1, subnormals.
+TEST(LinearImageTest, Srgb8CodeEqualsItsDefinitionEverywhere) {
+  constexpr uint32_t kOne = 0x3f800000u;
+  size_t checked = 0, wrong = 0;
+  auto check = [&](float x) {
+    ++checked;
+    if (int(LinearToSrgb8(x)) != Definition(x)) {
+      if (++wrong <= 5) {
+        ADD_FAILURE() << "x = " << x << ": table " << int(LinearToSrgb8(x)) << ", definition "
+                      << Definition(x);
+      }
+    }
+  };
+  for (uint32_t bits = 0; bits <= kOne; bits += 37) check(OfBits(bits));
+  int first_of_code[256] = {};  // the least float of each code, found by walking the bits
+  size_t edges = 0;
+  for (int b = 1; b <= 255; ++b) {
+    uint32_t lo = 0, hi = kOne;
+    while (hi - lo > 1) {
+      const uint32_t mid = lo + (hi - lo) / 2;
+      (Definition(OfBits(mid)) >= b ? hi : lo) = mid;
+    }
+    first_of_code[b] = int(hi);
+    for (uint32_t bits = hi > 256 ? hi - 256 : 0; bits <= std::min(hi + 256, kOne); ++bits) {
+      check(OfBits(bits));
+      ++edges;
+    }
+  }
+  const float outside[] = {-0.0f, 0.0f, -1.0f, -std::numeric_limits<float>::infinity(),
+                           std::numeric_limits<float>::infinity(), std::nanf(""), 1.0f,
+                           std::nextafter(1.0f, 2.0f), 7.5f, std::numeric_limits<float>::min(),
+                           std::numeric_limits<float>::denorm_min(), 1e-30f};
+  for (float x : outside) check(x);
+  std::printf("sRGB 8-bit code: %zu inputs checked (%zu beside the 255 code edges; code 1 from "
+              "%.9g, code 128 from %.9g, code 255 from %.9g), %zu differ from the definition\n",
+              checked, edges, double(OfBits(uint32_t(first_of_code[1]))),
+              double(OfBits(uint32_t(first_of_code[128]))),
+              double(OfBits(uint32_t(first_of_code[255]))), wrong);
+  EXPECT_EQ(wrong, 0u);
+  EXPECT_EQ(LinearToSrgb8(std::nanf("")), 0);
+  EXPECT_EQ(LinearToSrgb8(2.0f), 255);
+}
+
+}  // namespace
+}  // namespace vasl::geometry
