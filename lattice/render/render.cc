@@ -150,7 +150,7 @@ constexpr int kNearBlockPx = 8;
 /// hit. The march skips empty nodes and leaves one by one along each
 /// ray; this skips, for a whole block of rays at once, the eye's side of the nearest leaf they
 /// can meet.
-/// A box's image: for an equirect view the rows and columns of its bounding cap (§2.1), for a
+/// A box's image: for an equirect view the pixels of its bounding cap (§2.1, CapPixelSpan), for a
 /// pinhole without distortion the rectangle of its corners' pixels (§2.2, when all lie in
 /// front), else the whole image; one pixel of slack round each. Pinhole views with distortion
 /// are not skipped (every block 0): their images of a box are not bounded by its corners.
@@ -224,22 +224,12 @@ class NearRanges {
             j1 = std::min(H - 1, int(std::floor(v_hi)) + 1);
           }
         } else {
-          const Eigen::Vector3d d = R_sensor_world * cap.dir;
-          const double psi_c = std::asin(std::clamp(d.z(), -1.0, 1.0));
-          const double a = cap.half_angle_rad + 1e-9;
-          j0 = std::max(0, int(std::floor((0.5 - (psi_c + a) / M_PI) * H)) - 1);
-          j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - a) / M_PI) * H)) + 1);
-          // A cap of radius a clear of both poles spans the azimuths within
-          // asin(sin a / cos ψ_c) of its centre's (as tiles::CapCells::ForEach).
-          if (std::abs(psi_c) + a < 0.5 * M_PI - 1e-9) {
-            const double half_px =
-                std::asin(std::min(1.0, std::sin(a) / std::cos(psi_c))) / (2.0 * M_PI) * W;
-            const double u_c = (0.5 - geometry::Atan2(d.y(), d.x()) / (2.0 * M_PI)) * W;
-            if (2.0 * half_px + 4.0 < double(W)) {
-              i0 = int(std::floor(u_c - half_px)) - 1;
-              span = int(std::floor(u_c + half_px)) + 1 - i0 + 1;
-            }
-          }
+          const tiles::PixelSpan cover = tiles::CapPixelSpan(
+              R_sensor_world * cap.dir, cap.half_angle_rad + 1e-9, geometry::EquirectSize{W, H});
+          j0 = cover.row_first;
+          j1 = cover.row_last;
+          i0 = cover.col_first;
+          span = cover.col_count;
         }
         for (int bj = j0 / kNearBlockPx; bj <= j1 / kNearBlockPx; ++bj) {
           float* row = &near[size_t(bj) * size_t(blocks_x_)];

@@ -162,6 +162,30 @@ bool CapCells::Reaches(const ViewCap& cap, const std::vector<float>& max_depth_m
   return reached;
 }
 
+PixelSpan CapPixelSpan(const Eigen::Vector3d& d, double radius_rad,
+                       const geometry::EquirectSize& size) {
+  const int W = size.width_px, H = size.height_px;
+  PixelSpan out;
+  if (W <= 0 || H <= 0) return out;
+  const double psi_c = std::asin(std::clamp(d.z(), -1.0, 1.0));
+  const double r = std::min(radius_rad, M_PI);
+  out.row_first = std::max(0, int(std::floor((0.5 - (psi_c + r) / M_PI) * H)) - 1);
+  out.row_last = std::min(H - 1, int(std::floor((0.5 - (psi_c - r) / M_PI) * H)) + 1);
+  out.col_count = W;
+  if (std::abs(psi_c) + r < 0.5 * M_PI - 1e-9) {
+    // Pixel i's centre lies at u = i + ½: those within `half` of the centre's u, and one more.
+    const double half = std::asin(std::min(1.0, std::sin(r) / std::cos(psi_c))) /
+                        (2.0 * M_PI) * W;
+    if (2.0 * half + 4.0 < double(W)) {
+      const double centre = (0.5 - std::atan2(d.y(), d.x()) / (2.0 * M_PI)) * W;
+      const int first = int(std::floor(centre - half)) - 1;
+      out.col_count = int(std::floor(centre + half)) + 1 - first + 1;
+      out.col_first = ((first % W) + W) % W;
+    }
+  }
+  return out;
+}
+
 CapCells::CapCells(const geometry::EquirectSize& size, const geometry::Pose& T_world_sensor)
     : size_(size),
       R_sensor_world_(T_world_sensor.q_world_sensor.conjugate().toRotationMatrix()) {

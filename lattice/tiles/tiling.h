@@ -104,6 +104,17 @@ std::vector<float> CellMinFromDepth(const std::vector<float>& depth_m,
 bool Reaches(const ReachRaster& reach, const geometry::Pose& T_world_sensor, const ViewCap& cap,
              double min_depth_m);
 
+/// The pixels of an equirect raster of `size` (§2.1) whose centres may lie within `radius_rad`
+/// of the unit direction `d_sensor` (sensor frame), one pixel of slack on every side: rows
+/// `row_first` to `row_last`, and `col_count` columns from `col_first` (in [0, W), wrapping
+/// across the seam). A cap of radius α clear of both poles spans the azimuths within
+/// asin(sin α / cos ψ_c) of its centre's; one touching a pole spans every column.
+struct PixelSpan {
+  int row_first = 0, row_last = -1, col_first = 0, col_count = 0;
+};
+PixelSpan CapPixelSpan(const Eigen::Vector3d& d_sensor, double radius_rad,
+                       const geometry::EquirectSize& size);
+
 /// The cells of a raster of `size` cells (reach cells, or any equirect raster in the frame of a
 /// sensor at `T_world_sensor`) that a cap may overlap, each tested by its centre direction and
 /// its angular half-diagonal as Reaches tests it; for rules that test many caps against one
@@ -162,29 +173,14 @@ void CapCells::ForEach(const ViewCap& cap, Fn&& fn) const {
     return;
   }
   const Eigen::Vector3d d = R_sensor_world_ * cap.dir;
-  const double psi_c = std::asin(std::clamp(d.z(), -1.0, 1.0));
   const double outer = cap.half_angle_rad + half_diag_;
   const double cos_outer = std::cos(std::min(outer, M_PI));
   const double inner = cap.half_angle_rad - half_diag_;
   const double cos_inner = inner > 0.0 ? std::cos(inner) : 2.0;  // 2: no cell wholly inside
-  const int j0 = std::max(0, int(std::floor((0.5 - (psi_c + outer) / M_PI) * H)) - 1);
-  const int j1 = std::min(H - 1, int(std::floor((0.5 - (psi_c - outer) / M_PI) * H)) + 1);
-  // A cap of radius α clear of both poles spans the azimuths within asin(sin α / cos ψ_c) of
-  // its centre's; one column of slack either side, the direction test decides.
-  int i0 = 0, span = W;
-  if (std::abs(psi_c) + outer < 0.5 * M_PI - 1e-9) {
-    const double half_rad = std::asin(std::min(1.0, std::sin(outer) / std::cos(psi_c)));
-    const double half = half_rad / (2.0 * M_PI) * W + 1.0;
-    if (2.0 * half + 1.0 < double(W)) {
-      const double centre = (0.5 - std::atan2(d.y(), d.x()) / (2.0 * M_PI)) * W - 0.5;
-      i0 = int(std::floor(centre - half));
-      span = int(std::ceil(centre + half)) - i0 + 1;
-    }
-  }
-  i0 = ((i0 % W) + W) % W;
-  for (int j = j0; j <= j1; ++j) {
+  const PixelSpan span = CapPixelSpan(d, outer, size_);
+  for (int j = span.row_first; j <= span.row_last; ++j) {
     const size_t row = size_t(j) * size_t(W);
-    for (int n = 0, i = i0; n < span; ++n, i = i + 1 == W ? 0 : i + 1) {
+    for (int n = 0, i = span.col_first; n < span.col_count; ++n, i = i + 1 == W ? 0 : i + 1) {
       const double c = dir_[row + size_t(i)].dot(d);
       if (c >= cos_outer && !fn(row + size_t(i), c >= cos_inner)) return;
     }

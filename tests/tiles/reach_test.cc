@@ -217,5 +217,49 @@ TEST(CapCells, VisitsTheCellsOfCapsAtTheSeamAndThePoles) {
   EXPECT_EQ(caps, 72);
 }
 
+// CapPixelSpan (the rows and columns CapCells and the render's block skip search): every pixel
+// whose centre lies within the radius, and each of its 8 neighbours (wrapped across the seam),
+// lies in the span, at the seam, beside and across a pole, for sizes even and odd.
+TEST(CapPixelSpan, HoldsThePixelsOfTheCapAndOneMore) {
+  int spans = 0, narrowed = 0;
+  for (const geometry::EquirectSize size : {geometry::EquirectSize{128, 64},
+                                            geometry::EquirectSize{1025, 511}}) {
+    const int W = size.width_px, H = size.height_px;
+    for (double psi : {0.0, 0.6, -1.2, 1.5, -1.5707, 1.5707}) {
+      for (double phi : {M_PI - 1e-4, -M_PI + 0.01, 0.3}) {
+        for (double radius : {1e-4, 0.003, 0.05, 0.4, 1.2}) {
+          const Eigen::Vector3d d(std::cos(psi) * std::cos(phi), std::cos(psi) * std::sin(phi),
+                                  std::sin(psi));
+          const PixelSpan span = CapPixelSpan(d, radius, size);
+          ASSERT_GE(span.col_first, 0);
+          ASSERT_LT(span.col_first, W);
+          ASSERT_LE(span.col_count, W);
+          narrowed += span.col_count < W;
+          auto in_span = [&](int i, int j) {
+            if (j < 0 || j >= H) return true;  // no such row
+            const int from_first = ((i - span.col_first) % W + W) % W;
+            return j >= span.row_first && j <= span.row_last && from_first < span.col_count;
+          };
+          for (int j = 0; j < H; ++j) {
+            for (int i = 0; i < W; ++i) {
+              if (PixelDirection(i, j, size).dot(d) < std::cos(radius)) continue;
+              for (int dj = -1; dj <= 1; ++dj) {
+                for (int di = -1; di <= 1; ++di) {
+                  ASSERT_TRUE(in_span(i + di, j + dj))
+                      << "pixel " << i + di << "," << j + dj << " of " << W << "x" << H
+                      << ", psi " << psi << " phi " << phi << " radius " << radius;
+                }
+              }
+            }
+          }
+          ++spans;
+        }
+      }
+    }
+  }
+  EXPECT_EQ(spans, 180);
+  EXPECT_GT(narrowed, 60) << "caps clear of the poles search their columns only";
+}
+
 }  // namespace
 }  // namespace vasl::tiles
