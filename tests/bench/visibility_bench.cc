@@ -3,8 +3,9 @@
 // lattice, its dilation, and the visibility test of every vossel, on the corridor site
 // (tests/scenes/corridor_site.h) voxelised from all 12 stations as the growth benchmark's last
 // scan sees it (LiDAR 1440×720 per station, h = 5 cm), from the last station and from the
-// second (items are vossels); and the §8 render's march over that lattice and over the same
-// scans at h = 2 cm (items are rays).
+// second (items are vossels); the §8 render's march over that lattice and over the same
+// scans at h = 2 cm (items are rays), and the encoding of that render into EXR and PNG
+// (items are pixels).
 #include <algorithm>
 #include <cmath>
 #include <cstdio>

@@ -38,7 +38,7 @@ TEST(LinearImageTest, Srgb8CodeEqualsItsDefinitionEverywhere) {
     }
   };
   for (uint32_t bits = 0; bits <= kOne; bits += 37) check(OfBits(bits));
-  int first_of_code[256] = {};  // the least float of each code, found by walking the bits
+  int first_of_code[256] = {};  // the least float of each code, by bisection
   size_t edges = 0;
   for (int b = 1; b <= 255; ++b) {
     uint32_t lo = 0, hi = kOne;
