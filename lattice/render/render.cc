@@ -147,12 +147,11 @@ constexpr int kNearBlockPx = 8;
 /// order, entering each at the same time (MarchRay takes every time from the eye), unless it
 /// passes exactly through a cell's edge, where either neighbour is the ray's and a march that
 /// crosses an empty cell at once may take the other one first; +inf: no ray of the block can
-/// hit. The march skips empty nodes and leaves one by one along each
-/// ray; this skips, for a whole block of rays at once, the eye's side of the nearest leaf they
-/// can meet.
-/// A box's image: for an equirect view the pixels of its bounding cap (§2.1, CapPixelSpan), for a
-/// pinhole without distortion the rectangle of its corners' pixels (§2.2, when all lie in
-/// front), else the whole image; one pixel of slack round each. Pinhole views with distortion
+/// hit. The march skips empty nodes and leaves one by one along each ray; this skips, for a
+/// whole block of rays at once, the eye's side of the nearest leaf they can meet.
+/// A box's image: for an equirect view the pixels of its bounding cap (§2.1, CapPixelSpan),
+/// for a pinhole without distortion the rectangle of its corners' pixels (§2.2, when all lie
+/// in front), else the whole image; one pixel of slack round each. Pinhole views with distortion
 /// are not skipped (every block 0): their images of a box are not bounded by its corners.
 class NearRanges {
  public:
