@@ -95,7 +95,14 @@ inline int32_t BitsOfFloat(float f) {
                                                        float* __restrict out) {
   static_assert(records::kConfidenceCount == 6, "the shuffles below take 6 factors");
   typedef float V4 __attribute__((vector_size(16)));
+  // Lanes 0-3 of a then 4-7 of b, picked by index: GCC's and clang's spelling of one shuffle
+  // (clang compiles this file for deploy/fuzz.sh's harnesses).
+#if defined(__clang__)
+#define VASL_SHUFFLE(a, b, i0, i1, i2, i3) __builtin_shufflevector(a, b, i0, i1, i2, i3)
+#else
   typedef int32_t I4 __attribute__((vector_size(16)));
+#define VASL_SHUFFLE(a, b, i0, i1, i2, i3) __builtin_shuffle(a, b, I4{i0, i1, i2, i3})
+#endif
   const auto load = [](const float* p) {
     V4 v;
     std::memcpy(&v, p, sizeof v);
@@ -107,22 +114,23 @@ inline int32_t BitsOfFloat(float f) {
     const V4 v0 = load(q), v1 = load(q + 4), v2 = load(q + 8);
     const V4 v3 = load(q + 12), v4 = load(q + 16), v5 = load(q + 20);
     // Records 0-3, factors 0-3 in r0..r3; factors 4-5 of records 0-1 and 2-3 in h01, h23.
-    const V4 r1 = __builtin_shuffle(v1, v2, I4{2, 3, 4, 5});
-    const V4 r3 = __builtin_shuffle(v4, v5, I4{2, 3, 4, 5});
-    const V4 h01 = __builtin_shuffle(v1, v2, I4{0, 1, 6, 7});
-    const V4 h23 = __builtin_shuffle(v4, v5, I4{0, 1, 6, 7});
-    const V4 t0 = __builtin_shuffle(v0, r1, I4{0, 4, 1, 5});
-    const V4 t1 = __builtin_shuffle(v0, r1, I4{2, 6, 3, 7});
-    const V4 t2 = __builtin_shuffle(v3, r3, I4{0, 4, 1, 5});
-    const V4 t3 = __builtin_shuffle(v3, r3, I4{2, 6, 3, 7});
-    const V4 f[6] = {__builtin_shuffle(t0, t2, I4{0, 1, 4, 5}),
-                     __builtin_shuffle(t0, t2, I4{2, 3, 6, 7}),
-                     __builtin_shuffle(t1, t3, I4{0, 1, 4, 5}),
-                     __builtin_shuffle(t1, t3, I4{2, 3, 6, 7}),
-                     __builtin_shuffle(h01, h23, I4{0, 2, 4, 6}),
-                     __builtin_shuffle(h01, h23, I4{1, 3, 5, 7})};
+    const V4 r1 = VASL_SHUFFLE(v1, v2, 2, 3, 4, 5);
+    const V4 r3 = VASL_SHUFFLE(v4, v5, 2, 3, 4, 5);
+    const V4 h01 = VASL_SHUFFLE(v1, v2, 0, 1, 6, 7);
+    const V4 h23 = VASL_SHUFFLE(v4, v5, 0, 1, 6, 7);
+    const V4 t0 = VASL_SHUFFLE(v0, r1, 0, 4, 1, 5);
+    const V4 t1 = VASL_SHUFFLE(v0, r1, 2, 6, 3, 7);
+    const V4 t2 = VASL_SHUFFLE(v3, r3, 0, 4, 1, 5);
+    const V4 t3 = VASL_SHUFFLE(v3, r3, 2, 6, 3, 7);
+    const V4 f[6] = {VASL_SHUFFLE(t0, t2, 0, 1, 4, 5),
+                     VASL_SHUFFLE(t0, t2, 2, 3, 6, 7),
+                     VASL_SHUFFLE(t1, t3, 0, 1, 4, 5),
+                     VASL_SHUFFLE(t1, t3, 2, 3, 6, 7),
+                     VASL_SHUFFLE(h01, h23, 0, 2, 4, 6),
+                     VASL_SHUFFLE(h01, h23, 1, 3, 5, 7)};
     for (int k = 0; k < 6; ++k) std::memcpy(out + k * kBlock + i, &f[k], sizeof f[k]);
   }
+#undef VASL_SHUFFLE
   for (; i < m; ++i) {
     for (int k = 0; k < 6; ++k) out[k * kBlock + i] = conf[i * 6 + k];
   }
@@ -199,8 +207,11 @@ WeightKernel::WeightKernel(const WeightingProfile& p, double target_m)
 
 // An AVX2 clone beside the baseline, chosen at load time by the CPU (8 lanes instead of 4). The
 // build keeps -ffp-contract=off (ISO C++), so both clones round every operation alike: the
-// weights do not depend on the CPU.
+// weights do not depend on the CPU. (Clang 14, which builds deploy/fuzz.sh's harnesses, leaves
+// a cloned member function's own symbol undefined: there it is the baseline alone.)
+#if !defined(__clang__)
 [[gnu::target_clones("avx2", "default")]]
+#endif
 void WeightKernel::Evaluate(const WeightColumns& c, size_t n, float* w) const {
   float product[kBlock], log_sum[kBlock], x[kBlock], conf[records::kConfidenceCount * kBlock];
   const size_t gains = gain_.size();

@@ -26,17 +26,17 @@ struct ScanLimits {
 /// quaternion.
 absl::Status ValidatePose(const geometry::Pose& pose, const std::string& what);
 
-/// Validates a scan (names, poses, finite points, intensities, divergence, panorama names,
-/// modalities, sizes, 2:1 equirect images) and reads its panoramas' headers (ProbeImage),
-/// which it returns in order; their pixels are decoded later, one panorama at a time, as
-/// each camera's records are made (DecodePanorama). INVALID_ARGUMENT for bad input,
-/// RESOURCE_EXHAUSTED above `limits`, each message naming the scan and the field.
 /// OK when `text` (a name or label a client chose) has 1..max_bytes bytes (0..max_bytes with
 /// `may_be_empty`) and no control character (so that it cannot forge a log line or a listing);
 /// INVALID_ARGUMENT naming `what` otherwise.
 absl::Status ValidateText(const std::string& what, const std::string& text, size_t max_bytes,
                           bool may_be_empty = false);
 
+/// Validates a scan (names, poses, finite points, intensities, divergence, panorama names,
+/// modalities, sizes, 2:1 equirect images) and reads its panoramas' headers (ProbeImage),
+/// which it returns in order; their pixels are decoded later, one panorama at a time, as
+/// each camera's records are made (DecodePanorama). INVALID_ARGUMENT for bad input,
+/// RESOURCE_EXHAUSTED above `limits`, each message naming the scan and the field.
 absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, const ScanLimits& limits);
 
 /// Decodes panorama `index` of a validated scan; its errors name the scan and the panorama

@@ -69,16 +69,28 @@ void CheckScan(const ScanInput& scan, int64_t point_count, const EngineLimits& l
   }
 }
 
-void CheckImages(const ScanInput& scan, const std::vector<vasl::ingest::LinearImage>& images,
+/// What ValidateScan read of the panoramas' headers, and what each decodes to (as an ingest
+/// decodes them, one at a time): within the limits, the channels of its modality, every value.
+void CheckImages(const ScanInput& scan, const std::vector<vasl::ingest::ImageHeader>& headers,
                  const EngineLimits& limits) {
-  VASL_FUZZ_CHECK(images.size() == scan.panoramas.size(), images.size(), " images for ",
+  VASL_FUZZ_CHECK(headers.size() == scan.panoramas.size(), headers.size(), " headers for ",
                   scan.panoramas.size(), " panoramas");
-  for (size_t i = 0; i < images.size(); ++i) {
-    const vasl::ingest::LinearImage& im = images[i];
+  for (size_t i = 0; i < headers.size(); ++i) {
+    const vasl::ingest::ImageHeader& header = headers[i];
+    VASL_FUZZ_CHECK(header.width_px > 0 && header.height_px > 0 &&
+                        int64_t{header.width_px} * header.height_px <= limits.max_image_pixels,
+                    "header ", i, " says ", header.width_px, "x", header.height_px);
+    const absl::StatusOr<vasl::ingest::LinearImage> decoded =
+        vasl::ingest::DecodePanorama(scan, i, limits.max_image_pixels);
+    if (!decoded.ok()) {  // a header that reads may still head pixels that do not
+      fuzz::CheckRejection(decoded.status(), "DecodePanorama");
+      continue;
+    }
+    const vasl::ingest::LinearImage& im = *decoded;
     const int want_channels = scan.panoramas[i].modality == vasl::records::Modality::kIr ? 1 : 3;
-    VASL_FUZZ_CHECK(im.width_px > 0 && im.height_px > 0 &&
-                        int64_t{im.width_px} * im.height_px <= limits.max_image_pixels,
-                    "image ", i, " is ", im.width_px, "x", im.height_px);
+    VASL_FUZZ_CHECK(im.width_px == header.width_px && im.height_px == header.height_px,
+                    "image ", i, " is ", im.width_px, "x", im.height_px, ", its header said ",
+                    header.width_px, "x", header.height_px);
     VASL_FUZZ_CHECK(im.channels == want_channels, "image ", i, " has ", im.channels,
                     " channels");
     VASL_FUZZ_CHECK(im.pixels.size() == size_t(im.width_px) * size_t(im.height_px) * size_t(im.channels),
@@ -127,13 +139,13 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   VASL_FUZZ_CHECK(assembler.Finish().status().code() == absl::StatusCode::kFailedPrecondition,
                   "a second Finish did not fail");
   CheckScan(*scan, assembler.point_count(), limits);
-  absl::StatusOr<std::vector<vasl::ingest::LinearImage>> images =
+  absl::StatusOr<std::vector<vasl::ingest::ImageHeader>> headers =
       vasl::ingest::ValidateScan(*scan, ToScanLimits(limits));
-  if (!images.ok()) {
-    fuzz::CheckRejection(images.status(), "ValidateScan");
+  if (!headers.ok()) {
+    fuzz::CheckRejection(headers.status(), "ValidateScan");
     return 0;
   }
-  CheckImages(*scan, *images, limits);
+  CheckImages(*scan, *headers, limits);
   return 0;
 }
 
