@@ -277,7 +277,9 @@ class OpenExrEncoder : public EncoderBase {
 /// Bands are gathered into runs of PIZ chunks (32 rows each) before OpenEXR writes
 /// them, so that its thread pool compresses those chunks in parallel: a band alone is part of
 /// one chunk, compressed on one thread while the caller waits. The file's bytes are the same
-/// either way (the same chunks, in the same order).
+/// either way (the same chunks, in the same order). Only the bands held back are copied; the
+/// band that completes a run is read by OpenEXR from the image's own arrays (a whole image at
+/// once: BM_Encode/exr_4096's CPU time on the calling thread 0.57 → 0.25 s).
 class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
  public:
   using OpenExrEncoder::OpenExrEncoder;
@@ -287,37 +289,71 @@ class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
     if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
-    // The band's pixels, interleaved as kChannels, after the rows gathered before it: copied,
-    // since a later band may come in another image.
-    const size_t w = size_t(width_), first = size_t(row_begin) * w;
-    const size_t pixels = size_t(row_end - row_begin) * w;
-    const size_t at = pending_.size();
-    pending_.resize(at + pixels * kChannelCount);
-    float* out = pending_.data() + at;
-    for (size_t i = 0; i < pixels; ++i, out += kChannelCount) {
-      const size_t p = first + i;
-      out[0] = image.rgb[3 * p];
-      out[1] = image.rgb[3 * p + 1];
-      out[2] = image.rgb[3 * p + 2];
-      out[3] = image.depth_m[p];
-      out[4] = image.normal[3 * p];
-      out[5] = image.normal[3 * p + 1];
-      out[6] = image.normal[3 * p + 2];
-      out[7] = image.uncertainty[p];
-      out[8] = Coverage(image, p);
+    const size_t w = size_t(width_);
+    if (row_end - pending_row_ < RowsPerWrite() && row_end < height_) {
+      // Held back: the band's pixels, interleaved as kChannels after the rows gathered before
+      // it, copied (a later band may come in another image).
+      const size_t first = size_t(row_begin) * w, pixels = size_t(row_end - row_begin) * w;
+      const size_t at = pending_.size();
+      pending_.resize(at + pixels * kChannelCount);
+      float* out = pending_.data() + at;
+      for (size_t i = 0; i < pixels; ++i, out += kChannelCount) {
+        const size_t p = first + i;
+        out[0] = image.rgb[3 * p];
+        out[1] = image.rgb[3 * p + 1];
+        out[2] = image.rgb[3 * p + 2];
+        out[3] = image.depth_m[p];
+        out[4] = image.normal[3 * p];
+        out[5] = image.normal[3 * p + 1];
+        out[6] = image.normal[3 * p + 2];
+        out[7] = image.uncertainty[p];
+        out[8] = Coverage(image, p);
+      }
+      return Sent(row_end);
     }
-    if (row_end - pending_row_ < RowsPerWrite() && row_end < height_) return Sent(row_end);
-    const size_t row_bytes = kChannelCount * sizeof(float) * w;
+    // The rows held back first (a part of a chunk: OpenEXR copies them and compresses nothing
+    // yet), then this band read by OpenEXR straight from the image's arrays, so that the chunks
+    // it completes are compressed together; the same bytes as one write of every row.
+    if (pending_row_ < row_begin) {
+      const size_t row_bytes = kChannelCount * sizeof(float) * w;
+      Imf::FrameBuffer held;
+      for (size_t c = 0; c < kChannelCount; ++c) {
+        held.insert(kChannels[c], Imf::Slice(Imf::FLOAT,
+                                             BandBase(pending_.data() + c, pending_row_, row_bytes),
+                                             kChannelCount * sizeof(float), row_bytes));
+      }
+      if (absl::Status s = WriteFrame(held, pending_row_, row_begin); !s.ok()) return s;
+      pending_.clear();
+    }
+    const float* alpha = nullptr;  // the band's first A
+    if (image.alpha.size() == image.depth_m.size()) {
+      alpha = image.alpha.data() + size_t(row_begin) * w;
+    } else {  // an image made before alpha existed
+      coverage_.resize(size_t(row_end - row_begin) * w);
+      for (size_t i = 0; i < coverage_.size(); ++i) {
+        coverage_[i] = Coverage(image, size_t(row_begin) * w + i);
+      }
+      alpha = coverage_.data();
+    }
+    // Per channel (kChannels' order): its array's first value, and floats between pixels.
+    // OpenEXR's Slice takes a mutable pointer (BandBase); writing only reads through it.
+    const std::pair<const float*, size_t> channel[kChannelCount] = {
+        {image.rgb.data(), 3},         {image.rgb.data() + 1, 3},
+        {image.rgb.data() + 2, 3},     {image.depth_m.data(), 1},
+        {image.normal.data(), 3},      {image.normal.data() + 1, 3},
+        {image.normal.data() + 2, 3},  {image.uncertainty.data(), 1},
+        {nullptr, 1}};  // A: `alpha`, from the band's first row
     Imf::FrameBuffer frame;
     for (size_t c = 0; c < kChannelCount; ++c) {
-      // OpenEXR's Slice takes a mutable pointer; writing only reads through it.
-      frame.insert(kChannels[c], Imf::Slice(Imf::FLOAT,
-                                            BandBase(pending_.data() + c, pending_row_, row_bytes),
-                                            kChannelCount * sizeof(float), row_bytes));
+      const auto [values, stride] = channel[c];
+      const size_t x_bytes = stride * sizeof(float), row_bytes = x_bytes * w;
+      const void* band = c == kChannelCount - 1 ? static_cast<const void*>(alpha)
+                                                : values + size_t(row_begin) * w * stride;
+      frame.insert(kChannels[c],
+                   Imf::Slice(Imf::FLOAT, BandBase(band, row_begin, row_bytes), x_bytes, row_bytes));
     }
-    const absl::Status written = WriteFrame(frame, pending_row_, row_end);
+    const absl::Status written = WriteFrame(frame, row_begin, row_end);
     pending_row_ = row_end;
-    pending_.clear();
     return written;
   }
 
@@ -332,6 +368,7 @@ class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
 
   int pending_row_ = 0;         ///< the first row not yet written
   std::vector<float> pending_;  ///< rows [pending_row_, next row), kChannels interleaved
+  std::vector<float> coverage_;  ///< A of a band whose image has no alpha array
 };
 
 /// Deep EXR: per pixel its surface hits front to back as samples R, G, B, A, Z; ZIPS.
