@@ -110,6 +110,19 @@ std::shared_ptr<const geometry::BlockCoding> ReadJpegCoding(std::string_view b) 
 
 namespace internal {
 
+size_t BoundedMemReader::read(void* buf, size_t size) {
+  const size_t n = pread(buf, size, m_pos);
+  m_pos += int64_t(n);
+  return n;
+}
+
+size_t BoundedMemReader::pread(void* buf, size_t size, int64_t offset) {
+  if (offset < 0 || uint64_t(offset) >= m_buf.size()) return 0;
+  const size_t n = std::min(size, m_buf.size() - size_t(offset));
+  std::memcpy(buf, m_buf.data() + offset, n);
+  return n;
+}
+
 absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool unassociated_alpha,
                                                    int64_t max_pixels) {
   using namespace OIIO;
@@ -123,7 +136,7 @@ absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool 
   }
   // OpenImageIO reads these formats from memory through an IOProxy.
   MemoryImageInput out;
-  out.reader = std::make_unique<Filesystem::IOMemReader>(const_cast<char*>(bytes.data()), bytes.size());
+  out.reader = std::make_unique<BoundedMemReader>(bytes.data(), bytes.size());
   ImageSpec config;
   // The attribute holds the proxy pointer itself: pass the address of a pointer.
   Filesystem::IOProxy* proxy = out.reader.get();

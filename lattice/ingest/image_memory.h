@@ -14,6 +14,19 @@
 
 namespace vasl::ingest::internal {
 
+/// OpenImageIO's in-memory proxy, reading only within its bytes. OpenImageIO 2.4's own
+/// IOMemReader::pread takes `size − offset` bytes when a read runs past the end without checking
+/// that the offset lies within the buffer, so a read that starts at or beyond the end (an EXR
+/// whose offset table points there; found by fuzz_backproject_image) copies from the memory
+/// after the bytes: a crash, or that memory in the decoded pixels.
+class BoundedMemReader final : public OIIO::Filesystem::IOMemReader {
+ public:
+  using IOMemReader::IOMemReader;
+  size_t read(void* buf, size_t size) override;
+  /// Up to `size` bytes from `offset`; 0 at or beyond the end, or before the start.
+  size_t pread(void* buf, size_t size, int64_t offset) override;
+};
+
 /// An open reader and the in-memory proxy it reads through (which must outlive it).
 struct MemoryImageInput {
   std::unique_ptr<OIIO::Filesystem::IOMemReader> reader;

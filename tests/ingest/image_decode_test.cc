@@ -137,6 +137,55 @@ TEST(ImageDecodeTest, RealPanoramaMatchesEquirectPitch) {
 
 // Claim (issue "Reliability"): a small image that declares many channels cannot make the
 // decoder size a huge buffer: more than 16 channels is RESOURCE_EXHAUSTED, naming the count.
+// Claim (ARCHITECTURE "Errors": bad input is refused, never read beyond): the in-memory reader
+// OpenImageIO decodes through reads only within the bytes sent. OpenImageIO 2.4's own reader
+// copied from beyond them when a read started at or past their end (fuzz_backproject_image's
+// third find: an EXR whose offset table points there); such a file is now refused, and a read
+// past the end copies nothing.
+TEST(ImageDecodeTest, ReadsNothingBeyondTheBytesSent) {
+  const std::string bytes = "0123456789";
+  internal::BoundedMemReader reader(bytes.data(), bytes.size());
+  char out[16];
+  std::memset(out, '#', sizeof out);
+  EXPECT_EQ(reader.pread(out, 5, 8), 2u);  // the last two bytes, then the end
+  EXPECT_EQ(std::string(out, 3), "89#");
+  for (int64_t offset : {int64_t{10}, int64_t{11}, int64_t{1} << 40, int64_t{-1}}) {
+    std::memset(out, '#', sizeof out);
+    EXPECT_EQ(reader.pread(out, 4, offset), 0u) << "offset " << offset;
+    EXPECT_EQ(std::string(out, 4), "####") << "offset " << offset;
+  }
+  ASSERT_TRUE(reader.seek(7));
+  EXPECT_EQ(reader.read(out, 8), 3u);
+  EXPECT_EQ(reader.tell(), 10);
+  EXPECT_EQ(reader.read(out, 8), 0u);
+
+  // An EXR whose every chunk offset points past its end.
+  const std::string exr = Encode(".exr", OIIO::TypeDesc::FLOAT, 64, 32);
+  size_t table = 8;  // after the magic number and version: attributes up to an empty name
+  while (table < exr.size() && exr[table] != '\0') {
+    const size_t type = exr.find('\0', table) + 1;
+    const size_t size_at = exr.find('\0', type) + 1;
+    table = size_at + 4 + size_t(ReadInt32At(exr, size_at));
+  }
+  ++table;  // the offset table follows the empty name
+  ASSERT_LT(table, exr.size());
+  std::string past = exr;
+  const uint64_t first = uint64_t(exr.size()) + 4096;
+  int chunks = 0;
+  for (size_t at = table; at + 8 <= past.size(); at += 8, ++chunks) {
+    uint64_t offset;
+    std::memcpy(&offset, &exr[at], 8);
+    if (offset <= table || offset >= exr.size()) break;  // past the table
+    const uint64_t moved = first + 8 * uint64_t(chunks);
+    std::memcpy(&past[at], &moved, 8);
+  }
+  ASSERT_GT(chunks, 0);
+  auto refused = DecodeImage(past, false, 1 << 20);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  std::printf("EXR with %d chunk offsets past its end: %s\n", chunks,
+              std::string(refused.status().message()).c_str());
+}
+
 TEST(ImageDecodeTest, RefusesImagesWithTooManyChannels) {
   auto many = DecodeImage(Encode(".exr", OIIO::TypeDesc::HALF, 8, 4, 40), false, 1 << 20);
   ASSERT_FALSE(many.ok());
