@@ -17,6 +17,7 @@
 ///          assembler sees it. A custom mutator (LLVMFuzzerCustomMutator) keeps the framing and
 ///          mutates one frame at a time: one protobuf field (tests/fuzz/proto_mutator.h), a
 ///          chunk split in two, a frame duplicated, dropped or swapped, or raw bytes.
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
@@ -51,8 +52,13 @@ vasl::ingest::ScanLimits ToScanLimits(const EngineLimits& limits) {
 
 void CheckScan(const ScanInput& scan, int64_t point_count, const EngineLimits& limits) {
   const auto n = static_cast<size_t>(point_count);
-  VASL_FUZZ_CHECK(point_count > 0 && point_count <= limits.max_points_per_scan,
+  VASL_FUZZ_CHECK(point_count >= 0 && point_count <= limits.max_points_per_scan,
                   "accepted point_count ", point_count);
+  // No points: a camera-only scan, which needs a camera image (a visual reference colours
+  // nothing).
+  const bool camera = std::any_of(scan.panoramas.begin(), scan.panoramas.end(),
+                                  [](const vasl::PanoramaData& p) { return !p.visual_reference; });
+  VASL_FUZZ_CHECK(point_count > 0 || camera, "a scan without points or camera images accepted");
   VASL_FUZZ_CHECK(scan.lidar.xyz_sensor_m.size() == 3 * n, scan.lidar.xyz_sensor_m.size(),
                   " coordinates for ", n, " points");
   VASL_FUZZ_CHECK(scan.lidar.intensity.size() == n, scan.lidar.intensity.size(),
