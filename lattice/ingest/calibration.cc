@@ -115,13 +115,21 @@ struct Splat {
   std::vector<std::atomic<uint64_t>> nearest;  // NearestKey, kNoReturn for none
 };
 
+// A return as the camera sees it: continuous pixel coordinates and range; r NaN when unseen.
+struct Projected {
+  double u, v, r;
+};
+
 // The returns splatted at every candidate scale (s0 the smallest scale that keeps the raster
 // within max_width cells, then 2·s0, … 32·s0: the finest splatted, each coarser one pooled
 // from the one before, exactly as a splat of its own would fill it); the index of the
 // smallest scale whose cells the returns fill: where, of the cells within one of a return,
-// kFillWanted hold one (else the coarsest). `in_view`: the returns the camera sees.
+// kFillWanted hold one (else the coarsest). `in_view`: the returns the camera sees;
+// `projected`: every return as View::Project gives it (range NaN: not seen), so that the
+// LiDAR image is made without projecting the returns again.
 size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
-                      std::vector<Splat>* levels, int64_t* in_view) {
+                      std::vector<Splat>* levels, int64_t* in_view,
+                      std::vector<Projected>* projected) {
   int s0 = 1;
   while ((W + s0 - 1) / s0 > max_width) s0 *= 2;
   *levels = std::vector<Splat>(kScaleLevels);
@@ -140,13 +148,18 @@ size_t SplatAndChoose(const View& view, int W, int H, bool wrap, int max_width,
                       }
                     });
   std::atomic<int64_t> seen_total{0};
+  projected->resize(view.size());
   tbb::parallel_for(tbb::blocked_range<size_t>(0, view.size(), 1 << 14), [&](const auto& range) {
     Eigen::Vector3d x;
     Eigen::Vector2d uv;
     double r;
     int64_t seen_here = 0;
     for (size_t i = range.begin(); i != range.end(); ++i) {
-      if (i > std::numeric_limits<uint32_t>::max() || !view.Project(i, &x, &uv, &r)) continue;
+      if (i > std::numeric_limits<uint32_t>::max() || !view.Project(i, &x, &uv, &r)) {
+        (*projected)[i] = {0.0, 0.0, std::numeric_limits<double>::quiet_NaN()};
+        continue;
+      }
+      (*projected)[i] = {uv.x(), uv.y(), r};
       ++seen_here;
       const uint64_t key = NearestKey(r, i);
       Splat& finest = levels->front();
@@ -238,6 +251,16 @@ struct Feature {
   double strength = 0.0;  // the structure tensor's smaller eigenvalue
 };
 
+// The correlation of n pairs (a, b) from their sums Σa, Σb, Σa², Σb², Σab; -inf when n < min_n
+// or either side is flat.
+double NccOfSums(double sa, double sb, double saa, double sbb, double sab, size_t n,
+                 size_t min_n) {
+  if (n < min_n) return -std::numeric_limits<double>::infinity();
+  const double va = saa - sa * sa / n, vb = sbb - sb * sb / n;
+  if (!(va > 1e-12) || !(vb > 1e-12)) return -std::numeric_limits<double>::infinity();
+  return (sab - sa * sb / n) / std::sqrt(va * vb);
+}
+
 // Normalised cross-correlation of a (templ) and b (target) over the pairs where both are
 // finite; -inf when fewer than half the template's cells take part or b is flat.
 double Ncc(const std::vector<float>& a, const std::vector<float>& b, size_t min_n) {
@@ -249,10 +272,7 @@ double Ncc(const std::vector<float>& a, const std::vector<float>& b, size_t min_
     sab += double(a[k]) * b[k];
     ++n;
   }
-  if (n < min_n) return -std::numeric_limits<double>::infinity();
-  const double va = saa - sa * sa / n, vb = sbb - sb * sb / n;
-  if (!(va > 1e-12) || !(vb > 1e-12)) return -std::numeric_limits<double>::infinity();
-  return (sab - sa * sb / n) / std::sqrt(va * vb);
+  return NccOfSums(sa, sb, saa, sbb, sab, n, min_n);
 }
 
 // The (2R+1)² values of raster img around (cx, cy), NaN off the raster.
@@ -285,6 +305,35 @@ Search SearchAround(const std::vector<float>& templ, const std::vector<float>& i
       const int64_t at = c.At(cx - R - S + i, cy - R - S + j);
       window[size_t(j) * span + i] = at < 0 ? kEmpty : img[size_t(at)];
     }
+  if (std::none_of(window.begin(), window.end(), [](float v) { return std::isnan(v); })) {
+    // A window without holes (the camera image's, away from a pinhole image's edges): every
+    // shift pairs the template's finite cells, so their sums are taken once and each shift sums
+    // only its own side, in the order Ncc would (the same correlations, bit for bit).
+    std::vector<size_t> at;  // the template's finite cells, as offsets into the window
+    std::vector<float> a;
+    double sa = 0, saa = 0;
+    for (int j = 0; j < patch; ++j)
+      for (int i = 0; i < patch; ++i) {
+        const float t = templ[size_t(j) * patch + i];
+        if (std::isnan(t)) continue;
+        sa += t, saa += double(t) * t;
+        at.push_back(size_t(j) * span + i);
+        a.push_back(t);
+      }
+    for (int dy = 0; dy < side; ++dy)
+      for (int dx = 0; dx < side; ++dx) {
+        const float* b = &window[size_t(dy) * span + dx];
+        double sb = 0, sbb = 0, sab = 0;
+        for (size_t k = 0; k < at.size(); ++k) {
+          const float v = b[at[k]];
+          sb += v, sbb += double(v) * v, sab += double(a[k]) * v;
+        }
+        const double c = NccOfSums(sa, sb, saa, sbb, sab, at.size(), min_n);
+        out.grid[size_t(dy) * side + dx] = c;
+        if (c > out.best) out.best = c, out.bx = dx - S, out.by = dy - S;
+      }
+    return out;
+  }
   for (int dy = 0; dy < side; ++dy)
     for (int dx = 0; dx < side; ++dx) {
       for (int j = 0; j < patch; ++j) {
@@ -332,7 +381,9 @@ CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource&
   // and the scale they fill chosen.
   std::vector<Splat> levels;
   int64_t in_view = 0;
-  const size_t level = SplatAndChoose(view, W, H, wrap, cfg.max_analysis_width, &levels, &in_view);
+  std::vector<Projected> projected;
+  const size_t level =
+      SplatAndChoose(view, W, H, wrap, cfg.max_analysis_width, &levels, &in_view, &projected);
   out.points_in_view = in_view;
   if (in_view == 0) {
     out.note = "the camera sees none of the scan's returns";
@@ -373,41 +424,83 @@ CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource&
     const uint32_t bits = uint32_t(key >> 32);
     std::memcpy(&range_img[c], &bits, 4);
   });
-  std::vector<std::atomic<float>> sum(n_cells), weight(n_cells);
-  for (size_t c = 0; c < n_cells; ++c) sum[c].store(0.0f), weight[c].store(0.0f);
-  const auto add = [](std::atomic<float>& a, float v) {
-    float seen = a.load(std::memory_order_relaxed);
-    while (!a.compare_exchange_weak(seen, seen + v, std::memory_order_relaxed)) {
+  // Each return's texture goes to the (up to) four cells about it. The sums are taken row
+  // band by row band, each band's returns in the order of their index, so that every cell adds
+  // its contributions in one order whatever the threads: the figures are reproducible.
+  std::vector<float> sum(n_cells, 0.0f), weight(n_cells, 0.0f);
+  {
+    constexpr int kBandRows = 8;
+    const int bands = (cells.height + kBandRows - 1) / kBandRows;
+    // The band of a return's upper cell row and of its lower one (-1: off the raster).
+    const auto bands_of = [&](const Projected& p) -> std::pair<int, int> {
+      if (std::isnan(p.r)) return {-1, -1};
+      const int iy = int(std::floor(p.v / cells.s - 0.5));
+      const int upper = iy >= 0 && iy < cells.height ? iy / kBandRows : -1;
+      const int lower = iy + 1 >= 0 && iy + 1 < cells.height ? (iy + 1) / kBandRows : -1;
+      return {upper, lower == upper ? -1 : lower};
+    };
+    // A counting sort of the returns into bands, over fixed chunks of them.
+    constexpr size_t kChunk = size_t(1) << 16;
+    const size_t chunks = (N + kChunk - 1) / kChunk;
+    std::vector<uint32_t> count(chunks * size_t(bands), 0);
+    tbb::parallel_for(size_t{0}, chunks, [&](size_t ch) {
+      uint32_t* n = &count[ch * size_t(bands)];
+      for (size_t i = ch * kChunk; i < std::min(N, (ch + 1) * kChunk); ++i) {
+        const auto [a, b] = bands_of(projected[i]);
+        if (a >= 0) ++n[a];
+        if (b >= 0) ++n[b];
+      }
+    });
+    std::vector<size_t> band_begin(size_t(bands) + 1, 0), at(count.size());
+    size_t total = 0;
+    for (int b = 0; b < bands; ++b) {
+      band_begin[size_t(b)] = total;
+      for (size_t ch = 0; ch < chunks; ++ch) {
+        at[ch * size_t(bands) + size_t(b)] = total;
+        total += count[ch * size_t(bands) + size_t(b)];
+      }
     }
-  };
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, N, 1 << 14), [&](const auto& range) {
-    Eigen::Vector3d x;
-    Eigen::Vector2d uv;
-    double r;
-    for (size_t i = range.begin(); i != range.end(); ++i) {
-      if (!view.Project(i, &x, &uv, &r)) continue;
-      const double fx = uv.x() / cells.s - 0.5, fy = uv.y() / cells.s - 0.5;
-      const int ix = int(std::floor(fx)), iy = int(std::floor(fy));
-      const double ax = fx - ix, ay = fy - iy;
-      const float t = texture(i);
-      for (int j = 0; j <= 1; ++j)
-        for (int k = 0; k <= 1; ++k) {
-          const int64_t c = cells.At(ix + k, iy + j);
-          if (c < 0 || std::isnan(range_img[size_t(c)])) continue;
-          if (r > (1.0 + kLevelWithNearest) * range_img[size_t(c)]) continue;
-          const float w = float((k ? ax : 1.0 - ax) * (j ? ay : 1.0 - ay));
-          add(sum[size_t(c)], w * t);
-          add(weight[size_t(c)], w);
+    band_begin[size_t(bands)] = total;
+    std::vector<uint32_t> order(total);
+    tbb::parallel_for(size_t{0}, chunks, [&](size_t ch) {
+      size_t* next = &at[ch * size_t(bands)];
+      for (size_t i = ch * kChunk; i < std::min(N, (ch + 1) * kChunk); ++i) {
+        const auto [a, b] = bands_of(projected[i]);
+        if (a >= 0) order[next[a]++] = uint32_t(i);
+        if (b >= 0) order[next[b]++] = uint32_t(i);
+      }
+    });
+    tbb::parallel_for(0, bands, [&](int b) {
+      const int row_begin = b * kBandRows, row_end = std::min(cells.height, row_begin + kBandRows);
+      for (size_t q = band_begin[size_t(b)]; q < band_begin[size_t(b) + 1]; ++q) {
+        const size_t i = order[q];
+        const auto [u, v, r] = projected[i];
+        const double fx = u / cells.s - 0.5, fy = v / cells.s - 0.5;
+        const int ix = int(std::floor(fx)), iy = int(std::floor(fy));
+        const double ax = fx - ix, ay = fy - iy;
+        const float t = texture(i);
+        for (int j = 0; j <= 1; ++j) {
+          if (iy + j < row_begin || iy + j >= row_end) continue;  // another band's row
+          for (int k = 0; k <= 1; ++k) {
+            const int64_t c = cells.At(ix + k, iy + j);
+            if (c < 0 || std::isnan(range_img[size_t(c)])) continue;
+            if (r > (1.0 + kLevelWithNearest) * range_img[size_t(c)]) continue;
+            const float w = float((k ? ax : 1.0 - ax) * (j ? ay : 1.0 - ay));
+            sum[size_t(c)] += w * t;
+            weight[size_t(c)] += w;
+          }
         }
-    }
-  });
+      }
+    });
+  }
+  std::vector<Projected>().swap(projected);
   std::vector<float> lidar_img(n_cells, kEmpty), camera_img(n_cells, kEmpty);
   tbb::parallel_for(tbb::blocked_range<int>(0, cells.height), [&](const tbb::blocked_range<int>& rows) {
     for (int y = rows.begin(); y != rows.end(); ++y) {
       for (int x = 0; x < cells.width; ++x) {
         const size_t c = size_t(y) * cells.width + x;
-        const float w = weight[c].load(std::memory_order_relaxed);
-        if (w >= kMinWeight) lidar_img[c] = sum[c].load(std::memory_order_relaxed) / w;
+        const float w = weight[c];
+        if (w >= kMinWeight) lidar_img[c] = sum[c] / w;
         double total = 0.0;
         int n = 0;
         for (int j = y * cells.s; j < std::min(H, (y + 1) * cells.s); ++j)

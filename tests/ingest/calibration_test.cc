@@ -5,9 +5,11 @@
 // 65° across with barrel distortion: 0.5° is about 5 px).
 #include "lattice/ingest/calibration.h"
 
+#include <algorithm>
 #include <cstdio>
 
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include "tests/scenes/synthetic_scene.h"
 
@@ -165,6 +167,41 @@ TEST_F(CalibrationTest, ColourServesAndNothingToMatchIsUnchecked) {
   const records::CalibrationHealth blind = CheckCalibration(*lidar_, away, image);
   EXPECT_EQ(blind.verdict, Verdict::kUnchecked);
   EXPECT_EQ(blind.points_in_view, 0);
+}
+
+// Claim: the figures a check stores with a source are reproducible: the same scan and image
+// give the same health, to the last bit, on one thread and on several (a rebuild computes them
+// again and must find what ingest stored).
+TEST_F(CalibrationTest, FiguresDoNotDependOnTheThreads) {
+  const geometry::Pose truth = scenes::CameraPoseForStation(lidar_->pose);
+  const LinearImage image =
+      Decoded(scenes::RenderPanorama(*room_, truth, kPanoWidth, kPanoWidth / 2));
+  CameraSource camera;
+  camera.id = 2;
+  camera.pose = Turned(truth);  // matches off their projections: every figure non-zero
+  const auto check = [&](int threads) {
+    tbb::task_arena arena(threads);
+    return arena.execute([&] { return CheckCalibration(*lidar_, camera, image); });
+  };
+  const records::CalibrationHealth one = check(1);
+  {
+    const int threads = std::max(2, tbb::this_task_arena::max_concurrency());
+    const records::CalibrationHealth many = check(threads);
+    SCOPED_TRACE(threads);
+    EXPECT_EQ(many.points_in_view, one.points_in_view);
+    EXPECT_EQ(many.features, one.features);
+    EXPECT_EQ(many.matched, one.matched);
+    EXPECT_EQ(many.cell_px, one.cell_px);
+    EXPECT_EQ(many.pixel_mean_px, one.pixel_mean_px);
+    EXPECT_EQ(many.pixel_p95_px, one.pixel_p95_px);
+    EXPECT_EQ(many.offset_mean_m, one.offset_mean_m);
+    EXPECT_EQ(many.offset_p95_m, one.offset_p95_m);
+    EXPECT_EQ(many.roundtrip_mean_m, one.roundtrip_mean_m);
+    EXPECT_EQ(many.roundtrip_p95_m, one.roundtrip_p95_m);
+    EXPECT_EQ(many.rotation_deg, one.rotation_deg);
+    EXPECT_EQ(many.verdict, one.verdict);
+  }
+  EXPECT_GT(one.pixel_mean_px, 0.0);
 }
 
 }  // namespace
