@@ -656,6 +656,20 @@ int main(int argc, char** argv) {
       growth_passes = std::max(1, std::atoi(argv[++i]));
     else if (i + 1 < argc && !std::strcmp(argv[i], "--site")) site = argv[++i];
     else if (i + 1 < argc && !std::strcmp(argv[i], "--json")) json_path = argv[++i];
+    else {
+      // An unknown flag, or one without its value, is an error: silently running the whole
+      // benchmark (minutes) on a mistyped flag is what a user least expects.
+      const bool help = !std::strcmp(argv[i], "--help") || !std::strcmp(argv[i], "-h");
+      std::fprintf(help ? stdout : stderr,
+                   "%s%s"
+                   "usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only]\n"
+                   "                  [--tile-vossels T] [--snapshot-budget-mb M]\n"
+                   "                  [--revisit-cache-mb M] [--growth-passes N]\n"
+                   "                  [--site realistic|small [--json PATH]]\n",
+                   help ? "" : "vasl_bench: unknown flag or missing value: ",
+                   help ? "" : (std::string(argv[i]) + "\n").c_str());
+      return help ? 0 : 2;
+    }
   }
   const double h = 0.05;
   const std::filesystem::path dir = std::filesystem::temp_directory_path() / ("vasl-bench-" + std::to_string(::getpid()));
