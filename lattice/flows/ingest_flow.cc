@@ -3,6 +3,7 @@
 // revisited only where the new geometry reaches them (change.h).
 #include <chrono>
 #include <cstring>
+#include <future>
 #include <numeric>
 
 #include "absl/strings/str_cat.h"
@@ -164,6 +165,24 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     return absl::InternalError("IngestScan: a scan has at most one LiDAR source");
   }
 
+  // The first camera's image, decoded on a thread of its own while the returns are binned and
+  // their normals found (PNG and JPEG decoders run on one core; the stages before calibration
+  // keep the others busy). Every other image is decoded where it is needed. The future is
+  // waited for on every way out of this function, the scan it reads outliving it.
+  struct Decoded {
+    absl::StatusOr<ingest::LinearImage> image;
+    double seconds = 0.0;
+  };
+  std::future<Decoded> first_image;
+  if (!change.new_sources.lidars.empty() && !change.new_sources.cameras.empty()) {
+    first_image = std::async(std::launch::async, [load = change.new_sources.cameras[0].load] {
+      const auto t0 = std::chrono::steady_clock::now();
+      Decoded d{load()};
+      d.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return d;
+    });
+  }
+
   store::CommitPlan plan;
   if (change.new_sources.lidars.empty()) {
     // A camera-only scan: the geometry stays as it is; its cameras colour what they see of it.
@@ -224,11 +243,18 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
           !stop.ok()) {
         return stop;
       }
-      const auto decode_t0 = std::chrono::steady_clock::now();
-      absl::StatusOr<ingest::LinearImage> image = cam.load();
+      Decoded decoded;
+      if (k == 0 && first_image.valid()) {
+        decoded = first_image.get();
+      } else {
+        const auto decode_t0 = std::chrono::steady_clock::now();
+        decoded.image = cam.load();
+        decoded.seconds =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - decode_t0).count();
+      }
+      absl::StatusOr<ingest::LinearImage>& image = decoded.image;
       if (!image.ok()) return image.status();
-      const double decode_seconds =
-          std::chrono::duration<double>(std::chrono::steady_clock::now() - decode_t0).count();
+      const double decode_seconds = decoded.seconds;
       records::CalibrationHealth health = ingest::CheckCalibration(l, cam, *image);
       const store::SourceInfo* info = nullptr;
       for (store::SourceInfo& src : plan.add_scan->sources) {
