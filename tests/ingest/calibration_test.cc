@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <utility>
 
 #include <gtest/gtest.h>
 #include <tbb/task_arena.h>
@@ -55,6 +56,12 @@ class CalibrationTest : public ::testing::Test {
     return *image;
   }
 
+  // The station's panorama camera on its true pose, and its image as ingest decodes it.
+  static std::pair<geometry::Pose, LinearImage> StationPanorama() {
+    const geometry::Pose truth = scenes::CameraPoseForStation(lidar_->pose);
+    return {truth, Decoded(scenes::RenderPanorama(*room_, truth, kPanoWidth, kPanoWidth / 2))};
+  }
+
   // `pose` turned by kTurnDeg about an axis oblique to every camera axis.
   static geometry::Pose Turned(geometry::Pose pose) {
     const Eigen::Vector3d axis = Eigen::Vector3d(0.3, 0.5, 0.8).normalized();
@@ -82,9 +89,7 @@ LidarSource* CalibrationTest::lidar_ = nullptr;
 // Claim (§2.3): the station's panorama on its true pose matches the LiDAR within a pixel; the
 // same panorama on a pose turned by 0.5° is flagged, and the fitted rotation is that 0.5°.
 TEST_F(CalibrationTest, PanoramaOnItsPoseIsOkAndTurnedIsFlagged) {
-  const geometry::Pose truth = scenes::CameraPoseForStation(lidar_->pose);
-  const LinearImage image =
-      Decoded(scenes::RenderPanorama(*room_, truth, kPanoWidth, kPanoWidth / 2));
+  const auto [truth, image] = StationPanorama();
   CameraSource camera;
   camera.id = 2;
   camera.pose = truth;
@@ -173,9 +178,9 @@ TEST_F(CalibrationTest, ColourServesAndNothingToMatchIsUnchecked) {
 // give the same health, to the last bit, on one thread and on several (a rebuild computes them
 // again and must find what ingest stored).
 TEST_F(CalibrationTest, FiguresDoNotDependOnTheThreads) {
-  const geometry::Pose truth = scenes::CameraPoseForStation(lidar_->pose);
-  const LinearImage image =
-      Decoded(scenes::RenderPanorama(*room_, truth, kPanoWidth, kPanoWidth / 2));
+  const std::pair<geometry::Pose, LinearImage> panorama = StationPanorama();
+  const geometry::Pose& truth = panorama.first;
+  const LinearImage& image = panorama.second;  // named, not bound: the lambda below reads it
   CameraSource camera;
   camera.id = 2;
   camera.pose = Turned(truth);  // matches off their projections: every figure non-zero
