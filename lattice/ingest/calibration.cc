@@ -311,13 +311,15 @@ Search SearchAround(const std::vector<float>& templ, const std::vector<float>& i
       const int64_t at = c.At(cx - R - S + i, cy - R - S + j);
       window[size_t(j) * span + i] = at < 0 ? kEmpty : img[size_t(at)];
     }
-  if (std::none_of(window.begin(), window.end(), [](float v) { return std::isnan(v); })) {
-    // A window without holes (the camera image's, away from a pinhole image's edges): every
-    // shift pairs the template's finite cells, so their sums are taken once and each shift sums
-    // only its own side, in the order Ncc would (the same correlations, bit for bit).
-    std::vector<size_t> at;  // the template's finite cells, as offsets into the window
-    std::vector<float> a;
-    double sa = 0, saa = 0;
+  // A window without holes (the camera image's, away from a pinhole image's edges): every
+  // shift pairs the template's finite cells, so their sums are taken once and each shift sums
+  // only its own side, in the order Ncc would (the same correlations, bit for bit).
+  const bool whole =
+      std::none_of(window.begin(), window.end(), [](float v) { return std::isnan(v); });
+  std::vector<size_t> at;  // the template's finite cells, as offsets into the window
+  std::vector<float> a;
+  double sa = 0, saa = 0;
+  if (whole) {
     for (int j = 0; j < patch; ++j)
       for (int i = 0; i < patch; ++i) {
         const float t = templ[size_t(j) * patch + i];
@@ -326,27 +328,25 @@ Search SearchAround(const std::vector<float>& templ, const std::vector<float>& i
         at.push_back(size_t(j) * span + i);
         a.push_back(t);
       }
-    for (int dy = 0; dy < side; ++dy)
-      for (int dx = 0; dx < side; ++dx) {
-        const float* b = &window[size_t(dy) * span + dx];
-        double sb = 0, sbb = 0, sab = 0;
-        for (size_t k = 0; k < at.size(); ++k) {
-          const float v = b[at[k]];
-          sb += v, sbb += double(v) * v, sab += double(a[k]) * v;
-        }
-        const double c = NccOfSums(sa, sb, saa, sbb, sab, at.size(), min_n);
-        out.grid[size_t(dy) * side + dx] = c;
-        if (c > out.best) out.best = c, out.bx = dx - S, out.by = dy - S;
-      }
-    return out;
   }
   for (int dy = 0; dy < side; ++dy)
     for (int dx = 0; dx < side; ++dx) {
-      for (int j = 0; j < patch; ++j) {
-        std::memcpy(&target[size_t(j) * patch], &window[size_t(dy + j) * span + dx],
-                    size_t(patch) * sizeof(float));
+      double v;
+      if (whole) {
+        const float* b = &window[size_t(dy) * span + dx];
+        double sb = 0, sbb = 0, sab = 0;
+        for (size_t k = 0; k < at.size(); ++k) {
+          const float t = b[at[k]];
+          sb += t, sbb += double(t) * t, sab += double(a[k]) * t;
+        }
+        v = NccOfSums(sa, sb, saa, sbb, sab, at.size(), min_n);
+      } else {
+        for (int j = 0; j < patch; ++j) {
+          std::memcpy(&target[size_t(j) * patch], &window[size_t(dy + j) * span + dx],
+                      size_t(patch) * sizeof(float));
+        }
+        v = Ncc(templ, target, min_n);
       }
-      const double v = Ncc(templ, target, min_n);
       out.grid[size_t(dy) * side + dx] = v;
       if (v > out.best) out.best = v, out.bx = dx - S, out.by = dy - S;
     }
