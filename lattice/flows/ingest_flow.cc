@@ -3,6 +3,7 @@
 // revisited only where the new geometry reaches them (change.h).
 #include <chrono>
 #include <cstring>
+#include <functional>
 #include <future>
 #include <numeric>
 
@@ -173,14 +174,15 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     absl::StatusOr<ingest::LinearImage> image;
     double seconds = 0.0;
   };
+  const auto decode = [](const std::function<absl::StatusOr<ingest::LinearImage>()>& load) {
+    const auto t0 = std::chrono::steady_clock::now();
+    Decoded d{load()};
+    d.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    return d;
+  };
   std::future<Decoded> first_image;
   if (!change.new_sources.lidars.empty() && !change.new_sources.cameras.empty()) {
-    first_image = std::async(std::launch::async, [load = change.new_sources.cameras[0].load] {
-      const auto t0 = std::chrono::steady_clock::now();
-      Decoded d{load()};
-      d.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      return d;
-    });
+    first_image = std::async(std::launch::async, decode, change.new_sources.cameras[0].load);
   }
 
   store::CommitPlan plan;
@@ -243,15 +245,7 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
           !stop.ok()) {
         return stop;
       }
-      Decoded decoded;
-      if (k == 0 && first_image.valid()) {
-        decoded = first_image.get();
-      } else {
-        const auto decode_t0 = std::chrono::steady_clock::now();
-        decoded.image = cam.load();
-        decoded.seconds =
-            std::chrono::duration<double>(std::chrono::steady_clock::now() - decode_t0).count();
-      }
+      Decoded decoded = k == 0 && first_image.valid() ? first_image.get() : decode(cam.load);
       absl::StatusOr<ingest::LinearImage>& image = decoded.image;
       if (!image.ok()) return image.status();
       const double decode_seconds = decoded.seconds;
