@@ -3,7 +3,8 @@
 // machine. Run by deploy/bench.sh; speed goals live here, not in timed tests.
 // Usage: vasl_bench [--panorama-width W] [--repeat N] [--growth-only] [--tile-vossels T]
 //                   [--snapshot-budget-mb M]  (the growth engine's EngineLimits::max_snapshot_bytes)
-//                   [--revisit-cache-mb M]    (its EngineLimits::max_revisit_image_bytes)
+//                   [--revisit-cache-mb M]    (its and the site's EngineLimits::
+//                                              max_revisit_image_bytes)
 //                   [--growth-passes N]       (ingests of the corridor timed N times, default 3)
 //                   [--site realistic|small [--json PATH]]  (issue "Speed": a site at realistic
 //                   size, or small, ingested, fused, reweighted, rebuilt and rendered; alone)
@@ -480,13 +481,15 @@ absl::StatusOr<std::string> EmbreePeers(const vasl::scenes::CorridorSite& site,
 /// reweight flow from disk against a rebuild; an equirect render; bytes per record on disk;
 /// peak RSS of each step. Medians and spread over `repeat` runs where a step repeats.
 int Site(const std::filesystem::path& dir, bool realistic, int repeat,
-         const std::string& json_path) {
+         const std::string& json_path, int64_t revisit_cache_mb) {
   using namespace vasl;
   const int lidar_w = realistic ? 2048 : 512, pano_w = realistic ? 4096 : 1024;
   const double h = realistic ? 0.02 : 0.05;
   const size_t stations = 6;
   const int cores = tbb::info::default_concurrency();
-  auto engine = Engine::Open(dir);
+  EngineLimits limits;
+  if (revisit_cache_mb >= 0) limits.max_revisit_image_bytes = revisit_cache_mb << 20;
+  auto engine = Engine::Open(dir, limits);
   if (!engine.ok()) return Fail(engine.status());
   store::ProjectSettings settings;
   settings.vossel_size_m = h;
@@ -495,9 +498,11 @@ int Site(const std::filesystem::path& dir, bool realistic, int repeat,
   scenes::LidarSettings lidar;
   lidar.azimuth_steps = lidar_w;
   lidar.elevation_steps = lidar_w / 2;
-  std::printf("\nsite (%s): corridor stations 1-%zu, LiDAR %dx%d, RGB %dx%d, h %.2f m, %d cores\n",
+  std::printf("\nsite (%s): corridor stations 1-%zu, LiDAR %dx%d, RGB %dx%d, h %.2f m, %d cores, "
+              "revisited images kept %lld MB\n",
               realistic ? "realistic" : "small", stations, lidar_w, lidar_w / 2, pano_w,
-              pano_w / 2, h, cores);
+              pano_w / 2, h, cores,
+              (long long)((*engine)->limits().max_revisit_image_bytes >> 20));
   std::string json = absl::StrFormat(
       "{\n  \"site\": \"%s\", \"cores\": %d, \"vossel_m\": %.3f, \"lidar\": [%d, %d], "
       "\"rgb\": [%d, %d],\n  \"ingest\": [",
@@ -679,7 +684,8 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "vasl_bench: --site takes realistic or small, not %s\n", site.c_str());
       return 2;
     }
-    const int rc = Site(dir / "site-engine", site == "realistic", std::max(1, repeat), json_path);
+    const int rc = Site(dir / "site-engine", site == "realistic", std::max(1, repeat), json_path,
+                         revisit_cache_mb);
     std::filesystem::remove_all(dir);
     return rc;
   }
