@@ -112,7 +112,20 @@ ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap)
   tbb::parallel_for(tbb::blocked_range<int>(1, H - 1), [&](const tbb::blocked_range<int>& rows) {
     std::vector<Sample>* samples[2] = {&local[0].local(), &local[1].local()};
     for (int y = rows.begin(); y != rows.end(); ++y) {
+      // Green of rows y − 1, y and y + 1 (1 ≤ y ≤ H − 2): away from the columns that wrap,
+      // the differences below are read straight from them, the same products and difference
+      // as `diff`, and a pixel where neither reaches an edge's contrast (most of them) is
+      // passed by without the wrap and clamps.
+      const float* up = &image.pixels[size_t(y - 1) * W * C + 1];
+      const float* row = up + size_t(W) * C;
+      const float* down = row + size_t(W) * C;
       for (int x = wrap ? 0 : 1; x < (wrap ? W : W - 1); ++x) {
+        if (x >= 1 && x + 1 < W) {
+          const size_t at = size_t(x) * C;
+          const float fx = row[at + C] * inv_clip - row[at - C] * inv_clip;
+          const float fy = down[at] * inv_clip - up[at] * inv_clip;
+          if (std::abs(fx) < kEdgeContrast && std::abs(fy) < kEdgeContrast) continue;
+        }
         const float gx = diff(x, y, 1, 0), gy = diff(x, y, 1, 1);
         for (int axis = 0; axis < 2; ++axis) {
           const float g = axis == 0 ? gx : gy, other = axis == 0 ? gy : gx;
