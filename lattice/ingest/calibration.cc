@@ -417,7 +417,7 @@ CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource&
   const Cells cells = levels[level].cells;
   const std::atomic<uint64_t>* nearest = levels[level].nearest.get();
   out.cell_px = cells.s;
-  const size_t n_cells = size_t(cells.width) * cells.height;
+  const size_t n_cells = levels[level].size();
 
   // The LiDAR image at the cells' centres: each return's texture spread bilinearly over the four
   // centres around it, into the cells whose nearest return it is level with (not a farther
