@@ -43,7 +43,13 @@ absl::Status FsyncDirectoryTree(const fs::path& dir) {
   return FsyncPath(dir);
 }
 
-absl::Status WriteFileDurable(const fs::path& path, std::string_view bytes) {
+namespace {
+
+/// Writes `bytes` to `path` (created or truncated), then `finish(fd)` (its status, errno set on
+/// failure) before closing it.
+template <typename Finish>
+absl::Status WriteFile(const fs::path& path, std::string_view bytes, const char* finishing,
+                       Finish&& finish) {
   const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) return ErrnoError("cannot create", path, errno);
   size_t done = 0;
@@ -57,13 +63,25 @@ absl::Status WriteFileDurable(const fs::path& path, std::string_view bytes) {
     }
     done += static_cast<size_t>(w);
   }
-  if (::fsync(fd) != 0) {
+  if (finish(fd) != 0) {
     const int err = errno;
     ::close(fd);
-    return ErrnoError("fsync failed on", path, err);
+    return ErrnoError(finishing, path, err);
   }
   if (::close(fd) != 0) return ErrnoError("cannot close", path, errno);
   return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status WriteFileDurable(const fs::path& path, std::string_view bytes) {
+  return WriteFile(path, bytes, "fsync failed on", [](int fd) { return ::fsync(fd); });
+}
+
+absl::Status WriteFileStartWriteback(const fs::path& path, std::string_view bytes) {
+  return WriteFile(path, bytes, "cannot start the writeback of", [](int fd) {
+    return ::sync_file_range(fd, 0, 0, SYNC_FILE_RANGE_WRITE);
+  });
 }
 
 absl::Status ReplaceFileAtomically(const fs::path& path, std::string_view bytes) {

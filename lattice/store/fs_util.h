@@ -20,6 +20,9 @@ absl::Status FsyncPath(const std::filesystem::path& path);
 absl::Status FsyncDirectoryTree(const std::filesystem::path& dir);
 /// Writes `bytes` to `path` (created or truncated) and fsyncs the file.
 absl::Status WriteFileDurable(const std::filesystem::path& path, std::string_view bytes);
+/// Writes `bytes` to `path` (created or truncated) and starts its writeback to the disk
+/// (sync_file_range) without waiting for it: a later FsyncPath of it waits less.
+absl::Status WriteFileStartWriteback(const std::filesystem::path& path, std::string_view bytes);
 /// Replaces `path` atomically: writes `<dir>/.<name>.tmp-<random>`, fsyncs it, renames it over
 /// `path` and fsyncs the directory. A crash leaves either the old or the new content.
 absl::Status ReplaceFileAtomically(const std::filesystem::path& path, std::string_view bytes);

@@ -3,8 +3,13 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <atomic>
 #include <cerrno>
+#include <mutex>
 #include <system_error>
+#include <thread>
+#include <vector>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -21,20 +26,18 @@ class LocalObjectStore final : public ObjectStore {
   explicit LocalObjectStore(fs::path dir) : dir_(std::move(dir)) {}
 
   absl::StatusOr<StoredObject> PutBytes(std::string_view bytes) override {
-    // Hashed in memory and written once (fsynced), never read back.
+    // Hashed in memory and written once to a staging file, its writeback started but not
+    // waited for; Sync waits for it, then takes the file in under its name. Only an object
+    // whose bytes are on the disk is ever renamed over a name: an older version may share it.
     absl::StatusOr<std::string> sha = internal::Sha256Hex(bytes);
     if (!sha.ok()) return sha.status();
     const fs::path staged = StagingPath();
-    if (absl::Status s = internal::WriteFileDurable(staged, bytes); !s.ok()) {
+    if (absl::Status s = internal::WriteFileStartWriteback(staged, bytes); !s.ok()) {
       ::unlink(staged.c_str());
       return s;
     }
-    const fs::path path = dir_ / *sha;
-    if (::rename(staged.c_str(), path.c_str()) != 0) {
-      const int err = errno;
-      ::unlink(staged.c_str());
-      return internal::ErrnoError("cannot rename object into place at", path, err);
-    }
+    std::lock_guard<std::mutex> lock(mu_);
+    pending_.push_back({staged, dir_ / *sha});
     return StoredObject{*sha, int64_t(bytes.size())};
   }
 
@@ -76,7 +79,48 @@ class LocalObjectStore final : public ObjectStore {
     return absl::OkStatus();
   }
 
-  absl::Status Sync() override { return internal::FsyncPath(dir_); }
+  absl::Status Sync() override {
+    std::vector<Pending> pending;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      pending.swap(pending_);
+    }
+    // The staged files' fsyncs on a few threads of their own (they wait on the disk, not a
+    // core): the filesystem commits concurrent ones together.
+    std::vector<absl::Status> synced(pending.size());
+    std::atomic<size_t> next{0};
+    auto fsync_each = [&] {
+      for (size_t i = next++; i < pending.size(); i = next++) {
+        synced[i] = internal::FsyncPath(pending[i].staged);
+      }
+    };
+    std::vector<std::thread> threads;
+    for (size_t t = 1; t < std::min<size_t>(kSyncThreads, pending.size()); ++t) {
+      threads.emplace_back(fsync_each);
+    }
+    fsync_each();
+    for (std::thread& t : threads) t.join();
+    absl::Status status;
+    for (size_t i = 0; i < pending.size(); ++i) {
+      if (status.ok() && !synced[i].ok()) status = synced[i];
+      if (status.ok() && ::rename(pending[i].staged.c_str(), pending[i].path.c_str()) != 0) {
+        status = internal::ErrnoError("cannot rename object into place at", pending[i].path,
+                                      errno);
+      }
+      if (!status.ok()) ::unlink(pending[i].staged.c_str());  // this one and those after it
+    }
+    if (!status.ok()) return status;
+    return internal::FsyncPath(dir_);
+  }
+
+  void Discard() override {
+    std::vector<Pending> pending;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      pending.swap(pending_);
+    }
+    for (const Pending& p : pending) ::unlink(p.staged.c_str());
+  }
 
   absl::Status CleanStaging() override {
     std::error_code ec;
@@ -94,7 +138,15 @@ class LocalObjectStore final : public ObjectStore {
     return dir_ / absl::StrCat(kStagingPrefix, internal::RandomHex(16));
   }
 
+  /// Staged files fsynced at once by Sync.
+  static constexpr size_t kSyncThreads = 8;
+  struct Pending {
+    fs::path staged;  ///< written, its writeback started
+    fs::path path;    ///< its name once synced
+  };
   fs::path dir_;
+  std::mutex mu_;
+  std::vector<Pending> pending_;
 };
 
 }  // namespace

@@ -26,8 +26,10 @@ struct StoredObject {
 class ObjectStore {
  public:
   virtual ~ObjectStore() = default;
-  /// Stores bytes as an object named by their content hash, durable before it returns.
-  /// Idempotent. (Tile files are made in memory: records::EncodeGeometry and its siblings.)
+  /// Stores bytes as an object named by their content hash. It is readable, and durable,
+  /// once the next Sync returns: a writer puts many objects, then syncs once before anything
+  /// names them, so that no put waits on the disk. Idempotent. (Tile files are made in memory:
+  /// records::EncodeGeometry and its siblings.)
   virtual absl::StatusOr<StoredObject> PutBytes(std::string_view bytes) = 0;
   /// A local file holding the object, to read it in place (OpenVDB opens files).
   /// NOT_FOUND when there is no such object.
@@ -37,8 +39,11 @@ class ObjectStore {
   virtual absl::StatusOr<std::vector<std::string>> List() const = 0;
   /// Removes an object (no error when it is already gone).
   virtual absl::Status Remove(const std::string& sha256) = 0;
-  /// Makes the set of names durable (fsync of the directory).
+  /// Makes every object put so far durable under its name, and the set of names durable.
   virtual absl::Status Sync() = 0;
+  /// Forgets the objects put since the last Sync (a writer that stopped before naming them),
+  /// removing what they left. Call under the one writer, as the garbage collection runs.
+  virtual void Discard() = 0;
   /// Removes staging files left by an interrupted writer.
   virtual absl::Status CleanStaging() = 0;
 };

@@ -278,6 +278,7 @@ struct ProjectStore::Impl {
 
   /// Retention and garbage collection (see ProjectStore::CollectGarbage).
   absl::StatusOr<int64_t> Collect() {
+    objects->Discard();  // puts no commit named (a stopped flow's) go with the garbage
     const int64_t h = head.load();
     const int64_t oldest_kept = h - std::max(0, settings.keep_versions);
     std::set<std::string> live_objects, live_blobs;

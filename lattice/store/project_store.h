@@ -10,7 +10,8 @@
 ///            HEAD             the committed version number, replaced by atomic rename
 ///          A version is a manifest: for each tile and layer the hash of its object, and for
 ///          each source the hash of its reach raster. A commit writes only the objects of the
-///          tiles it changed (fsynced), then the catalog rows of the new manifest in one
+///          tiles it changed (put without waiting on the disk, then fsynced together and named
+///          by ObjectStore::Sync), then the catalog rows of the new manifest in one
 ///          transaction, then renames HEAD. A crash at any point leaves the previous version
 ///          intact: catalog rows newer than HEAD are dropped on Open, and objects no kept
 ///          version references are collected.
