@@ -5,7 +5,9 @@
 # (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad;
 # tests/bench/visibility_bench.cc: the §5 depth panorama, dilation and visibility test, and the
 # §8 render's march and its EXR and PNG encoding, on the corridor site; tests/bench/image_bench.cc:
-# the PNG decode and §9 artefact detectors every camera load runs, at 4096×2048), whose medians
+# the PNG decode and §9 artefact detectors every camera load runs, at 4096×2048;
+# tests/bench/tile_io_bench.cc: encoding and reading the fullest tile's geometry, records and
+# fused objects, what every commit and reweight does per tile), whose medians
 # and spread over 5 runs are also written to build/bench-kernels.json.
 # Then a site at realistic size (the corridor's first 6 stations, LiDAR 2048×1024 and RGB
 # 4096×2048 each, h = 2 cm; about 2 minutes; BENCH_SITE=small for LiDAR 512×256, RGB 1024×512,
