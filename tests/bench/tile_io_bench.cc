@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <string>
+#include <system_error>
 
 #include <benchmark/benchmark.h>
 
@@ -105,6 +106,13 @@ const Tile& TheTile() {
                 fs::file_size(t.records_path) / 1e6, fs::file_size(t.fused_path) / 1e6);
     return t;
   }();
+  static const struct RemoveAtExit {  // the copies of the objects go with the process
+    const Tile& t;
+    ~RemoveAtExit() {
+      std::error_code ec;
+      for (const fs::path& p : {t.geometry_path, t.records_path, t.fused_path}) fs::remove(p, ec);
+    }
+  } remove_at_exit{tile};
   return tile;
 }
 
