@@ -41,7 +41,8 @@ struct Tile {
 const Tile& TheTile() {
   static const Tile tile = [] {
     using namespace vasl;
-    const fs::path dir = fs::temp_directory_path() / ("vasl-tile-io-bench-" + std::to_string(::getpid()));
+    const fs::path dir =
+        fs::temp_directory_path() / ("vasl-tile-io-bench-" + std::to_string(::getpid()));
     fs::remove_all(dir);
     auto engine = Engine::Open(dir, EngineLimits{});
     if (!engine.ok()) Die(engine.status());
@@ -110,7 +111,9 @@ const Tile& TheTile() {
     const Tile& t;
     ~RemoveAtExit() {
       std::error_code ec;
-      for (const fs::path& p : {t.geometry_path, t.records_path, t.fused_path}) fs::remove(p, ec);
+      for (const fs::path& p : {t.geometry_path, t.records_path, t.fused_path}) {
+        fs::remove(p, ec);
+      }
     }
   } remove_at_exit{tile};
   return tile;
