@@ -8,13 +8,13 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <map>
 #include <string>
 #include <system_error>
 
 #include <benchmark/benchmark.h>
 
 #include "lattice/engine.h"
-#include "lattice/fusion/fuse.h"
 #include "lattice/records/record_grid.h"
 #include "lattice/store/project_store.h"
 #include "tests/scenes/corridor_site.h"
@@ -26,6 +26,7 @@ namespace fs = std::filesystem;
 
 /// One tile of a stored project: its object files and what they hold.
 struct Tile {
+  fs::path dir;  ///< the store, removed at exit
   fs::path geometry_path, records_path, fused_path;
   vasl::records::VosselGeometry geometry;  ///< with its sums and frames (ReadGeometry)
   vasl::records::VosselGeometry lattice;   ///< the index grid alone (ReadLattice)
@@ -76,19 +77,13 @@ const Tile& TheTile() {
     const auto path_of = [&](const std::string& layer) {
       auto p = (*st)->objects().LocalPath(fullest->at(layer).object);
       if (!p.ok()) Die(p.status());
-      // Copied out, so that the store's directory can go now.
-      const fs::path copy = fs::temp_directory_path() /
-                            ("vasl-tile-io-" + layer + "-" + std::to_string(::getpid()));
-      fs::copy_file(*p, copy, fs::copy_options::overwrite_existing);
-      return copy;
+      return *p;
     };
     Tile t;
+    t.dir = dir;
     t.geometry_path = path_of(store::kLayerGeometry);
     t.records_path = path_of(store::kLayerRecords);
     t.fused_path = path_of(store::kLayerFusedDefault);
-    st->reset();
-    engine->reset();
-    fs::remove_all(dir);
     auto g = records::ReadGeometry(t.geometry_path);
     auto l = records::ReadLattice(t.geometry_path);
     if (!g.ok()) Die(g.status());
@@ -107,13 +102,11 @@ const Tile& TheTile() {
                 fs::file_size(t.records_path) / 1e6, fs::file_size(t.fused_path) / 1e6);
     return t;
   }();
-  static const struct RemoveAtExit {  // the copies of the objects go with the process
+  static const struct RemoveAtExit {  // the store goes with the process
     const Tile& t;
     ~RemoveAtExit() {
       std::error_code ec;
-      for (const fs::path& p : {t.geometry_path, t.records_path, t.fused_path}) {
-        fs::remove(p, ec);
-      }
+      fs::remove_all(t.dir, ec);
     }
   } remove_at_exit{tile};
   return tile;
