@@ -1,12 +1,19 @@
 // Vossel order (records.h), geometry.vdb and fused-<profile>.vdb (record_grid.h): plain OpenVDB
 // grids that share the topology of the index grid (VASL-MODEL §1, §7).
 #include <algorithm>
+#include <cstring>
 #include <atomic>
+#include <map>
+#include <memory>
 #include <mutex>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include <openvdb/openvdb.h>
+#include <openvdb/points/AttributeArray.h>
+#include <openvdb/points/AttributeSet.h>
+#include <openvdb/points/PointDataGrid.h>
 #include <openvdb/tools/Prune.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -296,26 +303,219 @@ absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem
   return internal::WriteVdbFile(path, *grids, GeometryFileMeta(geometry), kGeometryCompression);
 }
 
-absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry) {
-  constexpr char kWhere[] = "geometry object";
-  absl::StatusOr<openvdb::GridCPtrVec> grids =
-      GeometryGrids(geometry, kWhere, GeometryGridSet::kStoredOnly);
-  if (!grids.ok()) return grids.status();
-  return internal::EncodeVdbFile(*grids, GeometryFileMeta(geometry), kGeometryCompression,
-                                 kWhere, internal::VdbGridStats::kSkip);
+namespace {
+
+namespace pts = openvdb::points;
+using pts::PointDataGrid;
+using PointLeaf = pts::PointDataTree::LeafNodeType;
+/// Attribute arrays of a geometry object: the values as they are, no codec.
+template <typename T>
+using RawArray = pts::TypedAttributeArray<T, pts::NullCodec>;
+
+/// The PointDataGrid of a geometry object: one point per vossel, in the vossel's voxel.
+constexpr char kVosselPoints[] = "vossels";
+
+/// Calls `fn(name, stride, array, at)` for every per-vossel attribute of a geometry object, in
+/// file order: `array` is the geometry's vector that holds it (several attributes share the
+/// sums' and the frames'), `at(element)` the pointer to its `stride` values in one element
+/// (int32_t, float or double; const when `g` is).
+template <typename G, typename Fn>
+void ForEachVosselAttribute(G& g, Fn&& fn) {
+  fn("count", 1, g.point_count, [](auto& c) { return &c; });
+  fn("normal", 3, g.normal, [](auto& n) { return n.data(); });
+  fn("centroid", 3, g.centroid_m, [](auto& c) { return c.data(); });
+  fn("covariance", 6, g.covariance_m2, [](auto& c) { return c.data(); });
+  fn("sum", 3, g.sums, [](auto& s) { return s.sum_m.data(); });
+  fn("sum_xx", 6, g.sums, [](auto& s) { return s.sum_xx_m2.data(); });
+  fn("view_sum", 3, g.sums, [](auto& s) { return s.view_sum.data(); });
+  fn("frame_count", 1, g.frame, [](auto& f) { return &f.count; });
+  fn("frame_centroid", 3, g.frame, [](auto& f) { return f.centroid_m.data(); });
+  fn("frame_covariance", 6, g.frame, [](auto& f) { return f.covariance_m2.data(); });
+  fn("frame_view", 3, g.frame, [](auto& f) { return f.view.data(); });
+  fn("frame_normal", 3, g.frame, [](auto& f) { return f.normal.data(); });
 }
 
-absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
-                                                   const std::string& where,
-                                                   GeometryGridSet set) {
+/// Whether a geometry object keeps attribute `name`, held in `array`: every array the geometry
+/// has, but the centroid and covariance where the sums they come from are kept (they are
+/// derived again on reading, FrameOf, to the same bits).
+template <typename Array>
+bool Kept(const VosselGeometry& geometry, const char* name, const Array& array) {
+  const bool derived = std::strcmp(name, "centroid") == 0 || std::strcmp(name, "covariance") == 0;
+  return !array.empty() && !(derived && !geometry.sums.empty());
+}
+
+/// The value type `at` points to.
+template <typename Array, typename At>
+using ValueOf = std::remove_const_t<
+    std::remove_pointer_t<std::invoke_result_t<At, typename Array::value_type&>>>;
+
+/// A geometry object's per-vossel arrays as one PointDataGrid over the lattice of `index`: a
+/// point per vossel at its voxel's centre, its values as attributes. A leaf's points are its
+/// vossels in voxel order, so each attribute of a leaf is a contiguous run of the arrays: one
+/// pass over a vossel's bytes, against a grid, a topology copy and a mask scan per array of
+/// the plain grids a file a user opens keeps (GeometryGrids).
+absl::StatusOr<openvdb::GridBase::Ptr> VosselPoints(const VosselGeometry& geometry,
+                                                    const std::string& where) {
+  const Int32Grid& index = *geometry.index_grid;
+  try {
+    // The prototype's arrays carry the strides (RECORDS-NOTES pitfall 3); P is left uniform.
+    auto descriptor = pts::AttributeSet::Descriptor::create(
+        RawArray<openvdb::Vec3f>::attributeType());
+    pts::AttributeSet prototype(descriptor, 1);
+    ForEachVosselAttribute(geometry, [&](const char* name, int stride, const auto& array,
+                                         auto at) {
+      using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+      if (Kept(geometry, name, array)) {
+        prototype.appendAttribute(name, RawArray<T>::attributeType(), stride);
+      }
+    });
+    const auto leaves = ConstLeavesInOrder(index.tree());
+    std::vector<std::unique_ptr<PointLeaf>> points(leaves.size());
+    {
+      pts::AttributeArray::ScopedRegistryLock lock;  // one lock for every leaf (pitfall 5)
+      tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 8),
+                        [&](const tbb::blocked_range<size_t>& r) {
+        std::vector<pts::PointDataTree::ValueType> offsets(PointLeaf::SIZE);
+        for (size_t li = r.begin(); li < r.end(); ++li) {
+          const Int32Leaf& leaf = *leaves[li];
+          openvdb::Index32 end = 0;  // a voxel's value: the end of its points (pitfall 2)
+          for (openvdb::Index o = 0; o < PointLeaf::SIZE; ++o) {
+            offsets[o] = end += leaf.isValueOn(o) ? 1 : 0;
+          }
+          if (end == 0) continue;  // (an index leaf has vossels; a tree may keep an empty one)
+          const size_t first = size_t(*leaf.cbeginValueOn());  // canonical: its vossels in a run
+          auto set = std::make_unique<pts::AttributeSet>(prototype, end, &lock);
+          ForEachVosselAttribute(geometry, [&](const char* name, int stride, const auto& array,
+                                               auto at) {
+            using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+            if (!Kept(geometry, name, array)) return;
+            auto& values = static_cast<RawArray<T>&>(*set->get(set->find(name)));
+            values.expand(/*fill=*/false);
+            // Made for this leaf and not shared: its buffer is written in place.
+            T* out = const_cast<T*>(values.constData());
+            for (size_t v = first; v < first + end; ++v, out += stride) {
+              std::copy_n(at(array[v]), stride, out);
+            }
+          });
+          auto point_leaf = std::make_unique<PointLeaf>(leaf.origin());
+          point_leaf->replaceAttributeSet(set.release(), /*allowMismatchingDescriptors=*/true);
+          point_leaf->setOffsets(offsets, /*updateValueMask=*/true);
+          points[li] = std::move(point_leaf);
+        }
+      });
+    }
+    auto tree = std::make_shared<pts::PointDataTree>();
+    for (auto& leaf : points) {
+      if (leaf) tree->addLeaf(leaf.release());
+    }
+    auto grid = PointDataGrid::create(tree);
+    grid->setTransform(index.transform().copy());
+    grid->setName(kVosselPoints);
+    return openvdb::GridBase::Ptr(grid);
+  } catch (const std::exception& e) {
+    return absl::InternalError(
+        absl::StrCat("OpenVDB failed building the vossel points of ", where, ": ", e.what()));
+  }
+}
+
+/// Reads the attributes of a geometry object's vossel points (VosselPoints) into `g`, whose
+/// lattice (LatticeOf) it must share leaf for leaf and voxel for voxel. An attribute of a
+/// group (the sums, the frames) without the rest of its group, or of another type or stride,
+/// is DATA_LOSS.
+absl::Status ReadVosselPoints(const PointDataGrid& grid, const std::filesystem::path& path,
+                              VosselGeometry& g) {
+  const Int32Grid& index = *g.index_grid;
+  const size_t n = g.size();
+  std::vector<const PointLeaf*> leaves;
+  leaves.reserve(grid.tree().leafCount());
+  for (auto it = grid.tree().cbeginLeaf(); it; ++it) leaves.push_back(it.getLeaf());
+  const auto mismatch = [&path](const std::string& what) {
+    return absl::DataLossError(absl::StrCat(path.string(), ": the vossel points ", what));
+  };
+  const auto index_leaves = ConstLeavesInOrder(index.tree());
+  // (An index leaf without vossels has no point leaf: the vossel points skip it.)
+  std::vector<const Int32Leaf*> lattice_leaves;
+  lattice_leaves.reserve(index_leaves.size());
+  for (const Int32Leaf* leaf : index_leaves) {
+    if (!leaf->isEmpty()) lattice_leaves.push_back(leaf);
+  }
+  if (leaves.size() != lattice_leaves.size()) {
+    return mismatch("do not share the lattice of the index grid");
+  }
+  // Which attributes the file has, checked against the first leaf's descriptor.
+  std::map<std::string, size_t> present;
+  absl::Status bad;
+  if (!leaves.empty()) {
+    const pts::AttributeSet& set = leaves[0]->attributeSet();
+    ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
+      using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+      const size_t pos = set.find(name);
+      if (pos == pts::AttributeSet::INVALID_POS || !bad.ok()) return;
+      if (set.descriptor().type(pos) != RawArray<T>::attributeType() ||
+          int(set.getConst(pos)->stride()) != stride) {
+        bad = mismatch(absl::StrCat("have attribute \"", name, "\" of another type or stride"));
+        return;
+      }
+      present[name] = pos;
+      if (array.size() != n) array.resize(n);
+    });
+  }
+  if (!bad.ok()) return bad;
+  for (const auto& group : {std::vector<const char*>{"sum", "sum_xx", "view_sum"},
+                            {"frame_count", "frame_centroid", "frame_covariance", "frame_view",
+                             "frame_normal"}}) {
+    const size_t has = std::count_if(group.begin(), group.end(),
+                                     [&](const char* a) { return present.count(a) > 0; });
+    if (has != 0 && has != group.size()) {
+      return mismatch(absl::StrCat("have some of the attributes of \"", group[0],
+                                   "\" and not the others"));
+    }
+  }
+  FirstError error;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 8),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t li = r.begin(); li < r.end() && !error.failed(); ++li) {
+      const PointLeaf& leaf = *leaves[li];
+      const Int32Leaf& lattice = *lattice_leaves[li];
+      const size_t count = lattice.onVoxelCount();
+      if (leaf.origin() != lattice.origin() || leaf.getValueMask() != lattice.getValueMask() ||
+          leaf.getLastValue() != count || leaf.attributeSet().descriptor().map() !=
+                                             leaves[0]->attributeSet().descriptor().map()) {
+        error.Set(mismatch(absl::StrCat("differ from the index grid or between leaves at ",
+                                        leaf.origin().asVec3i().str())));
+        return;
+      }
+      const size_t first = size_t(*lattice.cbeginValueOn());
+      ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
+        using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+        auto it = present.find(name);
+        if (it == present.end()) return;
+        const auto& values = static_cast<const RawArray<T>&>(*leaf.attributeSet().getConst(it->second));
+        // A uniform array (every vossel alike) holds one value; loadData is a delayed load's.
+        values.loadData();
+        const bool uniform = values.isUniform();
+        const T* in = values.constData();
+        for (size_t v = first; v < first + count; ++v) {
+          std::copy_n(in, stride, at(array[v]));
+          if (!uniform) in += stride;
+        }
+      });
+    }
+  });
+  return error.status();
+}
+
+/// Checks that `geometry` can be written: an index grid in canonical order over its vossels,
+/// and every array empty or one entry a vossel. Returns the index grid's copy the file holds
+/// ("index": it shares the tree).
+absl::StatusOr<openvdb::GridBase::Ptr> CheckedIndex(const VosselGeometry& geometry,
+                                                    const std::string& where) {
   internal::EnsureOpenVdbInitialized();
-  const std::filesystem::path path(where);
   if (!geometry.index_grid) {
     return absl::InvalidArgumentError(
         "WriteGeometry: the geometry has no index grid; call CanonicalizeVosselOrder first");
   }
-  const Int32Grid& index = *geometry.index_grid;
-  absl::StatusOr<size_t> n = internal::CheckCanonicalOrder(index, path.string());
+  absl::StatusOr<size_t> n = internal::CheckCanonicalOrder(*geometry.index_grid, where);
   if (!n.ok()) return n.status();
   if (*n != geometry.coord.size()) {
     return absl::InvalidArgumentError(absl::StrCat("WriteGeometry: the index grid has ", *n,
@@ -330,21 +530,37 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
                          CheckArraySize(geometry.frame.size(), *n, 1, "frame")}) {
     if (!s.ok()) return s;
   }
-
-  openvdb::GridCPtrVec grids;
-  openvdb::GridBase::Ptr index_copy = geometry.index_grid->copyGrid();  // shares the tree; own name/meta
+  openvdb::GridBase::Ptr index_copy = geometry.index_grid->copyGrid();  // own name and meta
   index_copy->setName("index");
   index_copy->setGridClass(openvdb::GRID_UNKNOWN);
-  grids.push_back(index_copy);
+  return index_copy;
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry) {
+  constexpr char kWhere[] = "geometry object";
+  absl::StatusOr<openvdb::GridBase::Ptr> index = CheckedIndex(geometry, kWhere);
+  if (!index.ok()) return index.status();
+  absl::StatusOr<openvdb::GridBase::Ptr> vossels = VosselPoints(geometry, kWhere);
+  if (!vossels.ok()) return vossels.status();
+  return internal::EncodeVdbFile({*index, *vossels}, GeometryFileMeta(geometry),
+                                 kGeometryCompression, kWhere, internal::VdbGridStats::kSkip);
+}
+
+absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
+                                                   const std::string& where) {
+  absl::StatusOr<openvdb::GridBase::Ptr> index_copy = CheckedIndex(geometry, where);
+  if (!index_copy.ok()) return index_copy.status();
+  const Int32Grid& index = *geometry.index_grid;
+  openvdb::GridCPtrVec grids{*index_copy};
   using openvdb::Vec3f;
   using openvdb::Vec3SGrid;
   if (!geometry.point_count.empty()) {
     grids.push_back(GridOverVossels<Int32Grid>(
         index, "count", [&](int32_t v) { return geometry.point_count[v]; }));
   }
-  // Centroid and covariance are kept only where the sums they come from are not.
-  const bool derived = set == GeometryGridSet::kEvery || geometry.sums.empty();
-  if (derived && !geometry.centroid_m.empty()) {
+  if (!geometry.centroid_m.empty()) {
     grids.push_back(GridOverVossels<Vec3SGrid>(index, "centroid", [&](int32_t v) {
       const Eigen::Vector3f& c = geometry.centroid_m[v];
       return Vec3f(c.x(), c.y(), c.z());
@@ -356,7 +572,7 @@ absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometr
       return Vec3f(c.x(), c.y(), c.z());
     }));
   }
-  if (derived && !geometry.covariance_m2.empty()) {
+  if (!geometry.covariance_m2.empty()) {
     PushCovarianceGrids(grids, index, "covariance",
                         [&](int32_t v) -> const std::array<float, 6>& {
                           return geometry.covariance_m2[v];
@@ -439,23 +655,23 @@ absl::StatusOr<VosselGeometry> ReadLattice(const std::filesystem::path& path) {
   return LatticeOf(*contents, path);
 }
 
-absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
-  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
-  if (!contents.ok()) return contents.status();
-  absl::StatusOr<VosselGeometry> lattice = LatticeOf(*contents, path);
-  if (!lattice.ok()) return lattice.status();
-  VosselGeometry& g = *lattice;
+namespace {
+
+/// Reads the arrays of a geometry file kept as plain grids (GeometryGrids; the geometry objects
+/// of stores written before VosselPoints) into `g`, which holds the file's lattice.
+absl::Status ReadGeometryGrids(const internal::VdbFileContents& contents,
+                               const std::filesystem::path& path, VosselGeometry& g) {
   const Int32Grid::Ptr index = g.index_grid;
   const size_t n = g.size();
   // Companion grids are read by active vossel, so any topology that is a subset works.
-  if (auto count = GridAs<Int32Grid>(*contents, "count")) {
+  if (auto count = GridAs<Int32Grid>(contents, "count")) {
     g.point_count.assign(n, 0);
     absl::Status s = ForEachActiveVossel(*index, *count, path,
                                          [&](int32_t v, int32_t c) { g.point_count[v] = c; });
     if (!s.ok()) return s;
   }
   auto read_vec3 = [&](const char* name, std::vector<Eigen::Vector3f>& out) -> absl::Status {
-    auto grid = GridAs<openvdb::Vec3SGrid>(*contents, name);
+    auto grid = GridAs<openvdb::Vec3SGrid>(contents, name);
     if (!grid) return absl::OkStatus();
     out.assign(n, Eigen::Vector3f::Zero());
     return ForEachActiveVossel(*index, *grid, path, [&](int32_t v, const openvdb::Vec3f& c) {
@@ -473,10 +689,10 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
     g.covariance_m2.resize(n);
     for (size_t v = 0; v < n; ++v) g.covariance_m2[v] = CovarianceFrom(diag[v], off[v]);
   }
-  if (GridAs<openvdb::Vec3DGrid>(*contents, "sum")) {
+  if (GridAs<openvdb::Vec3DGrid>(contents, "sum")) {
     g.sums.assign(n, VosselSums{});
     auto read_vec3d = [&](const char* name, auto&& set) -> absl::Status {
-      auto grid = GridAs<openvdb::Vec3DGrid>(*contents, name);
+      auto grid = GridAs<openvdb::Vec3DGrid>(contents, name);
       if (!grid) {
         return absl::DataLossError(absl::StrCat(path.string(), " has \"sum\" but no Vec3d grid \"",
                                                 name, "\""));
@@ -500,12 +716,8 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
              })}) {
       if (!s.ok()) return s;
     }
-    if (g.centroid_m.empty() && g.covariance_m2.empty() && g.point_count.size() == n) {
-      // Written with the sums alone (GeometryGridSet::kStoredOnly): what they give, derived.
-      DeriveCentroidAndCovariance(g);
-    }
   }
-  if (auto count = GridAs<Int32Grid>(*contents, "frame_count")) {
+  if (auto count = GridAs<Int32Grid>(contents, "frame_count")) {
     g.frame.assign(n, VosselFrame{});
     if (absl::Status s = ForEachActiveVossel(*index, *count, path,
                                              [&](int32_t v, int32_t c) { g.frame[v].count = c; });
@@ -519,7 +731,7 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
                              {"frame_covariance_off", &cov_off},
                              {"frame_view", &view},
                              {"frame_normal", &normal}}) {
-      if (!GridAs<openvdb::Vec3SGrid>(*contents, name)) {
+      if (!GridAs<openvdb::Vec3SGrid>(contents, name)) {
         return absl::DataLossError(absl::StrCat(
             path.string(), " has \"frame_count\" but no Vec3s grid \"", name, "\""));
       }
@@ -532,8 +744,30 @@ absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
       f.view = view[v];
       f.normal = normal[v];
     }
-  } else if (!g.sums.empty() && g.point_count.size() == n && g.centroid_m.size() == n &&
-             g.normal.size() == n && g.covariance_m2.size() == n) {
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path) {
+  absl::StatusOr<internal::VdbFileContents> contents = internal::ReadVdbFile(path);
+  if (!contents.ok()) return contents.status();
+  absl::StatusOr<VosselGeometry> lattice = LatticeOf(*contents, path);
+  if (!lattice.ok()) return lattice.status();
+  VosselGeometry& g = *lattice;
+  const PointDataGrid::Ptr vossels = GridAs<PointDataGrid>(*contents, kVosselPoints);
+  const absl::Status read = vossels ? ReadVosselPoints(*vossels, path, g)
+                                    : ReadGeometryGrids(*contents, path, g);
+  if (!read.ok()) return read;
+  const size_t n = g.size();
+  if (!g.sums.empty() && g.centroid_m.empty() && g.covariance_m2.empty() &&
+      g.point_count.size() == n) {
+    // Written with the sums alone (a geometry object): what they give, derived.
+    DeriveCentroidAndCovariance(g);
+  }
+  if (g.frame.empty() && !g.sums.empty() && g.point_count.size() == n &&
+      g.centroid_m.size() == n && g.normal.size() == n && g.covariance_m2.size() == n) {
     // Written before record frames: each vossel's surface becomes its frame (the records
     // stored with it were evaluated on that surface).
     g.frame.resize(n);

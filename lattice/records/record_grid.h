@@ -21,9 +21,10 @@ namespace vasl::records {
 
 /// Writes geometry (all vossels) to `path` (geometry.vdb).
 absl::Status WriteGeometry(const VosselGeometry& geometry, const std::filesystem::path& path);
-/// Reads geometry.vdb; rebuilds the index grid and the flat arrays in vossel order. A file with
-/// the exact sums and without centroid and covariance grids (a tile object: EncodeGeometry) has
-/// them derived from its sums (FrameOf), the bits an ingest derived before writing it.
+/// Reads geometry.vdb or a geometry object (EncodeGeometry; older objects kept plain grids as
+/// geometry.vdb does); rebuilds the index grid and the flat arrays in vossel order. A file with
+/// the exact sums and without centroid and covariance (a geometry object) has them derived from
+/// its sums (FrameOf), the bits an ingest derived before writing it.
 absl::StatusOr<VosselGeometry> ReadGeometry(const std::filesystem::path& path);
 /// Reads only the lattice of geometry.vdb: the index grid and the vossel coordinates, which is
 /// all that reading records (ReadRecords) and writing fused values (WriteFused) take; the other
@@ -51,29 +52,25 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
 absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
                                       const std::filesystem::path& path);
 
-/// The bytes of the files WriteGeometry, WriteRecords and WriteFused write, for a writer that
-/// stores them elsewhere (tile objects go into the object store from memory). Geometry and
-/// fused files keep OpenVDB's active-mask compression alone, records add blosc (README
-/// "Storage"). Their grids carry no statistics metadata (internal::VdbGridStats), and a geometry
-/// object with sums keeps no centroid or covariance grid (GeometryGridSet::kStoredOnly).
+/// The bytes of tile objects, for a writer that stores them elsewhere (tile objects go into
+/// the object store from memory): what WriteRecords and WriteFused write, and the geometry
+/// object. Geometry and fused objects keep OpenVDB's active-mask compression alone, records add
+/// blosc (README "Storage"). Their grids carry no statistics metadata (internal::VdbGridStats).
+/// A geometry object holds the "index" grid and a PointDataGrid "vossels" with one point per
+/// vossel at its voxel's centre and its arrays as attributes ("count", "normal", "sum",
+/// "sum_xx", "view_sum", "frame_count", "frame_centroid", "frame_covariance", "frame_view",
+/// "frame_normal"; "centroid" and "covariance" only without the sums, which give them): one
+/// tree to write and read instead of a grid per array (BM_EncodeGeometry, README "Storage").
 absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry);
 absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
                                           const RecordSet& records);
 absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry, const FusedValues& fused);
 
-/// Which geometry grids GeometryGrids makes. kEvery: every array the geometry has (files a
-/// user opens: WriteGeometry, export). kStoredOnly: where the geometry has its exact sums,
-/// not the centroid and covariance grids, exact functions of them (FrameOf) that ReadGeometry
-/// derives again: 36 of a vossel's ~220 bytes and a sixth of a geometry tile's encoding, in
-/// every object an ingest's commit writes.
-enum class GeometryGridSet { kEvery, kStoredOnly };
-
 /// The grids of the files above, for writers that put several layers in one file (export):
-/// the geometry grids, the "records" PointDataGrid and the fused grids. `where` names the data
-/// in error messages.
+/// the geometry grids (a plain grid per array the geometry has, as geometry.vdb holds them), the
+/// "records" PointDataGrid and the fused grids. `where` names the data in error messages.
 absl::StatusOr<openvdb::GridCPtrVec> GeometryGrids(const VosselGeometry& geometry,
-                                                   const std::string& where,
-                                                   GeometryGridSet set = GeometryGridSet::kEvery);
+                                                   const std::string& where);
 absl::StatusOr<openvdb::GridBase::Ptr> RecordsGrid(const VosselGeometry& geometry,
                                                    const RecordSet& records,
                                                    const std::string& where);

@@ -19,9 +19,11 @@
 #include <gtest/gtest.h>
 #include <openvdb/io/File.h>
 #include <openvdb/points/PointAttribute.h>
+#include <openvdb/points/PointCount.h>
 #include <openvdb/points/PointDataGrid.h>
 
 #include "absl/strings/str_cat.h"
+#include "lattice/records/vdb_io.h"
 
 namespace vasl::records {
 namespace {
@@ -571,9 +573,43 @@ TEST(GeometryGridTest, RoundTripExact) {
   fs::remove_all(dir);
 }
 
+/// Writes `bytes` to `path`.
+void WriteBytes(const fs::path& path, const std::string& bytes) {
+  std::FILE* f = std::fopen(path.c_str(), "wb");
+  ASSERT_NE(f, nullptr);
+  ASSERT_EQ(std::fwrite(bytes.data(), 1, bytes.size(), f), bytes.size());
+  std::fclose(f);
+}
+
+/// The names of the grids in the .vdb file `path`.
+std::set<std::string> GridNames(const fs::path& path) {
+  std::set<std::string> names;
+  openvdb::io::File file(path.string());
+  file.open();
+  for (auto it = file.beginName(); it != file.endName(); ++it) names.insert(*it);
+  file.close();
+  return names;
+}
+
+/// Every array of `back` equals `g`'s, bit for bit.
+void ExpectSameGeometry(const VosselGeometry& back, const VosselGeometry& g) {
+  EXPECT_EQ(back.coord, g.coord);
+  EXPECT_EQ(back.point_count, g.point_count);
+  EXPECT_EQ(back.centroid_m, g.centroid_m);
+  EXPECT_EQ(back.covariance_m2, g.covariance_m2);
+  EXPECT_EQ(back.normal, g.normal);
+  ASSERT_EQ(back.sums.size(), g.sums.size());
+  for (size_t v = 0; v < g.sums.size(); ++v) ASSERT_TRUE(back.sums[v] == g.sums[v]) << v;
+  ASSERT_EQ(back.frame.size(), g.frame.size());
+  for (size_t v = 0; v < g.frame.size(); ++v) ASSERT_TRUE(back.frame[v] == g.frame[v]) << v;
+}
+
 // Claim (§1 on disk): a geometry object (EncodeGeometry) keeps the exact sums and not the
 // centroid and covariance they give; read back, those are derived again (FrameOf) to the same
-// bits an ingest derived before writing it. The file a user opens (WriteGeometry) keeps them.
+// bits an ingest derived before writing it. Its arrays are the attributes of one point per
+// vossel ("vossels"), beside the "index" grid; the file a user opens (WriteGeometry) keeps a
+// plain grid per array, centroid and covariance too. Objects of the older layout (plain grids
+// without centroid and covariance) still read to the same geometry.
 TEST(GeometryGridTest, ObjectsKeepTheSumsAndDeriveWhatTheyGive) {
   const fs::path dir = TestDir("geometry-object");
   VosselGeometry g = RandomGeometry(20000, 23);
@@ -581,6 +617,7 @@ TEST(GeometryGridTest, ObjectsKeepTheSumsAndDeriveWhatTheyGive) {
   std::mt19937_64 rng(5);
   std::uniform_real_distribution<double> u(-0.025, 0.025);
   g.sums.resize(g.size());
+  g.frame.resize(g.size());
   for (size_t v = 0; v < g.size(); ++v) {
     const int32_t n = 1 + g.point_count[v] % 40;
     g.point_count[v] = n;
@@ -595,31 +632,36 @@ TEST(GeometryGridTest, ObjectsKeepTheSumsAndDeriveWhatTheyGive) {
     const VosselFrame all = FrameOf(g.coord[v], n, g.sums[v], g.vossel_size_m);
     g.centroid_m[v] = all.centroid_m;
     g.covariance_m2[v] = all.covariance_m2;
+    g.frame[v] = FrameOf(g.coord[v], n / 2 + 1, g.sums[v], g.vossel_size_m);  // another LiDAR's
+    g.frame[v].normal = g.normal[(v + 1) % g.size()];
   }
   CanonicalizeVosselOrder(g);
   absl::StatusOr<std::string> bytes = EncodeGeometry(g);
   ASSERT_TRUE(bytes.ok()) << bytes.status();
   const fs::path object = dir / "object.vdb";
-  {
-    std::FILE* f = std::fopen(object.c_str(), "wb");
-    ASSERT_NE(f, nullptr);
-    ASSERT_EQ(std::fwrite(bytes->data(), 1, bytes->size(), f), bytes->size());
-    std::fclose(f);
-  }
+  WriteBytes(object, *bytes);
   ASSERT_TRUE(WriteGeometry(g, dir / "file.vdb").ok());
-  std::set<std::string> in_object, in_file;
-  for (auto [path, names] : {std::pair{object, &in_object}, std::pair{dir / "file.vdb", &in_file}}) {
-    openvdb::io::File file(path.string());
+  EXPECT_EQ(GridNames(object), (std::set<std::string>{"index", "vossels"}));
+  {
+    openvdb::io::File file(object.string());
     file.open();
-    for (auto it = file.beginName(); it != file.endName(); ++it) names->insert(*it);
+    auto points = openvdb::gridPtrCast<openvdb::points::PointDataGrid>(file.readGrid("vossels"));
     file.close();
+    ASSERT_TRUE(points);
+    EXPECT_EQ(openvdb::points::pointCount(points->tree()), g.size());  // a point per vossel
+    const auto& descriptor = points->tree().cbeginLeaf()->attributeSet().descriptor();
+    for (const char* name : {"count", "normal", "sum", "sum_xx", "view_sum", "frame_count",
+                             "frame_centroid", "frame_covariance", "frame_view", "frame_normal"}) {
+      EXPECT_NE(descriptor.find(name), openvdb::points::AttributeSet::INVALID_POS) << name;
+    }
+    for (const char* name : {"centroid", "covariance"}) {
+      EXPECT_EQ(descriptor.find(name), openvdb::points::AttributeSet::INVALID_POS) << name;
+    }
   }
-  for (const char* name : {"centroid", "covariance_diag", "covariance_off"}) {
-    EXPECT_EQ(in_object.count(name), 0u) << name;
+  const std::set<std::string> in_file = GridNames(dir / "file.vdb");
+  for (const char* name : {"centroid", "covariance_diag", "covariance_off", "sum", "normal"}) {
     EXPECT_EQ(in_file.count(name), 1u) << name;
   }
-  EXPECT_EQ(in_object.count("sum"), 1u);
-  EXPECT_EQ(in_object.count("normal"), 1u);
   const double object_b = double(bytes->size()) / g.size();
   const double file_b = double(fs::file_size(dir / "file.vdb")) / g.size();
   std::printf("geometry object %.1f B/vossel, file with centroid and covariance %.1f B/vossel\n",
@@ -628,18 +670,116 @@ TEST(GeometryGridTest, ObjectsKeepTheSumsAndDeriveWhatTheyGive) {
 
   absl::StatusOr<VosselGeometry> back = ReadGeometry(object);
   ASSERT_TRUE(back.ok()) << back.status();
-  EXPECT_EQ(back->coord, g.coord);
-  EXPECT_EQ(back->point_count, g.point_count);
-  EXPECT_EQ(back->centroid_m, g.centroid_m);  // bit for bit
-  EXPECT_EQ(back->covariance_m2, g.covariance_m2);
-  EXPECT_EQ(back->normal, g.normal);
-  ASSERT_EQ(back->sums.size(), g.size());
-  for (size_t v = 0; v < g.size(); ++v) ASSERT_TRUE(back->sums[v] == g.sums[v]) << v;
+  ExpectSameGeometry(*back, g);
   // A file with the grids reads them as stored.
   absl::StatusOr<VosselGeometry> file_back = ReadGeometry(dir / "file.vdb");
   ASSERT_TRUE(file_back.ok());
-  EXPECT_EQ(file_back->centroid_m, g.centroid_m);
-  EXPECT_EQ(file_back->covariance_m2, g.covariance_m2);
+  ExpectSameGeometry(*file_back, g);
+
+  // The older layout of an object: the plain grids, without centroid and covariance.
+  absl::StatusOr<openvdb::GridCPtrVec> grids = GeometryGrids(g, "old object");
+  ASSERT_TRUE(grids.ok()) << grids.status();
+  openvdb::GridCPtrVec stored;
+  for (const openvdb::GridBase::ConstPtr& grid : *grids) {
+    if (grid->getName() != "centroid" && grid->getName().rfind("covariance", 0) != 0) {
+      stored.push_back(grid);
+    }
+  }
+  ASSERT_EQ(stored.size(), grids->size() - 3);
+  absl::StatusOr<std::string> old_bytes = internal::EncodeVdbFile(
+      stored, openvdb::MetaMap(), internal::VdbCompression::kActiveMaskOnly, "old object");
+  ASSERT_TRUE(old_bytes.ok()) << old_bytes.status();
+  WriteBytes(dir / "old.vdb", *old_bytes);
+  absl::StatusOr<VosselGeometry> old_back = ReadGeometry(dir / "old.vdb");
+  ASSERT_TRUE(old_back.ok()) << old_back.status();
+  ExpectSameGeometry(*old_back, g);
+  fs::remove_all(dir);
+}
+
+// Claim: a geometry built without the sums (by hand, or read from a store written before
+// them) keeps its centroid and covariance in its object, and one without frames or counts
+// keeps what it has: each reads back as it was written.
+TEST(GeometryGridTest, ObjectsWithoutSumsKeepTheirSurface) {
+  const fs::path dir = TestDir("geometry-object-bare");
+  VosselGeometry g = RandomGeometry(5000, 29);
+  CanonicalizeVosselOrder(g);
+  VosselGeometry lattice_only;
+  lattice_only.coord = g.coord;
+  CanonicalizeVosselOrder(lattice_only);
+  for (const VosselGeometry* geometry : {&g, &lattice_only}) {
+    absl::StatusOr<std::string> bytes = EncodeGeometry(*geometry);
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    WriteBytes(dir / "object.vdb", *bytes);
+    absl::StatusOr<VosselGeometry> back = ReadGeometry(dir / "object.vdb");
+    ASSERT_TRUE(back.ok()) << back.status();
+    ExpectSameGeometry(*back, *geometry);
+  }
+  fs::remove_all(dir);
+}
+
+// Claim: a geometry object whose vossel points do not match its index grid, or lack part of a
+// group of attributes, is refused as DATA_LOSS rather than read into wrong vossels.
+TEST(GeometryGridTest, MismatchedVosselPointsAreDataLoss) {
+  const fs::path dir = TestDir("geometry-object-bad");
+  VosselGeometry g = RandomGeometry(3000, 31);
+  CanonicalizeVosselOrder(g);
+  VosselGeometry other = RandomGeometry(3000, 37);
+  CanonicalizeVosselOrder(other);
+  absl::StatusOr<std::string> a = EncodeGeometry(g), b = EncodeGeometry(other);
+  ASSERT_TRUE(a.ok() && b.ok());
+  WriteBytes(dir / "a.vdb", *a);
+  WriteBytes(dir / "b.vdb", *b);
+  // g's index grid beside other's vossel points.
+  openvdb::GridPtrVecPtr grids_a, grids_b;
+  for (auto [path, grids] : {std::pair{dir / "a.vdb", &grids_a}, std::pair{dir / "b.vdb", &grids_b}}) {
+    openvdb::io::File file(path.string());
+    file.open();
+    *grids = file.getGrids();
+    file.close();
+  }
+  openvdb::GridCPtrVec mixed;
+  for (const auto& grid : *grids_a) {
+    if (grid->getName() == "index") mixed.push_back(grid);
+  }
+  for (const auto& grid : *grids_b) {
+    if (grid->getName() == "vossels") mixed.push_back(grid);
+  }
+  ASSERT_EQ(mixed.size(), 2u);
+  absl::StatusOr<std::string> bad = internal::EncodeVdbFile(
+      mixed, openvdb::MetaMap(), internal::VdbCompression::kActiveMaskOnly, "mixed");
+  ASSERT_TRUE(bad.ok());
+  WriteBytes(dir / "mixed.vdb", *bad);
+  absl::StatusOr<VosselGeometry> back = ReadGeometry(dir / "mixed.vdb");
+  ASSERT_FALSE(back.ok());
+  EXPECT_EQ(back.status().code(), absl::StatusCode::kDataLoss) << back.status();
+
+  // A sums group with one of its attributes dropped.
+  VosselGeometry with_sums = g;
+  with_sums.sums.resize(with_sums.size());
+  absl::StatusOr<std::string> full = EncodeGeometry(with_sums);
+  ASSERT_TRUE(full.ok());
+  WriteBytes(dir / "full.vdb", *full);
+  openvdb::GridPtrVecPtr grids;
+  {
+    openvdb::io::File file((dir / "full.vdb").string());
+    file.open();
+    grids = file.getGrids();
+    file.close();
+  }
+  for (const auto& grid : *grids) {
+    if (auto points = openvdb::gridPtrCast<openvdb::points::PointDataGrid>(grid)) {
+      openvdb::points::dropAttribute(points->tree(), "sum_xx");
+    }
+  }
+  absl::StatusOr<std::string> partial = internal::EncodeVdbFile(
+      openvdb::GridCPtrVec(grids->begin(), grids->end()), openvdb::MetaMap(),
+      internal::VdbCompression::kActiveMaskOnly, "partial");
+  ASSERT_TRUE(partial.ok());
+  WriteBytes(dir / "partial.vdb", *partial);
+  back = ReadGeometry(dir / "partial.vdb");
+  ASSERT_FALSE(back.ok());
+  EXPECT_EQ(back.status().code(), absl::StatusCode::kDataLoss) << back.status();
+  EXPECT_NE(back.status().message().find("sum"), std::string::npos) << back.status();
   fs::remove_all(dir);
 }
 
