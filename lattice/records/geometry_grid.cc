@@ -1,6 +1,7 @@
 // Vossel order (records.h), geometry.vdb and fused-<profile>.vdb (record_grid.h): plain OpenVDB
 // grids that share the topology of the index grid (VASL-MODEL §1, §7).
 #include <algorithm>
+#include <array>
 #include <cstring>
 #include <atomic>
 #include <map>
@@ -19,7 +20,9 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "lattice/records/record_grid.h"
 #include "lattice/records/vdb_io.h"
 
@@ -349,25 +352,30 @@ template <typename Array, typename At>
 using ValueOf = std::remove_const_t<
     std::remove_pointer_t<std::invoke_result_t<At, typename Array::value_type&>>>;
 
-/// A geometry object's per-vossel arrays as one PointDataGrid over the lattice of `index`: a
-/// point per vossel at its voxel's centre, its values as attributes. A leaf's points are its
-/// vossels in voxel order, so each attribute of a leaf is a contiguous run of the arrays: one
-/// pass over a vossel's bytes, against a grid, a topology copy and a mask scan per array of
-/// the plain grids a file a user opens keeps (GeometryGrids).
-absl::StatusOr<openvdb::GridBase::Ptr> VosselPoints(const VosselGeometry& geometry,
-                                                    const std::string& where) {
-  const Int32Grid& index = *geometry.index_grid;
+template <typename T>
+struct Tag {
+  using type = T;
+};
+
+/// A PointDataGrid `name` over the lattice of `index`: a point per vossel at its voxel's centre
+/// (P uniform), in the leaves and voxel order of the index grid, so that each attribute of a
+/// leaf is one contiguous run of vossels. `attributes(fn)` calls `fn(name, stride, Tag<T>{},
+/// get)` for each attribute, `get(v, out)` writing vossel v's `stride` values of type T. One
+/// pass over a vossel's values, against a grid, a topology copy and a scan of every leaf's 512
+/// values per array for plain grids (GeometryGrids, FusedGrids: the files a user opens).
+template <typename Attributes>
+absl::StatusOr<openvdb::GridBase::Ptr> PointsOverVossels(const Int32Grid& index,
+                                                         const char* name,
+                                                         const std::string& where,
+                                                         Attributes&& attributes) {
   try {
-    // The prototype's arrays carry the strides (RECORDS-NOTES pitfall 3); P is left uniform.
+    // The prototype's arrays carry the strides (RECORDS-NOTES pitfall 3).
     auto descriptor = pts::AttributeSet::Descriptor::create(
         RawArray<openvdb::Vec3f>::attributeType());
     pts::AttributeSet prototype(descriptor, 1);
-    ForEachVosselAttribute(geometry, [&](const char* name, int stride, const auto& array,
-                                         auto at) {
-      using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
-      if (Kept(geometry, name, array)) {
-        prototype.appendAttribute(name, RawArray<T>::attributeType(), stride);
-      }
+    attributes([&](const char* attribute, int stride, auto tag, auto&&) {
+      using T = typename decltype(tag)::type;
+      prototype.appendAttribute(attribute, RawArray<T>::attributeType(), stride);
     });
     const auto leaves = ConstLeavesInOrder(index.tree());
     std::vector<std::unique_ptr<PointLeaf>> points(leaves.size());
@@ -385,21 +393,20 @@ absl::StatusOr<openvdb::GridBase::Ptr> VosselPoints(const VosselGeometry& geomet
           if (end == 0) continue;  // (an index leaf has vossels; a tree may keep an empty one)
           const size_t first = size_t(*leaf.cbeginValueOn());  // canonical: its vossels in a run
           auto set = std::make_unique<pts::AttributeSet>(prototype, end, &lock);
-          ForEachVosselAttribute(geometry, [&](const char* name, int stride, const auto& array,
-                                               auto at) {
-            using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
-            if (!Kept(geometry, name, array)) return;
-            auto& values = static_cast<RawArray<T>&>(*set->get(set->find(name)));
+          size_t pos = 1;  // the attributes in the prototype's order, after P
+          attributes([&](const char*, int stride, auto tag, auto&& get) {
+            using T = typename decltype(tag)::type;
+            auto& values = static_cast<RawArray<T>&>(*set->get(pos++));
             values.expand(/*fill=*/false);
             // Made for this leaf and not shared: its buffer is written in place.
             T* out = const_cast<T*>(values.constData());
-            for (size_t v = first; v < first + end; ++v, out += stride) {
-              std::copy_n(at(array[v]), stride, out);
-            }
+            for (size_t v = first; v < first + end; ++v, out += stride) get(v, out);
           });
           auto point_leaf = std::make_unique<PointLeaf>(leaf.origin());
           point_leaf->replaceAttributeSet(set.release(), /*allowMismatchingDescriptors=*/true);
-          point_leaf->setOffsets(offsets, /*updateValueMask=*/true);
+          // The offsets and the index leaf's mask, whole (setOffsets goes voxel by voxel).
+          std::copy(offsets.begin(), offsets.end(), point_leaf->buffer().data());
+          point_leaf->setValueMask(leaf.getValueMask());
           points[li] = std::move(point_leaf);
         }
       });
@@ -410,66 +417,69 @@ absl::StatusOr<openvdb::GridBase::Ptr> VosselPoints(const VosselGeometry& geomet
     }
     auto grid = PointDataGrid::create(tree);
     grid->setTransform(index.transform().copy());
-    grid->setName(kVosselPoints);
+    grid->setName(name);
     return openvdb::GridBase::Ptr(grid);
   } catch (const std::exception& e) {
     return absl::InternalError(
-        absl::StrCat("OpenVDB failed building the vossel points of ", where, ": ", e.what()));
+        absl::StrCat("OpenVDB failed building the points of ", where, ": ", e.what()));
   }
 }
 
-/// Reads the attributes of a geometry object's vossel points (VosselPoints) into `g`, whose
-/// lattice (LatticeOf) it must share leaf for leaf and voxel for voxel. An attribute of a
-/// group (the sums, the frames) without the rest of its group, or of another type or stride,
-/// is DATA_LOSS.
-absl::Status ReadVosselPoints(const PointDataGrid& grid, const std::filesystem::path& path,
-                              VosselGeometry& g) {
-  const Int32Grid& index = *g.index_grid;
-  const size_t n = g.size();
+/// Which attributes of `grid` (a PointDataGrid over a lattice: PointsOverVossels) `wanted(fn)`
+/// finds, by name to position: `wanted` calls `fn(name, strides, Tag<T>{})` for each attribute
+/// the reader knows, `strides` the strides it takes. One of another type or stride is
+/// DATA_LOSS naming `path`. A grid without leaves has none.
+template <typename Wanted>
+absl::StatusOr<std::map<std::string, size_t>> FindPointAttributes(
+    const PointDataGrid& grid, const std::filesystem::path& path, Wanted&& wanted) {
+  std::map<std::string, size_t> present;
+  auto leaf = grid.tree().cbeginLeaf();
+  if (!leaf) return present;
+  const pts::AttributeSet& set = leaf->attributeSet();
+  absl::Status bad;
+  wanted([&](const std::string& name, std::initializer_list<int> strides, auto tag) {
+    using T = typename decltype(tag)::type;
+    const size_t pos = set.find(name);
+    if (pos == pts::AttributeSet::INVALID_POS || !bad.ok()) return;
+    const int stride = int(set.getConst(pos)->stride());
+    if (set.descriptor().type(pos) != RawArray<T>::attributeType() ||
+        std::find(strides.begin(), strides.end(), stride) == strides.end()) {
+      bad = absl::DataLossError(absl::StrCat(path.string(), ": the points \"", grid.getName(),
+                                             "\" have attribute \"", name,
+                                             "\" of another type or stride"));
+      return;
+    }
+    present[name] = pos;
+  });
+  if (!bad.ok()) return bad;
+  return present;
+}
+
+/// Copies the attributes of `grid` (a PointDataGrid over the lattice of `index`:
+/// PointsOverVossels) into a reader's arrays: `attributes(fn)` calls `fn(name, Tag<T>{}, set)`
+/// for each attribute of `present` (FindPointAttributes), `set(v, in)` taking vossel v's values
+/// from `in`. The points must share the index grid's lattice leaf for leaf and voxel for voxel,
+/// a point per vossel, and every leaf the same attributes; otherwise DATA_LOSS naming `path`.
+template <typename Attributes>
+absl::Status CopyPointAttributes(const PointDataGrid& grid, const Int32Grid& index,
+                                 const std::filesystem::path& path,
+                                 const std::map<std::string, size_t>& present,
+                                 Attributes&& attributes) {
   std::vector<const PointLeaf*> leaves;
   leaves.reserve(grid.tree().leafCount());
   for (auto it = grid.tree().cbeginLeaf(); it; ++it) leaves.push_back(it.getLeaf());
-  const auto mismatch = [&path](const std::string& what) {
-    return absl::DataLossError(absl::StrCat(path.string(), ": the vossel points ", what));
+  const auto mismatch = [&](const std::string& what) {
+    return absl::DataLossError(
+        absl::StrCat(path.string(), ": the points \"", grid.getName(), "\" ", what));
   };
-  const auto index_leaves = ConstLeavesInOrder(index.tree());
-  // (An index leaf without vossels has no point leaf: the vossel points skip it.)
+  // (An index leaf without vossels has no point leaf: PointsOverVossels skips it.)
   std::vector<const Int32Leaf*> lattice_leaves;
-  lattice_leaves.reserve(index_leaves.size());
-  for (const Int32Leaf* leaf : index_leaves) {
+  lattice_leaves.reserve(index.tree().leafCount());
+  for (const Int32Leaf* leaf : ConstLeavesInOrder(index.tree())) {
     if (!leaf->isEmpty()) lattice_leaves.push_back(leaf);
   }
   if (leaves.size() != lattice_leaves.size()) {
     return mismatch("do not share the lattice of the index grid");
-  }
-  // Which attributes the file has, checked against the first leaf's descriptor.
-  std::map<std::string, size_t> present;
-  absl::Status bad;
-  if (!leaves.empty()) {
-    const pts::AttributeSet& set = leaves[0]->attributeSet();
-    ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
-      using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
-      const size_t pos = set.find(name);
-      if (pos == pts::AttributeSet::INVALID_POS || !bad.ok()) return;
-      if (set.descriptor().type(pos) != RawArray<T>::attributeType() ||
-          int(set.getConst(pos)->stride()) != stride) {
-        bad = mismatch(absl::StrCat("have attribute \"", name, "\" of another type or stride"));
-        return;
-      }
-      present[name] = pos;
-      if (array.size() != n) array.resize(n);
-    });
-  }
-  if (!bad.ok()) return bad;
-  for (const auto& group : {std::vector<const char*>{"sum", "sum_xx", "view_sum"},
-                            {"frame_count", "frame_centroid", "frame_covariance", "frame_view",
-                             "frame_normal"}}) {
-    const size_t has = std::count_if(group.begin(), group.end(),
-                                     [&](const char* a) { return present.count(a) > 0; });
-    if (has != 0 && has != group.size()) {
-      return mismatch(absl::StrCat("have some of the attributes of \"", group[0],
-                                   "\" and not the others"));
-    }
   }
   FirstError error;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 8),
@@ -486,23 +496,70 @@ absl::Status ReadVosselPoints(const PointDataGrid& grid, const std::filesystem::
         return;
       }
       const size_t first = size_t(*lattice.cbeginValueOn());
-      ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
-        using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+      attributes([&](const std::string& name, auto tag, auto&& set) {
+        using T = typename decltype(tag)::type;
         auto it = present.find(name);
         if (it == present.end()) return;
-        const auto& values = static_cast<const RawArray<T>&>(*leaf.attributeSet().getConst(it->second));
-        // A uniform array (every vossel alike) holds one value; loadData is a delayed load's.
-        values.loadData();
-        const bool uniform = values.isUniform();
+        const auto& values =
+            static_cast<const RawArray<T>&>(*leaf.attributeSet().getConst(it->second));
+        values.loadData();  // (a delayed load's)
+        // A uniform array (every vossel alike) holds one vossel's values.
+        const size_t step = values.isUniform() ? 0 : values.stride();
         const T* in = values.constData();
-        for (size_t v = first; v < first + count; ++v) {
-          std::copy_n(in, stride, at(array[v]));
-          if (!uniform) in += stride;
-        }
+        for (size_t v = first; v < first + count; ++v, in += step) set(v, in);
       });
     }
   });
   return error.status();
+}
+
+/// A geometry object's per-vossel arrays as its vossel points (PointsOverVossels).
+absl::StatusOr<openvdb::GridBase::Ptr> VosselPoints(const VosselGeometry& geometry,
+                                                    const std::string& where) {
+  return PointsOverVossels(
+      *geometry.index_grid, kVosselPoints, where, [&](auto&& fn) {
+        ForEachVosselAttribute(geometry, [&](const char* name, int stride, const auto& array,
+                                             auto at) {
+          using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+          if (!Kept(geometry, name, array)) return;
+          fn(name, stride, Tag<T>{},
+             [&](size_t v, T* out) { std::copy_n(at(array[v]), stride, out); });
+        });
+      });
+}
+
+/// Reads the attributes of a geometry object's vossel points (VosselPoints) into `g`, which
+/// holds the object's lattice (LatticeOf). An attribute of a group (the sums, the frames)
+/// without the rest of its group is DATA_LOSS, as CopyPointAttributes' mismatches are.
+absl::Status ReadVosselPoints(const PointDataGrid& grid, const std::filesystem::path& path,
+                              VosselGeometry& g) {
+  absl::StatusOr<std::map<std::string, size_t>> present =
+      FindPointAttributes(grid, path, [&](auto&& fn) {
+        ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
+          fn(name, {stride}, Tag<ValueOf<std::decay_t<decltype(array)>, decltype(at)>>{});
+        });
+      });
+  if (!present.ok()) return present.status();
+  for (const auto& group : {std::vector<const char*>{"sum", "sum_xx", "view_sum"},
+                            {"frame_count", "frame_centroid", "frame_covariance", "frame_view",
+                             "frame_normal"}}) {
+    const size_t has = std::count_if(group.begin(), group.end(),
+                                     [&](const char* a) { return present->count(a) > 0; });
+    if (has != 0 && has != group.size()) {
+      return absl::DataLossError(absl::StrCat(path.string(), ": the vossel points have some of ",
+                                              "the attributes of \"", group[0],
+                                              "\" and not the others"));
+    }
+  }
+  ForEachVosselAttribute(g, [&](const char* name, int, auto& array, auto) {
+    if (present->count(name) && array.size() != g.size()) array.resize(g.size());
+  });
+  return CopyPointAttributes(grid, *g.index_grid, path, *present, [&](auto&& fn) {
+    ForEachVosselAttribute(g, [&](const char* name, int stride, auto& array, auto at) {
+      using T = ValueOf<std::decay_t<decltype(array)>, decltype(at)>;
+      fn(name, Tag<T>{}, [&](size_t v, const T* in) { std::copy_n(in, stride, at(array[v])); });
+    });
+  });
 }
 
 /// Checks that `geometry` can be written: an index grid in canonical order over its vossels,
@@ -786,23 +843,21 @@ absl::Status WriteFused(const VosselGeometry& geometry, const FusedValues& fused
   return internal::WriteVdbFile(path, *grids, FusedFileMeta(fused), kFusedCompression);
 }
 
-absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry,
-                                        const FusedValues& fused) {
-  absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(geometry, fused);
-  if (!grids.ok()) return grids.status();
-  return internal::EncodeVdbFile(*grids, FusedFileMeta(fused), kFusedCompression,
-                                 "fused object", internal::VdbGridStats::kSkip);
-}
+namespace {
 
-absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
-                                                const FusedValues& fused) {
+/// The PointDataGrid of a fused object: one point per vossel, in the vossel's voxel, with per
+/// modality "<modality>_value", "_weight" and "_uncertainty" (an attribute's name takes no '.',
+/// which the plain grids' "<modality>.value" have).
+constexpr char kFusedPoints[] = "fused";
+
+/// Checks that `fused` can be written over `geometry`: an index grid, and per modality 1 or 3
+/// channels and arrays of one entry a vossel.
+absl::Status CheckFused(const VosselGeometry& geometry, const FusedValues& fused) {
   internal::EnsureOpenVdbInitialized();
   if (!geometry.index_grid) {
     return absl::InvalidArgumentError("WriteFused: the geometry has no index grid");
   }
-  const Int32Grid& index = *geometry.index_grid;
   const size_t n = geometry.size();
-  openvdb::GridCPtrVec grids;
   for (const auto& [modality, fm] : fused.by_modality) {
     const std::string name = ModalityName(modality);
     if (fm.channels != 1 && fm.channels != 3) {
@@ -816,6 +871,123 @@ absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
           " vossels (value ", fm.value.size(), ", weight ", fm.weight.size(), ", uncertainty ",
           fm.uncertainty.size(), ")"));
     }
+  }
+  return absl::OkStatus();
+}
+
+/// Reads a fused object's points (EncodeFused) into `fused`, over the lattice of `geometry`.
+/// A modality's value without its weight and uncertainty is DATA_LOSS, as CopyPointAttributes'
+/// mismatches are.
+absl::Status ReadFusedPoints(const PointDataGrid& grid, const VosselGeometry& geometry,
+                             const std::filesystem::path& path, FusedValues& fused) {
+  absl::StatusOr<std::map<std::string, size_t>> present =
+      FindPointAttributes(grid, path, [&](auto&& fn) {
+        for (int m = 0; m < kModalityCount; ++m) {
+          const std::string name = ModalityName(static_cast<Modality>(m));
+          fn(name + "_value", {1, 3}, Tag<float>{});
+          fn(name + "_weight", {1}, Tag<float>{});
+          fn(name + "_uncertainty", {1}, Tag<float>{});
+        }
+      });
+  if (!present.ok()) return present.status();
+  const size_t n = geometry.size();
+  if (!grid.tree().cbeginLeaf()) {  // no vossels: the modalities from the grid's metadata
+    const auto meta = grid.getMetadata<openvdb::StringMetadata>("modalities");
+    for (int m = 0; meta && m < kModalityCount; ++m) {
+      const Modality modality = static_cast<Modality>(m);
+      for (absl::string_view item : absl::StrSplit(meta->value(), ',', absl::SkipEmpty())) {
+        const std::pair<absl::string_view, absl::string_view> kv = absl::StrSplit(item, ':');
+        int channels = 0;
+        if (kv.first == ModalityName(modality) && absl::SimpleAtoi(kv.second, &channels)) {
+          fused.by_modality[modality].channels = channels;
+        }
+      }
+    }
+    return absl::OkStatus();
+  }
+  for (int m = 0; m < kModalityCount; ++m) {
+    const Modality modality = static_cast<Modality>(m);
+    const std::string name = ModalityName(modality);
+    const auto value = present->find(name + "_value");
+    const size_t has = (value != present->end()) + present->count(name + "_weight") +
+                       present->count(name + "_uncertainty");
+    if (has == 0) continue;
+    if (has != 3) {
+      return absl::DataLossError(absl::StrCat(path.string(), ": modality ", name,
+                                              " lacks its value, weight or uncertainty"));
+    }
+    FusedModality& fm = fused.by_modality[modality];
+    fm.channels = int(grid.tree().cbeginLeaf()->attributeSet().getConst(value->second)->stride());
+    fm.value.assign(n * size_t(fm.channels), 0.0f);
+    fm.weight.assign(n, 0.0f);
+    fm.uncertainty.assign(n, 0.0f);
+  }
+  return CopyPointAttributes(grid, *geometry.index_grid, path, *present, [&](auto&& fn) {
+    for (auto& [modality, fm] : fused.by_modality) {
+      const std::string name = ModalityName(modality);
+      const size_t c = size_t(fm.channels);
+      FusedModality* f = &fm;
+      fn(name + "_value", Tag<float>{},
+         [f, c](size_t v, const float* in) { std::copy_n(in, c, &f->value[v * c]); });
+      fn(name + "_weight", Tag<float>{}, [f](size_t v, const float* in) { f->weight[v] = *in; });
+      fn(name + "_uncertainty", Tag<float>{},
+         [f](size_t v, const float* in) { f->uncertainty[v] = *in; });
+    }
+  });
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry,
+                                        const FusedValues& fused) {
+  constexpr char kWhere[] = "fused object";
+  if (absl::Status s = CheckFused(geometry, fused); !s.ok()) return s;
+  // A vossel whose weight is not > 0 has no fused value: zeros, as a plain grid's inactive
+  // voxels read (FusedGrids, ReadFused).
+  std::vector<std::array<std::string, 3>> names;  // per modality: value, weight, uncertainty
+  for (const auto& [modality, fm] : fused.by_modality) {
+    const std::string name = ModalityName(modality);
+    names.push_back({name + "_value", name + "_weight", name + "_uncertainty"});
+  }
+  absl::StatusOr<openvdb::GridBase::Ptr> points = PointsOverVossels(
+      *geometry.index_grid, kFusedPoints, kWhere, [&](auto&& fn) {
+        size_t m = 0;
+        for (const auto& [modality, fm] : fused.by_modality) {
+          const std::array<std::string, 3>& name = names[m++];
+          const size_t c = size_t(fm.channels);
+          const FusedModality* f = &fm;
+          fn(name[0].c_str(), int(c), Tag<float>{}, [f, c](size_t v, float* out) {
+            const bool weighed = f->weight[v] > 0.0f;
+            for (size_t i = 0; i < c; ++i) out[i] = weighed ? f->value[v * c + i] : 0.0f;
+          });
+          fn(name[1].c_str(), 1, Tag<float>{}, [f](size_t v, float* out) {
+            *out = f->weight[v] > 0.0f ? f->weight[v] : 0.0f;
+          });
+          fn(name[2].c_str(), 1, Tag<float>{}, [f](size_t v, float* out) {
+            *out = f->weight[v] > 0.0f ? f->uncertainty[v] : 0.0f;
+          });
+        }
+      });
+  if (!points.ok()) return points.status();
+  // The modalities and their channels, for a reader of an object without vossels (no leaf
+  // holds the attributes then).
+  std::string modalities;
+  for (const auto& [modality, fm] : fused.by_modality) {
+    absl::StrAppend(&modalities, modalities.empty() ? "" : ",", ModalityName(modality), ":",
+                    fm.channels);
+  }
+  (*points)->insertMeta("modalities", openvdb::StringMetadata(modalities));
+  return internal::EncodeVdbFile({*points}, FusedFileMeta(fused), kFusedCompression, kWhere,
+                                 internal::VdbGridStats::kSkip);
+}
+
+absl::StatusOr<openvdb::GridCPtrVec> FusedGrids(const VosselGeometry& geometry,
+                                                const FusedValues& fused) {
+  if (absl::Status s = CheckFused(geometry, fused); !s.ok()) return s;
+  const Int32Grid& index = *geometry.index_grid;
+  openvdb::GridCPtrVec grids;
+  for (const auto& [modality, fm] : fused.by_modality) {
+    const std::string name = ModalityName(modality);
     // Only vossels with weight > 0 stay active; fully inactive leaves are pruned.
     auto keep = [&fm](int32_t v) { return fm.weight[v] > 0.0f; };
     auto finish = [&](auto grid) {
@@ -852,6 +1024,10 @@ absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
   FusedValues fused;
   if (auto p = contents->meta->getMetadata<openvdb::StringMetadata>("profile")) {
     fused.profile = p->value();
+  }
+  if (const PointDataGrid::Ptr points = GridAs<PointDataGrid>(*contents, kFusedPoints)) {
+    if (absl::Status s = ReadFusedPoints(*points, geometry, path, fused); !s.ok()) return s;
+    return fused;
   }
   for (int m = 0; m < kModalityCount; ++m) {
     const Modality modality = static_cast<Modality>(m);

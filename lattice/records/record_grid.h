@@ -7,7 +7,9 @@
 ///          "normal" (Vec3s), "covariance_diag"/"covariance_off" (Vec3s, m²).
 ///          fused-<profile>.vdb holds per modality "<modality>.value" (Vec3s or float),
 ///          "<modality>.weight" and "<modality>.uncertainty" (float).
-///          All files open in `vdb_print`, Houdini and pyopenvdb.
+///          Tile objects (EncodeGeometry, EncodeFused) keep the same arrays as the attributes of
+///          one PointDataGrid, a point per vossel. All open in `vdb_print`, Houdini and
+///          pyopenvdb.
 #pragma once
 
 #include <filesystem>
@@ -61,6 +63,10 @@ absl::StatusOr<FusedValues> ReadFused(const VosselGeometry& geometry,
 /// "sum_xx", "view_sum", "frame_count", "frame_centroid", "frame_covariance", "frame_view",
 /// "frame_normal"; "centroid" and "covariance" only without the sums, which give them): one
 /// tree to write and read instead of a grid per array (BM_EncodeGeometry, README "Storage").
+/// A fused object likewise holds a PointDataGrid "fused", a point per vossel with per modality
+/// "<modality>_value" (stride 1 or 3), "_weight" and "_uncertainty" (zeros where the weight is
+/// not > 0, as the fused file's inactive voxels read). ReadGeometry and ReadFused read these
+/// and the plain grids of older objects alike.
 absl::StatusOr<std::string> EncodeGeometry(const VosselGeometry& geometry);
 absl::StatusOr<std::string> EncodeRecords(const VosselGeometry& geometry,
                                           const RecordSet& records);

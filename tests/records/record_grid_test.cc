@@ -828,6 +828,113 @@ TEST(FusedGridTest, RoundTripWeightedVossels) {
   fs::remove_all(dir);
 }
 
+// Claim (§7 on disk): a fused object (EncodeFused) reads back as the fused file does: values
+// exactly where weight > 0 and zeros elsewhere (a value left where the weight is 0 or NaN is
+// not kept). It holds one PointDataGrid, "fused", a point per vossel with "<modality>_value",
+// "_weight" and "_uncertainty"; objects of the older layout (the plain grids of the file) still
+// read; a modality without its weight is DATA_LOSS.
+TEST(FusedGridTest, ObjectsReadAsTheFileDoes) {
+  const fs::path dir = TestDir("fused-object");
+  VosselGeometry g = RandomGeometry(20000, 41);
+  CanonicalizeVosselOrder(g);
+  const size_t n = g.size();
+  std::mt19937_64 rng(42);
+  std::uniform_real_distribution<float> u(0.0f, 3.0f);
+  FusedValues f, expect;
+  f.profile = "tuned";
+  for (Modality m : {Modality::kRgb, Modality::kLidar, Modality::kIr}) {
+    FusedModality& fm = f.by_modality[m];
+    fm.channels = ChannelCount(m);
+    for (size_t v = 0; v < n; ++v) {
+      for (int c = 0; c < fm.channels; ++c) fm.value.push_back(u(rng));  // even where unweighed
+      fm.weight.push_back(v % 3 == 0 ? 0.0f : v % 101 == 1 ? std::nanf("") : u(rng) + 0.01f);
+      fm.uncertainty.push_back(u(rng));
+    }
+  }
+  ASSERT_TRUE(WriteFused(g, f, dir / "file.vdb").ok());
+  absl::StatusOr<FusedValues> from_file = ReadFused(g, dir / "file.vdb");
+  ASSERT_TRUE(from_file.ok()) << from_file.status();
+  absl::StatusOr<std::string> bytes = EncodeFused(g, f);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  WriteBytes(dir / "object.vdb", *bytes);
+  EXPECT_EQ(GridNames(dir / "object.vdb"), (std::set<std::string>{"fused"}));
+  absl::StatusOr<FusedValues> back = ReadFused(g, dir / "object.vdb");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->profile, "tuned");
+  ASSERT_EQ(back->by_modality.size(), 3u);
+  size_t weighed = 0;
+  for (const auto& [m, fm] : from_file->by_modality) {
+    const FusedModality& b = back->by_modality.at(m);
+    EXPECT_EQ(b.channels, fm.channels);
+    EXPECT_EQ(b.value, fm.value);
+    EXPECT_EQ(b.weight, fm.weight);
+    EXPECT_EQ(b.uncertainty, fm.uncertainty);
+    for (size_t v = 0; v < n; ++v) {
+      if (!(f.by_modality.at(m).weight[v] > 0.0f)) {
+        ASSERT_EQ(b.weight[v], 0.0f) << v;
+        ASSERT_EQ(b.uncertainty[v], 0.0f) << v;
+      } else {
+        ++weighed;
+        ASSERT_EQ(b.uncertainty[v], f.by_modality.at(m).uncertainty[v]) << v;
+      }
+    }
+  }
+  EXPECT_GT(weighed, n);  // most vossels of each modality, not none
+  std::printf("fused object %.1f B/vossel, the file %.1f B/vossel (3 modalities)\n",
+              double(bytes->size()) / n, double(fs::file_size(dir / "file.vdb")) / n);
+
+  // The older layout of an object: the file's plain grids.
+  absl::StatusOr<openvdb::GridCPtrVec> grids = FusedGrids(g, f);
+  ASSERT_TRUE(grids.ok()) << grids.status();
+  absl::StatusOr<std::string> old_bytes = internal::EncodeVdbFile(
+      *grids, openvdb::MetaMap(), internal::VdbCompression::kActiveMaskOnly, "old object");
+  ASSERT_TRUE(old_bytes.ok()) << old_bytes.status();
+  WriteBytes(dir / "old.vdb", *old_bytes);
+  absl::StatusOr<FusedValues> old_back = ReadFused(g, dir / "old.vdb");
+  ASSERT_TRUE(old_back.ok()) << old_back.status();
+  for (const auto& [m, fm] : from_file->by_modality) {
+    EXPECT_EQ(old_back->by_modality.at(m).value, fm.value);
+    EXPECT_EQ(old_back->by_modality.at(m).weight, fm.weight);
+  }
+
+  // A modality whose weight was dropped.
+  openvdb::GridPtrVecPtr object;
+  {
+    openvdb::io::File file((dir / "object.vdb").string());
+    file.open();
+    object = file.getGrids();
+    file.close();
+  }
+  auto points = openvdb::gridPtrCast<openvdb::points::PointDataGrid>((*object)[0]);
+  ASSERT_TRUE(points);
+  openvdb::points::dropAttribute(points->tree(), "lidar_weight");
+  absl::StatusOr<std::string> partial = internal::EncodeVdbFile(
+      {points}, openvdb::MetaMap(), internal::VdbCompression::kActiveMaskOnly, "partial");
+  ASSERT_TRUE(partial.ok());
+  WriteBytes(dir / "partial.vdb", *partial);
+  absl::StatusOr<FusedValues> bad = ReadFused(g, dir / "partial.vdb");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kDataLoss) << bad.status();
+  EXPECT_NE(bad.status().message().find("lidar"), std::string::npos) << bad.status();
+
+  // No vossels: the modalities and their channels still read, as from the file.
+  VosselGeometry none;
+  CanonicalizeVosselOrder(none);
+  FusedValues empty;
+  empty.by_modality[Modality::kRgb].channels = 3;
+  empty.by_modality[Modality::kLidar].channels = 1;
+  absl::StatusOr<std::string> empty_bytes = EncodeFused(none, empty);
+  ASSERT_TRUE(empty_bytes.ok()) << empty_bytes.status();
+  WriteBytes(dir / "empty.vdb", *empty_bytes);
+  absl::StatusOr<FusedValues> empty_back = ReadFused(none, dir / "empty.vdb");
+  ASSERT_TRUE(empty_back.ok()) << empty_back.status();
+  ASSERT_EQ(empty_back->by_modality.size(), 2u);
+  EXPECT_EQ(empty_back->by_modality.at(Modality::kRgb).channels, 3);
+  EXPECT_EQ(empty_back->by_modality.at(Modality::kLidar).channels, 1);
+  EXPECT_TRUE(empty_back->by_modality.at(Modality::kRgb).value.empty());
+  fs::remove_all(dir);
+}
+
 // Claim (§7, issue "Reweighting"): what weights read keeps its precision. range to h/10 or
 // better up to 300 m (h = 2 cm: 2 mm); V a multiple of 1/17 (the PCF's 17 samples) reads back
 // exactly, so no V ≥ V_min test flips for any V_min; RoundToStorage gives, bit for bit, what a
