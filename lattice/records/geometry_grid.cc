@@ -1,9 +1,10 @@
 // Vossel order (records.h), geometry.vdb and fused-<profile>.vdb (record_grid.h): plain OpenVDB
-// grids that share the topology of the index grid (VASL-MODEL §1, §7).
+// grids that share the topology of the index grid (VASL-MODEL §1, §7); geometry and fused tile
+// objects: the same arrays as attributes of one PointDataGrid, a point per vossel.
 #include <algorithm>
 #include <array>
-#include <cstring>
 #include <atomic>
+#include <cstring>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -311,7 +312,7 @@ namespace {
 namespace pts = openvdb::points;
 using pts::PointDataGrid;
 using PointLeaf = pts::PointDataTree::LeafNodeType;
-/// Attribute arrays of a geometry object: the values as they are, no codec.
+/// Attribute arrays of geometry and fused objects: the values as they are, no codec.
 template <typename T>
 using RawArray = pts::TypedAttributeArray<T, pts::NullCodec>;
 
