@@ -893,13 +893,18 @@ absl::Status ReadFusedPoints(const PointDataGrid& grid, const VosselGeometry& ge
   if (!present.ok()) return present.status();
   const size_t n = geometry.size();
   if (!grid.tree().cbeginLeaf()) {  // no vossels: the modalities from the grid's metadata
+    if (n != 0) {
+      return absl::DataLossError(absl::StrCat(path.string(), ": the points \"", kFusedPoints,
+                                              "\" have none of the geometry's ", n, " vossels"));
+    }
     const auto meta = grid.getMetadata<openvdb::StringMetadata>("modalities");
     for (int m = 0; meta && m < kModalityCount; ++m) {
       const Modality modality = static_cast<Modality>(m);
       for (absl::string_view item : absl::StrSplit(meta->value(), ',', absl::SkipEmpty())) {
         const std::pair<absl::string_view, absl::string_view> kv = absl::StrSplit(item, ':');
         int channels = 0;
-        if (kv.first == ModalityName(modality) && absl::SimpleAtoi(kv.second, &channels)) {
+        if (kv.first == ModalityName(modality) && absl::SimpleAtoi(kv.second, &channels) &&
+            (channels == 1 || channels == 3)) {
           fused.by_modality[modality].channels = channels;
         }
       }

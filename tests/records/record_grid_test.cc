@@ -932,6 +932,10 @@ TEST(FusedGridTest, ObjectsReadAsTheFileDoes) {
   EXPECT_EQ(empty_back->by_modality.at(Modality::kRgb).channels, 3);
   EXPECT_EQ(empty_back->by_modality.at(Modality::kLidar).channels, 1);
   EXPECT_TRUE(empty_back->by_modality.at(Modality::kRgb).value.empty());
+  // ... and an object without vossels is not read over a geometry that has some.
+  absl::StatusOr<FusedValues> wrong = ReadFused(g, dir / "empty.vdb");
+  ASSERT_FALSE(wrong.ok());
+  EXPECT_EQ(wrong.status().code(), absl::StatusCode::kDataLoss) << wrong.status();
   fs::remove_all(dir);
 }
 
