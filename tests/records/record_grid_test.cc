@@ -731,7 +731,8 @@ TEST(GeometryGridTest, MismatchedVosselPointsAreDataLoss) {
   WriteBytes(dir / "b.vdb", *b);
   // g's index grid beside other's vossel points.
   openvdb::GridPtrVecPtr grids_a, grids_b;
-  for (auto [path, grids] : {std::pair{dir / "a.vdb", &grids_a}, std::pair{dir / "b.vdb", &grids_b}}) {
+  for (auto [path, grids] :
+       {std::pair{dir / "a.vdb", &grids_a}, std::pair{dir / "b.vdb", &grids_b}}) {
     openvdb::io::File file(path.string());
     file.open();
     *grids = file.getGrids();
@@ -840,7 +841,7 @@ TEST(FusedGridTest, ObjectsReadAsTheFileDoes) {
   const size_t n = g.size();
   std::mt19937_64 rng(42);
   std::uniform_real_distribution<float> u(0.0f, 3.0f);
-  FusedValues f, expect;
+  FusedValues f;
   f.profile = "tuned";
   for (Modality m : {Modality::kRgb, Modality::kLidar, Modality::kIr}) {
     FusedModality& fm = f.by_modality[m];
