@@ -185,6 +185,70 @@ void WeighVossels(const records::RecordSet& recs, const std::vector<size_t>& beg
 /// that a task's records, ~8 per vossel, and its scratch columns stay in L2.
 constexpr size_t kVosselGrain = 1024;
 
+/// The fused value, weight and uncertainty (§7) of vossels [k_begin, k_end) into `channel`
+/// (per fused channel, null where no record has it) from their records' weights `w` (from the
+/// first record of k_begin): the weighted mean, or the value of the heaviest record when
+/// `kNearest`, and spread ⊕ 1/sqrt(Σw). A record whose weight is not > 0 (NaN too) takes no
+/// part; a channel without one keeps no value. The sums of a channel start at 0 in every
+/// vossel and the loop over records has no branch on the data but the nearest mode's.
+template <bool kNearest>
+void FuseVossels(const records::RecordSet& recs, const std::vector<size_t>& begin,
+                 size_t k_begin, size_t k_end, const float* w, const RecordValues& values,
+                 records::FusedModality* const* channel) {
+  constexpr int kC = records::kValueChannels;
+  struct Sums {
+    double w, wc[kC], wcc[kC];
+  } sums[records::kModalityCount];
+  float best_w[records::kModalityCount];
+  size_t best_i[records::kModalityCount];
+  int fused[records::kModalityCount];  // the channels some record has (0 is not fused)
+  int n = 0;
+  for (int q = 1; q < records::kModalityCount; ++q) {
+    if (channel[q] != nullptr) fused[n++] = q;
+  }
+  const size_t first = begin[k_begin];
+  for (size_t k = k_begin; k != k_end; ++k) {
+    sums[0] = Sums{};
+    for (int j = 0; j < n; ++j) sums[fused[j]] = Sums{};
+    if constexpr (kNearest) std::fill(std::begin(best_w), std::end(best_w), 0.0f);
+    for (size_t i = begin[k], e = begin[k + 1]; i < e; ++i) {
+      const float wi = w[i - first] > 0.0f ? w[i - first] : 0.0f;
+      const int c = int(FusedChannelOf(Modality(recs.modality[i])));
+      double v[kC];
+      values.Read(i, v);
+      Sums& a = sums[c];
+      const double wd = wi;
+      a.w += wd;
+      for (int ch = 0; ch < kC; ++ch) {
+        a.wc[ch] += wd * v[ch];
+        a.wcc[ch] += wd * v[ch] * v[ch];
+      }
+      if constexpr (kNearest) {
+        if (wi > best_w[c]) {
+          best_w[c] = wi;
+          best_i[c] = i;
+        }
+      }
+    }
+    for (int j = 0; j < n; ++j) {
+      const Sums& a = sums[fused[j]];
+      if (!(a.w > 0.0)) continue;
+      records::FusedModality& f = *channel[fused[j]];
+      double variance = 0.0;
+      double nearest[kC];
+      if constexpr (kNearest) values.Read(best_i[fused[j]], nearest);
+      for (int ch = 0; ch < f.channels; ++ch) {
+        const double mean = a.wc[ch] / a.w;
+        variance += std::max(0.0, a.wcc[ch] / a.w - mean * mean);
+        f.value[k * f.channels + ch] = float(kNearest ? nearest[ch] : mean);
+      }
+      variance /= f.channels;
+      f.weight[k] = float(a.w);
+      f.uncertainty[k] = float(std::sqrt(variance + 1.0 / a.w));  // spread ⊕ 1/sqrt(Σw)
+    }
+  }
+}
+
 }  // namespace
 
 absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs, size_t vossel_count,
@@ -236,53 +300,14 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
   tbb::parallel_for(tbb::blocked_range<size_t>(0, vossel_count, kVosselGrain),
                     [&](const tbb::blocked_range<size_t>& range) {
     thread_local std::vector<float> weights;
-    const size_t first = begin[range.begin()];
-    weights.resize(begin[range.end()] - first);
+    weights.resize(begin[range.end()] - begin[range.begin()]);
     WeighVossels(recs, begin, range.begin(), range.end(), kernel, *values, weights.data());
-    for (size_t k = range.begin(); k != range.end(); ++k) {
-      struct Sums {
-        double w, wc[records::kValueChannels], wcc[records::kValueChannels], best_w;
-        size_t best_i;
-      } sums[records::kModalityCount];
-      unsigned touched = 0;  // channels with a record of weight > 0; their sums start at 0
-      for (size_t i = begin[k], e = begin[k + 1]; i < e; ++i) {
-        const double w = weights[i - first];
-        if (!(w > 0.0)) continue;
-        const int c = int(FusedChannelOf(Modality(recs.modality[i])));
-        Sums& a = sums[c];
-        if (!((touched >> c) & 1u)) {
-          a = Sums{};
-          touched |= 1u << c;
-        }
-        double v[records::kValueChannels];
-        values->Read(i, v);
-        a.w += w;
-        for (int ch = 0; ch < records::kValueChannels; ++ch) {
-          a.wc[ch] += w * v[ch];
-          a.wcc[ch] += w * v[ch] * v[ch];
-        }
-        if (w > a.best_w) {
-          a.best_w = w;
-          a.best_i = i;
-        }
-      }
-      for (touched &= ~1u; touched != 0; touched &= touched - 1) {  // channel 0 is not fused
-        const int c = __builtin_ctz(touched);
-        const Sums& a = sums[c];
-        records::FusedModality& f = *channel[c];
-        double variance = 0.0;
-        double nearest[records::kValueChannels];
-        if (profile.mode == FusionMode::kNearest) values->Read(a.best_i, nearest);
-        for (int ch = 0; ch < f.channels; ++ch) {
-          const double mean = a.wc[ch] / a.w;
-          variance += std::max(0.0, a.wcc[ch] / a.w - mean * mean);
-          f.value[k * f.channels + ch] =
-              float(profile.mode == FusionMode::kNearest ? nearest[ch] : mean);
-        }
-        variance /= f.channels;
-        f.weight[k] = float(a.w);
-        f.uncertainty[k] = float(std::sqrt(variance + 1.0 / a.w));  // spread ⊕ 1/sqrt(Σw)
-      }
+    if (profile.mode == FusionMode::kNearest) {
+      FuseVossels<true>(recs, begin, range.begin(), range.end(), weights.data(), *values,
+                        channel);
+    } else {
+      FuseVossels<false>(recs, begin, range.begin(), range.end(), weights.data(), *values,
+                         channel);
     }
   }, tbb::simple_partitioner());
   return out;
