@@ -25,6 +25,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "lattice/records/record_grid.h"
+#include "lattice/records/point_attributes.h"
 #include "lattice/records/vdb_io.h"
 
 namespace vasl::records {
@@ -313,8 +314,8 @@ namespace pts = openvdb::points;
 using pts::PointDataGrid;
 using PointLeaf = pts::PointDataTree::LeafNodeType;
 /// Attribute arrays of geometry and fused objects: the values as they are, no codec.
-template <typename T>
-using RawArray = pts::TypedAttributeArray<T, pts::NullCodec>;
+using internal::RawArray;
+using internal::Tag;
 
 /// The PointDataGrid of a geometry object: one point per vossel, in the vossel's voxel.
 constexpr char kVosselPoints[] = "vossels";
@@ -352,11 +353,6 @@ bool Kept(const VosselGeometry& geometry, const char* name, const Array& array) 
 template <typename Array, typename At>
 using ValueOf = std::remove_const_t<
     std::remove_pointer_t<std::invoke_result_t<At, typename Array::value_type&>>>;
-
-template <typename T>
-struct Tag {
-  using type = T;
-};
 
 /// A PointDataGrid `name` over the lattice of `index`: a point per vossel at its voxel's centre
 /// (P uniform), in the leaves and voxel order of the index grid, so that each attribute of a
@@ -458,8 +454,9 @@ absl::StatusOr<std::map<std::string, size_t>> FindPointAttributes(
 
 /// Copies the attributes of `grid` (a PointDataGrid over the lattice of `index`:
 /// PointsOverVossels) into a reader's arrays: `attributes(fn)` calls `fn(name, Tag<T>{}, set)`
-/// for each attribute of `present` (FindPointAttributes), `set(v, in)` taking vossel v's values
-/// from `in`. The points must share the index grid's lattice leaf for leaf and voxel for voxel,
+/// for each attribute the reader knows, the same ones in the same order on every call, `set(v,
+/// in)` taking vossel v's values from `in`; those not in `present` (FindPointAttributes) are
+/// skipped. The points must share the index grid's lattice leaf for leaf and voxel for voxel,
 /// a point per vossel, and every leaf the same attributes; otherwise DATA_LOSS naming `path`.
 template <typename Attributes>
 absl::Status CopyPointAttributes(const PointDataGrid& grid, const Int32Grid& index,
@@ -482,6 +479,12 @@ absl::Status CopyPointAttributes(const PointDataGrid& grid, const Int32Grid& ind
   if (leaves.size() != lattice_leaves.size()) {
     return mismatch("do not share the lattice of the index grid");
   }
+  // Each attribute's position in the points' attribute sets, once for every leaf.
+  std::vector<size_t> positions;
+  attributes([&](const auto& name, auto, auto&&) {
+    const auto it = present.find(name);
+    positions.push_back(it == present.end() ? pts::AttributeSet::INVALID_POS : it->second);
+  });
   FirstError error;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 8),
                     [&](const tbb::blocked_range<size_t>& r) {
@@ -497,12 +500,12 @@ absl::Status CopyPointAttributes(const PointDataGrid& grid, const Int32Grid& ind
         return;
       }
       const size_t first = size_t(*lattice.cbeginValueOn());
-      attributes([&](const std::string& name, auto tag, auto&& set) {
+      size_t a = 0;
+      attributes([&](const auto&, auto tag, auto&& set) {
         using T = typename decltype(tag)::type;
-        auto it = present.find(name);
-        if (it == present.end()) return;
-        const auto& values =
-            static_cast<const RawArray<T>&>(*leaf.attributeSet().getConst(it->second));
+        const size_t pos = positions[a++];
+        if (pos == pts::AttributeSet::INVALID_POS) return;
+        const auto& values = static_cast<const RawArray<T>&>(*leaf.attributeSet().getConst(pos));
         values.loadData();  // (a delayed load's)
         // A uniform array (every vossel alike) holds one vossel's values.
         const size_t step = values.isUniform() ? 0 : values.stride();
@@ -876,6 +879,17 @@ absl::Status CheckFused(const VosselGeometry& geometry, const FusedValues& fused
   return absl::OkStatus();
 }
 
+/// The attribute names of each modality of `fused` in a fused object, in its order: value,
+/// weight, uncertainty (an OpenVDB attribute name takes no '.').
+std::vector<std::array<std::string, 3>> FusedAttributeNames(const FusedValues& fused) {
+  std::vector<std::array<std::string, 3>> names;
+  for (const auto& [modality, fm] : fused.by_modality) {
+    const std::string name = ModalityName(modality);
+    names.push_back({name + "_value", name + "_weight", name + "_uncertainty"});
+  }
+  return names;
+}
+
 /// Reads a fused object's points (EncodeFused) into `fused`, over the lattice of `geometry`.
 /// A modality's value without its weight and uncertainty is DATA_LOSS, as CopyPointAttributes'
 /// mismatches are.
@@ -928,16 +942,17 @@ absl::Status ReadFusedPoints(const PointDataGrid& grid, const VosselGeometry& ge
     fm.weight.assign(n, 0.0f);
     fm.uncertainty.assign(n, 0.0f);
   }
+  const std::vector<std::array<std::string, 3>> names = FusedAttributeNames(fused);
   return CopyPointAttributes(grid, *geometry.index_grid, path, *present, [&](auto&& fn) {
+    size_t m = 0;
     for (auto& [modality, fm] : fused.by_modality) {
-      const std::string name = ModalityName(modality);
+      const std::array<std::string, 3>& name = names[m++];
       const size_t c = size_t(fm.channels);
       FusedModality* f = &fm;
-      fn(name + "_value", Tag<float>{},
+      fn(name[0], Tag<float>{},
          [f, c](size_t v, const float* in) { std::copy_n(in, c, &f->value[v * c]); });
-      fn(name + "_weight", Tag<float>{}, [f](size_t v, const float* in) { f->weight[v] = *in; });
-      fn(name + "_uncertainty", Tag<float>{},
-         [f](size_t v, const float* in) { f->uncertainty[v] = *in; });
+      fn(name[1], Tag<float>{}, [f](size_t v, const float* in) { f->weight[v] = *in; });
+      fn(name[2], Tag<float>{}, [f](size_t v, const float* in) { f->uncertainty[v] = *in; });
     }
   });
 }
@@ -950,11 +965,7 @@ absl::StatusOr<std::string> EncodeFused(const VosselGeometry& geometry,
   if (absl::Status s = CheckFused(geometry, fused); !s.ok()) return s;
   // A vossel whose weight is not > 0 has no fused value: zeros, as a plain grid's inactive
   // voxels read (FusedGrids, ReadFused).
-  std::vector<std::array<std::string, 3>> names;  // per modality: value, weight, uncertainty
-  for (const auto& [modality, fm] : fused.by_modality) {
-    const std::string name = ModalityName(modality);
-    names.push_back({name + "_value", name + "_weight", name + "_uncertainty"});
-  }
+  const std::vector<std::array<std::string, 3>> names = FusedAttributeNames(fused);
   absl::StatusOr<openvdb::GridBase::Ptr> points = PointsOverVossels(
       *geometry.index_grid, kFusedPoints, kWhere, [&](auto&& fn) {
         size_t m = 0;

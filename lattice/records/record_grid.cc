@@ -23,6 +23,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "lattice/records/point_attributes.h"
 #include "lattice/records/vdb_io.h"
 
 namespace vasl::records {
@@ -36,11 +37,13 @@ using pts::PointDataTree;
 using PointLeaf = PointDataTree::LeafNodeType;
 
 // Registered OpenVDB 10 attribute types only (RECORDS-NOTES pitfall 1).
-using PositionArray = pts::TypedAttributeArray<openvdb::Vec3f, pts::NullCodec>;
-using Int8Array = pts::TypedAttributeArray<int8_t, pts::NullCodec>;
-using Int16Array = pts::TypedAttributeArray<int16_t, pts::NullCodec>;
-using Int32Array = pts::TypedAttributeArray<int32_t, pts::NullCodec>;
-using FloatArray = pts::TypedAttributeArray<float, pts::NullCodec>;
+using internal::RawArray;
+using internal::Tag;
+using PositionArray = RawArray<openvdb::Vec3f>;
+using Int8Array = RawArray<int8_t>;
+using Int16Array = RawArray<int16_t>;
+using Int32Array = RawArray<int32_t>;
+using FloatArray = RawArray<float>;
 using HalfArray = pts::TypedAttributeArray<float, pts::TruncateCodec>;
 using Unit8Array = pts::TypedAttributeArray<float, pts::FixedPointCodec<true, pts::UnitRange>>;
 using Unit16Array = pts::TypedAttributeArray<float, pts::FixedPointCodec<false, pts::UnitRange>>;
@@ -93,11 +96,6 @@ struct UnitStorage {
 };
 template <> struct Storage<Unit8Array> : UnitStorage<uint8_t> {};
 template <> struct Storage<Unit16Array> : UnitStorage<uint16_t> {};
-
-template <typename T>
-struct Tag {
-  using type = T;
-};
 
 /// Calls `fn(Tag<ArrayT>{})` for the attribute array type of `kind`.
 template <typename Fn>
