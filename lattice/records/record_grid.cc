@@ -234,6 +234,7 @@ struct PlannedAttribute {
   int stride;
   size_t pos = 0;       ///< position in the attribute set
   int stored_stride = 0;  ///< values per record in the file: `stride`, or fewer (older conf)
+  float unit = 1.0f;      ///< what a stored 1 stands for (UnitOf)
 };
 
 /// Confidence factors a file written before the record's conf widened lacks (§9): values it
@@ -460,7 +461,7 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                                                  "\" has stride ", stored, "; expected ",
                                                  stride));
         } else {
-          plan.push_back({name, kind, stride, pos, stored});
+          plan.push_back({name, kind, stride, pos, stored, UnitOf(name, kind)});
         }
       });
     }
@@ -495,18 +496,18 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
             }
             const size_t begin = first[li];
             const size_t count = first[li + 1] - begin;
-            ForEachAttribute(out, [&](const char* name, auto& dst, int stride, Kind) {
-              const PlannedAttribute* a = nullptr;
-              for (const PlannedAttribute& p : plan) {
-                if (p.name == name) a = &p;
-              }
-              const size_t pos = leaf.attributeSet().find(name);
-              if (pos != a->pos ||
-                  leaf.attributeSet().descriptor().type(pos) !=
-                      leaves[0]->attributeSet().descriptor().type(pos)) {
-                mismatch = true;
-                return;
-              }
+            // Every leaf's attributes as the first leaf's, where the plan found them (a file
+            // read shares one descriptor between its leaves: no name is looked up per leaf).
+            const pts::AttributeSet::Descriptor& descriptor = leaf.attributeSet().descriptor();
+            if (&descriptor != &leaves[0]->attributeSet().descriptor() &&
+                !(descriptor == leaves[0]->attributeSet().descriptor())) {
+              mismatch = true;
+              return;
+            }
+            size_t planned = 0;  // ForEachAttribute's order, as the plan's
+            ForEachAttribute(out, [&](const char*, auto& dst, int stride, Kind) {
+              const PlannedAttribute* a = &plan[planned++];
+              const size_t pos = a->pos;
               Dispatch(a->kind, [&](auto tag) {
                 using ArrayT = typename decltype(tag)::type;
                 using St = Storage<ArrayT>;
@@ -516,7 +517,7 @@ absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                 if (array.isUniform()) array.expand();
                 const auto* in = array.constData();
                 Elem* o = dst.data() + begin * stride;
-                if (const float unit = UnitOf(name, a->kind); unit != 1.0f) {
+                if (const float unit = a->unit; unit != 1.0f) {
                   const size_t values = count * stride;  // scaled kinds: uv, never widened
                   for (size_t v = 0; v < values; ++v) {
                     o[v] = static_cast<Elem>(St::Decode(in[v]) * unit);
