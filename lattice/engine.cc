@@ -585,7 +585,12 @@ absl::StatusOr<reweight::ReweightResult> Engine::Reweight(const std::string& pro
     if (p.head) {
       auto manifest = p.store->LoadManifest(result->version);
       if (!manifest.ok()) return manifest.status();
-      auto next = std::make_shared<store::Snapshot>(*p.head);
+      // HEAD's arrays move into the new snapshot when no reader holds it (every copy of
+      // p.head is taken under head_mu, held here; LoadSnapshot and CommitFlow make it a
+      // non-const object); while a reader holds it, it is copied.
+      auto next = p.head.use_count() == 1
+          ? std::make_shared<store::Snapshot>(std::move(const_cast<store::Snapshot&>(*p.head)))
+          : std::make_shared<store::Snapshot>(*p.head);
       next->version = result->version;
       next->manifest = std::move(*manifest);
       p.head = std::move(next);

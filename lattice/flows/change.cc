@@ -1039,7 +1039,8 @@ absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
   absl::StatusOr<store::VersionInfo> info = store.HeadInfo();
   if (info.ok()) result.bytes_written = info->bytes_written;
   result.version = *version;
-  result.snapshot = std::make_shared<const store::Snapshot>(std::move(next));
+  // Not a const object: a reweight moves HEAD's arrays out of it when no reader holds it.
+  result.snapshot = std::make_shared<store::Snapshot>(std::move(next));
   clock.Finish();
   return absl::OkStatus();
 }
