@@ -216,6 +216,8 @@ void FuseVossels(const records::RecordSet& recs, const std::vector<size_t>& begi
       const int c = int(FusedChannelOf(Modality(recs.modality[i])));
       double v[kC];
       values.Read(i, v);
+      // (A value the record's weight leaves out adds 0 too: NaN or ∞ times 0 would not.)
+      for (int ch = 0; ch < kC; ++ch) v[ch] = wi > 0.0f ? v[ch] : 0.0;
       Sums& a = sums[c];
       const double wd = wi;
       a.w += wd;

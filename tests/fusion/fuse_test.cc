@@ -197,6 +197,32 @@ TEST(FuseTest, WeightedMeanUncertaintyAndReweight) {
   EXPECT_NEAR(nearest->by_modality.at(Modality::kRgb).value[0], 0.2, 1e-6);
 }
 
+// Claim (§7): a record whose weight is 0 (here: V below V_min, and a hard invalidation) takes
+// no part in its vossel's fusion, whatever its value holds: NaN or ∞ leave the vossel's value,
+// weight and uncertainty exactly as the other records alone give them, in both modes.
+TEST(FuseTest, RecordsWithoutWeightLeaveNoTrace) {
+  records::RecordSet clean;
+  AddRecord(clean, 0, 1, 0.2f, 1.0f, 1.0f, 0.001f);
+  AddRecord(clean, 0, 2, 0.8f, 1.0f, 0.25f, 0.001f);
+  records::RecordSet dirty = clean;
+  AddRecord(dirty, 0, 3, std::nanf(""), 0.3f, 1.0f, 0.001f);  // below V_min = 0.5
+  AddRecord(dirty, 0, 4, HUGE_VALF, 1.0f, 1.0f, 0.001f);
+  dirty.flags[3] = records::kFlagInvalidated;
+  for (FusionMode mode : {FusionMode::kBlend, FusionMode::kNearest}) {
+    WeightingProfile p;
+    p.mode = mode;
+    auto want = Fuse(clean, 1, 0.02, p);
+    auto got = Fuse(dirty, 1, 0.02, p);
+    ASSERT_TRUE(want.ok() && got.ok());
+    const auto& a = want->by_modality.at(Modality::kRgb);
+    const auto& b = got->by_modality.at(Modality::kRgb);
+    EXPECT_EQ(b.value, a.value);
+    EXPECT_EQ(b.weight, a.weight);
+    EXPECT_EQ(b.uncertainty, a.uncertainty);
+    EXPECT_TRUE(std::isfinite(b.value[0]) && std::isfinite(b.uncertainty[0]));
+  }
+}
+
 // Claim (§7): fusing noisy records of one true colour recovers it, and U shrinks as records
 // accumulate (1/sqrt(Σw) term); a bad profile is rejected.
 TEST(FuseTest, ConvergesAndValidates) {
