@@ -1,5 +1,6 @@
 #include "lattice/reweight/reweight_flow.h"
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <filesystem>
@@ -50,6 +51,15 @@ absl::StatusOr<ReweightResult> Reweight(store::ProjectStore& store,
 
   std::vector<std::pair<tiles::TileKey, const std::map<std::string, store::ManifestEntry>*>> todo;
   for (const auto& [key, layers] : manifest->tiles) todo.emplace_back(key, &layers);
+  // The tiles with the most records first: a tile's read is one thread's, so a large one
+  // started last would keep the others waiting (the commit does not depend on the order).
+  auto records_of = [](const std::map<std::string, store::ManifestEntry>& layers) {
+    auto it = layers.find(store::kLayerRecords);
+    return it == layers.end() ? int64_t{0} : it->second.records;
+  };
+  std::stable_sort(todo.begin(), todo.end(), [&](const auto& a, const auto& b) {
+    return records_of(*a.second) > records_of(*b.second);
+  });
   std::vector<std::map<std::string, store::ManifestEntry>> written(todo.size());
   std::vector<absl::Status> status(todo.size());
   store::ObjectStore& objects = store.writable_objects();
