@@ -24,8 +24,8 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
-#include "lattice/records/record_grid.h"
 #include "lattice/records/point_attributes.h"
+#include "lattice/records/record_grid.h"
 #include "lattice/records/vdb_io.h"
 
 namespace vasl::records {
@@ -879,13 +879,17 @@ absl::Status CheckFused(const VosselGeometry& geometry, const FusedValues& fused
   return absl::OkStatus();
 }
 
-/// The attribute names of each modality of `fused` in a fused object, in its order: value,
-/// weight, uncertainty (an OpenVDB attribute name takes no '.').
+/// The attribute names of `modality` in a fused object: value, weight, uncertainty (an
+/// OpenVDB attribute name takes no '.').
+std::array<std::string, 3> FusedAttributeNames(Modality modality) {
+  const std::string name = ModalityName(modality);
+  return {name + "_value", name + "_weight", name + "_uncertainty"};
+}
+/// Those of each modality of `fused`, in its order.
 std::vector<std::array<std::string, 3>> FusedAttributeNames(const FusedValues& fused) {
   std::vector<std::array<std::string, 3>> names;
   for (const auto& [modality, fm] : fused.by_modality) {
-    const std::string name = ModalityName(modality);
-    names.push_back({name + "_value", name + "_weight", name + "_uncertainty"});
+    names.push_back(FusedAttributeNames(modality));
   }
   return names;
 }
@@ -898,10 +902,10 @@ absl::Status ReadFusedPoints(const PointDataGrid& grid, const VosselGeometry& ge
   absl::StatusOr<std::map<std::string, size_t>> present =
       FindPointAttributes(grid, path, [&](auto&& fn) {
         for (int m = 0; m < kModalityCount; ++m) {
-          const std::string name = ModalityName(static_cast<Modality>(m));
-          fn(name + "_value", {1, 3}, Tag<float>{});
-          fn(name + "_weight", {1}, Tag<float>{});
-          fn(name + "_uncertainty", {1}, Tag<float>{});
+          const std::array<std::string, 3> name = FusedAttributeNames(static_cast<Modality>(m));
+          fn(name[0], {1, 3}, Tag<float>{});
+          fn(name[1], {1}, Tag<float>{});
+          fn(name[2], {1}, Tag<float>{});
         }
       });
   if (!present.ok()) return present.status();
@@ -927,13 +931,14 @@ absl::Status ReadFusedPoints(const PointDataGrid& grid, const VosselGeometry& ge
   }
   for (int m = 0; m < kModalityCount; ++m) {
     const Modality modality = static_cast<Modality>(m);
-    const std::string name = ModalityName(modality);
-    const auto value = present->find(name + "_value");
-    const size_t has = (value != present->end()) + present->count(name + "_weight") +
-                       present->count(name + "_uncertainty");
+    const std::array<std::string, 3> name = FusedAttributeNames(modality);
+    const auto value = present->find(name[0]);
+    const size_t has =
+        (value != present->end()) + present->count(name[1]) + present->count(name[2]);
     if (has == 0) continue;
     if (has != 3) {
-      return absl::DataLossError(absl::StrCat(path.string(), ": modality ", name,
+      return absl::DataLossError(absl::StrCat(path.string(), ": modality ",
+                                              ModalityName(modality),
                                               " lacks its value, weight or uncertainty"));
     }
     FusedModality& fm = fused.by_modality[modality];
