@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/fusion/weight.h"
 #include "lattice/geometry/footprint.h"
+#include "lattice/memory/huge_pages.h"
 
 namespace vasl::fusion {
 
@@ -115,7 +116,8 @@ absl::StatusOr<std::vector<size_t>> VosselOffsets(const records::RecordSet& recs
   // Records sorted by vossel: begin[k] is the first record whose vossel is ≥ k, written by
   // the one record where the vossel index steps past k, so that record chunks fill it apart.
   const size_t n = recs.size();
-  std::vector<size_t> begin(vossel_count + 1);
+  std::vector<size_t> begin;
+  memory::AssignOnHugePages(begin, vossel_count + 1, size_t(0));
   std::atomic<bool> sorted{true};
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
                     [&](const tbb::blocked_range<size_t>& r) {
@@ -260,7 +262,7 @@ absl::StatusOr<RecordWeightsResult> RecordWeights(const records::RecordSet& recs
   if (!begin.ok()) return begin.status();
   RecordWeightsResult out;
   out.begin = std::move(*begin);
-  out.weight.resize(recs.size());
+  memory::AssignOnHugePages(out.weight, recs.size(), 0.0f);
   absl::StatusOr<RecordValues> values = RecordValues::Of(profile, recs);
   if (!values.ok()) return values.status();
   const WeightKernel kernel(profile, geometry::TargetResolutionM(vossel_size_m));
@@ -280,18 +282,26 @@ absl::StatusOr<records::FusedValues> Fuse(const records::RecordSet& recs, size_t
   const std::vector<size_t>& begin = *offsets;
   const WeightKernel kernel(profile, geometry::TargetResolutionM(vossel_size_m));
 
-  bool present[records::kModalityCount] = {};
-  for (int8_t m : recs.modality) present[int(FusedChannelOf(Modality(m)))] = true;
+  // The fused channels some record has, as a bit set over the records in parallel.
+  const uint32_t present = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, recs.size(), 1 << 16), uint32_t(0),
+      [&recs](const tbb::blocked_range<size_t>& r, uint32_t bits) {
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          bits |= 1u << int(FusedChannelOf(Modality(recs.modality[i])));
+        }
+        return bits;
+      },
+      [](uint32_t a, uint32_t b) { return a | b; });
   records::FusedValues out;
   out.profile = profile.name;
   records::FusedModality* channel[records::kModalityCount] = {};
   for (int m = 1; m < records::kModalityCount; ++m) {
-    if (!present[m]) continue;
+    if (!(present & (1u << m))) continue;
     records::FusedModality& f = out.by_modality[Modality(m)];
     f.channels = records::ChannelCount(Modality(m));
-    f.value.assign(vossel_count * f.channels, 0.0f);
-    f.weight.assign(vossel_count, 0.0f);
-    f.uncertainty.assign(vossel_count, 0.0f);
+    memory::AssignOnHugePages(f.value, vossel_count * f.channels, 0.0f);
+    memory::AssignOnHugePages(f.weight, vossel_count, 0.0f);
+    memory::AssignOnHugePages(f.uncertainty, vossel_count, 0.0f);
     channel[m] = &f;
   }
 

@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/ingest/image_memory.h"
 #include "lattice/ingest/sources.h"
+#include "lattice/memory/huge_pages.h"
 
 namespace vasl::ingest {
 namespace {
@@ -203,7 +204,8 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   const TypeDesc read_as = int8 ? TypeDesc::UINT8 : int16 ? TypeDesc::UINT16 : TypeDesc::FLOAT;
   const size_t n = size_t(spec.width) * spec.height;
   const int nc = spec.nchannels;
-  std::vector<unsigned char> all(n * nc * read_as.size());
+  std::vector<unsigned char> all;
+  memory::AssignOnHugePages(all, n * nc * read_as.size(), static_cast<unsigned char>(0));
   if (!in->read_image(0, 0, 0, nc, read_as, all.data())) {
     return absl::InvalidArgumentError(
         absl::StrCat("image bytes do not decode: ", in->geterror()));
@@ -224,7 +226,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   out.channels = single_channel ? 1 : 3;
   out.clip_value = is_float ? 0.0f : 1.0f;
   if (int8) out.coding = ReadJpegCoding(bytes);  // §9 codec: what the JPEG's coding did
-  out.pixels.resize(n * out.channels);
+  memory::AssignOnHugePages(out.pixels, n * out.channels, 0.0f);
   const int oc = out.channels;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t p = r.begin(); p != r.end(); ++p) {

@@ -9,6 +9,7 @@
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 
+#include "lattice/memory/huge_pages.h"
 #include "lattice/tiles/tiling.h"
 
 namespace vasl::ingest {
@@ -134,7 +135,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const int W = size.width_px, H = size.height_px;
   const size_t npix = size_t(W) * H;
   std::vector<float>& depth = out.depth_m;
-  depth.assign(npix, std::numeric_limits<float>::infinity());
+  memory::AssignOnHugePages(depth, npix, std::numeric_limits<float>::infinity());
   out.splat_row_begin = H;  // no row splatted yet
   out.splat_row_end = 0;
   // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie
