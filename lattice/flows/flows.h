@@ -231,6 +231,13 @@ class SourceImageCache {
   void Put(const std::string& key, std::shared_ptr<const geometry::LinearImage> image,
            std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr,
            double cost_seconds = 0.0);
+  /// An image kept as its 8-bit codes (geometry::PackSrgb8) under `key`, or null; as Find.
+  std::shared_ptr<const geometry::Srgb8Image> FindPacked(
+      const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts = nullptr);
+  /// Keeps `packed` (and its `artefacts`) under `key`, as Put keeps an image.
+  void PutPacked(const std::string& key, std::shared_ptr<const geometry::Srgb8Image> packed,
+                 std::shared_ptr<const ingest::ArtefactMaps> artefacts = nullptr,
+                 double cost_seconds = 0.0);
   /// A LiDAR's points (with its range grid and gap fill) kept under `key`, or null; kept as
   /// images are, in the same budget.
   std::shared_ptr<const ingest::LidarSource> FindLidar(const std::string& key);
@@ -245,6 +252,7 @@ class SourceImageCache {
   double inflation_ = 0.0;  ///< the worth of the last entry evicted (GreedyDual's L)
   struct Entry {
     std::shared_ptr<const geometry::LinearImage> image;
+    std::shared_ptr<const geometry::Srgb8Image> packed;
     std::shared_ptr<const ingest::ArtefactMaps> artefacts;
     std::shared_ptr<const ingest::LidarSource> lidar;
     int64_t bytes = 0;
@@ -252,6 +260,9 @@ class SourceImageCache {
     double cost_per_byte = 0.0;
     double worth = 0.0;  ///< L at its last use plus its cost per byte
   };
+  /// An image entry of `image_bytes` (with its artefact maps' bytes) worth `cost_seconds`.
+  static Entry ImageEntry(int64_t image_bytes, std::shared_ptr<const ingest::ArtefactMaps> artefacts,
+                          double cost_seconds);
   /// Keeps `entry` (its bytes counted) under `key`, evicting the least worth first.
   void Keep(const std::string& key, Entry entry);
   /// The entry kept under `key`, marked most recently used; empty when none.

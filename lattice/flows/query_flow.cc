@@ -116,23 +116,46 @@ std::shared_ptr<const geometry::LinearImage> SourceImageCache::Find(
   return std::move(entry.image);
 }
 
-void SourceImageCache::Put(const std::string& key,
-                           std::shared_ptr<const geometry::LinearImage> image,
-                           std::shared_ptr<const ingest::ArtefactMaps> artefacts,
-                           double cost_seconds) {
-  int64_t bytes = int64_t(image->ByteSize());
+SourceImageCache::Entry SourceImageCache::ImageEntry(
+    int64_t image_bytes, std::shared_ptr<const ingest::ArtefactMaps> artefacts,
+    double cost_seconds) {
+  Entry entry;
+  entry.bytes = image_bytes;
   if (artefacts != nullptr) {
     for (const geometry::LinearImage* map :
          {&artefacts->saturation.conf, &artefacts->smear.conf, &artefacts->flare.conf,
           &artefacts->codec.conf}) {
-      bytes += int64_t(map->ByteSize());
+      entry.bytes += int64_t(map->ByteSize());
     }
   }
-  Entry entry;
-  entry.image = std::move(image);
   entry.artefacts = std::move(artefacts);
-  entry.bytes = bytes;
-  entry.cost_per_byte = std::max(0.0, cost_seconds) / double(std::max<int64_t>(1, bytes));
+  entry.cost_per_byte =
+      std::max(0.0, cost_seconds) / double(std::max<int64_t>(1, entry.bytes));
+  return entry;
+}
+
+void SourceImageCache::Put(const std::string& key,
+                           std::shared_ptr<const geometry::LinearImage> image,
+                           std::shared_ptr<const ingest::ArtefactMaps> artefacts,
+                           double cost_seconds) {
+  Entry entry = ImageEntry(int64_t(image->ByteSize()), std::move(artefacts), cost_seconds);
+  entry.image = std::move(image);
+  Keep(key, std::move(entry));
+}
+
+std::shared_ptr<const geometry::Srgb8Image> SourceImageCache::FindPacked(
+    const std::string& key, std::shared_ptr<const ingest::ArtefactMaps>* artefacts) {
+  Entry entry = Use(key);
+  if (artefacts != nullptr) *artefacts = std::move(entry.artefacts);
+  return std::move(entry.packed);
+}
+
+void SourceImageCache::PutPacked(const std::string& key,
+                                 std::shared_ptr<const geometry::Srgb8Image> packed,
+                                 std::shared_ptr<const ingest::ArtefactMaps> artefacts,
+                                 double cost_seconds) {
+  Entry entry = ImageEntry(int64_t(packed->ByteSize()), std::move(artefacts), cost_seconds);
+  entry.packed = std::move(packed);
   Keep(key, std::move(entry));
 }
 

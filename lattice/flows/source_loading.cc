@@ -228,15 +228,22 @@ std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pin
 // `decoded` as cameras share it (CameraSource::kept_image): its artefact maps found and then
 // its channel shift corrected once, on the whole image (§9; each corrected row reads the image
 // as decoded, so its rows are those a camera's records would correct), set on `cam` and kept
-// in `images` under `key` when it fits.
+// in `images` under `key` when it fits: as its 8-bit codes before the correction when it has
+// them (an 8-bit file's; a quarter of the bytes, LoadedCamera corrects it again), else as it is.
 void ShareDecoded(ingest::LinearImage decoded, const std::string& key, SourceImageCache& images,
                   ingest::CameraSource& cam, double decode_seconds) {
   const auto t0 = std::chrono::steady_clock::now();
   auto artefacts = std::make_shared<const ingest::ArtefactMaps>(
       ingest::DetectArtefacts(decoded, /*wrap=*/!cam.pinhole));
+  std::optional<geometry::Srgb8Image> packed = geometry::PackSrgb8(decoded);
   ingest::CorrectChannelShift(decoded, artefacts->fringing);
   auto image = std::make_shared<const geometry::LinearImage>(std::move(decoded));
-  images.Put(key, image, artefacts, decode_seconds + SecondsSince(t0));
+  if (packed) {
+    images.PutPacked(key, std::make_shared<const geometry::Srgb8Image>(std::move(*packed)),
+                     artefacts, decode_seconds + SecondsSince(t0));
+  } else {
+    images.Put(key, image, artefacts, decode_seconds + SecondsSince(t0));
+  }
   cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
   cam.artefacts = std::move(artefacts);
 }
@@ -253,6 +260,15 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
   std::shared_ptr<const geometry::LinearImage> image = images->Find(key, &artefacts);
   if (image != nullptr && artefacts != nullptr) {
     cam.kept_image = std::move(image);
+    cam.artefacts = std::move(artefacts);
+    return cam;
+  }
+  // Kept as its codes: the image as decoded, then corrected as ShareDecoded corrected it.
+  if (std::shared_ptr<const geometry::Srgb8Image> packed = images->FindPacked(key, &artefacts);
+      packed != nullptr && artefacts != nullptr) {
+    geometry::LinearImage unpacked = geometry::UnpackSrgb8(*packed);
+    ingest::CorrectChannelShift(unpacked, artefacts->fringing);
+    cam.kept_image = std::make_shared<const geometry::LinearImage>(std::move(unpacked));
     cam.artefacts = std::move(artefacts);
     return cam;
   }

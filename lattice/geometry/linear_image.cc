@@ -7,7 +7,12 @@
 #include <cstring>
 #include <limits>
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
 #include "lattice/geometry/equirect.h"
+#include "lattice/memory/huge_pages.h"
 
 namespace vasl::geometry {
 
@@ -69,6 +74,56 @@ uint8_t LinearToSrgb8(float linear) {
   std::memcpy(&bits, &linear, sizeof bits);
   const int code = tables.by_bucket[bits >> 16];
   return uint8_t(linear >= tables.threshold[size_t(code) + 1] ? code + 1 : code);
+}
+
+const std::array<float, 256>& Srgb8ToLinear() {
+  static const std::array<float, 256> table = [] {
+    std::array<float, 256> t;
+    for (int code = 0; code < 256; ++code) t[size_t(code)] = SrgbToLinear(float(code) / 255.0f);
+    return t;
+  }();
+  return table;
+}
+
+std::optional<Srgb8Image> PackSrgb8(const LinearImage& image) {
+  const std::array<float, 256>& table = Srgb8ToLinear();
+  Srgb8Image out;
+  out.header.width_px = image.width_px;
+  out.header.height_px = image.height_px;
+  out.header.channels = image.channels;
+  out.header.clip_value = image.clip_value;
+  out.header.coding = image.coding;
+  const size_t n = image.pixels.size();
+  memory::AssignOnHugePages(out.codes, n, uint8_t{0});
+  const bool exact = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, n, 1 << 16), true,
+      [&](const tbb::blocked_range<size_t>& r, bool ok) {
+        if (!ok) return false;
+        for (size_t i = r.begin(); i != r.end(); ++i) {
+          const float v = image.pixels[i];
+          const uint8_t code = LinearToSrgb8(v);
+          // Bit for bit: −0 or NaN do not come back from a code.
+          if (std::memcmp(&table[code], &v, sizeof v) != 0) return false;
+          out.codes[i] = code;
+        }
+        return true;
+      },
+      [](bool a, bool b) { return a && b; });
+  if (!exact) return std::nullopt;
+  return out;
+}
+
+LinearImage UnpackSrgb8(const Srgb8Image& packed) {
+  const std::array<float, 256>& table = Srgb8ToLinear();
+  LinearImage out = packed.header;
+  out.pixels.clear();
+  const size_t n = packed.codes.size();
+  memory::AssignOnHugePages(out.pixels, n, 0.0f);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t i = r.begin(); i != r.end(); ++i) out.pixels[i] = table[packed.codes[i]];
+  });
+  return out;
 }
 
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {

@@ -8,6 +8,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <vector>
 
 namespace vasl::geometry {
@@ -46,6 +47,25 @@ float LinearToSrgb(float linear);
 /// small tables instead of a pow: how PNG renders are written (render::RowEncoder), 25 M
 /// channels for a 4096×2048 image.
 uint8_t LinearToSrgb8(float linear);
+
+/// The linear value of each 8-bit sRGB code, SrgbToLinear(code / 255): how DecodeImage
+/// linearises an 8-bit image.
+const std::array<float, 256>& Srgb8ToLinear();
+
+/// An image whose every value is an 8-bit code's linear value (Srgb8ToLinear), as DecodeImage
+/// makes of an 8-bit file, kept as those codes: a quarter of the bytes, and the same image
+/// back value for value. How the revisit cache keeps decoded camera images (flows::
+/// SourceImageCache), so that it holds four times as many.
+struct Srgb8Image {
+  LinearImage header;          ///< size, channels, clip value and coding; no pixels
+  std::vector<uint8_t> codes;  ///< one per value of the image's `pixels`, in their order
+  std::size_t ByteSize() const { return codes.size(); }
+};
+/// `image` as its codes, or nullopt when some value is not an 8-bit code's linear value bit
+/// for bit (a 16-bit or float image, or one changed since its decode). Parallel (TBB).
+std::optional<Srgb8Image> PackSrgb8(const LinearImage& image);
+/// The image `packed` holds, bit for bit as packed. Parallel (TBB).
+LinearImage UnpackSrgb8(const Srgb8Image& packed);
 
 /// Bilinear read of `img` at continuous pixel coordinates (u, v): `img.channels` values into
 /// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation

@@ -212,12 +212,11 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
   }
   in->close();
   std::vector<float> table;
-  if (!linear_already) {
-    const int codes = int8 ? 256 : 65536;
-    table.resize(size_t(codes));
-    for (int i = 0; i < codes; ++i) {
-      table[size_t(i)] = geometry::SrgbToLinear(float(i) / float(codes - 1));
-    }
+  if (int8) {
+    table.assign(geometry::Srgb8ToLinear().begin(), geometry::Srgb8ToLinear().end());
+  } else if (int16) {
+    table.resize(65536);
+    for (int i = 0; i < 65536; ++i) table[size_t(i)] = geometry::SrgbToLinear(float(i) / 65535.0f);
   }
 
   LinearImage out;

@@ -1,10 +1,12 @@
-// LinearToSrgb8 (how PNG renders are coded) against its definition, lround(255·LinearToSrgb).
+// LinearToSrgb8 (how PNG renders are coded) against its definition, lround(255·LinearToSrgb);
+// an 8-bit image packed as its codes (PackSrgb8) comes back bit for bit, and nothing else packs.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
 #include <limits>
+#include <optional>
 
 #include <gtest/gtest.h>
 
@@ -65,6 +67,46 @@ TEST(LinearImageTest, Srgb8CodeEqualsItsDefinitionEverywhere) {
   EXPECT_EQ(wrong, 0u);
   EXPECT_EQ(LinearToSrgb8(std::nanf("")), 0);
   EXPECT_EQ(LinearToSrgb8(2.0f), 255);
+}
+
+// Claim: an image of every 8-bit code's linear value, in each channel count, packs into one
+// code per value and unpacks bit for bit with its header; a value no code gives back exactly
+// (a 16-bit code's, one nudged by an ulp, −0, NaN) leaves it unpacked.
+TEST(LinearImageTest, AnImageOfSrgb8CodesPacksAndComesBackBitForBit) {
+  for (int channels : {1, 3}) {
+    LinearImage image;
+    image.width_px = 256;
+    image.height_px = 3;
+    image.channels = channels;
+    image.clip_value = 1.0f;
+    for (int j = 0; j < image.height_px; ++j) {
+      for (int i = 0; i < image.width_px; ++i) {
+        for (int c = 0; c < channels; ++c) {
+          image.pixels.push_back(Srgb8ToLinear()[size_t((i * (j + 1) + 37 * c) % 256)]);
+        }
+      }
+    }
+    const std::optional<Srgb8Image> packed = PackSrgb8(image);
+    ASSERT_TRUE(packed.has_value()) << channels << " channels";
+    EXPECT_EQ(packed->ByteSize(), image.pixels.size());
+    EXPECT_EQ(packed->ByteSize() * 4, image.ByteSize());
+    const LinearImage back = UnpackSrgb8(*packed);
+    EXPECT_EQ(back.width_px, image.width_px);
+    EXPECT_EQ(back.height_px, image.height_px);
+    EXPECT_EQ(back.channels, channels);
+    EXPECT_EQ(back.clip_value, 1.0f);
+    ASSERT_EQ(back.pixels.size(), image.pixels.size());
+    EXPECT_EQ(std::memcmp(back.pixels.data(), image.pixels.data(), image.ByteSize()), 0);
+
+    const float not_codes[] = {SrgbToLinear(1000.0f / 65535.0f),
+                               std::nextafter(Srgb8ToLinear()[128], 1.0f), -0.0f,
+                               std::numeric_limits<float>::quiet_NaN()};
+    for (float v : not_codes) {
+      LinearImage changed = image;
+      changed.pixels[image.pixels.size() / 2] = v;
+      EXPECT_FALSE(PackSrgb8(changed).has_value()) << "value " << v;
+    }
+  }
 }
 
 }  // namespace
