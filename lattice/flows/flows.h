@@ -211,7 +211,7 @@ class FusedLayerCache {
 
 /// Decoded camera images within a byte budget: those of renders with ColourDetail::
 /// kSourceImages (§8), by blob hash, and those revisits read (with their artefact maps, §9:
-/// LoadedCamera), and LiDARs' points. What goes first is chosen by GreedyDual-Size (Cao and
+/// LoadedCamera; an 8-bit camera's as its codes, geometry::PackSrgb8), and LiDARs' points. What goes first is chosen by GreedyDual-Size (Cao and
 /// Irani, 1997): each entry is worth the seconds it took to make per byte it holds, raised on
 /// every use to the worth of the last entry evicted, and the least worth goes, the least
 /// recently used among equals; entries of equal cost per byte go least recently used first.
