@@ -108,8 +108,10 @@ absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& s
                                                     int32_t batch);
 /// A stored camera with its image decoded and its artefact maps found, read from `images`
 /// when it keeps them and kept there after a decode (revisits of successive ingests mostly
-/// read the same cameras); with no cache, StoredCamera's (decoded on demand). The kept image
-/// is shared with the camera (CameraSource::kept_image), its §9 channel shift corrected once.
+/// read the same cameras); with no cache, StoredCamera's (decoded on demand). An image kept as
+/// floats is shared with the camera (CameraSource::kept_image), its §9 channel shift corrected
+/// once; one kept as its 8-bit codes is the camera's `load` (unpacked when its records are
+/// sampled, and corrected on the rows they read).
 class SourceImageCache;
 absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& store,
                                                   const store::SourceInfo& source,

@@ -225,25 +225,42 @@ std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pin
                       max_pixels, pinhole ? " pinhole" : " equirect");
 }
 
-// `decoded` as cameras share it (CameraSource::kept_image): its artefact maps found and then
-// its channel shift corrected once, on the whole image (§9; each corrected row reads the image
-// as decoded, so its rows are those a camera's records would correct), set on `cam` and kept
-// in `images` under `key` when it fits: as its 8-bit codes before the correction when it has
-// them (an 8-bit file's; a quarter of the bytes, LoadedCamera corrects it again), else as it is.
+// A camera reading an image kept as its 8-bit codes: they are unpacked when its records are
+// sampled (a table lookup, where a miss decodes its file) and its channel shift corrected on the
+// rows those samples read (ingest::CameraRecords), not on the whole image.
+void ReadCodes(std::shared_ptr<const geometry::Srgb8Image> codes,
+               std::shared_ptr<const ingest::ArtefactMaps> artefacts, ingest::CameraSource& cam) {
+  cam.image = ingest::LinearImage{};
+  cam.kept_image.reset();
+  cam.load = [codes = std::move(codes)]() -> absl::StatusOr<ingest::LinearImage> {
+    return geometry::UnpackSrgb8(*codes);
+  };
+  cam.artefacts = std::move(artefacts);
+}
+
+// `decoded` as cameras share it, its artefact maps found, kept in `images` under `key` when it
+// fits: as its 8-bit codes when it has them (an 8-bit file's; a quarter of the bytes), else
+// with its channel shift corrected once on the whole image (CameraSource::kept_image; each
+// corrected row reads the image as decoded, so its rows are those a camera's records would
+// correct). With `whole` (a scan's own camera, whose records read every row) `cam` shares the
+// corrected image; else (a revisit's) an 8-bit one reads the codes (ReadCodes).
 void ShareDecoded(ingest::LinearImage decoded, const std::string& key, SourceImageCache& images,
-                  ingest::CameraSource& cam, double decode_seconds) {
+                  ingest::CameraSource& cam, double decode_seconds, bool whole) {
   const auto t0 = std::chrono::steady_clock::now();
   auto artefacts = std::make_shared<const ingest::ArtefactMaps>(
       ingest::DetectArtefacts(decoded, /*wrap=*/!cam.pinhole));
-  std::optional<geometry::Srgb8Image> packed = geometry::PackSrgb8(decoded);
+  std::shared_ptr<const geometry::Srgb8Image> codes;
+  if (std::optional<geometry::Srgb8Image> packed = geometry::PackSrgb8(decoded)) {
+    codes = std::make_shared<const geometry::Srgb8Image>(std::move(*packed));
+    images.PutPacked(key, codes, artefacts, decode_seconds + SecondsSince(t0));
+    if (!whole) {
+      ReadCodes(std::move(codes), std::move(artefacts), cam);
+      return;
+    }
+  }
   ingest::CorrectChannelShift(decoded, artefacts->fringing);
   auto image = std::make_shared<const geometry::LinearImage>(std::move(decoded));
-  if (packed) {
-    images.PutPacked(key, std::make_shared<const geometry::Srgb8Image>(std::move(*packed)),
-                     artefacts, decode_seconds + SecondsSince(t0));
-  } else {
-    images.Put(key, image, artefacts, decode_seconds + SecondsSince(t0));
-  }
+  if (codes == nullptr) images.Put(key, image, artefacts, decode_seconds + SecondsSince(t0));
   cam.kept_image = std::move(image);  // shared: the records read it, nothing writes it
   cam.artefacts = std::move(artefacts);
 }
@@ -263,19 +280,15 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
     cam.artefacts = std::move(artefacts);
     return cam;
   }
-  // Kept as its codes: the image as decoded, then corrected as ShareDecoded corrected it.
-  if (std::shared_ptr<const geometry::Srgb8Image> packed = images->FindPacked(key, &artefacts);
-      packed != nullptr && artefacts != nullptr) {
-    geometry::LinearImage unpacked = geometry::UnpackSrgb8(*packed);
-    ingest::CorrectChannelShift(unpacked, artefacts->fringing);
-    cam.kept_image = std::make_shared<const geometry::LinearImage>(std::move(unpacked));
-    cam.artefacts = std::move(artefacts);
+  if (std::shared_ptr<const geometry::Srgb8Image> codes = images->FindPacked(key, &artefacts);
+      codes != nullptr && artefacts != nullptr) {
+    ReadCodes(std::move(codes), std::move(artefacts), cam);
     return cam;
   }
   const auto t0 = std::chrono::steady_clock::now();
   absl::StatusOr<ingest::LinearImage> decoded = cam.load();
   if (!decoded.ok()) return decoded.status();
-  ShareDecoded(std::move(*decoded), key, *images, cam, SecondsSince(t0));
+  ShareDecoded(std::move(*decoded), key, *images, cam, SecondsSince(t0), /*whole=*/false);
   return cam;
 }
 
@@ -288,7 +301,7 @@ void KeepDecodedCamera(const store::SourceInfo& src, int64_t max_pixels, SourceI
   ingest::LinearImage decoded = std::move(cam.image);
   cam.image = ingest::LinearImage();
   ShareDecoded(std::move(decoded), CameraKey(src, max_pixels, cam.pinhole.has_value()), *images,
-               cam, decode_seconds);
+               cam, decode_seconds, /*whole=*/true);
 }
 
 }  // namespace vasl::flows

@@ -205,11 +205,21 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
   row_begin = std::clamp(row_begin, 0, H);
   row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
   if (row_begin == row_end) return 0;
-  const std::vector<float> raw = image.pixels;
+  // The rows as decoded that the corrected ones read: a tap lies at most the largest row offset
+  // (the field is bilinear between tile offsets) and 2 rows beyond the row read.
+  float max_dy = 0.0f;
+  for (float dy : shift.tile_dy) max_dy = std::max(max_dy, std::abs(dy));
+  const int pad = int(std::min<float>(std::ceil(max_dy), float(H))) + 3;
+  const int band_begin = std::max(0, row_begin - pad), band_end = std::min(H, row_end + pad);
+  const size_t stride = size_t(W) * C;
+  const std::vector<float> raw(image.pixels.begin() + ptrdiff_t(size_t(band_begin) * stride),
+                               image.pixels.begin() + ptrdiff_t(size_t(band_end) * stride));
+  auto at = [&](int x, int y, int c) -> const float& {  // y within the band
+    return raw[(size_t(y - band_begin) * W + size_t(x)) * C + size_t(c)];
+  };
   auto value = [&](int x, int y, int c) {
     x = shift.wrap ? ((x % W) + W) % W : std::clamp(x, 0, W - 1);
-    y = std::clamp(y, 0, H - 1);
-    return raw[(size_t(y) * W + size_t(x)) * C + size_t(c)];
+    return at(x, std::clamp(y, band_begin, band_end - 1), c);
   };
   if (changed != nullptr) *changed = internal::ConfidenceOnes(W, H);
   tbb::enumerable_thread_specific<int64_t> counts(0);
@@ -220,7 +230,7 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
       for (int x = 0; x < W; ++x) {
         const size_t p = size_t(y) * W + size_t(x);
         float level = 0.0f, moved = 0.0f;
-        for (int c = 0; c < 3; ++c) level = std::max(level, raw[p * C + size_t(c)]);
+        for (int c = 0; c < 3; ++c) level = std::max(level, at(x, y, c));
         for (const int c : {0, 2}) {
           // The channel's content at (x, y) was recorded at (x, y) + its offset.
           const auto [dx, dy] = shift.Offset(c, x + 0.5, y + 0.5);
@@ -232,8 +242,7 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
           float v = 0.0f;
           if (x0 >= 1 && x0 + 2 < W && y0 >= 1 && y0 + 2 < H) {
             // Inside the image: the 4×4 taps read straight from the rows (the same sums).
-            const size_t stride = size_t(W) * C;
-            const float* tap = &raw[(size_t(y0 - 1) * W + size_t(x0 - 1)) * C + size_t(c)];
+            const float* tap = &at(x0 - 1, y0 - 1, c);
             for (int j = 0; j < 4; ++j, tap += stride) {
               float row = 0.0f;
               for (int i = 0; i < 4; ++i) row += kx[i] * tap[size_t(i) * C];
@@ -248,7 +257,7 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
           }
           // The cubic's overshoot at an edge stays within the clip and above 0.
           v = std::clamp(v, 0.0f, image.clip_value);
-          moved = std::max(moved, std::abs(v - raw[p * C + size_t(c)]));
+          moved = std::max(moved, std::abs(v - at(x, y, c)));
           image.pixels[p * C + size_t(c)] = v;
         }
         // What the raw pixel's colour owed to fringing, as a share of its light.

@@ -1,17 +1,20 @@
 // The decoded images revisits keep between ingests (flows.h SourceImageCache, LoadedCamera):
-// a camera read through the cache is the camera its blob decodes to, its channel shift
-// corrected, with the artefact maps its records would find (§9), whether the cache held it or
-// not; a camera kept so gives the records of one decoded afresh; and the cache holds no more
+// a camera read through the cache is the camera its blob decodes to (an 8-bit one read back
+// from its codes, a float one with its channel shift corrected), with the artefact maps its
+// records would find (§9), whether the cache held it or not; a camera kept so gives the
+// records of one decoded afresh; and the cache holds no more
 // than its budget, the least recently used going first. A LiDAR read through it is the stored
 // one with its gap fill.
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include <gtest/gtest.h>
 
 #include "lattice/engine.h"
 #include "lattice/flows/flows.h"
+#include "lattice/geometry/linear_image.h"
 #include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/ingest/validate.h"
@@ -157,13 +160,16 @@ TEST_F(StoredRoom, LoadedCameraIsTheDecodedCameraWithItsArtefactsFromTheCacheOrN
   ASSERT_TRUE(first.ok()) << first.status();
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_EQ(first->artefacts, second->artefacts);  // the kept maps, shared
-  ingest::LinearImage corrected = *decoded;
-  ingest::CorrectChannelShift(corrected, expected.fringing);
+  // Both read the codes: unpacked when their records are sampled (with the blob gone), the
+  // image as decoded, its channel shift left to the rows the records read (CameraRecords).
   for (const ingest::CameraSource* cam : {&*first, &*second}) {
     EXPECT_TRUE(cam->image.pixels.empty());
-    ASSERT_NE(cam->kept_image, nullptr);
-    EXPECT_EQ(cam->Decoded().width_px, decoded->width_px);
-    EXPECT_EQ(cam->Decoded().pixels, corrected.pixels);
+    EXPECT_EQ(cam->kept_image, nullptr);
+    ASSERT_TRUE(cam->load != nullptr);
+    absl::StatusOr<ingest::LinearImage> unpacked = cam->load();
+    ASSERT_TRUE(unpacked.ok()) << unpacked.status();
+    EXPECT_EQ(unpacked->width_px, decoded->width_px);
+    EXPECT_EQ(unpacked->pixels, decoded->pixels);
     ASSERT_NE(cam->artefacts, nullptr);
     EXPECT_EQ(cam->artefacts->fringing.found, expected.fringing.found);
     EXPECT_EQ(cam->artefacts->saturation.conf.pixels, expected.saturation.conf.pixels);
@@ -210,7 +216,8 @@ TEST_F(StoredRoom, LoadedLidarIsTheStoredLidarWithItsGapFillFromTheCacheOrNot) {
 
 // Claim (§9): a camera whose kept image had its channel shift corrected once, whole, gives
 // exactly the records of the same camera decoded afresh, which corrects only the rows its
-// samples read in a copy. A shift is planted (red and blue 0.6 and 0.4 px apart from green) so
+// samples read in a copy, and of the camera kept as its 8-bit codes, which unpacks them and
+// corrects those rows in place. A shift is planted (red and blue 0.6 and 0.4 px apart from green) so
 // that the correction applies.
 TEST(LoadedCamera, AKeptCorrectedImageGivesTheRecordsOfAFreshDecode) {
   const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
@@ -251,16 +258,26 @@ TEST(LoadedCamera, AKeptCorrectedImageGivesTheRecordsOfAFreshDecode) {
   ASSERT_GT(ingest::CorrectChannelShift(*whole, shift), 0) << "the planted shift must apply";
   kept.kept_image = whole;
 
+  // Kept as its codes (LoadedCamera's 8-bit cameras): unpacked on load, corrected by the records.
+  std::optional<geometry::Srgb8Image> packed = geometry::PackSrgb8(*image);
+  ASSERT_TRUE(packed.has_value()) << "the synthetic PNG is 8-bit";
+  ingest::CameraSource coded = kept;
+  coded.kept_image.reset();
+  coded.load = [codes = std::make_shared<const geometry::Srgb8Image>(std::move(*packed))]()
+      -> absl::StatusOr<ingest::LinearImage> { return geometry::UnpackSrgb8(*codes); };
+
   auto a = ingest::CameraRecords(*g, fresh);
-  auto b = ingest::CameraRecords(*g, kept);
   ASSERT_TRUE(a.ok()) << a.status();
-  ASSERT_TRUE(b.ok()) << b.status();
   ASSERT_GT(a->records.size(), 1000u);
   a->records.SortByVossel();  // parallel sampling gives them in any order
-  b->records.SortByVossel();
-  EXPECT_EQ(a->records.vossel, b->records.vossel);
-  EXPECT_EQ(a->records.value, b->records.value);
-  EXPECT_EQ(a->records.vis, b->records.vis);
+  for (const ingest::CameraSource* other : {&kept, &coded}) {
+    auto b = ingest::CameraRecords(*g, *other);
+    ASSERT_TRUE(b.ok()) << b.status();
+    b->records.SortByVossel();
+    EXPECT_EQ(a->records.vossel, b->records.vossel);
+    EXPECT_EQ(a->records.value, b->records.value);
+    EXPECT_EQ(a->records.vis, b->records.vis);
+  }
   EXPECT_EQ(fresh.image.pixels, image->pixels) << "the fresh camera's own image stays as decoded";
 }
 
