@@ -26,7 +26,8 @@ inline double DepthToleranceM(double vossel_size_m) { return 1.5 * vossel_size_m
 /// θ changes by about r·Δ·tanθ, and without it a surface seen at grazing incidence would shadow
 /// itself between pixel centres. `cos_inc` = |n·v|.
 inline double SlopeScaledToleranceM(double tau_m, double range_m, double pixel_rad, double cos_inc) {
-  const double c = std::max(cos_inc, geometry::kCosIncidenceMin);
+  // At most 1: |n·v| of a unit normal in float may round past it, and √(1 − c²) is then NaN.
+  const double c = std::clamp(cos_inc, geometry::kCosIncidenceMin, 1.0);
   return tau_m + range_m * pixel_rad * std::sqrt(1.0 - c * c) / c;
 }
 

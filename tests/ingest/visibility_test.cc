@@ -3,6 +3,8 @@
 // get a fraction strictly between 0 and 1; classification agrees with the analytic answer.
 #include "lattice/ingest/visibility.h"
 
+#include <cmath>
+
 #include <gtest/gtest.h>
 
 #include "lattice/ingest/voxelise.h"
@@ -75,6 +77,20 @@ class VisibilityTest : public ::testing::Test {
 scenes::SyntheticRoom* VisibilityTest::room_ = nullptr;
 records::VosselGeometry* VisibilityTest::geometry_ = nullptr;
 std::vector<float>* VisibilityTest::vis_[2] = {nullptr, nullptr};
+
+// Claim (§5): the slope-scaled tolerance τ_k = τ + r·Δ·tanθ is τ at normal incidence, also
+// when |n·v| of a float normal rounds past 1 (it was NaN there, and every sample of such a
+// vossel failed its test: V = 0 for a surface facing the sensor head on); at grazing incidence
+// it takes cosθ's floor.
+TEST(SlopeScaledToleranceTest, IsTauHeadOnAndFiniteWhenTheCosineRoundsPastOne) {
+  const double tau = 0.075, r = 3.5, pixel = 0.0085;
+  EXPECT_DOUBLE_EQ(SlopeScaledToleranceM(tau, r, pixel, 1.0), tau);
+  EXPECT_DOUBLE_EQ(SlopeScaledToleranceM(tau, r, pixel, std::nextafter(1.0, 2.0)), tau);
+  EXPECT_DOUBLE_EQ(SlopeScaledToleranceM(tau, r, pixel, 1.0 + 1e-7), tau);
+  const double c = geometry::kCosIncidenceMin;
+  EXPECT_DOUBLE_EQ(SlopeScaledToleranceM(tau, r, pixel, 0.0),
+                   tau + r * pixel * std::sqrt(1.0 - c * c) / c);
+}
 
 // Claim (§5): behind the box, shadow from station 0 and lit from station 1; ≥ 98% right.
 TEST_F(VisibilityTest, ShadowBehindOccluderLitFromOtherStation) {
