@@ -57,6 +57,32 @@ double AngularMarginRad(const SourceRef& s) {
   return (2.0 + ingest::CameraSampleRadiusPx() + 1.0) * pixel + s.info.divergence_rad;
 }
 
+/// The tolerance of ComputeVisibility's tests of vossel k from a sensor at `o`.
+double VosselToleranceM(const records::VosselGeometry& g, size_t k, const Eigen::Vector3d& o,
+                        double tau_m, double pixel_rad) {
+  const Eigen::Vector3d to_sensor = o - g.FrameCentroid(k).cast<double>();
+  const double range = to_sensor.norm();
+  const Eigen::Vector3d n = g.FrameNormal(k).cast<double>();
+  if (n.squaredNorm() < 0.5) return tau_m;  // taken as facing the sensor: cosθ = 1
+  return ingest::SlopeScaledToleranceM(tau_m, range, pixel_rad,
+                                       std::abs(n.dot(to_sensor)) / range);
+}
+
+/// True when some pixel of `depth` that a direction within `radius_rad` of `d_sensor` (unit,
+/// sensor frame) falls in holds a depth below `threshold_m`.
+bool NearerInCap(const ingest::DepthPanorama& depth, const Eigen::Vector3d& d_sensor,
+                 double radius_rad, double threshold_m) {
+  const int W = depth.size.width_px;
+  const tiles::PixelSpan span = tiles::CapPixelSpan(d_sensor, radius_rad, depth.size);
+  for (int j = span.row_first; j <= span.row_last; ++j) {
+    const float* row = &depth.depth_m[size_t(j) * size_t(W)];
+    for (int n = 0, i = span.col_first; n < span.col_count; ++n, i = i + 1 == W ? 0 : i + 1) {
+      if (double(row[i]) < threshold_m) return true;
+    }
+  }
+  return false;
+}
+
 }  // namespace
 
 absl::Status StageClock::Start(const std::string& name, double fraction) {
@@ -281,9 +307,13 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
     const double pitch_rad =
         std::max(geometry::AzimuthPitchRad(view.size), geometry::ElevationPitchRad(view.size));
     const double patch_m = ingest::kSamplePatchM * h;
+    const Eigen::Matrix3d R_sensor_world =
+        source.info.pose.q_world_sensor.conjugate().toRotationMatrix();
+    const double tau_m = ingest::DepthToleranceM(h);
+    const double slope_rad = view.slope_pixels * pitch_rad;  // as ComputeVisibility's
     // Whole runs of kChunk consecutive vossels (neighbours in the lattice's order) first: when
     // S lies nowhere nearer than the far side of the cap of their frame centroids' box (grown
-    // by the patch, one pixel wider), which holds each one's SampleCap, none is tested.
+    // by the patch, one pixel wider), which holds each one's SampleCap, less τ, none is tested.
     constexpr size_t kChunk = 64;
     auto chunk_behind = [&](size_t begin, size_t end) {
       Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
@@ -298,10 +328,12 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
       tiles::ViewCap cap = tiles::CapOf({lo, hi}, o, patch_m);
       if (cap.everywhere || !(cap.near_m > 2.0 * patch_m)) return false;  // test one by one
       cap.half_angle_rad += pitch_rad;
-      const double far_m = cap.far_m + patch_m;  // CapOf's far side is the box's
+      // A sample lies no farther than the box's far side (CapOf's) and the patch, and its
+      // threshold at least the least tolerance τ nearer than that.
+      const double threshold_m = cap.far_m + patch_m - tau_m;
       bool nearer = false;
       grid.ForEach(cap, [&](size_t cell, bool) {
-        nearer = double(cell_min[cell]) < far_m;
+        nearer = double(cell_min[cell]) < threshold_m;
         return !nearer;
       });
       return !nearer;
@@ -321,16 +353,24 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
         const std::optional<tiles::ViewCap> cap =
             ingest::SampleCap(g.FrameCentroid(k).cast<double>(), o, h, pitch_rad);
         if (!cap) continue;  // at the sensor: test it
-        bool nearer = false;  // S may lie nearer than the farthest sample in a cell it reads
+        // Every sample's threshold (ComputeVisibility's: its range, no more than the cap's far
+        // side, less the vossel's tolerance) lies no deeper than this.
+        const double threshold_m = cap->far_m - VosselToleranceM(g, k, o, tau_m, slope_rad);
+        bool nearer = false;  // S may lie nearer than that in a cell the samples read
         grid.ForEach(*cap, [&](size_t cell, bool) {
-          nearer = double(cell_min[cell]) < cap->far_m;
+          nearer = double(cell_min[cell]) < threshold_m;
           return !nearer;
         });
+        // Then pixel by pixel: over the pixels the cap's directions fall in (a sample reads
+        // the pixel its direction falls in, and the cap holds every sample's direction).
+        if (nearer) {
+          nearer = NearerInCap(s, R_sensor_world * cap->dir, cap->half_angle_rad, threshold_m);
+        }
         if (!nearer) unchanged[k] = 0;  // S lies behind every test
       }
     });
     const std::vector<float> lit =
-        ingest::ComputeVisibility(g, s, ingest::DepthToleranceM(h), &unchanged, view.slope_pixels,
+        ingest::ComputeVisibility(g, s, tau_m, &unchanged, view.slope_pixels,
                                   /*shadow_by_cells=*/false);
     for (size_t k = 0; k < g.size(); ++k) {
       if (unchanged[k] && lit[k] < 1.0f) scope.only[k] = 1;
