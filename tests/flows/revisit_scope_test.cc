@@ -14,36 +14,14 @@
 #include "lattice/flows/flows.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/ingest/visibility.h"
-#include "lattice/ingest/voxelise.h"
 #include "lattice/tiles/tile_split.h"
-#include "tests/scenes/corridor_site.h"
+#include "tests/scenes/corridor_lattice.h"
 
 namespace vasl::flows::internal {
 namespace {
 
-constexpr double kVosselM = 0.05;
-
-class RevisitScopeTest : public ::testing::Test {
- protected:
-  static void SetUpTestSuite() {
-    site_ = new scenes::CorridorSite(scenes::CorridorSite::Default());
-    scenes::LidarSettings settings;
-    settings.azimuth_steps = 720;
-    settings.elevation_steps = 360;
-    auto g = ingest::BuildGeometry(scenes::StationLidars(*site_, settings), kVosselM);
-    ASSERT_TRUE(g.ok()) << g.status();
-    geometry_ = new records::VosselGeometry(std::move(*g));
-  }
-  static void TearDownTestSuite() {
-    delete site_;
-    delete geometry_;
-  }
-
-  static scenes::CorridorSite* site_;
-  static records::VosselGeometry* geometry_;
-};
-scenes::CorridorSite* RevisitScopeTest::site_ = nullptr;
-records::VosselGeometry* RevisitScopeTest::geometry_ = nullptr;
+using RevisitScopeTest = scenes::CorridorLatticeTest;
+constexpr double kVosselM = scenes::CorridorLatticeTest::kVosselM;
 
 // Claim: ScopeOf's `only` = the changed vossels ∪ the unchanged ones that the changed splats'
 // panorama (dilated as the source's) leaves not wholly lit, for a LiDAR and a camera seeing the

@@ -12,34 +12,14 @@
 
 #include "lattice/ingest/visibility.h"
 #include "lattice/ingest/voxelise.h"
-#include "tests/scenes/corridor_site.h"
+#include "tests/scenes/corridor_lattice.h"
 
 namespace vasl::ingest {
 namespace {
 
-constexpr double kVosselM = 0.05;
-
-class VisibilityShortcutTest : public ::testing::Test {
- protected:
-  static void SetUpTestSuite() {
-    site_ = new scenes::CorridorSite(scenes::CorridorSite::Default());
-    scenes::LidarSettings settings;
-    settings.azimuth_steps = 720;
-    settings.elevation_steps = 360;
-    auto g = BuildGeometry(scenes::StationLidars(*site_, settings), kVosselM);
-    ASSERT_TRUE(g.ok()) << g.status();
-    geometry_ = new records::VosselGeometry(std::move(*g));
-  }
-  static void TearDownTestSuite() {
-    delete site_;
-    delete geometry_;
-  }
-
-    static scenes::CorridorSite* site_;
-  static records::VosselGeometry* geometry_;
-};
-scenes::CorridorSite* VisibilityShortcutTest::site_ = nullptr;
-records::VosselGeometry* VisibilityShortcutTest::geometry_ = nullptr;
+// The corridor's lattice, and the vossel size it was built at.
+using VisibilityShortcutTest = scenes::CorridorLatticeTest;
+constexpr double kVosselM = scenes::CorridorLatticeTest::kVosselM;
 
 // Claim: V from the shadow-by-cells test equals V tested sample by sample (the vossels tested
 // in chunks below kShadowByCellsMinVossels), on the raw and on a dilated panorama, and most of
