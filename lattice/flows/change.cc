@@ -57,17 +57,6 @@ double AngularMarginRad(const SourceRef& s) {
   return (2.0 + ingest::CameraSampleRadiusPx() + 1.0) * pixel + s.info.divergence_rad;
 }
 
-/// The tolerance of ComputeVisibility's tests of vossel k from a sensor at `o`.
-double VosselToleranceM(const records::VosselGeometry& g, size_t k, const Eigen::Vector3d& o,
-                        double tau_m, double pixel_rad) {
-  const Eigen::Vector3d to_sensor = o - g.FrameCentroid(k).cast<double>();
-  const double range = to_sensor.norm();
-  const Eigen::Vector3d n = g.FrameNormal(k).cast<double>();
-  if (n.squaredNorm() < 0.5) return tau_m;  // taken as facing the sensor: cosθ = 1
-  return ingest::SlopeScaledToleranceM(tau_m, range, pixel_rad,
-                                       std::abs(n.dot(to_sensor)) / range);
-}
-
 /// True when some pixel of `depth` that a direction within `radius_rad` of `d_sensor` (unit,
 /// sensor frame) falls in holds a depth below `threshold_m`.
 bool NearerInCap(const ingest::DepthPanorama& depth, const Eigen::Vector3d& d_sensor,
@@ -355,7 +344,9 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
         if (!cap) continue;  // at the sensor: test it
         // Every sample's threshold (ComputeVisibility's: its range, no more than the cap's far
         // side, less the vossel's tolerance) lies no deeper than this.
-        const double threshold_m = cap->far_m - VosselToleranceM(g, k, o, tau_m, slope_rad);
+        const double threshold_m =
+            cap->far_m - ingest::VosselToleranceM(tau_m, o - g.FrameCentroid(k).cast<double>(),
+                                                  g.FrameNormal(k).cast<double>(), slope_rad);
         bool nearer = false;  // S may lie nearer than that in a cell the samples read
         grid.ForEach(*cap, [&](size_t cell, bool) {
           nearer = double(cell_min[cell]) < threshold_m;

@@ -561,9 +561,7 @@ std::vector<float> ComputeVisibility(const records::VosselGeometry& g, const Dep
       const Eigen::Vector3d to_sensor = depth.pose.o_world - x;
       if (to_sensor.squaredNorm() == 0.0) continue;
       if (n.squaredNorm() < 0.5) n = to_sensor.normalized();
-      const double range_k = to_sensor.norm();
-      const double tolerance_m = SlopeScaledToleranceM(tau_m, range_k, pixel_rad,
-                                                       std::abs(n.dot(to_sensor)) / range_k);
+      const double tolerance_m = VosselToleranceM(tau_m, to_sensor, n, pixel_rad);
       const std::optional<tiles::ViewCap> cap =
           grid ? SampleCap(x, depth.pose.o_world, h, pitch_rad) : std::nullopt;
       if (cap) {

@@ -31,6 +31,17 @@ inline double SlopeScaledToleranceM(double tau_m, double range_m, double pixel_r
   return tau_m + range_m * pixel_rad * std::sqrt(1.0 - c * c) / c;
 }
 
+/// §5: the tolerance of ComputeVisibility's tests of a vossel `to_sensor` (non-zero) from the
+/// sensor whose record frame has normal `normal` (zero: none, taken as facing the sensor);
+/// `pixel_rad` as SlopeScaledToleranceM's. The one computation ComputeVisibility and the
+/// bounds on its tests (a revisit's scope) share.
+inline double VosselToleranceM(double tau_m, const Eigen::Vector3d& to_sensor,
+                               const Eigen::Vector3d& normal, double pixel_rad) {
+  const Eigen::Vector3d n = normal.squaredNorm() < 0.5 ? to_sensor.normalized() : normal;
+  const double range_m = to_sensor.norm();
+  return SlopeScaledToleranceM(tau_m, range_m, pixel_rad, std::abs(n.dot(to_sensor)) / range_m);
+}
+
 /// §5: ComputeVisibility's test samples lie within kSamplePatchM·h of the vossel's frame
 /// centroid (its 4×4 grid's corners at 0.375·√2·h = 0.53·h, rounded up).
 inline constexpr double kSamplePatchM = 0.55;
