@@ -609,9 +609,10 @@ TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints
 
 // Claims of flows.h on sites nobody laid out: a seeded random room of oriented boxes (plates
 // thinner than a vossel, floating and tilted boxes, boxes through walls) scanned from stations
-// at random places with tilted sensors (RandomSite). Ingesting its scans one at a time equals a
-// rebuild, record by record, and deleting one of them equals ingesting the others; some seeds
-// send coloured points, some range grids.
+// at random places with tilted sensors (RandomSite), and a camera-only scan of a tilted pinhole
+// photo and panorama. Ingesting its scans one at a time equals a rebuild, record by record, and
+// deleting one of them equals ingesting the others; some seeds send coloured points, some range
+// grids.
 class RandomSiteTest : public ::testing::TestWithParam<uint64_t> {};
 
 TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
@@ -630,8 +631,18 @@ TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
   auto engine = OpenEngine(root);
   CreateProject(*engine, "all");
   CreateProject(*engine, "others");
-  const int64_t n = int64_t(site.Stations().size());
+  // A camera-only scan between the third and fourth stations: a tilted pinhole photo of the
+  // first box and a tilted panorama, from the site's novel views.
+  ASSERT_EQ(site.NovelViews().size(), 2u);
+  auto cameras = scenes::MakeCameraOnlyScan(
+      site, "cameras", scenes::LookAt(site.NovelViews()[0].o_world, site.Boxes()[0].centre_m),
+      site.NovelViews()[1], kPanoW);
+  ASSERT_TRUE(cameras.ok()) << cameras.status();
   for (size_t i = 0; i < site.Stations().size(); ++i) {
+    if (i == 3) {
+      ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "all", *cameras));
+      ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "others", *cameras));
+    }
     const scenes::LidarSettings lidar = scenes::LidarSettings::Small(seed * 100 + i + 1);
     auto scan = scenes::MakeScanInput(site, i, lidar, kPanoW, 2, point_colour);
     ASSERT_TRUE(scan.ok()) << scan.status();
@@ -643,6 +654,7 @@ TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
   ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
   {
     auto all = OpenStore(root, "all");
+    const int64_t n = rebuilt->version - 1;
     const Diff d = CompareProjects(*all, n, *all, n + 1);
     d.Print("random site: incremental vs rebuild");
     ExpectSame(d);
