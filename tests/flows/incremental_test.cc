@@ -672,5 +672,48 @@ TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
 
 INSTANTIATE_TEST_SUITE_P(Seeds, RandomSiteTest, ::testing::Values(1, 2, 3, 6));
 
+// The same on an outdoor yard (RandomSite's `outdoor`): 30-60 m across, no ceiling (rays to the
+// sky return nothing), far walls beyond the scanners' 50 m range, buildings of several metres,
+// h = 10 cm; three stations, the second deleted.
+TEST(RandomSiteTest, OutdoorYardIngestEqualsRebuildAndDeleteEqualsTheOthers) {
+  const scenes::RandomSite site(11, /*boxes=*/8, /*stations=*/3, /*outdoor=*/true);
+  ASSERT_EQ(site.Stations().size(), 3u);
+  const fs::path root = TestRoot("yard");
+  auto engine = OpenEngine(root);
+  for (const char* name : {"all", "others"}) {
+    store::ProjectSettings settings;
+    settings.vossel_size_m = 0.10;
+    settings.keep_versions = 20;
+    ASSERT_TRUE(engine->CreateProject(name, settings).ok());
+  }
+  const size_t doomed = 1;
+  for (size_t i = 0; i < site.Stations().size(); ++i) {
+    scenes::LidarSettings lidar = scenes::LidarSettings::Small(i + 1);
+    lidar.range_noise_m = 0.005;
+    auto scan = scenes::MakeScanInput(site, i, lidar, kPanoW, 2, /*point_colour=*/true);
+    ASSERT_TRUE(scan.ok()) << scan.status();
+    scenes::SetRangeGrid(lidar, &scan->lidar);
+    ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "all", *scan));
+    if (i != doomed) ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "others", *scan));
+  }
+  auto rebuilt = engine->Rebuild("all");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  {
+    auto all = OpenStore(root, "all");
+    const Diff d = CompareProjects(*all, rebuilt->version - 1, *all, rebuilt->version);
+    d.Print("yard: incremental vs rebuild");
+    ExpectSame(d);
+    EXPECT_GT(d.records_a, 0u);
+  }
+  auto deleted = engine->DeleteScan("all", "scan-" + std::to_string(doomed + 1));
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  auto all = OpenStore(root, "all");
+  auto others = OpenStore(root, "others");
+  const Diff d = CompareProjects(*all, all->head_version(), *others, others->head_version());
+  d.Print("yard: delete vs ingest of the others");
+  ExpectSame(d);
+  fs::remove_all(root);
+}
+
 }  // namespace
 }  // namespace vasl

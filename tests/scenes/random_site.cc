@@ -45,18 +45,24 @@ double OrientedBox::DistanceTo(const Vector3d& x_world) const {
   return d.norm();
 }
 
-RandomSite::RandomSite(uint64_t seed, int boxes, int stations) {
+RandomSite::RandomSite(uint64_t seed, int boxes, int stations, bool outdoor)
+    : open_sky_(outdoor) {
   Draws draw(seed);
-  // The room: 4-9 m × 3-7 m × 2.4-4 m, its corner off the lattice's grid.
-  const Vector3d size(draw.Uniform(4.0, 9.0), draw.Uniform(3.0, 7.0), draw.Uniform(2.4, 4.0));
+  // The room: 4-9 m × 3-7 m × 2.4-4 m (a yard: 30-60 m × 20-40 m × 3-6 m), its corner off the
+  // lattice's grid; boxes scale with it.
+  const double scale = outdoor ? 5.0 : 1.0;
+  const Vector3d size = outdoor ? Vector3d(draw.Uniform(30.0, 60.0), draw.Uniform(20.0, 40.0),
+                                           draw.Uniform(3.0, 6.0))
+                                : Vector3d(draw.Uniform(4.0, 9.0), draw.Uniform(3.0, 7.0),
+                                           draw.Uniform(2.4, 4.0));
   room_.min_m = Vector3d(draw.Uniform(-3.0, 3.0), draw.Uniform(-3.0, 3.0), draw.Uniform(-0.5, 0.5));
   room_.max_m = room_.min_m + size;
   for (int b = 0; b < boxes; ++b) {
     OrientedBox box;
     // One box in four is a plate thinner than a 5 cm vossel; the others 0.1-1.6 m a side.
     const bool plate = draw.Uniform(0.0, 1.0) < 0.25;
-    box.half_m = Vector3d(draw.Uniform(0.05, 0.8), draw.Uniform(0.05, 0.8),
-                          plate ? draw.Uniform(0.005, 0.02) : draw.Uniform(0.05, 0.8));
+    box.half_m = Vector3d(scale * draw.Uniform(0.05, 0.8), scale * draw.Uniform(0.05, 0.8),
+                          plate ? draw.Uniform(0.005, 0.02) : scale * draw.Uniform(0.05, 0.8));
     const double yaw = draw.Uniform(-M_PI, M_PI);
     const double tilt = draw.Uniform(0.0, 1.0) < 0.5 ? draw.Uniform(0.0, 0.7) : 0.0;
     const double tilt_axis = draw.Uniform(-M_PI, M_PI);
@@ -102,7 +108,8 @@ RandomSite::RandomSite(uint64_t seed, int boxes, int stations) {
 double RandomSite::Clearance(const Vector3d& x) const {
   double c = kInf;
   for (int a = 0; a < 3; ++a) {
-    c = std::min({c, x[a] - room_.min_m[a], room_.max_m[a] - x[a]});
+    c = std::min(c, x[a] - room_.min_m[a]);
+    if (!(open_sky_ && a == 2)) c = std::min(c, room_.max_m[a] - x[a]);
   }
   for (const OrientedBox& box : boxes_) c = std::min(c, box.DistanceTo(x));
   return c;
@@ -117,7 +124,9 @@ SceneHit RandomSite::Intersect(const Vector3d& o, const Vector3d& d, double t_ma
   for (int a = 0; a < 3; ++a) {
     if (d[a] == 0.0) continue;
     const bool to_max = d[a] > 0.0;
+    if (open_sky_ && a == 2 && to_max) continue;  // the sky
     const double t = ((to_max ? room_.max_m[a] : room_.min_m[a]) - o[a]) / d[a];
+    if (open_sky_ && a < 2 && o.z() + t * d.z() > room_.max_m.z()) continue;  // over the wall
     if (t < t_best) {
       t_best = t;
       face_best = 2 * a + (to_max ? 1 : 0);

@@ -50,8 +50,10 @@ class RandomSite final : public Scene {
 
   /// The site of `seed`: `boxes` solid boxes and `stations` stations (each placed by rejection
   /// sampling; a seed whose room cannot hold them all gets as many as fit in 10⁴ draws, so a
-  /// caller checks Stations().size()).
-  RandomSite(uint64_t seed, int boxes, int stations);
+  /// caller checks Stations().size()). `outdoor`: a yard of 30-60 m × 20-40 m with walls
+  /// 3-6 m high and no ceiling (a ray to the sky hits nothing; the far walls may lie beyond a
+  /// scanner's range), boxes 0.5-8 m a side (buildings, containers, sheds).
+  RandomSite(uint64_t seed, int boxes, int stations, bool outdoor = false);
 
   SceneHit Intersect(const Eigen::Vector3d& o_world, const Eigen::Vector3d& d_unit,
                      double t_max_m) const override;
@@ -69,6 +71,7 @@ class RandomSite final : public Scene {
   double Clearance(const Eigen::Vector3d& x_world) const;
 
   Aabb room_;
+  bool open_sky_ = false;
   std::vector<OrientedBox> boxes_;
   std::vector<geometry::Pose> stations_;
   std::vector<geometry::Pose> novel_views_;

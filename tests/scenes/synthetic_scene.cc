@@ -405,11 +405,18 @@ void SetRangeGrid(const LidarSettings& settings, ingest::LidarData* lidar) {
   lidar->grid_rows = settings.elevation_steps;
   lidar->grid_columns = settings.azimuth_steps;
   lidar->grid_cell.clear();
-  for (int j = 0; j < settings.elevation_steps; ++j) {
-    if (!LidarRowKept(settings, j)) continue;
-    for (int i = 0; i < settings.azimuth_steps; ++i) {
-      lidar->grid_cell.push_back(uint32_t(j * settings.azimuth_steps + i));
-    }
+  // Each point's cell is the one its direction falls in: rays cast from cell centres (§2.1), so
+  // a scan with rays that returned nothing (the sky, beyond range) gets the cells of the rest.
+  const geometry::EquirectSize grid{settings.azimuth_steps, settings.elevation_steps};
+  const size_t n = lidar->xyz_sensor_m.size() / 3;
+  lidar->grid_cell.reserve(n);
+  for (size_t k = 0; k < n; ++k) {
+    const Vector3d p(lidar->xyz_sensor_m[3 * k], lidar->xyz_sensor_m[3 * k + 1],
+                     lidar->xyz_sensor_m[3 * k + 2]);
+    const Eigen::Vector2d uv = geometry::EquirectProject(p.normalized(), grid);
+    const int i = std::clamp(int(std::floor(uv.x())), 0, settings.azimuth_steps - 1);
+    const int j = std::clamp(int(std::floor(uv.y())), 0, settings.elevation_steps - 1);
+    lidar->grid_cell.push_back(uint32_t(j * settings.azimuth_steps + i));
   }
 }
 

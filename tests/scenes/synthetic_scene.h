@@ -295,7 +295,8 @@ bool LidarRowKept(const LidarSettings& settings, int j);
 
 /// The range grid of a scan GenerateLidar casts with `settings`, as a scanner's row and column
 /// indices (E57 rowIndex / columnIndex) give it: elevation_steps × azimuth_steps cells, and per
-/// point (kept rows, row-major) its cell row·columns + column, into `lidar`.
+/// point its cell row·columns + column (the cell its direction falls in, so rays that returned
+/// nothing leave their cells empty), into `lidar`.
 void SetRangeGrid(const LidarSettings& settings, ingest::LidarData* lidar);
 
 /// A LiDAR scan: points in the SENSOR frame, row-major over the ray grid (row 0 up).
