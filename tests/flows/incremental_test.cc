@@ -12,6 +12,7 @@
 #include <gtest/gtest.h>
 
 #include "lattice/engine.h"
+#include "lattice/render/encode.h"
 #include "lattice/store/project_store.h"
 #include "lattice/tiles/tiling.h"
 #include "tests/scenes/corridor_site.h"
@@ -609,8 +610,8 @@ TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints
 
 // Claims of flows.h on sites nobody laid out: a seeded random room of oriented boxes (plates
 // thinner than a vossel, floating and tilted boxes, boxes through walls) scanned from stations
-// at random places with tilted sensors (RandomSite), and a camera-only scan of a tilted pinhole
-// photo and panorama. Ingesting its scans one at a time equals a rebuild, record by record, and
+// at random places with tilted sensors (RandomSite), a camera-only scan of a tilted pinhole
+// photo and panorama, and a render sent back (§10) before the last station. Ingesting its scans one at a time equals a rebuild, record by record, and
 // deleting one of them equals ingesting the others; some seeds send coloured points, some range
 // grids.
 class RandomSiteTest : public ::testing::TestWithParam<uint64_t> {};
@@ -642,6 +643,25 @@ TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
     if (i == 3) {
       ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "all", *cameras));
       ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "others", *cameras));
+    }
+    if (i == 4) {  // a render from a tilted view sent back as derived data, into both projects
+      RenderRequest req;
+      req.pose = site.NovelViews()[0];
+      req.width_px = kPanoW;
+      req.height_px = kPanoW / 2;
+      auto view = engine->Render("all", req);
+      ASSERT_TRUE(view.ok()) << view.status();
+      BackProjectInput in;
+      in.name = "retouch";
+      in.pose = req.pose;
+      auto exr = render::EncodeExr(*view);
+      ASSERT_TRUE(exr.ok()) << exr.status();
+      in.image = *exr;
+      for (const char* project : {"all", "others"}) {
+        auto r = engine->BackProject(project, in);
+        ASSERT_TRUE(r.ok()) << r.status();
+        EXPECT_GT(r->pixels_back_projected, 0);
+      }
     }
     const scenes::LidarSettings lidar = scenes::LidarSettings::Small(seed * 100 + i + 1);
     auto scan = scenes::MakeScanInput(site, i, lidar, kPanoW, 2, point_colour);
