@@ -182,7 +182,7 @@ absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes, int64_t max_pixel
   return ImageHeader{spec.width, spec.height, spec.nchannels};
 }
 
-absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
+absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
                                         int64_t max_pixels) {
   using namespace OIIO;
   absl::StatusOr<internal::MemoryImageInput> opened =
@@ -216,13 +216,16 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_chan
     table.assign(geometry::Srgb8ToLinear().begin(), geometry::Srgb8ToLinear().end());
   } else if (int16) {
     table.resize(65536);
-    for (int i = 0; i < 65536; ++i) table[size_t(i)] = geometry::SrgbToLinear(float(i) / 65535.0f);
+    for (int i = 0; i < 65536; ++i) {
+      const float code = float(i) / 65535.0f;  // an infrared camera's radiometric counts
+      table[size_t(i)] = infrared ? code : geometry::SrgbToLinear(code);
+    }
   }
 
   LinearImage out;
   out.width_px = spec.width;
   out.height_px = spec.height;
-  out.channels = single_channel ? 1 : 3;
+  out.channels = infrared ? 1 : 3;
   out.clip_value = is_float ? 0.0f : 1.0f;
   if (int8) out.coding = ReadJpegCoding(bytes);  // §9 codec: what the JPEG's coding did
   memory::AssignOnHugePages(out.pixels, n * out.channels, 0.0f);

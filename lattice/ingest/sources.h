@@ -24,10 +24,15 @@ namespace vasl::ingest {
 using geometry::LinearImage;
 
 /// Decodes PNG, JPEG, EXR or TIFF bytes with OpenImageIO. Integer encodings are taken as sRGB
-/// and linearised; float encodings are linear already. Keeps 3 channels (gray is replicated)
-/// or, with `single_channel`, the first. INVALID_ARGUMENT when the bytes do not decode or the
-/// image is empty; RESOURCE_EXHAUSTED above `max_pixels`.
-absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool single_channel,
+/// and linearised, unless the file says they are linear; float encodings are linear already.
+/// Keeps 3 channels (gray is replicated) or, for an `infrared` camera's image, the first; and
+/// an infrared image's 16-bit integer codes are radiometric counts, read linearly as
+/// code / 65535 (decision: a thermal camera's 16-bit PNG or TIFF holds codes proportional to
+/// radiance, and its PNG says sRGB only because that is PNG's default; §6 stores linear
+/// radiometry), while its 8-bit codes are a display image's, sRGB like any other.
+/// INVALID_ARGUMENT when the bytes do not decode or the image is empty; RESOURCE_EXHAUSTED
+/// above `max_pixels`.
+absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
                                         int64_t max_pixels);
 
 /// The quantisation tables and chroma subsampling of JPEG bytes (baseline, extended or

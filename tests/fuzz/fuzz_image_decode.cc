@@ -35,14 +35,14 @@ void CheckImage(const vasl::ingest::LinearImage& im, int channels) {
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string_view bytes(reinterpret_cast<const char*>(data), size);
   absl::StatusOr<vasl::ingest::LinearImage> rgb =
-      vasl::ingest::DecodeImage(bytes, /*single_channel=*/false, vasl::fuzz::kMaxImagePixels);
+      vasl::ingest::DecodeImage(bytes, /*infrared=*/false, vasl::fuzz::kMaxImagePixels);
   if (!rgb.ok()) {
     vasl::fuzz::CheckRejection(rgb.status(), "DecodeImage");
     return 0;
   }
   CheckImage(*rgb, 3);
   absl::StatusOr<vasl::ingest::LinearImage> ir =
-      vasl::ingest::DecodeImage(bytes, /*single_channel=*/true, vasl::fuzz::kMaxImagePixels);
+      vasl::ingest::DecodeImage(bytes, /*infrared=*/true, vasl::fuzz::kMaxImagePixels);
   VASL_FUZZ_CHECK(ir.ok(), "decodes as RGB but not as one channel: ", ir.status().ToString());
   CheckImage(*ir, 1);
   VASL_FUZZ_CHECK(ir->width_px == rgb->width_px && ir->height_px == rgb->height_px,
