@@ -31,6 +31,7 @@ LidarSource Scan(const scenes::SyntheticRoom& room, int azimuth_steps, bool with
   src.intensity = std::move(scan.intensity);
   if (with_grid) {
     LidarData grid;
+    grid.xyz_sensor_m = src.xyz_sensor_m;  // each point's cell is the one its direction is in
     scenes::SetRangeGrid(settings, &grid);
     src.grid_rows = grid.grid_rows;
     src.grid_columns = grid.grid_columns;
