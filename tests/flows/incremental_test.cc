@@ -608,6 +608,29 @@ TEST(IncrementalTest, VisibilityOnlyChangeRefreshesOlderLidarsWithoutTheirPoints
   fs::remove_all(root);
 }
 
+// Of the projects "all" (every scan) and "others" (every scan but scan `doomed`, 0-based): a
+// rebuild of "all" equals its HEAD, and deleting scan `doomed` from "all" equals "others", record
+// by record.
+void ExpectRebuildAndDeleteEqual(Engine& engine, const fs::path& root, size_t doomed,
+                                 const std::string& what) {
+  auto rebuilt = engine.Rebuild("all");
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  {
+    auto all = OpenStore(root, "all");
+    const Diff d = CompareProjects(*all, rebuilt->version - 1, *all, rebuilt->version);
+    d.Print((what + ": incremental vs rebuild").c_str());
+    ExpectSame(d);
+    EXPECT_GT(d.records_a, 0u);
+  }
+  auto deleted = engine.DeleteScan("all", "scan-" + std::to_string(doomed + 1));
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  auto all = OpenStore(root, "all");
+  auto others = OpenStore(root, "others");
+  const Diff d = CompareProjects(*all, all->head_version(), *others, others->head_version());
+  d.Print((what + ": delete vs ingest of the others").c_str());
+  ExpectSame(d);
+}
+
 // Claims of flows.h on sites nobody laid out: a seeded random room of oriented boxes (plates
 // thinner than a vossel, floating and tilted boxes, boxes through walls) scanned from stations
 // at random places with tilted sensors (RandomSite), a camera-only scan of a tilted pinhole
@@ -670,23 +693,7 @@ TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {
     ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "all", *scan));
     if (i != doomed) ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "others", *scan));
   }
-  auto rebuilt = engine->Rebuild("all");
-  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
-  {
-    auto all = OpenStore(root, "all");
-    const int64_t n = rebuilt->version - 1;
-    const Diff d = CompareProjects(*all, n, *all, n + 1);
-    d.Print("random site: incremental vs rebuild");
-    ExpectSame(d);
-    EXPECT_GT(d.records_a, 0u);
-  }
-  auto deleted = engine->DeleteScan("all", "scan-" + std::to_string(doomed + 1));
-  ASSERT_TRUE(deleted.ok()) << deleted.status();
-  auto all = OpenStore(root, "all");
-  auto others = OpenStore(root, "others");
-  const Diff d = CompareProjects(*all, all->head_version(), *others, others->head_version());
-  d.Print("random site: delete vs ingest of the others");
-  ExpectSame(d);
+  ExpectRebuildAndDeleteEqual(*engine, root, doomed, "random site");
   fs::remove_all(root);
 }
 
@@ -716,22 +723,7 @@ TEST(RandomSiteTest, OutdoorYardIngestEqualsRebuildAndDeleteEqualsTheOthers) {
     ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "all", *scan));
     if (i != doomed) ASSERT_NO_FATAL_FAILURE(Ingest(*engine, "others", *scan));
   }
-  auto rebuilt = engine->Rebuild("all");
-  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
-  {
-    auto all = OpenStore(root, "all");
-    const Diff d = CompareProjects(*all, rebuilt->version - 1, *all, rebuilt->version);
-    d.Print("yard: incremental vs rebuild");
-    ExpectSame(d);
-    EXPECT_GT(d.records_a, 0u);
-  }
-  auto deleted = engine->DeleteScan("all", "scan-" + std::to_string(doomed + 1));
-  ASSERT_TRUE(deleted.ok()) << deleted.status();
-  auto all = OpenStore(root, "all");
-  auto others = OpenStore(root, "others");
-  const Diff d = CompareProjects(*all, all->head_version(), *others, others->head_version());
-  d.Print("yard: delete vs ingest of the others");
-  ExpectSame(d);
+  ExpectRebuildAndDeleteEqual(*engine, root, doomed, "yard");
   fs::remove_all(root);
 }
 
