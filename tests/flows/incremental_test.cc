@@ -634,9 +634,9 @@ void ExpectRebuildAndDeleteEqual(Engine& engine, const fs::path& root, size_t do
 // Claims of flows.h on sites nobody laid out: a seeded random room of oriented boxes (plates
 // thinner than a vossel, floating and tilted boxes, boxes through walls) scanned from stations
 // at random places with tilted sensors (RandomSite), a camera-only scan of a tilted pinhole
-// photo and panorama, and a render sent back (§10) before the last station. Ingesting its scans one at a time equals a rebuild, record by record, and
-// deleting one of them equals ingesting the others; some seeds send coloured points, some range
-// grids.
+// photo and panorama, and a render sent back (§10) before the last station. Ingesting its scans
+// one at a time equals a rebuild, record by record, and deleting one of them equals ingesting
+// the others; some seeds send coloured points, some range grids.
 class RandomSiteTest : public ::testing::TestWithParam<uint64_t> {};
 
 TEST_P(RandomSiteTest, IngestOneAtATimeEqualsRebuildAndDeleteEqualsTheOthers) {

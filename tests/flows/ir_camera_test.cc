@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <map>
 #include <string>
@@ -45,7 +46,7 @@ std::string Encode(const std::vector<float>& values, int w, int h, const std::st
       const uint16_t code = uint16_t(std::lround(v * 65535.0f));
       std::memcpy(&pixels[2 * p], &code, 2);
     } else if (type == OIIO::TypeDesc::UINT8) {
-      pixels[p] = uint8_t(std::lround(255.0f * geometry::LinearToSrgb(v)));
+      pixels[p] = geometry::LinearToSrgb8(v);
     } else {
       std::memcpy(&pixels[4 * p], &values[p], 4);
     }
@@ -121,10 +122,10 @@ TEST(IrCameraTest, IntegerCodesReadAsTheirEncodingSays) {
         continue;
       }
       worst = std::max(worst, double(std::abs(it->second - v)));
-      lo = std::min(lo, double(v));
-      hi = std::max(hi, double(v));
+      lo = std::min(lo, double(it->second));
+      hi = std::max(hi, double(it->second));
     }
-    std::printf("%s: %zu IR records (float: %zu, values %.3f-%.3f), %zu missing, max |Δ| %.3g\n",
+    std::printf("%s: %zu IR records (float: %zu), values %.3f-%.3f, %zu missing, max |Δ| %.3g\n",
                 what, other.size(), as_float.size(), lo, hi, missing, worst);
     EXPECT_EQ(other.size(), as_float.size());
     EXPECT_EQ(missing, 0u);
