@@ -910,6 +910,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     // CameraRecords decoded the panorama and freed it, or read the one the calibration check
     // kept with the camera: freed here (a shared one stays while the revisit cache keeps it).
     ingest::LinearImage().pixels.swap(cam.image.pixels);
+    std::vector<float>().swap(cam.image.alpha);
     cam.kept_image.reset();
     cam.artefacts.reset();
     if (!r.ok()) return r.status();

@@ -86,6 +86,7 @@ const std::array<float, 256>& Srgb8ToLinear() {
 }
 
 std::optional<Srgb8Image> PackSrgb8(const LinearImage& image) {
+  if (!image.alpha.empty()) return std::nullopt;  // associated colour is not a code's value
   const std::array<float, 256>& table = Srgb8ToLinear();
   Srgb8Image out;
   out.header.width_px = image.width_px;
@@ -126,21 +127,36 @@ LinearImage UnpackSrgb8(const Srgb8Image& packed) {
   return out;
 }
 
-void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
+namespace {
+
+// The bilinear read of a raster of `C` values per pixel (SampleBilinear's).
+void Bilinear(const float* data, int W, int H, int C, double u, double v, bool wrap, float* out) {
   const double x = u - 0.5, y = v - 0.5;
   const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
   const double fx = x - i0, fy = y - j0;
-  const int W = img.width_px, H = img.height_px, C = img.channels;
   const int ia = wrap ? WrapColumn(i0, W) : std::clamp(i0, 0, W - 1);
   const int ib = wrap ? WrapColumn(i0 + 1, W) : std::clamp(i0 + 1, 0, W - 1);
   const int ja = std::clamp(j0, 0, H - 1), jb = std::clamp(j0 + 1, 0, H - 1);
-  const float* p00 = &img.pixels[(size_t(ja) * W + ia) * C];
-  const float* p10 = &img.pixels[(size_t(ja) * W + ib) * C];
-  const float* p01 = &img.pixels[(size_t(jb) * W + ia) * C];
-  const float* p11 = &img.pixels[(size_t(jb) * W + ib) * C];
+  const float* p00 = &data[(size_t(ja) * W + ia) * C];
+  const float* p10 = &data[(size_t(ja) * W + ib) * C];
+  const float* p01 = &data[(size_t(jb) * W + ia) * C];
+  const float* p11 = &data[(size_t(jb) * W + ib) * C];
   for (int c = 0; c < C; ++c) {
     out[c] = float((1 - fy) * ((1 - fx) * p00[c] + fx * p10[c]) + fy * ((1 - fx) * p01[c] + fx * p11[c]));
   }
+}
+
+}  // namespace
+
+void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
+  Bilinear(img.pixels.data(), img.width_px, img.height_px, img.channels, u, v, wrap, out);
+}
+
+float SampleCoverage(const LinearImage& img, double u, double v, bool wrap) {
+  if (img.alpha.empty()) return 1.0f;
+  float a;
+  Bilinear(img.alpha.data(), img.width_px, img.height_px, 1, u, v, wrap, &a);
+  return a;
 }
 
 }  // namespace vasl::geometry

@@ -28,12 +28,17 @@ struct LinearImage {
   int height_px = 0;
   int channels = 0;            ///< 1 or 3
   std::vector<float> pixels;   ///< width·height·channels values
+  /// The share of each pixel the image covers (its alpha channel: a stitcher's transparent
+  /// nadir, a masked rig or operator), width·height values in [0, 1]; empty: every pixel
+  /// whole. Where set, `pixels` hold colour times coverage (associated alpha), so that a
+  /// bilinear read of both, divided, is the colour of the covered part alone.
+  std::vector<float> alpha;
   float clip_value = 0.0f;     ///< linear value at which the encoding clips (1 for 8/16-bit); 0: none
   /// The block codec that coded it, decoded from 8-bit sRGB codes (a JPEG); null: none.
   std::shared_ptr<const BlockCoding> coding;
 
   /// Bytes its pixels take.
-  std::size_t ByteSize() const { return pixels.size() * sizeof(float); }
+  std::size_t ByteSize() const { return (pixels.size() + alpha.size()) * sizeof(float); }
 };
 
 /// The standard sRGB EOTF (IEC 61966-2-1): encoded [0, 1] → linear, c/12.92 up to 0.04045,
@@ -62,7 +67,8 @@ struct Srgb8Image {
   std::size_t ByteSize() const { return codes.size(); }
 };
 /// `image` as its codes, or nullopt when some value is not an 8-bit code's linear value bit
-/// for bit (a 16-bit or float image, or one changed since its decode). Parallel (TBB).
+/// for bit (a 16-bit or float image, one with alpha, or one changed since its decode).
+/// Parallel (TBB).
 std::optional<Srgb8Image> PackSrgb8(const LinearImage& image);
 /// The image `packed` holds, bit for bit as packed. Parallel (TBB).
 LinearImage UnpackSrgb8(const Srgb8Image& packed);
@@ -71,5 +77,13 @@ LinearImage UnpackSrgb8(const Srgb8Image& packed);
 /// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation
 /// is read from its own map, ingest::DetectSaturation.)
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out);
+
+/// Bilinear read of `img`'s coverage (`alpha`) at (u, v), as SampleBilinear reads its pixels;
+/// 1 for an image without alpha. A colour read there, divided by it, is the covered part's.
+float SampleCoverage(const LinearImage& img, double u, double v, bool wrap);
+
+/// The coverage a read of an image must have to count (ingest::SampleCamera's records, the
+/// render's colour detail): at least half of it on pixels the image covers.
+inline constexpr float kCoveredAtLeast = 0.5f;
 
 }  // namespace vasl::geometry

@@ -509,13 +509,16 @@ CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource&
         if (w >= kMinWeight) lidar_img[c] = sum[c] / w;
         double total = 0.0;
         int n = 0;
+        bool covered = true;  // a cell the image does not wholly cover (alpha) is a hole
         for (int j = y * cells.s; j < std::min(H, (y + 1) * cells.s); ++j)
           for (int i = x * cells.s; i < std::min(W, (x + 1) * cells.s); ++i) {
-            const float* px = &image.pixels[(size_t(j) * W + i) * image.channels];
+            const size_t p = size_t(j) * W + i;
+            const float* px = &image.pixels[p * image.channels];
             total += image.channels >= 3 ? Luminance709(px) : px[0];
+            covered = covered && (image.alpha.empty() || image.alpha[p] == 1.0f);
             ++n;
           }
-        camera_img[c] = n ? float(total / n) : kEmpty;
+        camera_img[c] = n && covered ? float(total / n) : kEmpty;
       }
     }
   });

@@ -10,6 +10,7 @@
 #include <OpenImageIO/imageio.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/ingest/image_memory.h"
@@ -185,8 +186,10 @@ absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes, int64_t max_pixel
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
                                         int64_t max_pixels) {
   using namespace OIIO;
+  // Colour beside an alpha channel is read as the file keeps it (unassociated in a PNG or most
+  // TIFFs, associated in an EXR), and associated here after linearisation.
   absl::StatusOr<internal::MemoryImageInput> opened =
-      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/false, max_pixels);
+      internal::OpenImageInMemory(bytes, /*unassociated_alpha=*/true, max_pixels);
   if (!opened.ok()) return opened.status();
   ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();
@@ -230,24 +233,55 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
   if (int8) out.coding = ReadJpegCoding(bytes);  // §9 codec: what the JPEG's coding did
   memory::AssignOnHugePages(out.pixels, n * out.channels, 0.0f);
   const int oc = out.channels;
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t p = r.begin(); p != r.end(); ++p) {
-      for (int c = 0; c < oc; ++c) {
-        const size_t at = p * nc + (nc >= 3 ? c : 0);  // gray (± alpha) is replicated
-        float v;
-        if (int8) {
-          v = table[all[at]];
-        } else if (int16) {
-          uint16_t code;
-          std::memcpy(&code, &all[2 * at], 2);
-          v = table[code];
-        } else {
-          std::memcpy(&v, &all[4 * at], 4);
-        }
-        out.pixels[p * oc + c] = v;
-      }
+  // The colour channels: the first three that are not alpha (one, gray, is replicated).
+  const int alpha_at = nc > 1 && spec.alpha_channel >= 0 && spec.alpha_channel < nc
+                           ? spec.alpha_channel
+                           : -1;
+  int colour_at[3] = {0, 0, 0};
+  {
+    int found = 0;
+    for (int c = 0; c < nc && found < 3; ++c) {
+      if (c != alpha_at) colour_at[found++] = c;
     }
-  });
+    if (found < 3) colour_at[1] = colour_at[2] = colour_at[0];
+  }
+  // Alpha is a linear share, never sRGB: integer codes over their full scale.
+  const bool associated = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0;
+  auto value_at = [&](size_t at, bool linear) {
+    float v;
+    if (int8) {
+      v = linear ? float(all[at]) / 255.0f : table[all[at]];
+    } else if (int16) {
+      uint16_t code;
+      std::memcpy(&code, &all[2 * at], 2);
+      v = linear ? float(code) / 65535.0f : table[code];
+    } else {
+      std::memcpy(&v, &all[4 * at], 4);
+    }
+    return v;
+  };
+  std::vector<float> alpha;
+  if (alpha_at >= 0) memory::AssignOnHugePages(alpha, n, 1.0f);
+  const bool covered_whole = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, n, 1 << 14), true,
+      [&](const tbb::blocked_range<size_t>& r, bool whole) {
+        for (size_t p = r.begin(); p != r.end(); ++p) {
+          float a = 1.0f;
+          if (alpha_at >= 0) {
+            const float read = value_at(p * nc + size_t(alpha_at), /*linear=*/true);
+            a = std::isnan(read) ? 0.0f : std::clamp(read, 0.0f, 1.0f);
+            alpha[p] = a;
+            whole = whole && a == 1.0f;
+          }
+          for (int c = 0; c < oc; ++c) {
+            const float v = value_at(p * nc + size_t(colour_at[c]), /*linear=*/false);
+            out.pixels[p * oc + c] = associated || a == 1.0f ? v : v * a;
+          }
+        }
+        return whole;
+      },
+      [](bool a, bool b) { return a && b; });
+  if (alpha_at >= 0 && !covered_whole) out.alpha = std::move(alpha);
   return out;
 }
 

@@ -22,6 +22,8 @@ namespace vasl::ingest {
 namespace {
 
 using geometry::SampleBilinear;
+using geometry::kCoveredAtLeast;
+using geometry::SampleCoverage;
 using records::RecordSet;
 
 // Appends one record with every field set.
@@ -191,13 +193,20 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
         conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
         conf[records::kConfSmear] = read(smear, uv.x(), uv.y());
         if (conf[records::kConfFlare] < kFlareInvalidBelow) flags |= records::kFlagInvalidated;
+        if (!image.alpha.empty()) {  // the covered part's colour; mostly uncovered: invalid
+          const float a = SampleCoverage(image, uv.x(), uv.y(), wrap);
+          if (a < kCoveredAtLeast) flags |= records::kFlagInvalidated;
+          for (int c = 0; c < image.channels; ++c) value[c] = a > 0.0f ? value[c] / a : 0.0f;
+        }
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
         Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;
         t_major = t_major.squaredNorm() < 1e-12 ? geometry::AnyTangent(n) : t_major.normalized();
         const Eigen::Vector3d t_minor = n.cross(t_major);
         // §9 flare: the kernel's points on invalid pixels give no colour and no confidence;
-        // a record whose kernel lies mostly on them is invalidated.
+        // nor do the parts of them the image does not cover (alpha: the colour there is
+        // associated, so Σ w·C over Σ w·a is the covered part's). A record whose kernel lies
+        // mostly on them is invalidated.
         double acc[3] = {0, 0, 0}, valid = 0.0, sat = 0.0, flare_conf = 0.0, codec_conf = 0.0,
                smear_conf = 0.0;
         for (int a = 0; a < 3; ++a) {
@@ -216,11 +225,12 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
             float s[3];
             SampleBilinear(image, q.x(), q.y(), wrap, s);
             for (int c = 0; c < image.channels; ++c) acc[c] += w * s[c];
-            valid += w;
-            flare_conf += w * f;
+            const double covered = w * double(SampleCoverage(image, q.x(), q.y(), wrap));
+            valid += covered;
+            flare_conf += covered * f;
           }
         }
-        if (valid < 0.5) flags |= records::kFlagInvalidated;
+        if (valid < kCoveredAtLeast) flags |= records::kFlagInvalidated;
         if (valid > 0.0) {
           for (int c = 0; c < 3; ++c) value[c] = float(acc[c] / valid);
           conf[records::kConfFlare] = float(flare_conf / valid);

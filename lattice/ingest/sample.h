@@ -39,7 +39,10 @@ std::pair<int, int> SampledRows(const records::VosselGeometry& geometry,
 /// give no colour, and a record with less than half its kernel's weight on valid pixels (a
 /// point sample on an invalid one) is flagged kFlagInvalidated; conf[codec] and conf[smear]
 /// are the kernel's reads of the codec and smear maps; conf[dirt] and conf[fog] are 1 (a lens
-/// map lowers them at fusion).
+/// map lowers them at fusion). An image with alpha (LinearImage::alpha) counts each point by
+/// its coverage: the sample is the colour of the covered part, and a record whose kernel (or
+/// point sample) is covered less than geometry::kCoveredAtLeast is flagged kFlagInvalidated, as a
+/// flare-invalid one is (decision: a transparent pixel is one the camera does not report).
 records::RecordSet SampleCamera(const records::VosselGeometry& geometry, const CameraSource& camera,
                                 const std::vector<float>& vis, const ArtefactMaps& artefacts);
 

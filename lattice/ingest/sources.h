@@ -30,6 +30,10 @@ using geometry::LinearImage;
 /// code / 65535 (decision: a thermal camera's 16-bit PNG or TIFF holds codes proportional to
 /// radiance, and its PNG says sRGB only because that is PNG's default; §6 stores linear
 /// radiometry), while its 8-bit codes are a display image's, sRGB like any other.
+/// An alpha channel is the pixels' coverage (LinearImage::alpha, kept only when some pixel is
+/// not whole): integer alpha codes are linear, code / full scale; the colour is associated
+/// with it after linearisation (a PNG's or TIFF's unassociated colour times alpha; an EXR's is
+/// associated already), and the colour channels are the first three that are not alpha.
 /// INVALID_ARGUMENT when the bytes do not decode or the image is empty; RESOURCE_EXHAUSTED
 /// above `max_pixels`.
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
