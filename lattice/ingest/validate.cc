@@ -137,7 +137,8 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
     if (aspect < 1.95 || aspect > 2.05) {
       return bad(absl::StrCat(what, " is ", image->width_px, "x", image->height_px,
                               ": an equirectangular panorama spans 360°×180°, so its width must "
-                              "be twice its height (give intrinsics for a pinhole photo)"));
+                              "be twice its height (give intrinsics for a pinhole photo; pad a "
+                              "panorama that spans less with transparent pixels, alpha 0)"));
     }
     images.push_back(*image);
   }
