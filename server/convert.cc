@@ -153,6 +153,7 @@ void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
     s->set_modality(ModalityToProto(src.modality));
     PoseToProto(src.pose, s->mutable_pose());
     s->set_blob_sha256(src.blob_sha256);
+    s->set_mask_sha256(src.mask_sha256);
     s->set_width_px(src.width_px);
     s->set_height_px(src.height_px);
     s->set_divergence_rad(src.divergence_rad);

@@ -210,6 +210,13 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
           absl::StrCat(field, ".encoded_size_bytes ", pano.encoded_size_bytes(),
                        " exceeds the server's limit of ", limits_.max_image_bytes, " bytes"));
     }
+    if (pano.mask_size_bytes() < 0 || pano.mask_size_bytes() > limits_.max_image_bytes) {
+      return absl::Status(
+          pano.mask_size_bytes() < 0 ? absl::StatusCode::kInvalidArgument
+                                     : absl::StatusCode::kResourceExhausted,
+          absl::StrCat(field, ".mask_size_bytes ", pano.mask_size_bytes(),
+                       " must lie in [0, ", limits_.max_image_bytes, "] (0: no mask)"));
+    }
     PanoramaData data;
     data.name = pano.name();
     data.pose = *pano_pose;
@@ -219,6 +226,7 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.visual_reference = pano.visual_reference();
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());
+    expected_mask_bytes_.push_back(pano.mask_size_bytes());
   }
   has_header_ = true;
   project_ = header.project();
@@ -279,13 +287,17 @@ absl::Status IngestAssembler::AddImage(const v1::ImageChunk& chunk) {
     }
   }
   PanoramaData& pano = scan_.panoramas[static_cast<size_t>(index)];
-  const int64_t total = static_cast<int64_t>(pano.encoded_image.size() + chunk.data().size());
-  if (total > expected_image_bytes_[static_cast<size_t>(index)]) {
+  std::string& bytes = chunk.mask() ? pano.encoded_mask : pano.encoded_image;
+  const int64_t expected = (chunk.mask() ? expected_mask_bytes_ : expected_image_bytes_)[
+      static_cast<size_t>(index)];
+  const int64_t total = static_cast<int64_t>(bytes.size() + chunk.data().size());
+  if (total > expected) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "panorama \"", pano.name, "\": the image chunks carry more than its encoded_size_bytes = ",
-        expected_image_bytes_[static_cast<size_t>(index)], " (", total, " so far)"));
+        "panorama \"", pano.name, "\": the ", chunk.mask() ? "mask" : "image",
+        " chunks carry more than its ", chunk.mask() ? "mask_size_bytes" : "encoded_size_bytes",
+        " = ", expected, " (", total, " so far)"));
   }
-  pano.encoded_image.append(chunk.data());
+  bytes.append(chunk.data());
   received_bytes_ += static_cast<int64_t>(chunk.data().size());
   return absl::OkStatus();
 }
@@ -309,6 +321,12 @@ absl::StatusOr<ScanInput> IngestAssembler::Finish() {
       return absl::InvalidArgumentError(absl::StrCat(
           "panorama \"", scan_.panoramas[i].name, "\": received ", got,
           " image bytes but its encoded_size_bytes is ", expected_image_bytes_[i]));
+    }
+    const int64_t mask = static_cast<int64_t>(scan_.panoramas[i].encoded_mask.size());
+    if (mask != expected_mask_bytes_[i]) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "panorama \"", scan_.panoramas[i].name, "\": received ", mask,
+          " mask bytes but its mask_size_bytes is ", expected_mask_bytes_[i]));
     }
   }
   UnpackPointsF32Le(point_bytes_, bytes_per_point_ - (scan_.lidar.grid_columns > 0 ? 8 : 0) == 28,

@@ -56,6 +56,7 @@ class IngestAssembler {
   int64_t received_bytes_ = 0;
   std::string point_bytes_;                  ///< packed float32 LE (x, y, z, intensity[, r, g, b])
   std::vector<int64_t> expected_image_bytes_;  ///< per panorama
+  std::vector<int64_t> expected_mask_bytes_;   ///< per panorama; 0: no mask
   ScanInput scan_;                           ///< header fields; panoramas receive image bytes
 };
 

@@ -125,10 +125,13 @@ absl::StatusOr<ingest::CameraSource> LoadedCamera(const store::ProjectStore& sto
 void KeepDecodedCamera(const store::SourceInfo& source, int64_t max_image_pixels,
                        SourceImageCache* images, ingest::CameraSource& cam,
                        double decode_seconds = 0.0);
-/// A stored camera whose image is decoded from its blob on demand (`load`).
+/// A stored camera whose image is decoded from its blob on demand (`load`), its mask applied
+/// (ingest::ApplyMask) when it has one.
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);
+/// What a stored camera's decoded image depends on, as a cache key: its blob, and its mask's.
+std::string DecodedImageKey(const store::SourceInfo& source);
 
 /// FAILED_PRECONDITION: a camera-only scan (images, no points) sent to a project without
 /// geometry, which it would have nothing to colour on.

@@ -256,7 +256,7 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
   std::vector<absl::Status> status(chosen.size());
   tbb::parallel_for(size_t(0), chosen.size(), [&](size_t c) {
     const store::SourceInfo& src = *chosen[c];
-    std::shared_ptr<const geometry::LinearImage> img = caches.images->Find(src.blob_sha256);
+    std::shared_ptr<const geometry::LinearImage> img = caches.images->Find(DecodedImageKey(src));
     if (!img) {
       const auto t0 = std::chrono::steady_clock::now();
       const ingest::CameraSource cam = StoredCamera(store, src, 0, caches.max_image_pixels);
@@ -268,7 +268,7 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
       // As its records read it (ingest::CameraRecords): fringing corrected (§9).
       ingest::CorrectChannelShift(*decoded, ingest::EstimateChannelShift(*decoded, !cam.pinhole));
       img = std::make_shared<const geometry::LinearImage>(std::move(*decoded));
-      caches.images->Put(src.blob_sha256, img, nullptr,  // worth what its decode took
+      caches.images->Put(DecodedImageKey(src), img, nullptr,  // worth what its decode took
                          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
                              .count());
     }

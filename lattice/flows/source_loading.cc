@@ -187,9 +187,22 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
       return absl::DataLossError(
           absl::StrCat("stored image ", src.blob_sha256, ": ", image.status().message()));
     }
+    if (!src.mask_sha256.empty()) {  // as the ingest applied it (ingest::DecodePanorama)
+      absl::StatusOr<std::string> mask = st->ReadBlob(src.mask_sha256);
+      if (!mask.ok()) return mask.status();
+      if (absl::Status s = ingest::ApplyMask(*mask, max_pixels, *image); !s.ok()) {
+        return absl::DataLossError(
+            absl::StrCat("stored mask ", src.mask_sha256, ": ", s.message()));
+      }
+    }
     return image;
   };
   return cam;
+}
+
+std::string DecodedImageKey(const store::SourceInfo& src) {
+  return src.mask_sha256.empty() ? src.blob_sha256
+                                 : absl::StrCat(src.blob_sha256, " mask ", src.mask_sha256);
 }
 
 absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
@@ -218,10 +231,10 @@ absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
 
 namespace {
 
-// What a camera's decode and its detectors read: the blob, IR or not, the pixel limit, and
+// What a camera's decode and its detectors read: the blob and mask, IR or not, the pixel limit, and
 // whether the image wraps (an equirect panorama) or not (a pinhole photo).
 std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pinhole) {
-  return absl::StrCat(src.blob_sha256, src.modality == records::Modality::kIr ? " ir " : " rgb ",
+  return absl::StrCat(DecodedImageKey(src), src.modality == records::Modality::kIr ? " ir " : " rgb ",
                       max_pixels, pinhole ? " pinhole" : " equirect");
 }
 

@@ -285,4 +285,76 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
   return out;
 }
 
+absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearImage& image) {
+  using namespace OIIO;
+  absl::StatusOr<internal::MemoryImageInput> opened =
+      internal::OpenImageInMemory(mask_bytes, /*unassociated_alpha=*/true, max_pixels);
+  if (!opened.ok()) return absl::Status(opened.status().code(), absl::StrCat("mask: ", opened.status().message()));
+  ImageInput* in = opened->in.get();
+  const ImageSpec& spec = in->spec();
+  if (absl::Status s = CheckSpec(spec, max_pixels); !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat("mask: ", s.message()));
+  }
+  if (spec.width != image.width_px || spec.height != image.height_px) {
+    return absl::InvalidArgumentError(absl::StrCat("mask is ", spec.width, "x", spec.height,
+                                                   ", not the image's ", image.width_px, "x",
+                                                   image.height_px));
+  }
+  const size_t n = size_t(spec.width) * spec.height;
+  std::vector<float> mask;
+  memory::AssignOnHugePages(mask, n, 0.0f);
+  // Integer codes are read as code / full scale, linearly (a mask is no colour), as DecodeImage
+  // reads alpha codes: a mask and the same codes as the image's alpha give the same image.
+  const TypeDesc::BASETYPE base = TypeDesc::BASETYPE(spec.format.basetype);
+  const bool int8 = base == TypeDesc::UINT8 || base == TypeDesc::INT8;
+  const bool int16 = base == TypeDesc::UINT16 || base == TypeDesc::INT16;
+  std::vector<unsigned char> codes(int8 ? n : int16 ? 2 * n : 0);
+  const bool read =
+      int8    ? in->read_image(0, 0, 0, 1, TypeDesc::UINT8, codes.data())
+      : int16 ? in->read_image(0, 0, 0, 1, TypeDesc::UINT16, codes.data())
+              : in->read_image(0, 0, 0, 1, TypeDesc::FLOAT, mask.data());
+  if (!read) {
+    return absl::InvalidArgumentError(absl::StrCat("mask bytes do not decode: ", in->geterror()));
+  }
+  in->close();
+  if (int8 || int16) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16), [&](const tbb::blocked_range<size_t>& r) {
+      for (size_t p = r.begin(); p != r.end(); ++p) {
+        uint16_t code = codes[p];
+        if (int16) std::memcpy(&code, &codes[2 * p], 2);
+        mask[p] = int8 ? float(code) / 255.0f : float(code) / 65535.0f;
+      }
+    });
+  }
+  const float largest = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, n, 1 << 16), 0.0f,
+      [&](const tbb::blocked_range<size_t>& r, float m) {
+        for (size_t p = r.begin(); p != r.end(); ++p) m = std::max(m, mask[p]);  // NaN ignored
+        return m;
+      },
+      [](float a, float b) { return std::max(a, b); });
+  const bool whole = tbb::parallel_reduce(
+      tbb::blocked_range<size_t>(0, n, 1 << 16), true,
+      [&](const tbb::blocked_range<size_t>& r, bool all) {
+        for (size_t p = r.begin(); p != r.end(); ++p) {
+          const float m = largest > 0.0f ? mask[p] / largest : 0.0f;
+          mask[p] = m >= 0.0f ? std::min(m, 1.0f) : 0.0f;  // NaN and negatives: not reported
+          all = all && mask[p] == 1.0f;
+        }
+        return all;
+      },
+      [](bool a, bool b) { return a && b; });
+  if (whole) return absl::OkStatus();
+  if (image.alpha.empty()) memory::AssignOnHugePages(image.alpha, n, 1.0f);
+  const int c = image.channels;
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t p = r.begin(); p != r.end(); ++p) {
+      if (mask[p] == 1.0f) continue;
+      image.alpha[p] *= mask[p];
+      for (int k = 0; k < c; ++k) image.pixels[p * c + size_t(k)] *= mask[p];
+    }
+  });
+  return absl::OkStatus();
+}
+
 }  // namespace vasl::ingest

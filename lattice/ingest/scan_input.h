@@ -33,6 +33,11 @@ struct PanoramaData {
   geometry::Pose pose;              ///< T_world_camera; the panorama's sensor frame (§2.1)
   records::Modality modality = records::Modality::kRgb;  ///< kRgb or kIr
   std::string encoded_image;        ///< PNG, JPEG, EXR or TIFF bytes (OpenImageIO decodes)
+  /// Empty, or the image's mask: PNG, JPEG, EXR or TIFF bytes of the image's own size whose
+  /// first channel, over its largest value, is the share of each pixel the camera reports (0
+  /// where a tripod, rig or operator is masked out), combined with the image's alpha
+  /// (ingest::ApplyMask). Ignored for a visual reference.
+  std::string encoded_mask;
   double angular_resolution_rad = 0.0;  ///< 0: from the image size (§3 θ_pix)
   /// Set: a pinhole photo with these intrinsics (their width and height are ignored: the
   /// image's own size counts); unset: an equirectangular panorama.

@@ -39,6 +39,15 @@ using geometry::LinearImage;
 absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
                                         int64_t max_pixels);
 
+/// Applies a camera's mask image (PNG, JPEG, EXR or TIFF bytes of `image`'s size) to `image`
+/// as coverage: the mask's first channel over its largest value (0 where it is 0 or NaN, and
+/// everywhere when no value is positive; decision: so that a 0/1 mask and a 0/255 one mean the
+/// same, as an E57 imageMask's non-zero pixels are the valid ones) multiplies the image's alpha
+/// (LinearImage::alpha; created) and its associated colour. A mask that covers every pixel
+/// leaves the image as it was. INVALID_ARGUMENT when the mask does not decode or is not the
+/// image's size; RESOURCE_EXHAUSTED above `max_pixels`.
+absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearImage& image);
+
 /// The quantisation tables and chroma subsampling of JPEG bytes (baseline, extended or
 /// progressive DCT with Huffman coding), read from their DQT and SOF markers; null for other
 /// bytes, other JPEG processes (lossless, arithmetic) or a damaged header. DecodeImage sets it

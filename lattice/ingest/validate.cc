@@ -120,6 +120,24 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
       images.push_back(*image);
       continue;
     }
+    if (!pano.encoded_mask.empty()) {
+      if (int64_t(pano.encoded_mask.size()) > limits.max_image_bytes) {
+        return absl::ResourceExhaustedError(absl::StrCat(what, ": its mask has ",
+                                                         pano.encoded_mask.size(),
+                                                         " bytes, above the limit of ",
+                                                         limits.max_image_bytes));
+      }
+      absl::StatusOr<ImageHeader> mask = ProbeImage(pano.encoded_mask, limits.max_image_pixels);
+      if (!mask.ok()) {
+        return absl::Status(mask.status().code(),
+                            absl::StrCat("scan '", scan.scan_name, "', ", what, ": its mask: ",
+                                         mask.status().message()));
+      }
+      if (mask->width_px != image->width_px || mask->height_px != image->height_px) {
+        return bad(absl::StrCat(what, ": its mask is ", mask->width_px, "x", mask->height_px,
+                                ", not the image's ", image->width_px, "x", image->height_px));
+      }
+    }
     if (pano.modality != records::Modality::kRgb && pano.modality != records::Modality::kIr) {
       return bad(what + ": modality must be rgb or ir");
     }
@@ -154,6 +172,12 @@ absl::StatusOr<LinearImage> DecodePanorama(const ScanInput& scan, size_t index,
     return absl::Status(image.status().code(),
                         absl::StrCat("scan '", scan.scan_name, "', panorama '", pano.name, "': ",
                                      image.status().message()));
+  }
+  if (!pano.encoded_mask.empty() && !pano.visual_reference) {
+    if (absl::Status s = ApplyMask(pano.encoded_mask, max_image_pixels, *image); !s.ok()) {
+      return absl::Status(s.code(), absl::StrCat("scan '", scan.scan_name, "', panorama '",
+                                                 pano.name, "': ", s.message()));
+    }
   }
   return image;
 }

@@ -261,7 +261,8 @@ CREATE TABLE sources(
   divergence_rad REAL NOT NULL,
   point_count INTEGER NOT NULL,
   version INTEGER NOT NULL,
-  camera TEXT NOT NULL DEFAULT '');
+  camera TEXT NOT NULL DEFAULT '',
+  mask_sha256 TEXT NOT NULL DEFAULT '');
 CREATE INDEX sources_by_scan ON sources(scan_id);
 )sql",
                               kScanLivesTable, kProfilesTable, kRendersTable, kOperationsTable,
@@ -307,7 +308,9 @@ absl::Status MigrateSchema(Db& db, int64_t from) {
       // 8 → 9: calibration health of cameras, visual references of scans.
       kCalibrationTable,
       // 9 → 10: lens dirt and fog maps.
-      kLensMapsTable};
+      kLensMapsTable,
+      // 10 → 11: a camera's mask image.
+      "ALTER TABLE sources ADD COLUMN mask_sha256 TEXT NOT NULL DEFAULT '';\n"};
   std::string sql = "BEGIN IMMEDIATE;\n";
   for (int64_t v = from; v < kCatalogSchemaVersion; ++v) sql += steps[v - 2];
   absl::StrAppend(&sql, "UPDATE schema_version SET version = ", kCatalogSchemaVersion, ";\nCOMMIT;\n");

@@ -24,7 +24,7 @@ struct sqlite3_stmt;
 namespace vasl::store::internal {
 
 /// 2: tiled versions (manifest, reach, source_tiles), scan deletion, made_by and pins.
-inline constexpr int kCatalogSchemaVersion = 10;
+inline constexpr int kCatalogSchemaVersion = 11;
 
 /// One prepared statement; Bind* take 1-based parameter indices, Column* 0-based columns.
 class Stmt {

@@ -301,6 +301,7 @@ struct ProjectStore::Impl {
       const std::pair<const char*, std::set<std::string>*> queries[] = {
           {"SELECT object FROM manifest UNION SELECT object FROM reach", &live_objects},
           {"SELECT DISTINCT b.blob_sha256 FROM (SELECT scan_id, blob_sha256 FROM sources UNION ALL "
+           "SELECT scan_id, mask_sha256 FROM sources WHERE mask_sha256 != '' UNION ALL "
            "SELECT scan_id, blob_sha256 FROM visual_references) b JOIN scan_lives l "
            "ON b.scan_id = l.scan_id WHERE EXISTS (SELECT 1 FROM versions v WHERE v.pruned = 0 "
            "AND l.from_version <= v.version AND (l.to_version IS NULL OR l.to_version > v.version))",
@@ -707,7 +708,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
       "s.oz_m, s.blob_sha256, s.width_px, s.height_px, s.divergence_rad, s.point_count, s.camera, "
       "c.lidar_source, c.verdict, c.points_in_view, c.features, c.matched, c.cell_px, "
       "c.pixel_mean_px, c.pixel_p95_px, c.offset_mean_m, c.offset_p95_m, c.roundtrip_mean_m, "
-      "c.roundtrip_p95_m, c.rotation_deg, c.note FROM sources s "
+      "c.roundtrip_p95_m, c.rotation_deg, c.note, s.mask_sha256 FROM sources s "
       "LEFT JOIN calibration c ON c.camera_source = s.id WHERE s.version <= ?1 ORDER BY s.id");
   if (!st.ok()) return st.status();
   st->Bind(1, v);
@@ -727,6 +728,7 @@ absl::StatusOr<std::vector<ScanInfo>> ProjectStore::ListScans(int64_t version) c
     src.divergence_rad = st->Real(14);
     src.point_count = st->Int(15);
     src.camera = st->Text(16);
+    src.mask_sha256 = st->Text(31);
     if (!st->IsNull(17)) {
       records::CalibrationHealth c;
       c.lidar_source = static_cast<int32_t>(st->Int(17));
@@ -1470,9 +1472,10 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
           [&](Stmt& st) { st.Bind(1, scan_id).Bind(2, version); });
       for (const SourceInfo& src : scan.sources) {
         run("INSERT INTO sources(id, scan_id, name, modality, qx, qy, qz, qw, ox_m, oy_m, "
-            "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version, camera) "
+            "oz_m, blob_sha256, width_px, height_px, divergence_rad, point_count, version, camera, "
+            "mask_sha256) "
             "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
-            "?17, ?18)",
+            "?17, ?18, ?19)",
             [&](Stmt& st) {
               st.Bind(1, int64_t{src.id}).Bind(2, scan_id).Bind(3, src.name);
               st.Bind(4, int64_t{static_cast<int>(src.modality)});
@@ -1480,6 +1483,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
               st.Bind(12, src.blob_sha256).Bind(13, int64_t{src.width_px});
               st.Bind(14, int64_t{src.height_px}).Bind(15, src.divergence_rad);
               st.Bind(16, src.point_count).Bind(17, version).Bind(18, src.camera);
+              st.Bind(19, src.mask_sha256);
             });
         if (!src.calibration) continue;
         const records::CalibrationHealth& c = *src.calibration;

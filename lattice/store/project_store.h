@@ -4,7 +4,7 @@
 ///        (ARCHITECTURE.md, "Storage of one project").
 /// @details Layout of `<data-dir>/<project>/`:
 ///            catalog.sqlite   settings, scans, sources, batches, versions and their manifests
-///            blobs/<sha256>   raw inputs: packed LiDAR points, encoded images
+///            blobs/<sha256>   raw inputs: packed LiDAR points, encoded images and masks
 ///            objects/<sha256> tile files (plain OpenVDB: geometry, records, fused-default per
 ///                             tile) and reach rasters, through the ObjectStore interface
 ///            HEAD             the committed version number, replaced by atomic rename
@@ -74,6 +74,9 @@ struct SourceInfo {
   /// Derived sources (§10): the image's projection, "equirect" or "pinhole fx fy cx cy k1 k2 k3
   /// p1 p2" and, after "render", the render it came from. Empty for LiDAR and cameras.
   std::string camera;
+  /// A camera sent with a mask image (ingest::PanoramaData::encoded_mask): its blob; empty:
+  /// none.
+  std::string mask_sha256;
   /// A camera of a scan with LiDAR: its §2.3 calibration health against that LiDAR, found at
   /// ingest. Unset for LiDAR, derived sources and cameras of camera-only scans.
   std::optional<records::CalibrationHealth> calibration;

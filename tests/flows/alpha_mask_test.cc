@@ -34,10 +34,10 @@ constexpr int kPanoW = 512, kPanoH = 256;
 
 // `channels` values per pixel (W×H, linear, the last one alpha when `channels` is 2 or 4)
 // encoded as `file_name`'s format: 8-bit colour codes through the sRGB curve and alpha codes
-// round(a·255) (a PNG's unassociated colour), or floats as they are (an EXR's: the caller
-// associates them).
+// round(a·255) (a PNG's unassociated colour; every value so with `mask`), or floats as they
+// are (an EXR's: the caller associates them).
 std::string Encode(const std::vector<float>& values, int w, int h, int channels,
-                   const std::string& file_name, OIIO::TypeDesc type) {
+                   const std::string& file_name, OIIO::TypeDesc type, bool mask = false) {
   std::vector<unsigned char> buffer;
   OIIO::Filesystem::IOVecOutput proxy(buffer);
   auto out = OIIO::ImageOutput::create(file_name, &proxy);
@@ -48,7 +48,8 @@ std::string Encode(const std::vector<float>& values, int w, int h, int channels,
   if (type == OIIO::TypeDesc::UINT8) spec.attribute("oiio:UnassociatedAlpha", 1);
   std::vector<unsigned char> pixels(values.size() * type.size());
   for (size_t i = 0; i < values.size(); ++i) {
-    const bool alpha = (channels == 2 || channels == 4) && int(i % channels) == channels - 1;
+    const bool alpha =
+        mask || ((channels == 2 || channels == 4) && int(i % channels) == channels - 1);
     if (type == OIIO::TypeDesc::UINT8) {
       const float v = std::clamp(values[i], 0.0f, 1.0f);
       pixels[i] = alpha ? uint8_t(std::lround(v * 255.0f)) : geometry::LinearToSrgb8(v);
@@ -123,10 +124,10 @@ struct Ingested {
   render::RenderImage detail;  ///< a novel view coloured from the source image (§8)
 };
 
-// The RGB records of a project holding station 0's LiDAR and `image` as its panorama, and a
-// render of it from 30 cm beside the camera with colour read from the image.
+// The RGB records of a project holding station 0's LiDAR and `image` (with `mask`) as its
+// panorama, and a render of it from 30 cm beside the camera with colour read from the image.
 Ingested RgbRecords(const fs::path& root, const scenes::SyntheticRoom& room,
-                    const std::string& image) {
+                    const std::string& image, const std::string& mask = "") {
   Ingested ingested;
   RecordsByVossel& out = ingested.records;
   fs::remove_all(root);
@@ -143,6 +144,7 @@ Ingested RgbRecords(const fs::path& root, const scenes::SyntheticRoom& room,
   pano.name = "cam0";
   pano.pose = scenes::CameraPoseForStation(room.Stations()[0]);
   pano.encoded_image = image;
+  pano.encoded_mask = mask;
   scan->panoramas.push_back(pano);
   auto r = (*engine)->IngestScan("p", *scan);
   EXPECT_TRUE(r.ok()) << r.status();
@@ -286,6 +288,98 @@ TEST(AlphaMaskTest, TransparentPixelsGiveNoColourAndCoveredOnesTheirOwn) {
   EXPECT_GT(only_plain, 1000u);
   EXPECT_LE(beyond, both / 1000);
   EXPECT_LE(worst_pixel, 0.15);
+}
+
+// Claim (ingest::ApplyMask): a rig's mask sent beside an opaque image is that image's alpha: the
+// same records, bit for bit, as the image sent with the mask's codes as its alpha channel; a
+// 0/1 mask means what a 0/255 one does (scaled by its largest value, as an E57 imageMask's
+// non-zero pixels are the valid ones); a mask of another size, or bytes that are no image,
+// are refused before anything is stored.
+TEST(AlphaMaskTest, AMaskBesideTheImageIsItsAlpha) {
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  const scenes::Panorama seen = scenes::RenderPanorama(
+      room, scenes::CameraPoseForStation(room.Stations()[0]), kPanoW, kPanoH, 2);
+  const size_t n = size_t(kPanoW) * kPanoH;
+  // The mask: the nadir from row 0.7·H, an anti-aliased edge of 8 rows above it.
+  std::vector<float> coverage(n), rgba(n * 4), opaque(seen.rgb.begin(), seen.rgb.end());
+  const int ramp_end = int(0.7 * kPanoH);
+  for (size_t p = 0; p < n; ++p) {
+    const int j = int(p / kPanoW);
+    coverage[p] = j >= ramp_end ? 0.0f : j < ramp_end - 8 ? 1.0f : float(ramp_end - j) / 9.0f;
+    for (int c = 0; c < 3; ++c) rgba[4 * p + size_t(c)] = seen.rgb[3 * p + size_t(c)];
+    rgba[4 * p + 3] = coverage[p];
+  }
+  std::vector<float> binary(n);
+  for (size_t p = 0; p < n; ++p) binary[p] = coverage[p] > 0.5f ? 1.0f / 255.0f : 0.0f;  // codes 0/1
+  std::vector<float> binary_255(n);
+  for (size_t p = 0; p < n; ++p) binary_255[p] = coverage[p] > 0.5f ? 1.0f : 0.0f;
+  const fs::path root = fs::temp_directory_path() / ("vasl-mask-" + std::to_string(::getpid()));
+  const std::string image = Encode(opaque, kPanoW, kPanoH, 3, "o.png", OIIO::TypeDesc::UINT8);
+  const RecordsByVossel with_alpha =
+      RgbRecords(root, room, Encode(rgba, kPanoW, kPanoH, 4, "a.png", OIIO::TypeDesc::UINT8))
+          .records;
+  const RecordsByVossel with_mask =
+      RgbRecords(root, room, image,
+                 Encode(coverage, kPanoW, kPanoH, 1, "m.png", OIIO::TypeDesc::UINT8, true))
+          .records;
+  const RecordsByVossel with_01 =
+      RgbRecords(root, room, image,
+                 Encode(binary, kPanoW, kPanoH, 1, "m01.png", OIIO::TypeDesc::UINT8, true))
+          .records;
+  const RecordsByVossel with_0255 =
+      RgbRecords(root, room, image,
+                 Encode(binary_255, kPanoW, kPanoH, 1, "m255.png", OIIO::TypeDesc::UINT8, true))
+          .records;
+  ASSERT_GT(with_alpha.size(), 10000u);
+  auto same = [](const RecordsByVossel& a, const RecordsByVossel& b, const char* what) {
+    size_t differ = 0, invalid = 0;
+    for (const auto& [key, r] : a) {
+      auto it = b.find(key);
+      if (it == b.end() || it->second.invalid != r.invalid ||
+          std::memcmp(it->second.v, r.v, sizeof r.v) != 0) {
+        ++differ;
+      }
+      invalid += r.invalid;
+    }
+    std::printf("%s: %zu records, %zu invalidated, %zu differ\n", what, a.size(), invalid, differ);
+    EXPECT_EQ(a.size(), b.size()) << what;
+    EXPECT_EQ(differ, 0u) << what;
+    EXPECT_GT(invalid, 1000u) << what;
+  };
+  // The mask's 8-bit codes are the alpha channel's codes, read alike: the same image.
+  same(with_alpha, with_mask, "mask beside the image vs the image's own alpha");
+  same(with_01, with_0255, "a 0/1 mask vs a 0/255 one");
+
+  // Refused, and nothing stored.
+  fs::remove_all(root);
+  auto engine = Engine::Open(root);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  store::ProjectSettings settings;
+  settings.vossel_size_m = 0.05;
+  ASSERT_TRUE((*engine)->CreateProject("p", settings).ok());
+  auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 0);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  ingest::PanoramaData pano;
+  pano.name = "cam0";
+  pano.pose = scenes::CameraPoseForStation(room.Stations()[0]);
+  pano.encoded_image = image;
+  const std::vector<float> half(n / 4, 1.0f);
+  for (const std::string& bad :
+       {Encode(half, kPanoW / 2, kPanoH / 2, 1, "h.png", OIIO::TypeDesc::UINT8, true),
+        std::string("not an image at all")}) {
+    ingest::ScanInput sent = *scan;
+    pano.encoded_mask = bad;
+    sent.panoramas = {pano};
+    auto r = (*engine)->IngestScan("p", sent);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument) << r.status();
+    EXPECT_NE(r.status().message().find("'cam0': its mask"), std::string::npos) << r.status();
+    std::printf("refused: %s\n", std::string(r.status().message()).c_str());
+  }
+  auto st = store::ProjectStore::Open(root / "p");
+  ASSERT_TRUE(st.ok()) << st.status();
+  EXPECT_EQ((*st)->head_version(), 0);
+  fs::remove_all(root);
 }
 
 }  // namespace

@@ -196,41 +196,49 @@ void ExpectRebuildEquals(Engine& engine, const fs::path& root, int64_t increment
   ExpectSame(d);
 }
 
-// `png` (8-bit RGB) as an RGBA PNG whose nadir is masked as a stitcher masks its tripod:
-// transparent from row 0.75·H down, alpha ramping to it over the 6 rows above, black under it.
-std::string MaskNadir(const std::string& png) {
-  OIIO::Filesystem::IOMemReader reader(png.data(), png.size());
+// `pano`'s image (an 8-bit RGB PNG) with its nadir masked as a stitcher masks its tripod:
+// transparent from row 0.75·H down, coverage ramping to it over the 6 rows above. `beside`: the
+// image stays as it is and the coverage comes as a mask image beside it (a rig's mask); else
+// the image becomes RGBA, black under the transparent pixels.
+void MaskNadir(ingest::PanoramaData& pano, bool beside) {
+  OIIO::Filesystem::IOMemReader reader(pano.encoded_image.data(), pano.encoded_image.size());
   OIIO::ImageSpec config;
   OIIO::Filesystem::IOProxy* proxy = &reader;
   config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
   auto in = OIIO::ImageInput::open("in.png", &config);
-  EXPECT_TRUE(in != nullptr) << OIIO::geterror();
-  if (!in) return png;
+  ASSERT_TRUE(in != nullptr) << OIIO::geterror();
   const int w = in->spec().width, h = in->spec().height;
   std::vector<uint8_t> rgb(size_t(w) * h * 3);
-  EXPECT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
-  std::vector<uint8_t> rgba(size_t(w) * h * 4);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
+  const int channels = beside ? 1 : 4;
+  std::vector<uint8_t> out_pixels(size_t(w) * h * size_t(channels));
   const int cut = h * 3 / 4;
   for (size_t p = 0; p < size_t(w) * h; ++p) {
     const int row = int(p / size_t(w));
     const int a = row >= cut ? 0 : row < cut - 6 ? 255 : 255 * (cut - row) / 7;
-    for (int c = 0; c < 3; ++c) rgba[4 * p + size_t(c)] = a > 0 ? rgb[3 * p + size_t(c)] : 0;
-    rgba[4 * p + 3] = uint8_t(a);
+    if (beside) {
+      out_pixels[p] = uint8_t(a);
+      continue;
+    }
+    for (int c = 0; c < 3; ++c) out_pixels[4 * p + size_t(c)] = a > 0 ? rgb[3 * p + size_t(c)] : 0;
+    out_pixels[4 * p + 3] = uint8_t(a);
   }
   std::vector<unsigned char> buffer;
   OIIO::Filesystem::IOVecOutput out_proxy(buffer);
   auto out = OIIO::ImageOutput::create("out.png", &out_proxy);
-  OIIO::ImageSpec spec(w, h, 4, OIIO::TypeDesc::UINT8);
-  spec.alpha_channel = 3;
-  spec.attribute("oiio:UnassociatedAlpha", 1);
-  EXPECT_TRUE(out && out->open("out.png", spec) &&
-              out->write_image(OIIO::TypeDesc::UINT8, rgba.data()) && out->close());
-  return std::string(buffer.begin(), buffer.end());
+  OIIO::ImageSpec spec(w, h, channels, OIIO::TypeDesc::UINT8);
+  if (!beside) {
+    spec.alpha_channel = 3;
+    spec.attribute("oiio:UnassociatedAlpha", 1);
+  }
+  ASSERT_TRUE(out && out->open("out.png", spec) &&
+              out->write_image(OIIO::TypeDesc::UINT8, out_pixels.data()) && out->close());
+  (beside ? pano.encoded_mask : pano.encoded_image) = std::string(buffer.begin(), buffer.end());
 }
 
 // Ingests the room's 4 scans one at a time (their points coloured with `point_colour`), then
 // rebuilds: the incremental HEAD is v4, the rebuild v5. `masked`: each panorama with its nadir
-// transparent (MaskNadir).
+// transparent (MaskNadir), by its alpha at even stations and by a mask beside it at odd ones.
 void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what,
                            bool range_grid = false, bool masked = false) {
   auto engine = OpenEngine(root);
@@ -243,7 +251,7 @@ void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* 
     if (range_grid) scenes::SetRangeGrid(lidar, &scan->lidar);
     if (masked) {
       for (ingest::PanoramaData& pano : scan->panoramas) {
-        pano.encoded_image = MaskNadir(pano.encoded_image);
+        ASSERT_NO_FATAL_FAILURE(MaskNadir(pano, /*beside=*/i % 2 == 1));
       }
     }
     Ingest(*engine, "room", *scan);
@@ -289,9 +297,9 @@ TEST(IncrementalTest, IngestOfScansWithRangeGridsEqualsRebuild) {
                         "rebuild v5", true);
 }
 
-// Claim (flows.h, sample.h): the same with panoramas whose nadir is transparent (alpha), their
-// coverage read alike on every path (the scan's own cameras, revisits through the image cache,
-// the rebuild from the stored blobs).
+// Claim (flows.h, sample.h): the same with panoramas whose nadir is transparent (alpha, or a
+// mask beside the image), their coverage read alike on every path (the scan's own cameras,
+// revisits through the image cache, the rebuild from the stored image and mask blobs).
 TEST(IncrementalTest, IngestOfMaskedPanoramasEqualsRebuild) {
   IngestRoomThenRebuild(TestRoot("masked"), false, "masked room: incremental v4 vs rebuild v5",
                         false, true);

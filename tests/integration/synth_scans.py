@@ -1,7 +1,7 @@
 """Synthetic scans written as real files, for the streaming, LAS/LAZ and memory tests: points
 on the walls, floor and ceiling of a box room seen from a scanner inside it (so every point's
-range from the scanner is known), written chunk by chunk as E57 (pye57's libe57 bindings) or
-LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole; and the
+range from the scanner is known), written chunk by chunk as E57 (pye57's libe57 bindings; with
+spherical images and their masks when asked) or LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole; and the
 two image helpers several tests share (sRGB encoding, PNG bytes around raw rows)."""
 from __future__ import annotations
 
@@ -82,31 +82,25 @@ def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
               pose: Optional[Tuple[Sequence[float], Sequence[float]]] = None,
               scale_m: Optional[float] = 0.001, extent_m: float = 50.0,
               intensity: bool = True, colour: bool = False, invalid: bool = False,
-              name: str = "synthetic") -> None:
+              name: str = "synthetic", images: Sequence[dict] = ()) -> None:
     """Writes one scan of `n` points from `chunks` (room_chunks' dicts) to a new E57 file, one
     chunk at a time. Coordinates are scaled integers of `scale_m` within ±`extent_m`, or
     doubles with `scale_m` None; `pose` is (translation, quaternion w x y z) or None (no pose).
-    Intensity (limits 0..65535), colour (0..255) and the invalid state are written as asked."""
+    Intensity (limits 0..65535), colour (0..255) and the invalid state are written as asked.
+    `images`: whole 360° x 180° spherical images taken with the scan (images2D), each a dict
+    {name, png (bytes), width, height, pose (as `pose`), and optionally mask (the imageMask's
+    bytes)}."""
     import pye57
     from pye57 import libe57
 
     e57 = pye57.E57(path, mode="w")
     imf = e57.image_file
     scan = libe57.StructureNode(imf)
-    scan.set("guid", libe57.StringNode(imf, "{%s}" % uuid.uuid4()))
+    guid = "{%s}" % uuid.uuid4()
+    scan.set("guid", libe57.StringNode(imf, guid))
     scan.set("name", libe57.StringNode(imf, name))
     if pose is not None:
-        (tx, ty, tz), (qw, qx, qy, qz) = pose
-        node = libe57.StructureNode(imf)
-        rotation = libe57.StructureNode(imf)
-        for key, v in zip("wxyz", (qw, qx, qy, qz)):
-            rotation.set(key, libe57.FloatNode(imf, float(v)))
-        translation = libe57.StructureNode(imf)
-        for key, v in zip("xyz", (tx, ty, tz)):
-            translation.set(key, libe57.FloatNode(imf, float(v)))
-        node.set("rotation", rotation)
-        node.set("translation", translation)
-        scan.set("pose", node)
+        scan.set("pose", _e57_pose(imf, pose))
     proto = libe57.StructureNode(imf)
     fields = []
     for axis in "XYZ":
@@ -138,6 +132,8 @@ def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
     points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
     scan.set("points", points)
     e57.data3d.append(scan)
+    for image in images:
+        _write_e57_spherical(imf, guid, image)
 
     # Buffer types libe57's bindings read right: 64-bit integers are taken for 32-bit ones.
     capacity = 1 << 18
@@ -165,6 +161,50 @@ def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
     writer.close()
     e57.close()
     assert written == n, f"wrote {written} of {n} points"
+
+
+def _e57_pose(imf, pose):
+    """An E57 pose node of (translation, quaternion w x y z)."""
+    from pye57 import libe57
+
+    (tx, ty, tz), (qw, qx, qy, qz) = pose
+    node = libe57.StructureNode(imf)
+    rotation = libe57.StructureNode(imf)
+    for key, v in zip("wxyz", (qw, qx, qy, qz)):
+        rotation.set(key, libe57.FloatNode(imf, float(v)))
+    translation = libe57.StructureNode(imf)
+    for key, v in zip("xyz", (tx, ty, tz)):
+        translation.set(key, libe57.FloatNode(imf, float(v)))
+    node.set("rotation", rotation)
+    node.set("translation", translation)
+    return node
+
+
+def _write_e57_spherical(imf, scan_guid: str, image: dict) -> None:
+    """Appends one spherical image (write_e57's `images`) of the scan `scan_guid` to images2D.
+    A blob's bytes can be written only once its node is in the file's tree, so they follow."""
+    from pye57 import libe57
+
+    node = libe57.StructureNode(imf)
+    node.set("guid", libe57.StringNode(imf, "{%s}" % uuid.uuid4()))
+    node.set("name", libe57.StringNode(imf, image["name"]))
+    node.set("associatedData3DGuid", libe57.StringNode(imf, scan_guid))
+    node.set("pose", _e57_pose(imf, image["pose"]))
+    rep = libe57.StructureNode(imf)
+    width, height = image["width"], image["height"]
+    rep.set("imageWidth", libe57.IntegerNode(imf, width, 0, 1 << 30))
+    rep.set("imageHeight", libe57.IntegerNode(imf, height, 0, 1 << 30))
+    rep.set("pixelWidth", libe57.FloatNode(imf, 2 * np.pi / width))
+    rep.set("pixelHeight", libe57.FloatNode(imf, np.pi / height))
+    blobs = []
+    for key in ("pngImage", "imageMask") if image.get("mask") else ("pngImage",):
+        data = image["png" if key == "pngImage" else "mask"]
+        blobs.append((libe57.BlobNode(imf, len(data)), data))
+        rep.set(key, blobs[-1][0])
+    node.set("sphericalRepresentation", rep)
+    imf.root()["images2D"].append(node)
+    for blob, data in blobs:
+        blob.write(np.frombuffer(data, dtype=np.uint8).copy(), 0, len(data))
 
 
 def write_las(path: str, world_xyz: np.ndarray, *, intensity: np.ndarray,

@@ -111,6 +111,34 @@ def test_manifest_paths_and_validation(tmp_path):
             read_manifest(str(path))
 
 
+def test_manifest_mask_is_a_file_relative_to_the_manifest(tmp_path):
+    """`panoramas[].mask`: resolved like `image`; a mask that names no file, is no path, or
+    belongs to a visual reference is a ValueError naming the manifest and the panorama."""
+    pose = {"position": [0, 0, 1], "quaternion": [0, 0, 0, 1]}
+    cam = {"name": "cam0", "image": "cam0.jpg", "pose": pose, "mask": "rig/nadir.png"}
+    doc = {"scan": "s1", "pose": pose, "panoramas": [cam]}
+    path = tmp_path / "s1.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError) as err:
+        read_manifest(str(path))
+    assert str(path) in str(err.value) and "'cam0'" in str(err.value)
+    assert str(tmp_path / "rig" / "nadir.png") in str(err.value)
+    print(f"\n{err.value}")
+
+    (tmp_path / "rig").mkdir()
+    (tmp_path / "rig" / "nadir.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    m = read_manifest(str(path))
+    assert m.panoramas[0].mask_path == str(tmp_path / "rig" / "nadir.png")
+    path.write_text(json.dumps({**doc, "panoramas": [{**cam, "mask": None}]}))
+    assert read_manifest(str(path)).panoramas[0].mask_path is None
+    for bad, match in [({**cam, "mask": ""}, r"panoramas\[0\] \('cam0'\)\.mask must be the path"),
+                       ({**cam, "mask": 3}, "mask must be the path"),
+                       ({**cam, "visual_reference": True}, "visual reference.*takes no mask")]:
+        path.write_text(json.dumps({**doc, "panoramas": [bad]}))
+        with pytest.raises(ValueError, match=match):
+            read_manifest(str(path))
+
+
 def test_pose_parse_forms():
     assert Pose.parse("1,2,3").quaternion_xyzw == (0.0, 0.0, 0.0, 1.0)
     assert Pose.parse([1, 2, 3, 0, 0, 1, 0]).quaternion_xyzw == (0.0, 0.0, 1.0, 0.0)

@@ -696,7 +696,7 @@ TEST(ProjectStoreTest, OpensAndMigratesASchema2Catalog) {
         "BEGIN; DROP TABLE profiles; DROP TABLE scan_lives; DROP TABLE renders; "
         "DROP TABLE operations; DROP TABLE calibration; DROP TABLE visual_references; "
         "DROP TABLE lens_maps; "
-        "ALTER TABLE sources DROP COLUMN camera; "
+        "ALTER TABLE sources DROP COLUMN camera; ALTER TABLE sources DROP COLUMN mask_sha256; "
         "ALTER TABLE project DROP COLUMN active_profile; "
         "ALTER TABLE project DROP COLUMN origin_fixed; ALTER TABLE project DROP COLUMN origin_x; "
         "ALTER TABLE project DROP COLUMN origin_y; ALTER TABLE project DROP COLUMN origin_z; "

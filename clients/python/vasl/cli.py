@@ -144,6 +144,8 @@ def _cmd_ingest(client: Client, args) -> int:
                         print(f"{what}: not ingested: {im.problem}")
                     elif im.kind == "visual":
                         print(f"{what}: kept with the scan as a visual reference")
+                    elif im.mask:
+                        print(f"{what}: its imageMask is sent as its mask")
                     if im.notes and not im.problem:
                         print(f"{what}: {'; '.join(im.notes)}")
                 cameras = [im for im in scan.ingestible_images if im.kind != "visual"]
@@ -270,6 +272,8 @@ def _cmd_scans(client: Client, args) -> int:
                            "captured_utc": s.captured_utc,
                            "position_m": list(s.pose.position_m),
                            "sources": [src.name for src in s.sources],
+                           "masks": {src.name: src.mask_sha256 for src in s.sources
+                                     if src.mask_sha256},
                            "calibration": [src.calibration.__dict__ for src in s.sources
                                            if src.calibration],
                            "visual_references": [
@@ -286,7 +290,8 @@ def _cmd_scans(client: Client, args) -> int:
     for s in scans:
         points = sum(src.point_count for src in s.sources)
         pos = ",".join(f"{v:.3f}" for v in s.pose.position_m)
-        sources = " ".join(f"{src.name}({src.modality})" for src in s.sources)
+        sources = " ".join(f"{src.name}({src.modality}{', masked' if src.mask_sha256 else ''})"
+                           for src in s.sources)
         print(f"{s.id:>4} {s.name:<20} {s.version:>7} {points:>10}  {pos:<26} {sources}")
         for src in s.sources:
             if src.calibration:

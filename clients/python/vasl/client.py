@@ -37,6 +37,10 @@ _MODALITY_NAMES = {pb.MODALITY_LIDAR: "lidar", pb.MODALITY_RGB: "rgb", pb.MODALI
 _FORMATS = {"exr": pb.IMAGE_FORMAT_EXR, "png": pb.IMAGE_FORMAT_PNG,
             "deep": pb.IMAGE_FORMAT_DEEP_EXR}
 _COLOUR_DETAIL = {"vossel": pb.COLOUR_DETAIL_VOSSEL, "images": pb.COLOUR_DETAIL_SOURCE_IMAGES}
+#: Bits of a record's flags (RecordRow.flags): derived (back-projected), and invalidated (kept
+#: with weight 0: a flare-invalid sample, or one lying mostly on masked or transparent pixels).
+FLAG_DERIVED = 1
+FLAG_INVALIDATED = 2
 
 
 class VaslError(Exception):
@@ -329,6 +333,17 @@ def packed_chunks(source: PointSource, chunk_points: int = CHUNK_POINTS) -> Iter
         sent += n
 
 
+def _image_bytes(image, where: str) -> bytes:
+    """An encoded image given as bytes or as a file path, read whole; ValueError naming `where`
+    for anything else or an empty one."""
+    if isinstance(image, (str, os.PathLike)):
+        with open(image, "rb") as f:
+            image = f.read()
+    if not isinstance(image, (bytes, bytearray)) or not image:
+        raise ValueError(f"{where} must be non-empty bytes or a file path")
+    return bytes(image)
+
+
 def _wire_stride(header: pb.ScanHeader) -> int:
     """Bytes a point takes in the stream `header` announces."""
     return ((28 if header.lidar.point_format == pb.POINT_FORMAT_XYZIRGB_F32LE else 16)
@@ -337,11 +352,13 @@ def _wire_stride(header: pb.ScanHeader) -> int:
 
 def ingest_requests(header: pb.ScanHeader, point_bytes: Union[bytes, Iterable[bytes]],
                     images: Sequence[bytes] = (), chunk_bytes: int = CHUNK_BYTES,
-                    on_sent: Optional[Callable[[int], None]] = None) -> Iterator[pb.IngestScanRequest]:
+                    on_sent: Optional[Callable[[int], None]] = None,
+                    masks: Sequence[bytes] = ()) -> Iterator[pb.IngestScanRequest]:
     """The IngestScan stream: header, points chunks (whole points: multiples of 16 bytes, or
-    28 for coloured points), image chunks. `point_bytes` is the packed points whole, or an
-    iterable of packed pieces (each whole points) taken one at a time, so that only one piece
-    is in memory. No validation: a test may send anything this way."""
+    28 for coloured points), then per panorama its image's chunks and, right after them, its
+    mask's (`masks[i]`; empty or absent: no mask). `point_bytes` is the packed points whole, or
+    an iterable of packed pieces (each whole points) taken one at a time, so that only one
+    piece is in memory. No validation: a test may send anything this way."""
     yield pb.IngestScanRequest(header=header)
     sent = 0
     stride = _wire_stride(header)
@@ -357,12 +374,15 @@ def ingest_requests(header: pb.ScanHeader, point_bytes: Union[bytes, Iterable[by
             if on_sent:
                 on_sent(sent)
     for index, image in enumerate(images):
-        for i in range(0, len(image), chunk_bytes):
-            data = image[i:i + chunk_bytes]
-            yield pb.IngestScanRequest(image=pb.ImageChunk(panorama_index=index, data=data))
-            sent += len(data)
-            if on_sent:
-                on_sent(sent)
+        mask = masks[index] if index < len(masks) else b""
+        for payload, is_mask in ((image, False), (mask, True)):
+            for i in range(0, len(payload), chunk_bytes):
+                data = payload[i:i + chunk_bytes]
+                yield pb.IngestScanRequest(image=pb.ImageChunk(panorama_index=index, data=data,
+                                                               mask=is_mask))
+                sent += len(data)
+                if on_sent:
+                    on_sent(sent)
 
 
 def decode_exr(data: bytes) -> Dict[str, np.ndarray]:
@@ -548,7 +568,8 @@ class Client:
             sources = [Source(x.id, x.name, _MODALITY_NAMES.get(x.modality, "unspecified"),
                               _pose_from_pb(x.pose), x.blob_sha256, x.width_px, x.height_px,
                               x.divergence_rad, x.point_count,
-                              _calibration(x.calibration) if x.HasField("calibration") else None)
+                              _calibration(x.calibration) if x.HasField("calibration") else None,
+                              x.mask_sha256)
                        for x in s.sources]
             refs = [VisualReference(r.name, _pose_from_pb(r.pose), r.blob_sha256, r.width_px,
                                     r.height_px, r.size_bytes) for r in s.visual_references]
@@ -645,13 +666,16 @@ class Client:
         (N, 3) linear per-point colour, which becomes a "point-colour" source], or a
         PointSource (a file's points read chunk by chunk: `read_e57(...)[i].points`,
         `read_las(path, pose)`), `pose` (see Pose.parse), `panoramas` as dicts {name, image
-        (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole}
+        (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole, mask}
         (`pinhole`: a pinhole photo's intrinsics {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1,
-        p2]}; absent: an equirect panorama). Points are packed and sent chunk by chunk as the
-        upload proceeds, so a file's scan is never in memory whole. Without `points` (and with
-        panoramas) the scan is camera-only: its images colour the geometry the project already
-        has. `progress(dict)` is called with keys stage, fraction, sent_bytes, total_bytes (and
-        sent_points, total_points while uploading) while uploading and while the server works.
+        p2]}; absent: an equirect panorama; `mask`: bytes or path of an image of the image's
+        size whose first channel, over its largest value, is the share of each pixel the
+        camera reports, 0 where a tripod, rig or operator is masked out; absent: none). Points
+        are packed and sent chunk by chunk as the upload proceeds, so a file's scan is never in
+        memory whole. Without `points` (and with panoramas) the scan is camera-only: its images
+        colour the geometry the project already has. `progress(dict)` is called with keys
+        stage, fraction, sent_bytes, total_bytes (and sent_points, total_points while
+        uploading) while uploading and while the server works.
         """
         self._check_name(project)
         if manifest is not None:
@@ -670,7 +694,8 @@ class Client:
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,
                           "modality": p.modality,
                           "angular_resolution_rad": p.angular_resolution_rad,
-                          "pinhole": p.pinhole, "visual_reference": p.visual_reference}
+                          "pinhole": p.pinhole, "visual_reference": p.visual_reference,
+                          "mask": p.mask_path}
                          for p in m.panoramas]
         if not scan:
             raise ValueError("scan: give the scan an id (or pass a manifest)")
@@ -700,17 +725,18 @@ class Client:
             header.lidar.point_count = source.count
             if source.grid_shape:  # each point carries its row and column
                 header.lidar.grid.rows, header.lidar.grid.columns = source.grid_shape
-        images = []
+        images, masks = [], []
         for i, p in enumerate(panoramas):
             reference = bool(p.get("visual_reference", False))
             if "name" not in p or "image" not in p or (p.get("pose") is None and not reference):
                 raise ValueError(f"panoramas[{i}] needs name, image and pose")
-            image = p["image"]
-            if isinstance(image, (str, os.PathLike)):
-                with open(image, "rb") as f:
-                    image = f.read()
-            if not isinstance(image, (bytes, bytearray)) or not image:
-                raise ValueError(f"panoramas[{i}].image must be non-empty bytes or a file path")
+            image = _image_bytes(p["image"], f"panoramas[{i}].image")
+            mask = b""
+            if p.get("mask") is not None:
+                if reference:
+                    raise ValueError(f"panoramas[{i}] ('{p['name']}') is a visual reference: "
+                                     "it colours nothing, so it takes no mask")
+                mask = _image_bytes(p["mask"], f"panoramas[{i}].mask")
             modality = str(p.get("modality", "rgb")).lower()
             if modality not in _MODALITY_TO_PB:
                 raise ValueError(f"panoramas[{i}].modality must be 'rgb' or 'ir', got {modality!r}")
@@ -718,17 +744,19 @@ class Client:
                 name=p["name"], modality=_MODALITY_TO_PB[modality],
                 pose=pose_to_pb(Pose.parse(p["pose"] if p.get("pose") is not None else pose)),
                 angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
-                encoded_size_bytes=len(image), visual_reference=reference)
+                encoded_size_bytes=len(image), visual_reference=reference,
+                mask_size_bytes=len(mask))
             if p.get("pinhole") is not None and not reference:  # a pinhole photo (VASL-MODEL §2.2)
                 desc.pinhole.CopyFrom(pb.PinholeCamera(
                     **pinhole_from_json(p["pinhole"], f"panoramas[{i}].pinhole")))
-            images.append(bytes(image))
+            images.append(image)
+            masks.append(mask)
         point_total = 0 if source is None else source.count * point_stride(source)
-        total = point_total + sum(len(b) for b in images)
+        total = point_total + sum(len(b) for b in images) + sum(len(b) for b in masks)
         header.request_id = request_id or new_request_id()
         return self.ingest_stream(header, (lambda: packed_chunks(source)) if source else b"",
-                                  images, total_bytes=total, progress=progress, poll_s=poll_s,
-                                  retries=retries)
+                                  images, masks=masks, total_bytes=total, progress=progress,
+                                  poll_s=poll_s, retries=retries)
 
     def ingest_e57_scan(self, project: str, scan: E57Scan, *, divergence_rad: float = 0.0003,
                         rig: str = "", progress: Optional[Callable[[dict], None]] = None,
@@ -737,10 +765,11 @@ class Client:
         chunk), intensity, per-point colour (as a "point-colour" source) and pose, and its
         spherical and pinhole images (as panoramas and pinhole photos with their poses; visual
         references kept with the scan, posed as the scan when the file gives them no pose;
-        `scan.images` says why any other is left out). A scan of images only is a camera-only
-        scan."""
+        `scan.images` says why any other is left out), a camera image's imageMask sent as its
+        mask. A scan of images only is a camera-only scan."""
         panoramas = [{"name": im.name, "image": im.data, "pose": im.pose, "modality": "rgb",
-                      "pinhole": im.pinhole, "visual_reference": im.kind == "visual"}
+                      "pinhole": im.pinhole, "visual_reference": im.kind == "visual",
+                      "mask": im.mask or None}
                      for im in scan.ingestible_images]
         names = [p["name"] for p in panoramas]
         for i, p in enumerate(panoramas):  # E57 names need not be unique
@@ -752,15 +781,18 @@ class Client:
 
     def ingest_stream(self, header: pb.ScanHeader,
                       point_bytes: Union[bytes, Callable[[], Iterable[bytes]]],
-                      images: Sequence[bytes], *, total_bytes: int = 0, progress=None,
-                      poll_s: float = 0.5, retries: int = 0) -> IngestResult:
+                      images: Sequence[bytes], *, masks: Sequence[bytes] = (),
+                      total_bytes: int = 0, progress=None, poll_s: float = 0.5,
+                      retries: int = 0) -> IngestResult:
         """Sends a prepared header and payloads (no client-side validation); with
         `header.request_id` set, a call whose answer is lost is resolved as in `ingest`.
         `point_bytes`: the packed points, or a function giving them as an iterable of packed
-        pieces (called again for each attempt, so a retry reads them again)."""
+        pieces (called again for each attempt, so a retry reads them again). `masks`: each
+        panorama's mask bytes, by panorama like `images` (empty: none)."""
         return self._with_retries(
             header.project, header.request_id, retries, "IngestScan", "ingest",
-            lambda: self._ingest_once(header, point_bytes, images, total_bytes, progress, poll_s))
+            lambda: self._ingest_once(header, point_bytes, images, masks, total_bytes, progress,
+                                      poll_s))
 
     def _with_retries(self, project: str, request_id: str, retries: int, method: str, answer: str,
                       send: Callable[[], object]):
@@ -798,7 +830,7 @@ class Client:
                     raise
                 attempt += 1
 
-    def _ingest_once(self, header, point_bytes, images, total_bytes, progress, poll_s):
+    def _ingest_once(self, header, point_bytes, images, masks, total_bytes, progress, poll_s):
         state = {"sent": 0, "error": None, "t0": time.monotonic(), "t1": None}
         stride = _wire_stride(header)
         total_points = header.lidar.point_count
@@ -818,7 +850,8 @@ class Client:
             # error itself is raised to the caller below.
             try:
                 pieces = point_bytes() if callable(point_bytes) else point_bytes
-                yield from ingest_requests(header, pieces, images, self.chunk_bytes, on_sent)
+                yield from ingest_requests(header, pieces, images, self.chunk_bytes, on_sent,
+                                           masks)
             except Exception as e:  # noqa: BLE001 - re-raised by _ingest_once
                 state["error"] = e
             state["t1"] = time.monotonic()
@@ -1175,7 +1208,8 @@ class Client:
                  "value": list(x.value), "range_m": x.range_m, "cos_inc": x.cos_inc,
                  "foot_major_m": x.foot_major_m, "foot_minor_m": x.foot_minor_m, "vis": x.vis,
                  "uv_px": [x.u_px, x.v_px], "conf": dict(zip(CONFIDENCE_FACTORS, x.conf)),
-                 "flags": x.flags, "derived": bool(x.flags & 1), "batch": x.batch,
+                 "flags": x.flags, "derived": bool(x.flags & FLAG_DERIVED),
+                 "invalidated": bool(x.flags & FLAG_INVALIDATED), "batch": x.batch,
                  "weight": x.weight} for x in r.records]
         return RecordsQuery(r.version, r.profile, r.revision, r.vossel_count, r.truncated, rows)
 

@@ -250,6 +250,8 @@ class PanoramaEntry:
     pinhole: Optional[Dict[str, float]] = None  #: intrinsics (PINHOLE_KEYS), None: equirect
     #: a photo kept with the scan for people to look at: no projection, colours nothing
     visual_reference: bool = False
+    #: absolute path of the image's mask (the share of each pixel the camera reports); None: none
+    mask_path: Optional[str] = None
 
 
 @dataclass
@@ -282,6 +284,26 @@ def _flag(obj: dict, key: str, where: str) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"{where}.{key} must be true or false, got {value!r}")
     return value
+
+
+def _mask_path(panorama: dict, base: str, reference: bool, where: str) -> Optional[str]:
+    """A panorama's optional `mask`: the absolute path of an image file that exists, relative
+    to the manifest's folder `base`; None when not given. ValueError naming `where` for one
+    that is not a path, names no file, or belongs to a visual reference (which colours
+    nothing)."""
+    mask = panorama.get("mask")
+    if mask is None:
+        return None
+    if not isinstance(mask, str) or not mask:
+        raise ValueError(f"{where}.mask must be the path of an image file (relative to the "
+                         f"manifest), got {mask!r}")
+    if reference:
+        raise ValueError(f"{where} is a visual reference: it colours nothing, so it takes no "
+                         "mask")
+    resolved = os.path.join(base, mask)
+    if not os.path.isfile(resolved):
+        raise ValueError(f"{where}.mask: no such file {resolved}")
+    return resolved
 
 
 def read_manifest(path: str) -> Manifest:
@@ -319,6 +341,7 @@ def read_manifest(path: str) -> Manifest:
         if modality not in ("rgb", "ir"):
             raise ValueError(f"{path}: panoramas[{i}].modality must be 'rgb' or 'ir', got '{modality}'")
         reference = _flag(p, "visual_reference", f"{path}: panoramas[{i}]")
+        mask = _mask_path(p, base, reference, f"{path}: panoramas[{i}] ('{name}')")
         panoramas.append(PanoramaEntry(
             name=name,
             image_path=os.path.join(base, need(p, "image", f"panoramas[{i}].")),
@@ -330,6 +353,7 @@ def read_manifest(path: str) -> Manifest:
             pinhole=(pinhole_from_json(p["pinhole"], f"{path}: panoramas[{i}].pinhole")
                      if "pinhole" in p else None),
             visual_reference=reference,
+            mask_path=mask,
         ))
     return Manifest(
         path=os.path.abspath(path),
@@ -360,6 +384,9 @@ class E57Image:
     scan_guid: str = ""  #: associatedData3DGuid: the scan it was taken with ("" none)
     problem: str = ""  #: why it is not ingested ("" when it is)
     notes: List[str] = field(default_factory=list)  #: what was mended on reading (pose, ...)
+    #: a camera image's imageMask (a PNG: the pixels with valid data, as the share of each
+    #: pixel the camera reports), sent as its mask; b"": none
+    mask: bytes = b""
 
 
 @dataclass
@@ -810,6 +837,7 @@ def _e57_pose(node, where: str, notes: List[str], partial: bool = False) -> Opti
     return Pose.make(t, [x / norm, y / norm, z / norm, w / norm], where=where)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _IMAGE_KINDS = (("pinholeRepresentation", "pinhole"), ("sphericalRepresentation", "spherical"),
                 ("cylindricalRepresentation", "cylindrical"),
                 ("visualReferenceRepresentation", "visual"))
@@ -818,8 +846,10 @@ _IMAGE_KINDS = (("pinholeRepresentation", "pinhole"), ("sphericalRepresentation"
 def _read_e57_images(e57, path: str) -> List[E57Image]:
     """Every image of an E57 file (images2D), each with the reason it cannot be ingested when
     it cannot: a cylindrical image, a spherical image that is not a whole 360° x 180° panorama,
-    or bytes that are neither JPEG nor PNG. A visual reference (no projection) is kept with its
-    scan as a photo for people to look at."""
+    bytes that are neither JPEG nor PNG, or an imageMask that is not a PNG (the server would
+    refuse the whole scan for it). A camera image's imageMask (the pixels with valid data) is
+    read with it and sent as its mask; a visual reference (no projection) is kept with its scan
+    as a photo for people to look at."""
     root = e57.image_file.root()
     if not root.isDefined("images2D"):
         return []
@@ -839,17 +869,15 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
             return float(rep[key].value()) if rep.isDefined(key) else default
 
         blob = next((rep[b] for b in ("jpegImage", "pngImage") if rep.isDefined(b)), None)
-        data = b""
-        if blob is not None:
-            buf = np.zeros(blob.byteCount(), dtype=np.uint8)
-            blob.read(buf, 0, blob.byteCount())
-            data = buf.tobytes()
+        data = _e57_blob(blob) if blob is not None else b""
         notes: List[str] = []
         pose = _e57_pose(node["pose"], where, notes) if node.isDefined("pose") else None
         image = E57Image(name=name, kind=kind, width=int(number("imageWidth")),
                          height=int(number("imageHeight")), data=data, pose=pose,
                          scan_guid=(str(node["associatedData3DGuid"].value())
-                                    if node.isDefined("associatedData3DGuid") else ""))
+                                    if node.isDefined("associatedData3DGuid") else ""),
+                         mask=(_e57_blob(rep["imageMask"])
+                               if kind != "visual" and rep.isDefined("imageMask") else b""))
         problems = []
         if kind == "cylindrical":
             problems.append("cylindrical images are not supported (only spherical and pinhole)")
@@ -874,14 +902,23 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
             else:
                 problems.append("focalLength, pixelWidth and pixelHeight must be > 0")
         if kind in ("spherical", "pinhole", "visual") and not problems:
-            if not (data.startswith(b"\x89PNG\r\n\x1a\n") or data.startswith(b"\xff\xd8")):
+            if not (data.startswith(_PNG_SIGNATURE) or data.startswith(b"\xff\xd8")):
                 problems.append("its bytes are neither a JPEG nor a PNG image")
+            elif image.mask and not image.mask.startswith(_PNG_SIGNATURE):
+                problems.append("its imageMask is not a PNG image")
             elif image.pose is None and kind != "visual":  # a reference takes its scan's
                 problems.append("it has no pose")
         image.problem = "; ".join(problems)
         image.notes = notes
         out.append(image)
     return out
+
+
+def _e57_blob(blob) -> bytes:
+    """The bytes of an E57 blob node, read whole."""
+    buf = np.zeros(blob.byteCount(), dtype=np.uint8)
+    blob.read(buf, 0, blob.byteCount())
+    return buf.tobytes()
 
 
 def _quat_mul(a, b):

@@ -124,6 +124,7 @@ class Source:
     divergence_rad: float
     point_count: int
     calibration: Optional[CalibrationHealth] = None  #: a camera of a scan with LiDAR
+    mask_sha256: str = ""  #: a camera sent with a mask: sha256 (hex) of the stored mask image
 
 
 @dataclass
