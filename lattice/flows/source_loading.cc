@@ -231,11 +231,12 @@ absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(
 
 namespace {
 
-// What a camera's decode and its detectors read: the blob and mask, IR or not, the pixel limit, and
-// whether the image wraps (an equirect panorama) or not (a pinhole photo).
+// What a camera's decode and its detectors read: the blob and mask, IR or not, the pixel limit,
+// and whether the image wraps (an equirect panorama) or not (a pinhole photo).
 std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pinhole) {
-  return absl::StrCat(DecodedImageKey(src), src.modality == records::Modality::kIr ? " ir " : " rgb ",
-                      max_pixels, pinhole ? " pinhole" : " equirect");
+  return absl::StrCat(DecodedImageKey(src),
+                      src.modality == records::Modality::kIr ? " ir " : " rgb ", max_pixels,
+                      pinhole ? " pinhole" : " equirect");
 }
 
 // A camera reading an image kept as its 8-bit codes: they are unpacked when its records are

@@ -289,7 +289,10 @@ absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearIm
   using namespace OIIO;
   absl::StatusOr<internal::MemoryImageInput> opened =
       internal::OpenImageInMemory(mask_bytes, /*unassociated_alpha=*/true, max_pixels);
-  if (!opened.ok()) return absl::Status(opened.status().code(), absl::StrCat("mask: ", opened.status().message()));
+  if (!opened.ok()) {
+    return absl::Status(opened.status().code(),
+                        absl::StrCat("mask: ", opened.status().message()));
+  }
   ImageInput* in = opened->in.get();
   const ImageSpec& spec = in->spec();
   if (absl::Status s = CheckSpec(spec, max_pixels); !s.ok()) {
