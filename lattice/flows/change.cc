@@ -669,8 +669,7 @@ absl::Status RevisitSources(const store::ProjectStore& store, const store::Snaps
   absl::Status status;
   int64_t largest_image = 1;
   for (const SourceRef* src : order) {
-    largest_image = std::max(largest_image, int64_t(src->info.width_px) * src->info.height_px *
-                                                3 * int64_t(sizeof(float)));
+    largest_image = std::max(largest_image, DecodedImageBytes(src->info));
   }
   const int tokens = int(std::clamp<int64_t>(
       std::min<int64_t>(tbb::this_task_arena::max_concurrency(),

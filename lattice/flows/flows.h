@@ -132,6 +132,9 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   int64_t max_image_pixels);
 /// What a stored camera's decoded image depends on, as a cache key: its blob, and its mask's.
 std::string DecodedImageKey(const store::SourceInfo& source);
+/// The bytes a stored camera's decoded image takes, as far as the catalog tells: 3 floats a
+/// pixel, 4 with a mask (its coverage; an image's own alpha is known only once decoded).
+int64_t DecodedImageBytes(const store::SourceInfo& source);
 
 /// FAILED_PRECONDITION: a camera-only scan (images, no points) sent to a project without
 /// geometry, which it would have nothing to colour on.

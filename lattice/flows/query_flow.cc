@@ -241,7 +241,7 @@ absl::StatusOr<std::vector<render::DetailImage>> DetailImages(
   std::vector<const store::SourceInfo*> chosen;
   int64_t bytes = 0;
   for (const auto& [hits, src] : cameras) {
-    const int64_t need = int64_t(src->width_px) * src->height_px * 3 * int64_t(sizeof(float));
+    const int64_t need = DecodedImageBytes(*src);
     if (bytes + need > caches.images->budget_bytes()) {
       ++*skipped;
       continue;

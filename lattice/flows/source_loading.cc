@@ -200,6 +200,11 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
   return cam;
 }
 
+int64_t DecodedImageBytes(const store::SourceInfo& src) {
+  const int64_t floats = src.mask_sha256.empty() ? 3 : 4;
+  return int64_t(src.width_px) * src.height_px * floats * int64_t(sizeof(float));
+}
+
 std::string DecodedImageKey(const store::SourceInfo& src) {
   return src.mask_sha256.empty() ? src.blob_sha256
                                  : absl::StrCat(src.blob_sha256, " mask ", src.mask_sha256);
