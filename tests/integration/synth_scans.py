@@ -1,8 +1,9 @@
 """Synthetic scans written as real files, for the streaming, LAS/LAZ and memory tests: points
 on the walls, floor and ceiling of a box room seen from a scanner inside it (so every point's
 range from the scanner is known), written chunk by chunk as E57 (pye57's libe57 bindings; with
-spherical images and their masks when asked) or LAS/LAZ (laspy), so that files of tens of millions of points never sit in memory whole; and the
-two image helpers several tests share (sRGB encoding, PNG bytes around raw rows)."""
+spherical images and their masks when asked) or LAS/LAZ (laspy), so that files of tens of
+millions of points never sit in memory whole; and the two image helpers several tests share
+(sRGB encoding, PNG bytes around raw rows)."""
 from __future__ import annotations
 
 import struct
