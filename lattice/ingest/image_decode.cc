@@ -156,6 +156,15 @@ absl::StatusOr<MemoryImageInput> OpenImageInMemory(std::string_view bytes, bool 
 
 namespace {
 
+// Integer code `at` of 8-bit (`int8`) or 16-bit native-endian `codes` as a linear share of its
+// full scale, code / 255 or code / 65535: how alpha and mask codes are read (never sRGB).
+float ShareOfCode(const unsigned char* codes, size_t at, bool int8) {
+  if (int8) return float(codes[at]) / 255.0f;
+  uint16_t code;
+  std::memcpy(&code, &codes[2 * at], 2);
+  return float(code) / 65535.0f;
+}
+
 // What DecodeImage checks of a header before it allocates (see ProbeImage).
 absl::Status CheckSpec(const OIIO::ImageSpec& spec, int64_t max_pixels) {
   if (spec.width <= 0 || spec.height <= 0 || spec.nchannels <= 0) {
@@ -250,11 +259,11 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
   auto value_at = [&](size_t at, bool linear) {
     float v;
     if (int8) {
-      v = linear ? float(all[at]) / 255.0f : table[all[at]];
+      v = linear ? ShareOfCode(all.data(), at, true) : table[all[at]];
     } else if (int16) {
       uint16_t code;
       std::memcpy(&code, &all[2 * at], 2);
-      v = linear ? float(code) / 65535.0f : table[code];
+      v = linear ? ShareOfCode(all.data(), at, false) : table[code];
     } else {
       std::memcpy(&v, &all[4 * at], 4);
     }
@@ -322,11 +331,7 @@ absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearIm
   in->close();
   if (int8 || int16) {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16), [&](const tbb::blocked_range<size_t>& r) {
-      for (size_t p = r.begin(); p != r.end(); ++p) {
-        uint16_t code = codes[p];
-        if (int16) std::memcpy(&code, &codes[2 * p], 2);
-        mask[p] = int8 ? float(code) / 255.0f : float(code) / 65535.0f;
-      }
+      for (size_t p = r.begin(); p != r.end(); ++p) mask[p] = ShareOfCode(codes.data(), p, int8);
     });
   }
   const float largest = tbb::parallel_reduce(
