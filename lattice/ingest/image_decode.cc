@@ -257,13 +257,14 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
   // Alpha is a linear share, never sRGB: integer codes over their full scale.
   const bool associated = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0;
   auto value_at = [&](size_t at, bool linear) {
+    if (linear && (int8 || int16)) return ShareOfCode(all.data(), at, int8);
     float v;
     if (int8) {
-      v = linear ? ShareOfCode(all.data(), at, true) : table[all[at]];
+      v = table[all[at]];
     } else if (int16) {
       uint16_t code;
       std::memcpy(&code, &all[2 * at], 2);
-      v = linear ? ShareOfCode(all.data(), at, false) : table[code];
+      v = table[code];
     } else {
       std::memcpy(&v, &all[4 * at], 4);
     }
