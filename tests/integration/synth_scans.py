@@ -231,3 +231,44 @@ def write_las(path: str, world_xyz: np.ndarray, *, intensity: np.ndarray,
             if rgb is not None:
                 record.red, record.green, record.blue = rgb[part, 0], rgb[part, 1], rgb[part, 2]
             writer.write_points(record)
+
+
+def room_grid(rows: int, columns: int, room: Sequence[float] = ROOM) -> np.ndarray:
+    """A structured scan of the room: (columns·rows, 3) sensor-frame points (float64), column
+    after column as a PTX file holds them, the ray of row r and column c at azimuth
+    2π·c/columns and elevation from −80° (row 0) to +80°."""
+    c, r = np.meshgrid(np.arange(columns), np.arange(rows), indexing="ij")
+    az = 2 * np.pi * c.ravel() / columns
+    el = np.radians(-80.0 + 160.0 * r.ravel() / max(rows - 1, 1))
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    with np.errstate(divide="ignore"):
+        tx = room[0] / np.abs(d[:, 0])
+        ty = room[1] / np.abs(d[:, 1])
+        tz = np.where(d[:, 2] < 0, room[2], room[3]) / np.abs(d[:, 2])
+    return d * np.minimum(np.minimum(tx, ty), tz)[:, None]
+
+
+def write_ptx(f, points: np.ndarray, rows: int, columns: int, *, position, axes, transform,
+              intensity: Optional[np.ndarray] = None, rgb: Optional[np.ndarray] = None,
+              newline: str = "\n", column_vectors: bool = False) -> None:
+    """Appends one PTX scan to the open text file `f`: its header (columns, rows, the scanner
+    position, its x, y and z axes as the columns of `axes`, and the 4x4 `transform`, written
+    for row vectors as PTX does, or for column vectors when asked) and `points` (N = rows ×
+    columns, as stored: (0, 0, 0) for no return) with `intensity` in [0, 1] and `rgb` 0..255
+    when given."""
+    t = np.asarray(transform, dtype=np.float64)
+    rows_out = t if column_vectors else t.T
+    lines = [str(columns), str(rows), " ".join(f"{v:.6f}" for v in position)]
+    lines += [" ".join(f"{v:.9f}" for v in np.asarray(axes)[:, i]) for i in range(3)]
+    lines += [" ".join(f"{v:.9f}" if abs(v) < 1e3 else f"{v:.6f}" for v in row)
+              for row in rows_out]
+    f.write(newline.join(lines) + newline)
+    cols = [np.asarray(points, dtype=np.float64)]
+    fmt = ["%.6f"] * 3
+    if intensity is not None:
+        cols.append(np.asarray(intensity, dtype=np.float64)[:, None])
+        fmt.append("%.4f")
+    if rgb is not None:
+        cols.append(np.asarray(rgb, dtype=np.float64))
+        fmt += ["%d"] * 3
+    np.savetxt(f, np.concatenate(cols, axis=1), fmt=" ".join(fmt), newline=newline)

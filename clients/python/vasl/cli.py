@@ -14,7 +14,7 @@ import time
 from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
-from .readers import is_las, read_e57, read_las, read_manifest
+from .readers import is_las, is_ptx, read_e57, read_las, read_manifest, read_ptx
 from .types import CONFIDENCE_FACTORS
 from .types import Pose
 
@@ -119,8 +119,9 @@ def _ingest_summary(r, seconds: float) -> str:
 def _cmd_ingest(client: Client, args) -> int:
     # Read and validate every input before sending any: manifests, E57 files (each of whose
     # scans is ingested with its spherical and pinhole images; images of no scan make a
-    # camera-only scan) and LAS/LAZ files (world coordinates: --pose places the scanner). The
-    # points themselves are read as they are sent, chunk by chunk.
+    # camera-only scan), PTX files (every scan, each with its scanner's pose) and LAS/LAZ files
+    # (world coordinates: --pose places the scanner). The points themselves are read as they
+    # are sent, chunk by chunk.
     pose = Pose.parse(args.pose) if args.pose else None
     las = [p for p in args.manifest if is_las(p)]
     if pose is not None and len(las) > 1:
@@ -157,6 +158,14 @@ def _cmd_ingest(client: Client, args) -> int:
                     args.project, s, divergence_rad=args.divergence_rad,
                     rig=f"e57:{os.path.basename(p)}", progress=bar,
                     request_id=args.request_id)))
+        elif is_ptx(path):  # every scan of the file, each with its own scanner pose
+            for scan in read_ptx(path):
+                for note in scan.notes:
+                    print(f"{path}: {scan.scan}: {note}")
+                jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest(
+                    args.project, scan=s.scan, points=s.points, pose=s.pose,
+                    divergence_rad=args.divergence_rad, rig=f"ptx:{os.path.basename(p)}",
+                    progress=bar, request_id=args.request_id)))
         elif is_las(path):
             points = read_las(path, pose)
             pose_used = True
@@ -731,18 +740,20 @@ def build_parser() -> argparse.ArgumentParser:
     get = psub.add_parser("get", help="show a project")
     get.add_argument("name")
 
-    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57 or LAS/LAZ files")
-    ingest.add_argument("manifest", nargs="+", metavar="MANIFEST.json|SCAN.e57|SCAN.las|SCAN.laz",
-                        help="scan manifest JSON file(s), E57 files (every scan of an E57 file "
-                             "is ingested as a LiDAR scan named after the file) and/or a LAS/LAZ "
-                             "file (one scan named after the file, placed by --pose)")
+    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57, PTX or LAS/LAZ files")
+    ingest.add_argument("manifest", nargs="+",
+                        metavar="MANIFEST.json|SCAN.e57|SCAN.ptx|SCAN.las|SCAN.laz",
+                        help="scan manifest JSON file(s), E57 and PTX files (every scan of the "
+                             "file is ingested as a LiDAR scan named after the file, -<n> when "
+                             "it holds several) and/or a LAS/LAZ file (one scan named after the "
+                             "file, placed by --pose)")
     ingest.add_argument("--pose", metavar="x,y,z[,qx,qy,qz,qw]",
                         help="the scanner's pose in the points' world coordinates: required for "
                              "a LAS/LAZ file (it records no scanner position), and for an E57 "
                              "file of one scan stored in world coordinates without a pose")
     ingest.add_argument("--divergence-rad", type=float, default=0.0003,
-                        help="LiDAR beam divergence for E57 and LAS/LAZ scans (neither records "
-                             "it)")
+                        help="LiDAR beam divergence for E57, PTX and LAS/LAZ scans (none of "
+                             "them records it)")
     ingest.add_argument("--project", required=True)
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")

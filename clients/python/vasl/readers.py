@@ -1,12 +1,12 @@
-"""Readers for what a capture rig leaves on disk: PLY, E57 and LAS/LAZ point clouds and the scan
-manifest.
+"""Readers for what a capture rig leaves on disk: PLY, E57, PTX and LAS/LAZ point clouds and the
+scan manifest.
 
 PLY: ASCII, binary little endian and binary big endian; the ``vertex`` element's ``x, y, z``
 (float or double) and an optional ``intensity`` (any numeric type); other properties and elements
 are ignored. The manifest is the JSON file ``vasl_scene`` writes (documented in README.md); its
 paths are relative to the manifest file.
 
-E57 and LAS/LAZ scans can be far larger than memory (a terrestrial scan holds up to a few hundred
+E57, PTX and LAS/LAZ scans can be far larger than memory (a terrestrial scan holds up to a few hundred
 million points), so their points are a `PointSource`: read chunk by chunk (`CHUNK_POINTS` at a
 time) whenever they are wanted, with everything the ingest header needs (the point count, whether
 there is intensity and colour, the normalisation limits) settled before the first point is sent.
@@ -263,8 +263,9 @@ class Manifest:
     rig: str
     captured_utc: str
     pose: Pose
-    #: absolute path of the PLY, LAS or LAZ file (LAS/LAZ: world coordinates, turned into the
-    #: sensor frame with `pose`); None: a camera-only scan
+    #: absolute path of the PLY, LAS, LAZ or PTX file (LAS/LAZ: world coordinates, turned into
+    #: the sensor frame with `pose`; PTX: one scan, registered by its transform, then the same);
+    #: None: a camera-only scan
     points_path: Optional[str]
     divergence_rad: float
     panoramas: List[PanoramaEntry] = field(default_factory=list)
@@ -1023,3 +1024,295 @@ def read_las(path: str, pose=None) -> LasPoints:
 def is_las(path: str) -> bool:
     """Whether a path names a LAS or LAZ file (by its extension)."""
     return path.lower().endswith((".las", ".laz"))
+
+
+def quaternion_from_matrix(r: np.ndarray) -> Tuple[float, float, float, float]:
+    """The unit quaternion (x, y, z, w) of a 3x3 rotation (Shepperd's method: the largest of
+    w, x, y, z found first, so that no division is by a small number)."""
+    r = np.asarray(r, dtype=np.float64)
+    t = float(np.trace(r))
+    if t > max(r[0, 0], r[1, 1], r[2, 2]):
+        w = math.sqrt(1.0 + t) / 2
+        q = ((r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w),
+             (r[1, 0] - r[0, 1]) / (4 * w), w)
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = math.sqrt(max(1.0 + r[i, i] - r[j, j] - r[k, k], 0.0)) * 2  # 4 |q_i|
+        v = [0.0, 0.0, 0.0]
+        v[i] = s / 4
+        v[j] = (r[j, i] + r[i, j]) / s
+        v[k] = (r[k, i] + r[i, k]) / s
+        q = (v[0], v[1], v[2], (r[k, j] - r[j, k]) / s)
+    n = math.sqrt(sum(c * c for c in q))
+    return tuple(float(c / n) for c in q)
+
+
+#: How far from a rotation a PTX header's 3x3 may be (|RᵀR − I|, |det R − 1|): the files print
+#: six or so decimals.
+_PTX_RIGID_TOL = 1e-3
+#: Bytes read at a time while skipping a PTX scan's lines to find the next one.
+_PTX_SKIP_BLOCK = 1 << 23
+
+
+@dataclass
+class PtxScan:
+    """One scan of a PTX file: its scanner pose in the file's registered frame and its points
+    (a streaming `PtxPoints` in the scanner's frame)."""
+
+    scan: str  #: scan id: the file stem, "-<n>" when the file holds several scans
+    pose: Pose  #: T_world_scanner in the file's registered frame
+    points: "PtxPoints"
+
+    @property
+    def notes(self) -> List[str]:
+        return self.points.notes
+
+
+class PtxPoints(PointSource):
+    """The points of one scan of a PTX file (Leica's structured ASCII format, also written by
+    FARO SCENE, Trimble RealWorks and CloudCompare), read chunk by chunk.
+
+    A PTX scan is a full range grid: `columns` × `rows` lines, column after column, each
+    ``x y z intensity [r g b]``; a cell without a return is ``0 0 0``, which is sent as the
+    scanners' "no return" marker (the server skips it), so the point count is the grid's and
+    each point's row and column are its place in the file. Coordinates are read in float64 and
+    taken through `to_world` (the file's 4x4 transform: x_world = R p + t) and then into the
+    sensor frame of `pose` (p_sensor = Rᵀ(x_world − o)), before they become float32; where the
+    two are one (the usual file), the points are already in the sensor frame and are kept as
+    they are. Intensity is the format's [0, 1] (clipped into it); colour 0..255, linearised
+    (sRGB)."""
+
+    def __init__(self, path: str, where: str, offset: int, first_line: int, rows: int,
+                 columns: int, fields: int, to_world: np.ndarray, pose: Pose):
+        super().__init__()
+        self.path = path
+        self.where = where
+        self.offset = offset  #: byte offset of the scan's first point line
+        self.first_line = first_line  #: its line number (1-based), for errors
+        self.rows, self.columns, self.fields = rows, columns, fields
+        self.count = rows * columns
+        self.has_intensity = fields >= 4
+        self.has_rgb = fields == 7
+        self.grid_shape = (rows, columns)
+        self.to_world = to_world
+        self.pose = pose
+        sensor = np.eye(4)
+        sensor[:3, :3] = rotation_matrix(pose.quaternion_xyzw)
+        sensor[:3, 3] = pose.position_m
+        # The points' frame is the sensor's when the file's transform is the pose: no arithmetic.
+        self.as_stored = bool(np.allclose(to_world, sensor, rtol=0.0, atol=1e-9))
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        import itertools
+
+        r_world, t_world = self.to_world[:3, :3], self.to_world[:3, 3]
+        with open(self.path, "rb") as f:
+            f.seek(self.offset)
+            done = 0
+            while done < self.count:
+                n = min(chunk_points, self.count - done)
+                lines = list(itertools.islice(f, n))
+                values = _parse_numbers(b" ".join(lines))
+                if len(lines) < n or values is None or values.size != n * self.fields:
+                    raise ValueError(self._bad_line(lines, done, n))
+                values = values.reshape(n, self.fields)
+                xyz = values[:, :3]
+                missing = np.all(xyz == 0.0, axis=1)
+                if not self.as_stored:
+                    xyz = world_to_sensor(xyz @ r_world.T + t_world, self.pose)
+                    xyz[missing] = 0.0
+                intensity = rgb = None
+                if self.has_intensity:
+                    intensity = np.clip(values[:, 3], 0.0, 1.0).astype(np.float32)
+                if self.has_rgb:
+                    rgb = srgb_to_linear(np.clip(values[:, 4:7], 0.0, 255.0) / 255.0)
+                cell = np.arange(done, done + n, dtype=np.int64)
+                grid = np.stack([cell % self.rows, cell // self.rows], axis=1).astype(np.uint32)
+                done += n
+                yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity,
+                                 None if rgb is None else rgb.astype(np.float32), grid)
+
+    def _bad_line(self, lines: List[bytes], done: int, n: int) -> str:
+        """What is wrong with a chunk whose numbers do not fill `n` lines of `fields`."""
+        for i, line in enumerate(lines):
+            got = _parse_numbers(line)
+            if got is None or got.size != self.fields or len(line.split()) != self.fields:
+                return (f"{self.where}: line {self.first_line + done + i}: expected "
+                        f"{self.fields} numbers (x y z intensity{' r g b' if self.has_rgb else ''})"
+                        f", got {line.decode('latin-1').strip()[:80]!r}")
+        return (f"{self.where}: the file ends after {done + len(lines)} of the scan's "
+                f"{self.count} points ({self.columns} columns x {self.rows} rows)")
+
+
+def _parse_numbers(text: bytes) -> Optional[np.ndarray]:
+    """The whitespace-separated numbers of `text` as float64 (numpy's C parser); None when a
+    word is not a number."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy < 2.3 warns where later ones raise
+        try:
+            return np.fromstring(text, sep=" ")
+        except (ValueError, DeprecationWarning):
+            return None
+
+
+def _ptx_numbers(line: bytes, count: int, what: str, where: str) -> List[float]:
+    words = line.split()
+    try:
+        values = [float(w) for w in words]
+    except ValueError:
+        values = []
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{where}: expected {what} ({count} numbers), got "
+                         f"{line.decode('latin-1').strip()[:80]!r}")
+    return values
+
+
+def _ptx_rigid(r: np.ndarray) -> bool:
+    return (float(np.abs(r.T @ r - np.eye(3)).max()) <= _PTX_RIGID_TOL
+            and abs(float(np.linalg.det(r)) - 1.0) <= _PTX_RIGID_TOL)
+
+
+def _ptx_transform(rows: List[List[float]], where: str) -> np.ndarray:
+    """The 4x4 of a PTX header as x_world = M[:3, :3] p + M[:3, 3]. PTX writes it for row
+    vectors (x_world = p M: the translation is the last row, the last column 0 0 0 1); a file
+    written the other way (the translation in the last column) is read as written."""
+    m = np.asarray(rows, dtype=np.float64)
+    last_column, last_row = m[:, 3], m[3, :]
+    if np.allclose(last_column, [0, 0, 0, 1], atol=1e-9):
+        m = m.T
+    elif not np.allclose(last_row, [0, 0, 0, 1], atol=1e-9):
+        raise ValueError(f"{where}: the 4x4 transform has neither 0 0 0 1 as its last column "
+                         "nor as its last row: not a rigid transform")
+    if not _ptx_rigid(m[:3, :3]):
+        raise ValueError(f"{where}: the 4x4 transform's rotation is not a rotation (scaled, "
+                         "sheared or mirrored)")
+    return m
+
+
+def _skip_lines(f, n: int) -> int:
+    """Moves `f` past `n` lines (to the start of the next); the lines skipped (fewer at the end
+    of the file, where a last line without its newline counts)."""
+    skipped, open_line = 0, False  # open_line: text after the last newline seen
+    while skipped < n:
+        at = f.tell()
+        block = f.read(_PTX_SKIP_BLOCK)
+        if not block:
+            return skipped + int(open_line)
+        newlines = np.flatnonzero(np.frombuffer(block, dtype=np.uint8) == 10)
+        if skipped + len(newlines) >= n:
+            f.seek(at + int(newlines[n - skipped - 1]) + 1)
+            return n
+        skipped += len(newlines)
+        tail = block[int(newlines[-1]) + 1:] if len(newlines) else block
+        open_line = bool(tail.strip()) or (open_line and not len(newlines))
+    return skipped
+
+
+def read_ptx(path: str, pose=None) -> List[PtxScan]:
+    """Reads every scan of a PTX file: its header and where its points start (the points are
+    streamed from the file when wanted, `PtxPoints`).
+
+    Each scan's header is ten lines: columns, rows, the scanner's registered position, its
+    registered x, y and z axes, and a 4x4 transform of the points into the registered frame.
+    The scanner's pose is the position and axes (where the rays start: visibility needs it);
+    the points are taken through the transform into the registered frame and from there into
+    the scanner's. The usual file has the two equal (points in the scanner's own frame); a file
+    exported with its points already registered has an identity transform; a header whose
+    position and axes are the identity while its transform is not is one that left them out,
+    and the transform is the scanner's pose. `pose` (a manifest's, for a file of one scan)
+    places the scanner instead, in the registered frame. ValueError naming the file and line
+    for a file that is not PTX, a header that is not a rigid pose, a point line without 3, 4 or 7 numbers, or a
+    scan with fewer point lines than its grid has cells."""
+    stem = os.path.splitext(os.path.basename(path))[0]
+    given = None if pose is None else Pose.parse(pose)
+    found = []
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise ValueError(f"{path}: cannot be read: {e.strerror}") from e
+    with f:
+        line_no = 0
+        while True:
+            header, at_line = [], line_no + 1
+            while len(header) < 10:
+                line = f.readline()
+                if not line:
+                    break
+                line_no += 1
+                if line.strip() or header:  # blank lines between scans are skipped
+                    header.append(line)
+            if not header:
+                break
+            where = f"{path}: scan {len(found)} (line {at_line})"
+            if len(header) < 10:
+                raise ValueError(f"{where}: the file ends inside a scan's 10-line header")
+            try:
+                columns, rows = (int(header[i].strip()) for i in (0, 1))
+            except ValueError:
+                raise ValueError(f"{where}: not a PTX scan header (its first two lines are "
+                                 "the column and row counts)") from None
+            if columns < 1 or rows < 1 or columns * rows > MAX_GRID_CELLS:
+                raise ValueError(f"{where}: a {columns} x {rows} grid is out of bounds")
+            position = _ptx_numbers(header[2], 3, "the scanner position", where)
+            axes = np.array([_ptx_numbers(header[3 + i], 3, f"the scanner's {'xyz'[i]} axis",
+                                          where) for i in range(3)]).T  # columns: the axes
+            to_world = _ptx_transform([_ptx_numbers(header[6 + i], 4, "a row of the 4x4 "
+                                                    "transform", where) for i in range(4)],
+                                      where)
+            if not _ptx_rigid(axes):
+                raise ValueError(f"{where}: the scanner's axes are not a rotation")
+            notes = []
+            if np.allclose(axes, np.eye(3), atol=1e-9) and not any(position) \
+                    and not np.allclose(to_world, np.eye(4), atol=1e-9):
+                pose_r, pose_t = to_world[:3, :3], to_world[:3, 3]
+                notes.append("no scanner position in the header: the scanner is where the "
+                             "4x4 transform puts the points' origin")
+            else:
+                pose_r, pose_t = axes, np.asarray(position)
+            pose = Pose.make(pose_t, quaternion_from_matrix(pose_r), where=where)
+            if given is not None:
+                moved = float(np.linalg.norm(np.asarray(given.position_m) - pose_t))
+                if moved > 0.01:
+                    notes.append(f"the scanner placed by the given pose, {moved:.2f} m from "
+                                 "the file's scanner position")
+                pose = given
+            offset, first_line = f.tell(), line_no + 1
+            first = f.readline()
+            fields = len(first.split())
+            if fields not in (3, 4, 7):
+                raise ValueError(f"{where}: line {first_line}: a PTX point is x y z intensity "
+                                 f"[r g b], got {first.decode('latin-1').strip()[:80]!r}")
+            f.seek(offset)
+            got = _skip_lines(f, columns * rows)
+            if got < columns * rows:
+                raise ValueError(f"{where}: the file ends after {got} of the scan's "
+                                 f"{columns * rows} points ({columns} columns x {rows} rows)")
+            line_no += got
+            points = PtxPoints(path, where, offset, first_line, rows, columns, fields,
+                               to_world, pose)
+            if not points.as_stored:
+                if np.allclose(to_world, np.eye(4), atol=1e-9):
+                    notes.append("points stored registered (an identity transform): turned "
+                                 "into the scanner's frame (float64)")
+                else:
+                    notes.append("the 4x4 transform is not the scanner's pose: points taken "
+                                 "through it, then into the scanner's frame (float64)")
+            notes.append(f"range grid {rows} x {columns} (PTX): the server fills the gaps "
+                         "between neighbouring returns on one surface")
+            points.notes.extend(notes)
+            found.append((points, pose))
+    if not found:
+        raise ValueError(f"{path}: holds no PTX scan")
+    if given is not None and len(found) != 1:
+        raise ValueError(f"{path}: a pose places one scanner, but the file holds {len(found)} "
+                         "scans")
+    return [PtxScan(scan=stem if len(found) == 1 else f"{stem}-{i + 1}", pose=pose,
+                    points=points) for i, (points, pose) in enumerate(found)]
+
+
+def is_ptx(path: str) -> bool:
+    """Whether a path names a PTX file (by its extension)."""
+    return path.lower().endswith(".ptx")
