@@ -159,4 +159,13 @@ float SampleCoverage(const LinearImage& img, double u, double v, bool wrap) {
   return a;
 }
 
+float SampleCovered(const LinearImage& img, double u, double v, bool wrap, float* out) {
+  SampleBilinear(img, u, v, wrap, out);
+  const float a = SampleCoverage(img, u, v, wrap);
+  if (a < 1.0f) {
+    for (int c = 0; c < img.channels; ++c) out[c] = a > 0.0f ? out[c] / a : 0.0f;
+  }
+  return a;
+}
+
 }  // namespace vasl::geometry

@@ -82,6 +82,11 @@ void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float
 /// 1 for an image without alpha. A colour read there, divided by it, is the covered part's.
 float SampleCoverage(const LinearImage& img, double u, double v, bool wrap);
 
+/// The covered part's colour at (u, v) into `out` (SampleBilinear's read divided by the
+/// coverage there; zeros where nothing is covered), and that coverage: 1 for an image without
+/// alpha, whose read is SampleBilinear's.
+float SampleCovered(const LinearImage& img, double u, double v, bool wrap, float* out);
+
 /// The coverage a read of an image must have to count (ingest::SampleCamera's records, the
 /// render's colour detail): at least half of it on pixels the image covers.
 inline constexpr float kCoveredAtLeast = 0.5f;

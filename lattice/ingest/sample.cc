@@ -23,6 +23,7 @@ namespace {
 
 using geometry::SampleBilinear;
 using geometry::kCoveredAtLeast;
+using geometry::SampleCovered;
 using geometry::SampleCoverage;
 using records::RecordSet;
 
@@ -187,17 +188,15 @@ RecordSet SampleCamera(const records::VosselGeometry& g, const CameraSource& cam
       std::fill(std::begin(conf), std::end(conf), 1.0f);
       uint8_t flags = 0;
       if (sk_major == 0.0 && sk_minor == 0.0) {
-        SampleBilinear(image, uv.x(), uv.y(), wrap, value);
+        // The covered part's colour; a read mostly uncovered (alpha) is invalid.
+        if (SampleCovered(image, uv.x(), uv.y(), wrap, value) < kCoveredAtLeast) {
+          flags |= records::kFlagInvalidated;
+        }
         conf[records::kConfSaturation] = read(saturation, uv.x(), uv.y());
         conf[records::kConfFlare] = read(flare, uv.x(), uv.y());
         conf[records::kConfCodec] = read(codec, uv.x(), uv.y());
         conf[records::kConfSmear] = read(smear, uv.x(), uv.y());
         if (conf[records::kConfFlare] < kFlareInvalidBelow) flags |= records::kFlagInvalidated;
-        if (!image.alpha.empty()) {  // the covered part's colour; mostly uncovered: invalid
-          const float a = SampleCoverage(image, uv.x(), uv.y(), wrap);
-          if (a < kCoveredAtLeast) flags |= records::kFlagInvalidated;
-          for (int c = 0; c < image.channels; ++c) value[c] = a > 0.0f ? value[c] / a : 0.0f;
-        }
       } else {
         // Major axis: the view direction projected on the tangent plane (§3).
         Eigen::Vector3d t_major = v_hat - v_hat.dot(n) * n;

@@ -524,15 +524,10 @@ bool BlendRecords(const ViewBlendInputs& blend, const records::VosselGeometry& g
         blend.images[size_t(src)].image->channels == 3) {
       const DetailImage& img = blend.images[size_t(src)];
       const std::optional<Eigen::Vector2d> uv = ImagePixel(img, *x_hit);
-      // Where the image covers less than half the read (alpha), the record's own colour.
-      const float covered =
-          uv ? geometry::SampleCoverage(*img.image, uv->x(), uv->y(), img.projection.panorama())
-             : 0.0f;
-      if (uv && covered >= geometry::kCoveredAtLeast) {
-        geometry::SampleBilinear(*img.image, uv->x(), uv->y(), img.projection.panorama(), sample);
-        if (covered < 1.0f) {
-          for (float& c : sample) c /= covered;  // the covered part's colour
-        }
+      // The covered part's colour; where the image covers less than half the read (alpha),
+      // the record's own.
+      if (uv && geometry::SampleCovered(*img.image, uv->x(), uv->y(), img.projection.panorama(),
+                                        sample) >= geometry::kCoveredAtLeast) {
         if (img.correct) {
           const float at[2] = {float(uv->x()), float(uv->y())};
           img.correct(at, sample);
