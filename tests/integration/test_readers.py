@@ -79,6 +79,83 @@ def test_ply_row_and_column_give_the_range_grid(tmp_path):
         read_ply(str(p))
 
 
+def _srgb_to_linear(c):
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def test_ply_colour_and_intensity_come_in_zero_to_one(tmp_path):
+    """Colour (uchar, ushort, float 0..1 or 0..255) is scaled into [0, 1] and linearised;
+    integer intensity over its type's largest value, float intensity outside [0, 1] by the
+    data's range; one in [0, 1] as it is."""
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, 256, size=(50, 3))
+    xyz = rng.uniform(-5, 5, size=(50, 3))
+    cases = [("uchar", "red green blue", codes, codes / 255.0),
+             ("ushort", "r g b", codes * 257, codes / 255.0),
+             ("float", "diffuse_red diffuse_green diffuse_blue", codes / 255.0, codes / 255.0),
+             ("float", "red green blue", codes.astype(float), codes / 255.0)]
+    for ctype, names, values, expected in cases:
+        props = "".join(f"property {ctype} {n}\n" for n in names.split())
+        p = tmp_path / "c.ply"
+        p.write_text("ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\n"
+                     "property float y\nproperty float z\n" + props + "property ushort "
+                     "intensity\nend_header\n"
+                     + "".join(f"{x[0]} {x[1]} {x[2]} {v[0]} {v[1]} {v[2]} {i}\n"
+                               for x, v, i in zip(xyz, values, codes[:, 0] * 257)))
+        cloud = read_ply(str(p))
+        np.testing.assert_allclose(cloud.rgb, _srgb_to_linear(expected), atol=1e-6,
+                                   err_msg=f"{ctype} {names}")
+        np.testing.assert_allclose(cloud.intensity, codes[:, 0] / 255.0, atol=1e-6)
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y"
+                 "\nproperty float z\nproperty float scalar_Intensity\nend_header\n"
+                 "1 0 0 -2048\n0 1 0 0\n0 0 1 2047\n")
+    np.testing.assert_allclose(read_ply(str(p)).intensity, [0.0, 2048 / 4095, 1.0], atol=1e-6)
+    assert read_ply(str(p)).rgb is None
+
+
+def test_coloured_ply_manifest_makes_a_point_colour_source(server, client, tmp_path):
+    """A PLY's colour is a point-colour source (VASL-MODEL §6), as an E57's or LAS file's is:
+    the records of the walls hold the points' colour."""
+    from synth_scans import room_points
+
+    xyz = room_points(60_000, seed=9)
+    colour = np.where(xyz[:, :1] > 0, [[200, 40, 40]], [[40, 40, 200]])  # +x red, -x blue
+    p = tmp_path / "room.ply"
+    rec = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = xyz.T
+    rec["red"], rec["green"], rec["blue"] = colour.T
+    p.write_bytes(f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\n"
+                  "property float x\nproperty float y\nproperty float z\nproperty uchar red\n"
+                  "property uchar green\nproperty uchar blue\nend_header\n".encode()
+                  + rec.tobytes())
+    manifest = tmp_path / "room.json"
+    manifest.write_text(json.dumps({"scan": "room", "pose": {"position": [0, 0, 1.6]},
+                                    "lidar": {"points": "room.ply"}}))
+    client.create_project("ply-colour", vossel_size_m=0.1)
+    client.ingest("ply-colour", str(manifest))
+    scan, = client.list_scans("ply-colour")
+    assert [s.name for s in scan.sources] == ["lidar", "point-colour"]
+    render = client.render("ply-colour", {"position": [0, 0, 1.6]}, 512, 256, formats=("exr",))
+    # Looking along +x (§2.1: the centre column) the wall is red, along -x (the edge) blue.
+    mid, edge = render.rgb[100:156, 250:262], render.rgb[100:156, :6]
+    red, blue = _srgb_to_linear(np.array([200, 40, 40]) / 255), _srgb_to_linear(
+        np.array([40, 40, 200]) / 255)
+    print(f"\nwall at +x {np.nanmedian(mid.reshape(-1, 3), axis=0)}, at -x "
+          f"{np.nanmedian(edge.reshape(-1, 3), axis=0)}; expected {red}, {blue}")
+    np.testing.assert_allclose(np.nanmedian(mid.reshape(-1, 3), axis=0), red, atol=0.01)
+    np.testing.assert_allclose(np.nanmedian(edge.reshape(-1, 3), axis=0), blue, atol=0.01)
+    # Given to the CLI without a manifest, a PLY is refused with the way to send it.
+    from conftest import run_cli
+
+    r = run_cli(server, "ingest", str(p), "--project", "ply-colour", check=False)
+    assert r.returncode == 2 and "records no scanner pose" in r.stderr and "manifest" in r.stderr
+    r = run_cli(server, "ingest", str(tmp_path / "room.ply"), str(manifest), "--project",
+                "ply-colour", check=False)
+    assert r.returncode == 2 and len(client.list_scans("ply-colour")) == 1  # nothing sent
+
+
 def test_manifest_paths_and_validation(tmp_path):
     doc = {"scan": "s1", "rig": "r", "captured_utc": "2026-01-01T00:00:00Z",
            "pose": {"position": [1, 2, 3], "quaternion": [0, 0, 0, 2]},

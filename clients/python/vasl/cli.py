@@ -166,6 +166,10 @@ def _cmd_ingest(client: Client, args) -> int:
                     args.project, scan=s.scan, points=s.points, pose=s.pose,
                     divergence_rad=args.divergence_rad, rig=f"ptx:{os.path.basename(p)}",
                     progress=bar, request_id=args.request_id)))
+        elif path.lower().endswith(".ply"):
+            raise ValueError(f"{path}: a PLY file records no scanner pose: name it in a scan "
+                             "manifest's lidar.points, whose pose places the scanner (README, "
+                             "\"Scan manifest\")")
         elif is_las(path):
             points = read_las(path, pose)
             pose_used = True

@@ -689,8 +689,8 @@ class Client:
             elif m.points_path is not None:
                 cloud = read_ply(m.points_path)
                 points, intensity = cloud.xyz_m, cloud.intensity
-                if cloud.grid is not None:  # row and column properties: the range grid
-                    points, intensity = ArrayPoints(cloud.xyz_m, cloud.intensity,
+                if cloud.grid is not None or cloud.rgb is not None:  # range grid, colour
+                    points, intensity = ArrayPoints(cloud.xyz_m, cloud.intensity, rgb=cloud.rgb,
                                                     grid=cloud.grid), None
             pose, divergence_rad, rig, captured_utc = m.pose, m.divergence_rad, m.rig, m.captured_utc
             panoramas = [{"name": p.name, "image": p.image_path, "pose": p.pose,

@@ -30,6 +30,9 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance")
+#: PLY vertex properties that give a point's colour (the first triple found).
+_COLOUR_NAMES = (("red", "green", "blue"), ("r", "g", "b"),
+                 ("diffuse_red", "diffuse_green", "diffuse_blue"))
 #: PLY vertex properties that give a point's row and column in the scanner's range grid.
 _ROW_NAMES = ("row", "rowindex", "scalar_row")
 _COLUMN_NAMES = ("column", "col", "columnindex", "scalar_column")
@@ -119,7 +122,9 @@ def world_to_sensor(xyz_world: np.ndarray, pose: Pose) -> np.ndarray:
 
 
 def read_ply(path: str) -> PointCloud:
-    """Reads the vertices of a PLY file. ValueError for a malformed or unsupported file."""
+    """Reads the vertices of a PLY file: x, y, z; intensity and colour (red, green, blue) in
+    [0, 1] (see `_ply_unit`), colour then linearised (sRGB); row and column as the range grid.
+    ValueError for a malformed or unsupported file."""
     with open(path, "rb") as f:
         data = f.read()
     end = data.find(b"end_header")
@@ -195,7 +200,14 @@ def read_ply(path: str) -> PointCloud:
         table = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
         col = {n: table[n] for n in prop_names}
     xyz = np.stack([col["x"], col["y"], col["z"]], axis=1).astype(np.float32)
-    intensity = col[intensity_name].astype(np.float32) if intensity_name else None
+    types = {p[0]: p[1] for p in props}
+    intensity = (_ply_unit(col[intensity_name], types[intensity_name]).astype(np.float32)
+                 if intensity_name else None)
+    rgb = None
+    colour_names = _ply_colour_names(prop_names)
+    if colour_names:
+        rgb = srgb_to_linear(np.stack([_ply_unit(col[n], types[n], colour=True)
+                                       for n in colour_names], axis=1)).astype(np.float32)
     grid = None
     row_name = next((p for p in prop_names if p.lower() in _ROW_NAMES), None)
     column_name = next((p for p in prop_names if p.lower() in _COLUMN_NAMES), None)
@@ -208,7 +220,36 @@ def read_ply(path: str) -> PointCloud:
         if shape[0] * shape[1] > MAX_GRID_CELLS:
             raise ValueError(f"{path}: a {shape[0]} x {shape[1]} range grid exceeds 2^32 cells")
         grid = rc.astype(np.uint32)
-    return PointCloud(xyz_m=np.ascontiguousarray(xyz), intensity=intensity, grid=grid)
+    return PointCloud(xyz_m=np.ascontiguousarray(xyz), intensity=intensity, rgb=rgb, grid=grid)
+
+
+def _ply_colour_names(names: Sequence[str]) -> Optional[Tuple[str, str, str]]:
+    """The vertex properties holding a point's red, green and blue, if it has all three."""
+    lower = {n.lower(): n for n in names}
+    for r, g, b in _COLOUR_NAMES:
+        if r in lower and g in lower and b in lower:
+            return lower[r], lower[g], lower[b]
+    return None
+
+
+def _ply_unit(values: np.ndarray, ply_type: str, colour: bool = False) -> np.ndarray:
+    """A PLY intensity or colour channel in [0, 1] (float64): an integer type over its largest
+    value (uchar 255, ushort 65535, ...); floats as they are when they lie in [0, 1], else (a
+    float colour of 0..255, an intensity of another range) colour over 255 or 65535 by its
+    largest value, intensity by the data's min..max."""
+    v = np.asarray(values, dtype=np.float64)
+    kind = np.dtype(_PLY_TYPES[ply_type])
+    if kind.kind in "iu":
+        full = float(np.iinfo(kind).max)
+        return np.clip(v / full, 0.0, 1.0)
+    finite = v[np.isfinite(v)]
+    lo = float(finite.min()) if finite.size else 0.0
+    hi = float(finite.max()) if finite.size else 1.0
+    if lo >= 0.0 and hi <= 1.0:
+        return np.nan_to_num(v, nan=0.0)
+    if colour:
+        return np.clip(np.nan_to_num(v, nan=0.0) / (255.0 if hi <= 255.0 else 65535.0), 0, 1)
+    return np.clip(np.nan_to_num((v - lo) / (hi - lo) if hi > lo else v * 0.0, nan=0.0), 0, 1)
 
 
 PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
@@ -312,8 +353,10 @@ def read_manifest(path: str) -> Manifest:
     with open(path, "r", encoding="utf-8") as f:
         try:
             doc = json.load(f)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}: not valid JSON: {e}") from e
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ValueError(f"{path}: not a scan manifest (JSON): {e}") from e
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: not a scan manifest (a JSON object)")
     base = os.path.dirname(os.path.abspath(path))
 
     def need(obj, key, where):
