@@ -934,11 +934,17 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
                                 "are supported")
         elif kind == "pinhole":
             f, pw, ph = number("focalLength"), number("pixelWidth"), number("pixelHeight")
+            nominal = None
             if f > 0 and pw > 0 and ph > 0:
-                image.pinhole = {"fx_px": f / pw, "fy_px": f / ph,
-                                 "cx_px": number("principalPointX"),
-                                 "cy_px": number("principalPointY"),
-                                 "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0}
+                nominal = {"fx_px": f / pw, "fy_px": f / ph,
+                           "cx_px": number("principalPointX"),
+                           "cy_px": number("principalPointY"),
+                           "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0}
+            lens = _leica_distortion(e57, node, image, nominal, notes)
+            if isinstance(lens, str):
+                problems.append(lens)
+            elif lens is not None or nominal is not None:
+                image.pinhole = lens or nominal
                 if image.pose is not None:  # E57 camera: y up, looking along -z (see E57Image)
                     q = image.pose.quaternion_xyzw
                     turned = _quat_mul((q[0], q[1], q[2], q[3]), (1.0, 0.0, 0.0, 0.0))
@@ -956,6 +962,67 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
         image.notes = notes
         out.append(image)
     return out
+
+
+#: The E57 extension Leica's software writes a pinhole image's calibrated lens in (OpenCV's
+#: model: fx, fy, cx, cy in pixels of a CV_WIDTH x CV_HEIGHT image, k1-k6, p1, p2).
+LEICA_DISTORTION_URI = "http://www.libe57.org/E57_LEICA_Camera_Distortion.txt"
+#: The largest error, in pixels, allowed where a rational lens (k4-k6) is refitted as k1-k3.
+RATIONAL_FIT_MAX_PX = 0.25
+
+
+def _leica_distortion(e57, node, image: "E57Image", nominal: Optional[Dict[str, float]],
+                      notes: List[str]):
+    """A pinhole image's intrinsics from Leica's distortion extension when the image has it
+    (None when not, or when it gives no fx, fy and `nominal`, the E57 pinhole's own, is None;
+    a string: why the image cannot be used). OpenCV's model in the image's
+    pixel axes, which are §2.2's (the E57 camera frame turned 180° about x). Its fx, fy, cx, cy
+    (when given, scaled from CV_WIDTH x CV_HEIGHT to the image's size) replace the nominal
+    focalLength / pixel size; k1-k3, p1, p2 are §2.2's. A rational model (k4-k6 not zero:
+    radial factor (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶)) is refitted as
+    §2.2's polynomial over the image's radii by least squares, and used when it stays within
+    RATIONAL_FIT_MAX_PX of it everywhere (noted), otherwise refused."""
+    imf = e57.image_file
+    prefix = next((imf.extensionsPrefix(i) for i in range(imf.extensionsCount())
+                   if imf.extensionsUri(i) == LEICA_DISTORTION_URI), None)
+    if prefix is None or not node.isDefined(f"{prefix}:distortion"):
+        return None
+    d = node[f"{prefix}:distortion"]
+
+    def cv(key: str) -> float:
+        name = f"{prefix}:CV_{key}"
+        v = _e57_number(d[name]) if d.isDefined(name) else None
+        return float(v) if v is not None and math.isfinite(v) else 0.0
+
+    if not (cv("FX") > 0 and cv("FY") > 0) and nominal is None:
+        return None
+    lens = dict(nominal or {})
+    if cv("FX") > 0 and cv("FY") > 0:
+        sx = image.width / cv("WIDTH") if cv("WIDTH") > 0 else 1.0
+        sy = image.height / cv("HEIGHT") if cv("HEIGHT") > 0 else 1.0
+        lens.update(fx_px=cv("FX") * sx, fy_px=cv("FY") * sy, cx_px=cv("CX") * sx,
+                    cy_px=cv("CY") * sy)
+    lens.update(k1=cv("K1"), k2=cv("K2"), k3=cv("K3"), p1=cv("P1"), p2=cv("P2"))
+    what = "Leica distortion extension: calibrated intrinsics and k1-k3, p1, p2"
+    k456 = (cv("K4"), cv("K5"), cv("K6"))
+    if any(k456):
+        corners = [((u - lens["cx_px"]) / lens["fx_px"], (v - lens["cy_px"]) / lens["fy_px"])
+                   for u in (0, image.width) for v in (0, image.height)]
+        r = np.linspace(0.0, max(math.hypot(*c) for c in corners), 256)[1:]
+        r2 = r * r
+        rational = (1 + lens["k1"] * r2 + lens["k2"] * r2 ** 2 + lens["k3"] * r2 ** 3) / \
+            (1 + k456[0] * r2 + k456[1] * r2 ** 2 + k456[2] * r2 ** 3)
+        basis = np.stack([r * r2, r * r2 ** 2, r * r2 ** 3], axis=1)
+        k, *_ = np.linalg.lstsq(basis, r * (rational - 1), rcond=None)
+        worst = float(np.abs(basis @ k - r * (rational - 1)).max()) * max(lens["fx_px"],
+                                                                             lens["fy_px"])
+        if not worst <= RATIONAL_FIT_MAX_PX:
+            return (f"its Leica lens is rational (k4-k6) and §2.2's k1-k3 fit it only within "
+                    f"{worst:.2g} px (at most {RATIONAL_FIT_MAX_PX} px)")
+        lens.update(k1=float(k[0]), k2=float(k[1]), k3=float(k[2]))
+        what += f"; its rational k4-k6 refitted as k1-k3 within {worst:.2g} px"
+    notes.append(what)
+    return lens
 
 
 def _e57_blob(blob) -> bytes:
