@@ -223,6 +223,10 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.modality = *modality;
     data.angular_resolution_rad = pano.angular_resolution_rad();
     if (pano.has_pinhole() && !pano.visual_reference()) data.pinhole = PinholeFromProto(pano.pinhole());
+    if (pano.has_sphere() && !pano.visual_reference()) {
+      data.sphere = ingest::SphereWindow{pano.sphere().width_px(), pano.sphere().height_px(),
+                                         pano.sphere().left_px(), pano.sphere().top_px()};
+    }
     data.visual_reference = pano.visual_reference();
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());

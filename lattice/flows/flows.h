@@ -78,6 +78,12 @@ std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k
 /// intrinsics (width and height 0) for "pinhole …". DATA_LOSS for any other text.
 absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraText(
     const std::string& camera_text);
+/// A camera's text for an equirect panorama of part of the sphere: "equirect window LEFT TOP"
+/// (the sphere's size is the source's width and height; ProjectionOfCameraText reads it as
+/// equirect) and back: nullopt for any other text, DATA_LOSS for a bad window text.
+std::string SphereCameraText(const ingest::SphereWindow& window);
+absl::StatusOr<std::optional<ingest::SphereWindow>> SphereOfCameraText(
+    const store::SourceInfo& source);
 /// A stored derived source whose image is decoded from its blob on demand. DATA_LOSS for a
 /// camera text or image it cannot read.
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
@@ -126,14 +132,17 @@ void KeepDecodedCamera(const store::SourceInfo& source, int64_t max_image_pixels
                        SourceImageCache* images, ingest::CameraSource& cam,
                        double decode_seconds = 0.0);
 /// A stored camera whose image is decoded from its blob on demand (`load`), its mask applied
-/// (ingest::ApplyMask) when it has one.
+/// (ingest::ApplyMask) when it has one and placed in its sphere (ingest::PlaceInSphere) when it
+/// spans part of it.
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);
-/// What a stored camera's decoded image depends on, as a cache key: its blob, and its mask's.
+/// What a stored camera's decoded image depends on, as a cache key: its blob, its mask's, and
+/// where it lies in its sphere.
 std::string DecodedImageKey(const store::SourceInfo& source);
 /// The bytes a stored camera's decoded image takes, as far as the catalog tells: 3 floats a
-/// pixel, 4 with a mask (its coverage; an image's own alpha is known only once decoded).
+/// pixel, 4 with a mask or a sphere window (its coverage; an image's own alpha is known only
+/// once decoded).
 int64_t DecodedImageBytes(const store::SourceInfo& source);
 
 /// FAILED_PRECONDITION: a camera-only scan (images, no points) sent to a project without

@@ -4,6 +4,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -143,6 +144,21 @@ absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraTex
   return k;
 }
 
+std::string SphereCameraText(const ingest::SphereWindow& window) {
+  return absl::StrFormat("equirect window %d %d", window.left_px, window.top_px);
+}
+
+absl::StatusOr<std::optional<ingest::SphereWindow>> SphereOfCameraText(
+    const store::SourceInfo& src) {
+  std::vector<std::string> f = absl::StrSplit(src.camera, ' ', absl::SkipEmpty());
+  if (f.size() < 2 || f[0] != "equirect" || f[1] != "window") return std::nullopt;
+  ingest::SphereWindow w{src.width_px, src.height_px, 0, 0};
+  if (f.size() != 4 || !absl::SimpleAtoi(f[2], &w.left_px) || !absl::SimpleAtoi(f[3], &w.top_px)) {
+    return absl::DataLossError(absl::StrCat("bad camera text '", src.camera, "'"));
+  }
+  return w;
+}
+
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
                                                   const store::SourceInfo& src, int32_t batch,
                                                   int64_t max_pixels) {
@@ -179,6 +195,10 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
         !k.ok()) {
       return absl::DataLossError(absl::StrCat("source ", src.id, ": ", k.status().message()));
     }
+    absl::StatusOr<std::optional<ingest::SphereWindow>> sphere = SphereOfCameraText(src);
+    if (!sphere.ok()) {
+      return absl::DataLossError(absl::StrCat("source ", src.id, ": ", sphere.status().message()));
+    }
     absl::StatusOr<std::string> bytes = st->ReadBlob(src.blob_sha256);
     if (!bytes.ok()) return bytes.status();
     absl::StatusOr<ingest::LinearImage> image =
@@ -195,19 +215,32 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
             absl::StrCat("stored mask ", src.mask_sha256, ": ", s.message()));
       }
     }
+    if (*sphere) {  // as the ingest placed it (ingest::DecodePanorama)
+      if (absl::Status s = ingest::PlaceInSphere(**sphere, max_pixels, *image); !s.ok()) {
+        return absl::DataLossError(
+            absl::StrCat("stored image ", src.blob_sha256, ": ", s.message()));
+      }
+    }
     return image;
   };
   return cam;
 }
 
 int64_t DecodedImageBytes(const store::SourceInfo& src) {
-  const int64_t floats = src.mask_sha256.empty() ? 3 : 4;
+  const bool opaque =
+      src.mask_sha256.empty() && !absl::StartsWith(src.camera, "equirect window");
+  const int64_t floats = opaque ? 3 : 4;
   return int64_t(src.width_px) * src.height_px * floats * int64_t(sizeof(float));
 }
 
 std::string DecodedImageKey(const store::SourceInfo& src) {
-  return src.mask_sha256.empty() ? src.blob_sha256
-                                 : absl::StrCat(src.blob_sha256, " mask ", src.mask_sha256);
+  std::string key = src.mask_sha256.empty()
+                        ? src.blob_sha256
+                        : absl::StrCat(src.blob_sha256, " mask ", src.mask_sha256);
+  if (absl::StartsWith(src.camera, "equirect window")) {
+    absl::StrAppend(&key, " ", src.camera, " of ", src.width_px, "x", src.height_px);
+  }
+  return key;
 }
 
 absl::StatusOr<std::shared_ptr<const ingest::LidarSource>> LoadedLidar(

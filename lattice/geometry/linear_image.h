@@ -22,6 +22,11 @@ struct BlockCoding {
   int chroma_step_y = 1;                ///< and down (2: 4:2:0)
 };
 
+/// A rectangle of an image's pixels: columns [left, left + width), rows [top, top + height).
+struct ImageWindow {
+  int left_px = 0, top_px = 0, width_px = 0, height_px = 0;
+};
+
 /// A decoded image, row-major, row 0 at the top, linear radiometry.
 struct LinearImage {
   int width_px = 0;
@@ -36,6 +41,9 @@ struct LinearImage {
   float clip_value = 0.0f;     ///< linear value at which the encoding clips (1 for 8/16-bit); 0: none
   /// The block codec that coded it, decoded from 8-bit sRGB codes (a JPEG); null: none.
   std::shared_ptr<const BlockCoding> coding;
+  /// Set when the file decoded is only part of this image (a partial panorama placed in its
+  /// sphere, ingest::PlaceInSphere): where it lies, and where its codec's blocks start.
+  std::optional<ImageWindow> coded_window;
 
   /// Bytes its pixels take.
   std::size_t ByteSize() const { return (pixels.size() + alpha.size()) * sizeof(float); }

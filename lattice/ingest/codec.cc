@@ -164,6 +164,34 @@ double CodecMap::CoveredFraction(int width_px, int height_px) const {
 }
 
 CodecMap DetectCodec(const geometry::LinearImage& image) {
+  if (image.coded_window && image.coding != nullptr) {
+    // A partial panorama placed in its sphere: the codec's blocks start at the file's corner,
+    // so the file's part is taken alone and its map placed back (1 elsewhere).
+    const geometry::ImageWindow& win = *image.coded_window;
+    const size_t C = size_t(std::max(image.channels, 0));
+    geometry::LinearImage part;
+    part.width_px = win.width_px;
+    part.height_px = win.height_px;
+    part.channels = image.channels;
+    part.clip_value = image.clip_value;
+    part.coding = image.coding;
+    part.pixels.resize(size_t(win.width_px) * size_t(win.height_px) * C);
+    for (int j = 0; j < win.height_px; ++j) {
+      std::copy_n(&image.pixels[(size_t(j + win.top_px) * size_t(image.width_px) +
+                                 size_t(win.left_px)) * C],
+                  size_t(win.width_px) * C, &part.pixels[size_t(j) * size_t(win.width_px) * C]);
+    }
+    CodecMap out = DetectCodec(part);
+    if (out.conf.pixels.empty()) return out;
+    geometry::LinearImage conf = internal::ConfidenceOnes(image.width_px, image.height_px);
+    for (int j = 0; j < win.height_px; ++j) {
+      std::copy_n(&out.conf.pixels[size_t(j) * size_t(win.width_px)], size_t(win.width_px),
+                  &conf.pixels[size_t(j + win.top_px) * size_t(image.width_px) +
+                               size_t(win.left_px)]);
+    }
+    out.conf = std::move(conf);
+    return out;
+  }
   CodecMap out;
   const int W = image.width_px, H = image.height_px, C = image.channels;
   if (image.coding == nullptr || W <= 0 || H <= 0 || (C != 1 && C != 3) ||

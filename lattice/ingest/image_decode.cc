@@ -366,4 +366,59 @@ absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearIm
   return absl::OkStatus();
 }
 
+absl::Status CheckSphereWindow(const SphereWindow& window, int width_px, int height_px) {
+  const SphereWindow& w = window;
+  const double aspect = w.height_px > 0 ? double(w.width_px) / w.height_px : 0.0;
+  if (w.width_px <= 0 || w.height_px <= 0 || aspect < 1.95 || aspect > 2.05) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "its sphere is ", w.width_px, "x", w.height_px, ": the whole sphere's panorama spans "
+        "360°×180°, so its width must be twice its height"));
+  }
+  if (w.left_px < 0 || w.top_px < 0 || int64_t(w.left_px) + width_px > w.width_px ||
+      int64_t(w.top_px) + height_px > w.height_px) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the ", width_px, "x", height_px, " image at (", w.left_px, ", ", w.top_px,
+        ") does not lie within its ", w.width_px, "x", w.height_px, " sphere"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status PlaceInSphere(const SphereWindow& window, int64_t max_pixels, LinearImage& image) {
+  if (absl::Status s = CheckSphereWindow(window, image.width_px, image.height_px); !s.ok()) {
+    return s;
+  }
+  const int64_t pixels = int64_t(window.width_px) * window.height_px;
+  if (pixels > max_pixels) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "its ", window.width_px, "x", window.height_px, " sphere has ", pixels,
+        " pixels, above the limit of ", max_pixels));
+  }
+  const int W = window.width_px, H = window.height_px, w = image.width_px, h = image.height_px;
+  if (w == W && h == H) return absl::OkStatus();  // the whole sphere already
+  const size_t C = size_t(image.channels);
+  LinearImage out;
+  out.width_px = W;
+  out.height_px = H;
+  out.channels = image.channels;
+  out.clip_value = image.clip_value;
+  out.coding = image.coding;
+  out.coded_window = geometry::ImageWindow{window.left_px, window.top_px, w, h};
+  memory::AssignOnHugePages(out.pixels, size_t(pixels) * C, 0.0f);
+  memory::AssignOnHugePages(out.alpha, size_t(pixels), 0.0f);
+  tbb::parallel_for(tbb::blocked_range<int>(0, h, 16), [&](const tbb::blocked_range<int>& rows) {
+    for (int j = rows.begin(); j != rows.end(); ++j) {
+      const size_t from = size_t(j) * size_t(w), to = size_t(j + window.top_px) * size_t(W) +
+                                                    size_t(window.left_px);
+      std::copy_n(&image.pixels[from * C], size_t(w) * C, &out.pixels[to * C]);
+      if (image.alpha.empty()) {
+        std::fill_n(&out.alpha[to], size_t(w), 1.0f);
+      } else {
+        std::copy_n(&image.alpha[from], size_t(w), &out.alpha[to]);
+      }
+    }
+  });
+  image = std::move(out);
+  return absl::OkStatus();
+}
+
 }  // namespace vasl::ingest

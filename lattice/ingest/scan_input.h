@@ -26,6 +26,15 @@ struct LidarData {
   std::vector<uint32_t> grid_cell;
 };
 
+/// An equirectangular panorama that spans part of the sphere (a camera without a nadir, an E57
+/// spherical image of less than 360° × 180°): the size of the whole sphere's panorama at the
+/// image's pixel pitch, twice as wide as high, and where the image's top-left pixel lies in it.
+/// The rest of the sphere is uncovered (ingest::PlaceInSphere).
+struct SphereWindow {
+  int width_px = 0, height_px = 0;
+  int left_px = 0, top_px = 0;
+};
+
 /// One image of a scan with its own pose: an equirectangular panorama (§2.1) or, with
 /// `pinhole`, a pinhole photo (§2.2).
 struct PanoramaData {
@@ -42,6 +51,9 @@ struct PanoramaData {
   /// Set: a pinhole photo with these intrinsics (their width and height are ignored: the
   /// image's own size counts); unset: an equirectangular panorama.
   std::optional<geometry::PinholeIntrinsics> pinhole;
+  /// Set: an equirect panorama of part of the sphere, placed there as decoded; unset: the
+  /// image is the whole sphere. Not for a pinhole photo; ignored for a visual reference.
+  std::optional<SphereWindow> sphere;
   /// True: a visual reference, a photo kept with the scan as a blob (provenance) for people to
   /// look at; no projection, no source, no records. Its modality, angular resolution and
   /// pinhole are ignored.

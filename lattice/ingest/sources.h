@@ -16,6 +16,7 @@
 #include "lattice/geometry/linear_image.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/geometry/pose.h"
+#include "lattice/ingest/scan_input.h"
 #include "lattice/records/records.h"
 
 namespace vasl::ingest {
@@ -47,6 +48,17 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
 /// leaves the image as it was. INVALID_ARGUMENT when the mask does not decode or is not the
 /// image's size; RESOURCE_EXHAUSTED above `max_pixels`.
 absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearImage& image);
+
+/// `image` (a decoded panorama of part of the sphere, after its mask) placed at `window` in the
+/// whole sphere's panorama: outside it no colour and no coverage (LinearImage::alpha 0),
+/// inside it the image's own pixels and coverage; `coded_window` says where it lies, so that
+/// the codec's blocks are found where the file had them (DetectCodec). INVALID_ARGUMENT when
+/// it does not fit (CheckSphereWindow); RESOURCE_EXHAUSTED above `max_pixels`.
+absl::Status PlaceInSphere(const SphereWindow& window, int64_t max_pixels, LinearImage& image);
+
+/// Whether an image of `width_px` × `height_px` fits `window`: the sphere twice as wide as high
+/// (within 2.5%) and the image within it. INVALID_ARGUMENT saying why not.
+absl::Status CheckSphereWindow(const SphereWindow& window, int width_px, int height_px);
 
 /// The quantisation tables and chroma subsampling of JPEG bytes (baseline, extended or
 /// progressive DCT with Huffman coding), read from their DQT and SOF markers; null for other

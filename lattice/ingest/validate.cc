@@ -145,18 +145,40 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
       return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
     }
     if (pano.pinhole) {
+      if (pano.sphere) {
+        return bad(what + ": a pinhole photo has no sphere (a sphere window is for an "
+                          "equirectangular panorama that spans part of it)");
+      }
       if (absl::Status s = geometry::ValidatePinhole(*pano.pinhole); !s.ok()) {
         return bad(absl::StrCat(what, ": ", s.message()));
       }
       images.push_back(*image);
       continue;
     }
+    if (pano.sphere) {  // a part of the sphere: the panorama is the whole sphere's
+      if (absl::Status s = CheckSphereWindow(*pano.sphere, image->width_px, image->height_px);
+          !s.ok()) {
+        return bad(absl::StrCat(what, ": ", s.message()));
+      }
+      const int64_t pixels = int64_t(pano.sphere->width_px) * pano.sphere->height_px;
+      if (pixels > limits.max_image_pixels) {
+        return absl::ResourceExhaustedError(absl::StrCat(
+            what, ": its ", pano.sphere->width_px, "x", pano.sphere->height_px, " sphere has ",
+            pixels, " pixels, above the limit of ", limits.max_image_pixels));
+      }
+      ImageHeader sphere = *image;
+      sphere.width_px = pano.sphere->width_px;
+      sphere.height_px = pano.sphere->height_px;
+      images.push_back(sphere);
+      continue;
+    }
     const double aspect = double(image->width_px) / image->height_px;
     if (aspect < 1.95 || aspect > 2.05) {
       return bad(absl::StrCat(what, " is ", image->width_px, "x", image->height_px,
                               ": an equirectangular panorama spans 360°×180°, so its width must "
-                              "be twice its height (give intrinsics for a pinhole photo; pad a "
-                              "panorama that spans less with transparent pixels, alpha 0)"));
+                              "be twice its height (give intrinsics for a pinhole photo; give a "
+                              "panorama that spans less its place in the sphere, or pad it with "
+                              "transparent pixels, alpha 0)"));
     }
     images.push_back(*image);
   }
@@ -175,6 +197,12 @@ absl::StatusOr<LinearImage> DecodePanorama(const ScanInput& scan, size_t index,
   }
   if (!pano.encoded_mask.empty() && !pano.visual_reference) {
     if (absl::Status s = ApplyMask(pano.encoded_mask, max_image_pixels, *image); !s.ok()) {
+      return absl::Status(s.code(), absl::StrCat("scan '", scan.scan_name, "', panorama '",
+                                                 pano.name, "': ", s.message()));
+    }
+  }
+  if (pano.sphere && !pano.visual_reference && !pano.pinhole) {
+    if (absl::Status s = PlaceInSphere(*pano.sphere, max_image_pixels, *image); !s.ok()) {
       return absl::Status(s.code(), absl::StrCat("scan '", scan.scan_name, "', panorama '",
                                                  pano.name, "': ", s.message()));
     }

@@ -10,6 +10,7 @@
 #include <cstring>
 #include <filesystem>
 #include <map>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -127,7 +128,8 @@ struct Ingested {
 // The RGB records of a project holding station 0's LiDAR and `image` (with `mask`) as its
 // panorama, and a render of it from 30 cm beside the camera with colour read from the image.
 Ingested RgbRecords(const fs::path& root, const scenes::SyntheticRoom& room,
-                    const std::string& image, const std::string& mask = "") {
+                    const std::string& image, const std::string& mask = "",
+                    std::optional<ingest::SphereWindow> sphere = std::nullopt) {
   Ingested ingested;
   RecordsByVossel& out = ingested.records;
   fs::remove_all(root);
@@ -145,6 +147,7 @@ Ingested RgbRecords(const fs::path& root, const scenes::SyntheticRoom& room,
   pano.pose = scenes::CameraPoseForStation(room.Stations()[0]);
   pano.encoded_image = image;
   pano.encoded_mask = mask;
+  pano.sphere = sphere;
   scan->panoramas.push_back(pano);
   auto r = (*engine)->IngestScan("p", *scan);
   EXPECT_TRUE(r.ok()) << r.status();
@@ -374,6 +377,105 @@ TEST(AlphaMaskTest, AMaskBesideTheImageIsItsAlpha) {
     ASSERT_FALSE(r.ok());
     EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument) << r.status();
     EXPECT_NE(r.status().message().find("'cam0': its mask"), std::string::npos) << r.status();
+    std::printf("refused: %s\n", std::string(r.status().message()).c_str());
+  }
+  auto st = store::ProjectStore::Open(root / "p");
+  ASSERT_TRUE(st.ok()) << st.status();
+  EXPECT_EQ((*st)->head_version(), 0);
+  fs::remove_all(root);
+}
+
+// A panorama of part of the sphere (a camera without a nadir, an E57 spherical image of less
+// than 360°×180°) sent with its place in the sphere is the whole sphere's panorama with the
+// rest uncovered: the records of the part sent with its window equal, bit for bit, those of
+// the full-size image whose pixels outside the part are transparent (alpha 0).
+TEST(AlphaMaskTest, APartOfTheSphereIsItsPanoramaWithTheRestUncovered) {
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  const scenes::Panorama seen = scenes::RenderPanorama(
+      room, scenes::CameraPoseForStation(room.Stations()[0]), kPanoW, kPanoH, 2);
+  const fs::path root = fs::temp_directory_path() / ("vasl-sphere-" + std::to_string(::getpid()));
+  struct Part {
+    const char* what;
+    int left, top, w, h;
+  };
+  for (const Part& part : {Part{"no nadir: the top 70% of the rows", 0, 0, kPanoW, 179},
+                           Part{"a centred 270°x135° part", 64, 32, 384, 192}}) {
+    std::vector<float> crop(size_t(part.w) * part.h * 3), rgba(size_t(kPanoW) * kPanoH * 4);
+    for (int j = 0; j < kPanoH; ++j) {
+      for (int i = 0; i < kPanoW; ++i) {
+        const size_t p = size_t(j) * kPanoW + size_t(i);
+        const bool inside = i >= part.left && i < part.left + part.w && j >= part.top &&
+                            j < part.top + part.h;
+        for (int c = 0; c < 3; ++c) {
+          rgba[4 * p + size_t(c)] = seen.rgb[3 * p + size_t(c)];
+          if (inside) {
+            crop[(size_t(j - part.top) * size_t(part.w) + size_t(i - part.left)) * 3 +
+                 size_t(c)] = seen.rgb[3 * p + size_t(c)];
+          }
+        }
+        rgba[4 * p + 3] = inside ? 1.0f : 0.0f;
+      }
+    }
+    const RecordsByVossel placed =
+        RgbRecords(root, room, Encode(crop, part.w, part.h, 3, "c.png", OIIO::TypeDesc::UINT8),
+                   "", ingest::SphereWindow{kPanoW, kPanoH, part.left, part.top})
+            .records;
+    const RecordsByVossel padded =
+        RgbRecords(root, room, Encode(rgba, kPanoW, kPanoH, 4, "p.png", OIIO::TypeDesc::UINT8))
+            .records;
+    size_t differ = 0, invalid = 0;
+    for (const auto& [key, r] : padded) {
+      auto it = placed.find(key);
+      if (it == placed.end() || it->second.invalid != r.invalid ||
+          std::memcmp(it->second.v, r.v, sizeof r.v) != 0) {
+        ++differ;
+      }
+      invalid += r.invalid;
+    }
+    std::printf("%s: %zu records, %zu invalidated (outside the part), %zu differ\n", part.what,
+                padded.size(), invalid, differ);
+    ASSERT_GT(padded.size(), 10000u);
+    EXPECT_EQ(placed.size(), padded.size()) << part.what;
+    EXPECT_EQ(differ, 0u) << part.what;
+    EXPECT_GT(invalid, 1000u) << part.what;
+  }
+
+  // Refused, naming the panorama, and nothing stored: a part that does not lie in its sphere,
+  // a sphere that is not 2:1, a sphere for a pinhole photo.
+  fs::remove_all(root);
+  auto engine = Engine::Open(root);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  store::ProjectSettings settings;
+  settings.vossel_size_m = 0.05;
+  ASSERT_TRUE((*engine)->CreateProject("p", settings).ok());
+  auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 0);
+  ASSERT_TRUE(scan.ok()) << scan.status();
+  const std::vector<float> grey(size_t(384) * 192 * 3, 0.5f);
+  ingest::PanoramaData pano;
+  pano.name = "cam0";
+  pano.pose = scenes::CameraPoseForStation(room.Stations()[0]);
+  pano.encoded_image = Encode(grey, 384, 192, 3, "g.png", OIIO::TypeDesc::UINT8);
+  geometry::PinholeIntrinsics k;
+  k.fx_px = k.fy_px = 300.0;
+  k.cx_px = 192.0;
+  k.cy_px = 96.0;
+  const struct {
+    ingest::SphereWindow sphere;
+    bool pinhole;
+    const char* says;
+  } bad[] = {{{512, 256, 200, 0}, false, "does not lie within its 512x256 sphere"},
+             {{512, 512, 0, 0}, false, "width must be twice its height"},
+             {{512, 256, 0, 0}, true, "a pinhole photo has no sphere"}};
+  for (const auto& b : bad) {
+    ingest::ScanInput sent = *scan;
+    pano.sphere = b.sphere;
+    pano.pinhole = b.pinhole ? std::optional<geometry::PinholeIntrinsics>(k) : std::nullopt;
+    sent.panoramas = {pano};
+    auto r = (*engine)->IngestScan("p", sent);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument) << r.status();
+    EXPECT_NE(r.status().message().find("'cam0'"), std::string::npos) << r.status();
+    EXPECT_NE(r.status().message().find(b.says), std::string::npos) << r.status();
     std::printf("refused: %s\n", std::string(r.status().message()).c_str());
   }
   auto st = store::ProjectStore::Open(root / "p");

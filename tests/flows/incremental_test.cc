@@ -236,9 +236,32 @@ void MaskNadir(ingest::PanoramaData& pano, bool beside) {
   (beside ? pano.encoded_mask : pano.encoded_image) = std::string(buffer.begin(), buffer.end());
 }
 
+// `pano`'s image (an 8-bit RGB PNG) cut to its top three quarters, sent as that part of its
+// sphere (a camera without a nadir).
+void KeepTopOfSphere(ingest::PanoramaData& pano) {
+  OIIO::Filesystem::IOMemReader reader(pano.encoded_image.data(), pano.encoded_image.size());
+  OIIO::ImageSpec config;
+  OIIO::Filesystem::IOProxy* proxy = &reader;
+  config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
+  auto in = OIIO::ImageInput::open("in.png", &config);
+  ASSERT_TRUE(in != nullptr) << OIIO::geterror();
+  const int w = in->spec().width, h = in->spec().height, kept = h * 3 / 4;
+  std::vector<uint8_t> rgb(size_t(w) * h * 3);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
+  std::vector<unsigned char> buffer;
+  OIIO::Filesystem::IOVecOutput out_proxy(buffer);
+  auto out = OIIO::ImageOutput::create("out.png", &out_proxy);
+  OIIO::ImageSpec spec(w, kept, 3, OIIO::TypeDesc::UINT8);
+  ASSERT_TRUE(out && out->open("out.png", spec) &&
+              out->write_image(OIIO::TypeDesc::UINT8, rgb.data()) && out->close());
+  pano.encoded_image = std::string(buffer.begin(), buffer.end());
+  pano.sphere = ingest::SphereWindow{w, h, 0, 0};
+}
+
 // Ingests the room's 4 scans one at a time (their points coloured with `point_colour`), then
 // rebuilds: the incremental HEAD is v4, the rebuild v5. `masked`: each panorama with its nadir
-// transparent (MaskNadir), by its alpha at even stations and by a mask beside it at odd ones.
+// transparent (MaskNadir), by its alpha at stations 0, by a mask beside it at 1 and 3, and
+// left out of the image sent as a part of its sphere (KeepTopOfSphere) at 2.
 void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* what,
                            bool range_grid = false, bool masked = false) {
   auto engine = OpenEngine(root);
@@ -251,7 +274,11 @@ void IngestRoomThenRebuild(const fs::path& root, bool point_colour, const char* 
     if (range_grid) scenes::SetRangeGrid(lidar, &scan->lidar);
     if (masked) {
       for (ingest::PanoramaData& pano : scan->panoramas) {
-        ASSERT_NO_FATAL_FAILURE(MaskNadir(pano, /*beside=*/i % 2 == 1));
+        if (i == 2) {
+          ASSERT_NO_FATAL_FAILURE(KeepTopOfSphere(pano));
+        } else {
+          ASSERT_NO_FATAL_FAILURE(MaskNadir(pano, /*beside=*/i % 2 == 1));
+        }
       }
     }
     Ingest(*engine, "room", *scan);
@@ -297,8 +324,8 @@ TEST(IncrementalTest, IngestOfScansWithRangeGridsEqualsRebuild) {
                         "rebuild v5", true);
 }
 
-// Claim (flows.h, sample.h): the same with panoramas whose nadir is transparent (alpha, or a
-// mask beside the image), their coverage read alike on every path (the scan's own cameras,
+// Claim (flows.h, sample.h): the same with panoramas whose nadir is transparent (alpha, a mask
+// beside the image, or an image of part of the sphere), their coverage read alike on every path (the scan's own cameras,
 // revisits through the image cache, the rebuild from the stored image and mask blobs).
 TEST(IncrementalTest, IngestOfMaskedPanoramasEqualsRebuild) {
   IngestRoomThenRebuild(TestRoot("masked"), false, "masked room: incremental v4 vs rebuild v5",

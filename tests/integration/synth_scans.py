@@ -88,9 +88,9 @@ def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
     chunk at a time. Coordinates are scaled integers of `scale_m` within ±`extent_m`, or
     doubles with `scale_m` None; `pose` is (translation, quaternion w x y z) or None (no pose).
     Intensity (limits 0..65535), colour (0..255) and the invalid state are written as asked.
-    `images`: whole 360° x 180° spherical images taken with the scan (images2D), each a dict
-    {name, png (bytes), width, height, pose (as `pose`), and optionally mask (the imageMask's
-    bytes)}."""
+    `images`: spherical images taken with the scan (images2D), each a dict {name, png (bytes),
+    width, height, pose (as `pose`), and optionally mask (the imageMask's bytes) and pixel_rad
+    (the pixels' angle; default: the whole sphere's, 2π / width by π / height)}."""
     import pye57
     from pye57 import libe57
 
@@ -195,8 +195,8 @@ def _write_e57_spherical(imf, scan_guid: str, image: dict) -> None:
     width, height = image["width"], image["height"]
     rep.set("imageWidth", libe57.IntegerNode(imf, width, 0, 1 << 30))
     rep.set("imageHeight", libe57.IntegerNode(imf, height, 0, 1 << 30))
-    rep.set("pixelWidth", libe57.FloatNode(imf, 2 * np.pi / width))
-    rep.set("pixelHeight", libe57.FloatNode(imf, np.pi / height))
+    rep.set("pixelWidth", libe57.FloatNode(imf, image.get("pixel_rad", 2 * np.pi / width)))
+    rep.set("pixelHeight", libe57.FloatNode(imf, image.get("pixel_rad", np.pi / height)))
     blobs = []
     for key in ("pngImage", "imageMask") if image.get("mask") else ("pngImage",):
         data = image["png" if key == "pngImage" else "mask"]

@@ -80,10 +80,14 @@ def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
     np.testing.assert_allclose(sph.pose.position_m, (1.0, 2.0, 3.0))
     np.testing.assert_allclose(sph.pose.quaternion_xyzw, (1 / math.sqrt(1.25), 0, 0,
                                                           0.5 / math.sqrt(1.25)), atol=1e-12)
-    assert "360" in sph.problem  # 100 px of 0.0314 rad: half a panorama
+    # 100 px of 0.0314 rad: half the sphere, sent as that part of it, centred (E57 spherical
+    # images are centred on the camera's x axis).
+    assert sph.problem == "" and sph.sphere == {"width_px": 200, "height_px": 100,
+                                                "left_px": 50, "top_px": 0}
+    assert "part of a 200x100 panorama of the sphere" in sph.notes[1]
     assert "cylindrical images are not supported" in kinds["cylindrical"].problem
     assert "neither a JPEG nor a PNG" in kinds["pinhole"].problem  # this writer's blob is zeros
-    assert [im.kind for im in scan.ingestible_images] == ["visual"]  # a JPEG with no pose
+    assert [im.kind for im in scan.ingestible_images] == ["spherical", "visual"]
     for im in scan.images:
         print(f"\n{im.name} ({im.kind} {im.width}x{im.height}): {im.problem}")
 
@@ -97,7 +101,7 @@ def test_e57_images_are_read_with_their_kind_and_pose_or_a_reason(server):
                        capture_output=True, text=True, timeout=300)
     print(r.stdout)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("not ingested") == 3
+    assert r.stdout.count("not ingested") == 2
     assert "image 'visual' (visual): kept with the scan as a visual reference" in r.stdout
     assert "tiny_pc_and_images: version 1, 2 points" in r.stdout
     from vasl import Client

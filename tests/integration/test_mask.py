@@ -243,3 +243,48 @@ def test_e57_image_mask_is_sent_as_the_mask(client, server, tmp_path):
     print(f"E57 floor under the station: {invalidated} of {len(floor)} camera records "
           "invalidated by the imageMask")
     assert len(floor) >= 100 and invalidated == len(floor)
+
+
+def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
+    """An E57 spherical image of part of the sphere (here 253° x 105° of a 1024 x 512 sphere,
+    centred, as E57 has a spherical image's centre on the camera's x axis) is sent as that part
+    of its sphere (SphereWindow): on the walls at the station's height its records equal, value
+    for value, those of the whole panorama it was cut from; under the station, which it does
+    not reach, they are invalidated. Were the part taken for a whole panorama, or placed off
+    centre, the wall's colours would differ."""
+    whole = _panorama()
+    jj, ii = np.mgrid[0:HEIGHT, 0:WIDTH]
+    linear = np.stack([0.05 + 0.6 * ii / WIDTH, 0.05 + 0.6 * jj / HEIGHT,
+                       0.3 + 0.2 * np.sin(8 * np.pi * ii / WIDTH)], axis=-1)
+    rgb8 = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
+    w, h = 720, 300
+    left, top = (WIDTH - w) // 2, (HEIGHT - h) // 2
+    part = rgb8[top:top + h, left:left + w]
+    part_png = png_bytes(w, h, b"".join(b"\x00" + part[j].tobytes() for j in range(h)))
+    pose = (STATION, (1.0, 0.0, 0.0, 0.0))
+    records = {}
+    for name, png, size in (("whole", whole, (WIDTH, HEIGHT)), ("part", part_png, (w, h))):
+        path = str(tmp_path / f"{name}.e57")
+        write_e57(path, POINTS, room_chunks(POINTS, seed=47), pose=pose,
+                  images=[{"name": "pano", "png": png, "width": size[0], "height": size[1],
+                           "pose": pose, "pixel_rad": np.pi / HEIGHT}])
+        client.create_project(f"sphere-{name}", vossel_size_m=VOSSEL_M)
+        r = run_cli(server, "ingest", "--project", f"sphere-{name}", "--quiet", path)
+        print("\n" + r.stdout.strip())
+        records[name] = {box: _camera_records(client, f"sphere-{name}", box)
+                         for box in (WALL_BOX, FLOOR_BOX)}
+    assert "part of a 1024x512 panorama of the sphere" in r.stdout
+    wall_whole, wall_part = records["whole"][WALL_BOX], records["part"][WALL_BOX]
+    assert len(wall_whole) >= 100 and wall_whole.keys() == wall_part.keys()
+    worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_part[k]["value"]))))
+                for k in wall_whole)
+    floor = records["part"][FLOOR_BOX]
+    invalidated = sum(r["invalidated"] for r in floor.values())
+    print(f"wall at the station's height: {len(wall_part)} camera records, max |Δ| {worst} "
+          f"against the whole panorama's; floor under the station: {invalidated} of "
+          f"{len(floor)} invalidated (the part does not reach it), "
+          f"{sum(r['invalidated'] for r in records['whole'][FLOOR_BOX].values())} with the whole")
+    assert worst == 0.0
+    assert not any(r["invalidated"] for r in wall_part.values())
+    assert len(floor) >= 100 and invalidated == len(floor)
+    assert not any(r["invalidated"] for r in records["whole"][FLOOR_BOX].values())

@@ -216,6 +216,28 @@ def test_manifest_mask_is_a_file_relative_to_the_manifest(tmp_path):
             read_manifest(str(path))
 
 
+def test_manifest_sphere_places_a_partial_panorama(tmp_path):
+    """`panoramas[].sphere`: the whole sphere's size and the image's place in it, whole numbers
+    (left and top default to 0); anything else is a ValueError naming the field."""
+    pose = {"position": [0, 0, 1], "quaternion": [0, 0, 0, 1]}
+    cam = {"name": "cam0", "image": "cam0.jpg", "pose": pose,
+           "sphere": {"width_px": 8192, "height_px": 4096, "top_px": 0}}
+    path = tmp_path / "s1.json"
+    path.write_text(json.dumps({"scan": "s1", "pose": pose, "panoramas": [cam]}))
+    assert read_manifest(str(path)).panoramas[0].sphere == {
+        "width_px": 8192, "height_px": 4096, "left_px": 0, "top_px": 0}
+    for bad, match in [({"width_px": 8192}, r"panoramas\[0\]\.sphere\.height_px"),
+                       ({"width_px": 8192, "height_px": 4096.5}, "whole number"),
+                       ({"width_px": 8192, "height_px": 4096, "left_px": -1}, "left_px"),
+                       ({"width_px": 0, "height_px": 4096}, "must be > 0"),
+                       ({"width_px": 8192, "height_px": 4096, "x": 1}, "unknown field"),
+                       ([8192, 4096], "expected an object")]:
+        path.write_text(json.dumps({"scan": "s1", "pose": pose,
+                                    "panoramas": [{**cam, "sphere": bad}]}))
+        with pytest.raises(ValueError, match=match):
+            read_manifest(str(path))
+
+
 def test_pose_parse_forms():
     assert Pose.parse("1,2,3").quaternion_xyzw == (0.0, 0.0, 0.0, 1.0)
     assert Pose.parse([1, 2, 3, 0, 0, 1, 0]).quaternion_xyzw == (0.0, 0.0, 1.0, 0.0)

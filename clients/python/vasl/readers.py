@@ -279,6 +279,31 @@ def pinhole_from_json(obj, where: str) -> Dict[str, float]:
     return out
 
 
+SPHERE_KEYS = ("width_px", "height_px", "left_px", "top_px")
+
+
+def sphere_from_json(obj, where: str) -> Dict[str, int]:
+    """Where an equirect panorama of part of the sphere lies in the whole sphere's panorama
+    (at the image's pixel pitch, twice as wide as high): {width_px, height_px} of the sphere
+    and {left_px, top_px} of the image's top-left pixel in it, whole numbers. ValueError naming
+    the field (the server checks that the image lies within it)."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object with {', '.join(SPHERE_KEYS)}")
+    unknown = sorted(set(obj) - set(SPHERE_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
+                         f"expected {', '.join(SPHERE_KEYS)}")
+    out = {}
+    for key in SPHERE_KEYS:
+        value = obj.get(key, 0 if key in ("left_px", "top_px") else None)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{where}.{key}: expected a whole number >= 0, got {value!r}")
+        out[key] = value
+    if out["width_px"] <= 0 or out["height_px"] <= 0:
+        raise ValueError(f"{where}: width_px and height_px must be > 0")
+    return out
+
+
 @dataclass
 class PanoramaEntry:
     """One image of a manifest: an equirect panorama, or a pinhole photo with `pinhole`."""
@@ -293,6 +318,9 @@ class PanoramaEntry:
     visual_reference: bool = False
     #: absolute path of the image's mask (the share of each pixel the camera reports); None: none
     mask_path: Optional[str] = None
+    #: an equirect panorama of part of the sphere: where it lies in the whole sphere's
+    #: (SPHERE_KEYS); None: the image is the whole sphere
+    sphere: Optional[Dict[str, int]] = None
 
 
 @dataclass
@@ -398,6 +426,8 @@ def read_manifest(path: str) -> Manifest:
                      if "pinhole" in p else None),
             visual_reference=reference,
             mask_path=mask,
+            sphere=(sphere_from_json(p["sphere"], f"{path}: panoramas[{i}].sphere")
+                    if p.get("sphere") is not None else None),
         ))
     return Manifest(
         path=os.path.abspath(path),
@@ -431,6 +461,9 @@ class E57Image:
     #: a camera image's imageMask (a PNG: the pixels with valid data, as the share of each
     #: pixel the camera reports), sent as its mask; b"": none
     mask: bytes = b""
+    #: a spherical image of part of the sphere: where it lies in the whole sphere's panorama
+    #: (sphere_from_json's keys); None: the whole sphere, or not spherical
+    sphere: Optional[Dict[str, int]] = None
 
 
 @dataclass
@@ -926,12 +959,17 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
         if kind == "cylindrical":
             problems.append("cylindrical images are not supported (only spherical and pinhole)")
         elif kind == "spherical":
-            span_w = image.width * number("pixelWidth")
-            span_h = image.height * number("pixelHeight")
-            if abs(span_w - 2 * math.pi) > 0.02 * 2 * math.pi or abs(span_h - math.pi) > 0.02 * math.pi:
-                problems.append(f"the spherical image spans {math.degrees(span_w):.0f}° x "
-                                f"{math.degrees(span_h):.0f}°; only whole 360° x 180° panoramas "
-                                "are supported")
+            place = _e57_sphere(image.width, image.height, number("pixelWidth"),
+                                number("pixelHeight"))
+            if isinstance(place, str):
+                problems.append(place)
+            elif place is not None:
+                image.sphere = place
+                notes.append(
+                    f"spans {math.degrees(image.width * number('pixelWidth')):.0f}° x "
+                    f"{math.degrees(image.height * number('pixelHeight')):.0f}°: sent as that "
+                    f"part of a {place['width_px']}x{place['height_px']} panorama of the "
+                    "sphere, centred on the camera's x axis, the rest uncovered")
         elif kind == "pinhole":
             f, pw, ph = number("focalLength"), number("pixelWidth"), number("pixelHeight")
             nominal = None
@@ -1023,6 +1061,31 @@ def _leica_distortion(e57, node, image: "E57Image", nominal: Optional[Dict[str, 
         what += f"; its rational k4-k6 refitted as k1-k3 within {worst:.2g} px"
     notes.append(what)
     return lens
+
+
+def _e57_sphere(width: int, height: int, pixel_width: float, pixel_height: float):
+    """Where an E57 spherical image lies in the whole sphere's panorama: None when it is the
+    whole sphere (360° x 180° within 2%); else the sphere at its pixel pitch (π / pixelHeight
+    rows, twice as many columns, which must match 2π / pixelWidth within 2%) with the image
+    centred in it (E57 gives a spherical image no offset: its centre is the camera's x axis,
+    azimuth and elevation 0, as in a whole one; §2.1); a string saying why it cannot be."""
+    if not (pixel_width > 0 and pixel_height > 0 and width > 0 and height > 0):
+        return "pixelWidth and pixelHeight must be > 0"
+    span_w, span_h = width * pixel_width, height * pixel_height
+    if abs(span_w - 2 * math.pi) <= 0.02 * 2 * math.pi and \
+            abs(span_h - math.pi) <= 0.02 * math.pi:
+        return None
+    rows = int(round(math.pi / pixel_height))
+    columns = 2 * rows
+    if abs(columns * pixel_width - 2 * math.pi) > 0.02 * 2 * math.pi:
+        return (f"its pixels are {math.degrees(pixel_width) * 3600:.0f}\" wide and "
+                f"{math.degrees(pixel_height) * 3600:.0f}\" high: an equirect panorama of part "
+                "of the sphere needs square pixels")
+    if width > columns or height > rows:
+        return (f"the spherical image spans {math.degrees(span_w):.0f}° x "
+                f"{math.degrees(span_h):.0f}°, more than the sphere")
+    return {"width_px": columns, "height_px": rows, "left_px": (columns - width) // 2,
+            "top_px": (rows - height) // 2}
 
 
 def _e57_blob(blob) -> bytes:
