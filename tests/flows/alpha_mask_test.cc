@@ -22,6 +22,7 @@
 
 #include "lattice/engine.h"
 #include "lattice/geometry/linear_image.h"
+#include "lattice/ingest/artefacts.h"
 #include "lattice/ingest/sources.h"
 #include "lattice/render/render.h"
 #include "lattice/store/project_store.h"
@@ -482,6 +483,67 @@ TEST(AlphaMaskTest, APartOfTheSphereIsItsPanoramaWithTheRestUncovered) {
   ASSERT_TRUE(st.ok()) << st.status();
   EXPECT_EQ((*st)->head_version(), 0);
   fs::remove_all(root);
+}
+
+// A JPEG panorama of part of the sphere keeps its codec's blocks where the file had them: the
+// §9 codec map of the image placed in its sphere is, inside the part, the map of the part
+// decoded alone (bit for bit), and 1 outside it; read from the placed image's corner instead,
+// the blocks would be misaligned (the part starts 3 and 5 pixels off the 8-pixel grid).
+TEST(AlphaMaskTest, APlacedJpegKeepsItsCodecBlocks) {
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  const scenes::Panorama seen = scenes::RenderPanorama(
+      room, scenes::CameraPoseForStation(room.Stations()[0]), kPanoW, kPanoH, 2);
+  const int w = 400, h = 200, left = 59, top = 29;
+  std::vector<float> crop(size_t(w) * h * 3);
+  for (int j = 0; j < h; ++j) {
+    for (int i = 0; i < w * 3; ++i) {
+      crop[size_t(j) * w * 3 + size_t(i)] =
+          seen.rgb[(size_t(j + top) * kPanoW + size_t(left)) * 3 + size_t(i)];
+    }
+  }
+  const std::string jpeg = Encode(crop, w, h, 3, "part.jpg", OIIO::TypeDesc::UINT8);
+  absl::StatusOr<geometry::LinearImage> part = ingest::DecodeImage(jpeg, false, 1 << 24);
+  ASSERT_TRUE(part.ok()) << part.status();
+  ASSERT_NE(part->coding, nullptr);
+  const ingest::CodecMap alone = ingest::DetectCodec(*part);
+  ASSERT_TRUE(alone.jpeg);
+  ASSERT_GT(alone.soft_pixels, 0) << "the test needs a JPEG whose coding left artefacts";
+  geometry::LinearImage placed = *part;
+  ASSERT_TRUE(
+      ingest::PlaceInSphere(ingest::SphereWindow{kPanoW, kPanoH, left, top}, 1 << 24, placed)
+          .ok());
+  const ingest::CodecMap in_sphere = ingest::DetectCodec(placed);
+  ASSERT_EQ(in_sphere.conf.pixels.size(), size_t(kPanoW) * kPanoH);
+  size_t differ = 0, outside_not_one = 0;
+  for (int j = 0; j < kPanoH; ++j) {
+    for (int i = 0; i < kPanoW; ++i) {
+      const float v = in_sphere.conf.pixels[size_t(j) * kPanoW + size_t(i)];
+      if (i >= left && i < left + w && j >= top && j < top + h) {
+        differ += v != alone.conf.pixels[size_t(j - top) * w + size_t(i - left)];
+      } else {
+        outside_not_one += v != 1.0f;
+      }
+    }
+  }
+  geometry::LinearImage misread = placed;
+  misread.coded_window.reset();  // blocks from the placed image's corner
+  const ingest::CodecMap misaligned = ingest::DetectCodec(misread);
+  size_t moved = 0;
+  for (int j = 0; j < h; ++j) {
+    for (int i = 0; i < w; ++i) {
+      moved += misaligned.conf.pixels[size_t(j + top) * kPanoW + size_t(i + left)] !=
+               alone.conf.pixels[size_t(j) * w + size_t(i)];
+    }
+  }
+  std::printf("codec map of a %dx%d JPEG part at (%d, %d): %lld soft pixels alone, %lld placed; "
+              "%zu differ inside, %zu not 1 outside; read from the sphere's corner, %zu "
+              "differ\n",
+              w, h, left, top, (long long)alone.soft_pixels, (long long)in_sphere.soft_pixels,
+              differ, outside_not_one, moved);
+  EXPECT_EQ(differ, 0u);
+  EXPECT_EQ(outside_not_one, 0u);
+  EXPECT_EQ(in_sphere.soft_pixels, alone.soft_pixels);
+  EXPECT_GT(moved, size_t(alone.soft_pixels) / 10);
 }
 
 }  // namespace
