@@ -14,7 +14,8 @@ import time
 from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
-from .readers import is_las, is_ptx, read_e57, read_las, read_manifest, read_ptx
+from .readers import (is_ascii_cloud, is_las, is_ptx, read_ascii_cloud, read_e57, read_las,
+                      read_manifest, read_ptx)
 from .types import CONFIDENCE_FACTORS
 from .types import Pose
 
@@ -123,10 +124,11 @@ def _cmd_ingest(client: Client, args) -> int:
     # (world coordinates: --pose places the scanner). The points themselves are read as they
     # are sent, chunk by chunk.
     pose = Pose.parse(args.pose) if args.pose else None
-    las = [p for p in args.manifest if is_las(p)]
+    las = [p for p in args.manifest if is_las(p) or is_ascii_cloud(p)]  # world coordinates
     if pose is not None and len(las) > 1:
-        raise ValueError(f"--pose places one scanner, but {len(las)} LAS/LAZ files were given: "
-                         "ingest them one at a time, or give each a manifest with its pose")
+        raise ValueError(f"--pose places one scanner, but {len(las)} LAS/LAZ or ASCII point "
+                         "cloud files were given: ingest them one at a time, or give each a "
+                         "manifest with its pose")
     e57 = [p for p in args.manifest if p.lower().endswith(".e57")]
     if pose is not None and not las and len(e57) > 1:
         raise ValueError(f"--pose places one scanner, but {len(e57)} E57 files were given")
@@ -170,21 +172,23 @@ def _cmd_ingest(client: Client, args) -> int:
             raise ValueError(f"{path}: a PLY file records no scanner pose: name it in a scan "
                              "manifest's lidar.points, whose pose places the scanner (README, "
                              "\"Scan manifest\")")
-        elif is_las(path):
-            points = read_las(path, pose)
+        elif is_las(path) or is_ascii_cloud(path):
+            points = read_las(path, pose) if is_las(path) else read_ascii_cloud(path, pose)
             pose_used = True
             name = os.path.splitext(os.path.basename(path))[0]
             for note in points.notes:
                 print(f"{path}: {note}")
             jobs.append((name, lambda bar, n=name, s=points, p=path: client.ingest(
                 args.project, scan=n, points=s, pose=s.pose, divergence_rad=args.divergence_rad,
-                rig=f"las:{os.path.basename(p)}", progress=bar, request_id=args.request_id)))
+                rig=f"{'las' if is_las(p) else 'ascii'}:{os.path.basename(p)}", progress=bar,
+                request_id=args.request_id)))
         else:
             m = read_manifest(path)
             jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar,
                                                                 request_id=args.request_id)))
     if pose is not None and not pose_used:
-        raise ValueError("--pose is for LAS/LAZ files and E57 scans stored without a pose; a "
+        raise ValueError("--pose is for LAS/LAZ files, ASCII point clouds and E57 scans stored "
+                         "without a pose; a "
                          "manifest gives its scan's pose itself")
     if args.request_id and len(jobs) != 1:
         raise ValueError(f"--request-id names one change, but {len(jobs)} scans were given")
@@ -744,20 +748,24 @@ def build_parser() -> argparse.ArgumentParser:
     get = psub.add_parser("get", help="show a project")
     get.add_argument("name")
 
-    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57, PTX or LAS/LAZ files")
+    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57, PTX, LAS/LAZ or ASCII "
+                                           "point cloud files")
     ingest.add_argument("manifest", nargs="+",
-                        metavar="MANIFEST.json|SCAN.e57|SCAN.ptx|SCAN.las|SCAN.laz",
+                        metavar="MANIFEST.json|SCAN.e57|SCAN.ptx|SCAN.las|SCAN.laz|SCAN.pts",
                         help="scan manifest JSON file(s), E57 and PTX files (every scan of the "
                              "file is ingested as a LiDAR scan named after the file, -<n> when "
-                             "it holds several) and/or a LAS/LAZ file (one scan named after the "
-                             "file, placed by --pose)")
+                             "it holds several) and/or a LAS/LAZ file or an ASCII point cloud "
+                             "(.pts, .xyz, .txt, .asc, .csv: x y z [intensity] [r g b] a line) "
+                             "in world coordinates (one scan named after the file, placed by "
+                             "--pose)")
     ingest.add_argument("--pose", metavar="x,y,z[,qx,qy,qz,qw]",
                         help="the scanner's pose in the points' world coordinates: required for "
-                             "a LAS/LAZ file (it records no scanner position), and for an E57 "
-                             "file of one scan stored in world coordinates without a pose")
+                             "a LAS/LAZ file or an ASCII point cloud (neither records a scanner "
+                             "position), and for an E57 file of one scan stored in world "
+                             "coordinates without a pose")
     ingest.add_argument("--divergence-rad", type=float, default=0.0003,
-                        help="LiDAR beam divergence for E57, PTX and LAS/LAZ scans (none of "
-                             "them records it)")
+                        help="LiDAR beam divergence for E57, PTX, LAS/LAZ and ASCII scans (none "
+                             "of them records it)")
     ingest.add_argument("--project", required=True)
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")

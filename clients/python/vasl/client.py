@@ -18,9 +18,9 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
-from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_las, is_ptx,
-                      pinhole_from_json, read_e57, read_las, read_manifest, read_ply, read_ptx,
-                      sphere_from_json)
+from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_ascii_cloud,
+                      is_las, is_ptx, pinhole_from_json, read_ascii_cloud, read_e57, read_las,
+                      read_manifest, read_ply, read_ptx, sphere_from_json)
 from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, CameraConfidence,
                     ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult,
                     LensEstimate, LensMap, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
@@ -689,6 +689,8 @@ class Client:
             points, intensity = None, None
             if m.points_path is not None and is_las(m.points_path):  # world coordinates
                 points = read_las(m.points_path, m.pose)
+            elif m.points_path is not None and is_ascii_cloud(m.points_path):
+                points = read_ascii_cloud(m.points_path, m.pose)
             elif m.points_path is not None and is_ptx(m.points_path):
                 points = read_ptx(m.points_path, pose=m.pose)[0].points
             elif m.points_path is not None:

@@ -1,12 +1,12 @@
-"""Readers for what a capture rig leaves on disk: PLY, E57, PTX and LAS/LAZ point clouds and the
-scan manifest.
+"""Readers for what a capture rig leaves on disk: PLY, E57, PTX, LAS/LAZ and ASCII (PTS, XYZ,
+CSV) point clouds and the scan manifest.
 
 PLY: ASCII, binary little endian and binary big endian; the ``vertex`` element's ``x, y, z``
 (float or double) and an optional ``intensity`` (any numeric type); other properties and elements
 are ignored. The manifest is the JSON file ``vasl_scene`` writes (documented in README.md); its
 paths are relative to the manifest file.
 
-E57, PTX and LAS/LAZ scans can be far larger than memory (a terrestrial scan holds up to a few hundred
+E57, PTX, LAS/LAZ and ASCII scans can be far larger than memory (a terrestrial scan holds up to a few hundred
 million points), so their points are a `PointSource`: read chunk by chunk (`CHUNK_POINTS` at a
 time) whenever they are wanted, with everything the ingest header needs (the point count, whether
 there is intensity and colour, the normalisation limits) settled before the first point is sent.
@@ -332,8 +332,9 @@ class Manifest:
     rig: str
     captured_utc: str
     pose: Pose
-    #: absolute path of the PLY, LAS, LAZ or PTX file (LAS/LAZ: world coordinates, turned into
-    #: the sensor frame with `pose`; PTX: one scan, registered by its transform, then the same);
+    #: absolute path of the PLY, LAS, LAZ, PTX or ASCII file (LAS/LAZ and ASCII: world
+    #: coordinates, turned into the sensor frame with `pose`; PTX: one scan, registered by its
+    #: transform, then the same);
     #: None: a camera-only scan
     points_path: Optional[str]
     divergence_rad: float
@@ -1489,3 +1490,148 @@ def read_ptx(path: str, pose=None) -> List[PtxScan]:
 def is_ptx(path: str) -> bool:
     """Whether a path names a PTX file (by its extension)."""
     return path.lower().endswith(".ptx")
+
+
+#: Extensions of the ASCII point clouds `read_ascii_cloud` reads (one point per line).
+ASCII_CLOUD_EXTENSIONS = (".pts", ".xyz", ".txt", ".asc", ".csv")
+
+
+class AsciiPoints(PointSource):
+    """The points of an ASCII point cloud (Leica PTS, XYZ, CSV: one point a line, x y z then
+    optionally intensity and/or r g b, separated by spaces, tabs, commas or semicolons), read
+    chunk by chunk. Such a file holds world coordinates and no scanner position, so a scan
+    needs the scanner's pose `pose`, as a LAS file does: each chunk's coordinates go into the
+    sensor frame, p = Rᵀ(x − o), in float64 before they become float32.
+
+    Columns: 3 (x y z), 4 (x y z intensity), 6 (x y z r g b) or 7 (x y z intensity r g b), the
+    same on every line. A line that holds one whole number alone is a count (PTS writes one
+    before each block of points) and is skipped, as is a first line that is not numbers (a
+    CSV header). Intensity is scaled into [0, 1] by what the first pass over the file finds:
+    kept in [0, 1]; Leica PTS's −2048..2047 as (i + 2048) / 4095; 0..255 over 255; 0..65535
+    over 65535; any other range by its min..max (noted). Colour 0..255, or 0..1 when no value
+    exceeds 1, taken as sRGB and linearised."""
+
+    def __init__(self, path: str, pose: Pose):
+        super().__init__()
+        self.path = path
+        self.pose = pose
+        self.fields = 0
+        self._survey()
+
+    def _lines(self, chunk_points: int) -> Iterator[Tuple[int, List[bytes]]]:
+        """(line number of the first, lines) of points, `chunk_points` at a time, counts and
+        a header skipped."""
+        import itertools
+
+        with open(self.path, "rb") as f:
+            line_no = 0
+            first = True
+            while True:
+                raw = list(itertools.islice(f, chunk_points))
+                if not raw:
+                    return
+                start = line_no + 1
+                line_no += len(raw)
+                kept = []
+                for i, line in enumerate(raw):
+                    words = line.replace(b",", b" ").replace(b";", b" ").split()
+                    if not words:
+                        continue
+                    if len(words) == 1 and words[0].isdigit():
+                        continue  # a PTS count line
+                    if first:
+                        first = False
+                        if _parse_numbers(b" ".join(words)) is None:
+                            continue  # a header line (X,Y,Z,...)
+                    kept.append(line.replace(b",", b" ").replace(b";", b" "))
+                if kept:
+                    yield start, kept
+
+    def _table(self, start: int, lines: List[bytes]) -> np.ndarray:
+        values = _parse_numbers(b" ".join(lines))
+        if values is None or values.size != len(lines) * self.fields:
+            for i, line in enumerate(lines):
+                got = _parse_numbers(line)
+                if got is None or got.size != self.fields:
+                    raise ValueError(f"{self.path}: a line holds "
+                                     f"{'words that are not numbers' if got is None else got.size}"
+                                     f" where the first point line has {self.fields} numbers: "
+                                     f"{line.decode('latin-1').strip()[:80]!r}")
+            raise ValueError(f"{self.path}: near line {start}: lines of different lengths")
+        return values.reshape(len(lines), self.fields)
+
+    def _survey(self) -> None:
+        """One pass over the file: the column count, the point count and the ranges that
+        settle the scaling."""
+        count, lo, hi, top = 0, math.inf, -math.inf, 0.0
+        for start, lines in self._lines(CHUNK_POINTS):
+            if not self.fields:
+                self.fields = len(lines[0].split())
+                if self.fields not in (3, 4, 6, 7):
+                    raise ValueError(f"{self.path}: a point line has {self.fields} numbers; "
+                                     "expected x y z [intensity] [r g b] (3, 4, 6 or 7)")
+            t = self._table(start, lines)
+            if not np.all(np.isfinite(t[:, :3])):
+                raise ValueError(f"{self.path}: near line {start}: a coordinate is not finite")
+            count += len(t)
+            if self.fields in (4, 7):
+                lo, hi = min(lo, float(t[:, 3].min())), max(hi, float(t[:, 3].max()))
+            if self.fields in (6, 7):
+                top = max(top, float(t[:, -3:].max()))
+        if count == 0:
+            raise ValueError(f"{self.path}: holds no point")
+        self.count = count
+        self.has_intensity = self.fields in (4, 7)
+        self.has_rgb = self.fields in (6, 7)
+        self.intensity_scale = (0.0, 1.0)  # i → (i − a) / b
+        if self.has_intensity:
+            if lo >= 0.0 and hi <= 1.0:
+                what = "intensity in [0, 1], kept"
+            elif lo >= -2048.0 and hi <= 2047.0 and lo < 0.0:
+                self.intensity_scale, what = (-2048.0, 4095.0), \
+                    "intensity -2048..2047 (Leica PTS): (i + 2048) / 4095"
+            elif lo >= 0.0 and hi <= 255.0:
+                self.intensity_scale, what = (0.0, 255.0), "intensity 0..255: over 255"
+            elif lo >= 0.0 and hi <= 65535.0:
+                self.intensity_scale, what = (0.0, 65535.0), "intensity 0..65535: over 65535"
+            else:
+                self.intensity_scale = (lo, hi - lo if hi > lo else 1.0)
+                what = f"intensity scaled by the data's range {lo:g}..{hi:g}"
+            self.notes.append(what)
+        self.colour_full = 1.0 if top <= 1.0 else 255.0
+        if self.has_rgb:
+            self.notes.append("colour " + ("0..1" if top <= 1.0 else "0..255") + ", as sRGB")
+        self.notes.append(f"{count} points, x y z{' intensity' if self.has_intensity else ''}"
+                          f"{' r g b' if self.has_rgb else ''}")
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        a, b = self.intensity_scale
+        for start, lines in self._lines(chunk_points):
+            t = self._table(start, lines)
+            xyz = world_to_sensor(t[:, :3], self.pose).astype(np.float32)
+            intensity = (np.clip((t[:, 3] - a) / b, 0.0, 1.0).astype(np.float32)
+                         if self.has_intensity else None)
+            rgb = (srgb_to_linear(np.clip(t[:, -3:] / self.colour_full, 0.0, 1.0))
+                   .astype(np.float32) if self.has_rgb else None)
+            yield PointCloud(np.ascontiguousarray(xyz), intensity, rgb)
+
+
+def read_ascii_cloud(path: str, pose=None) -> AsciiPoints:
+    """An ASCII point cloud (PTS, XYZ, CSV; see AsciiPoints) as a streaming `AsciiPoints` in
+    the sensor frame of `pose` (the scanner's T_world_sensor in the file's coordinates).
+    ValueError naming the file for one without a pose, with lines that are not points, or
+    without points."""
+    if pose is None:
+        raise ValueError(f"{path}: an ASCII point cloud records no scanner position, and "
+                         "visibility needs the origin of the rays: give the scanner's pose in "
+                         "the file's coordinates (vasl ingest --pose x,y,z[,qx,qy,qz,qw], or a "
+                         "manifest whose lidar.points names the file)")
+    try:
+        return AsciiPoints(path, Pose.parse(pose))
+    except OSError as e:
+        raise ValueError(f"{path}: cannot be read: {e.strerror}") from e
+
+
+def is_ascii_cloud(path: str) -> bool:
+    """Whether a path names an ASCII point cloud (by its extension)."""
+    return path.lower().endswith(ASCII_CLOUD_EXTENSIONS)
