@@ -70,6 +70,14 @@ def test_pts_and_csv_come_in_the_scanners_frame(tmp_path):
     np.testing.assert_allclose(cloud.intensity, (np.arange(5000) % 256) / 255.0, atol=1e-6)
 
 
+def test_a_coordinate_that_is_not_a_number_is_a_no_return(tmp_path):
+    path = tmp_path / "gaps.xyz"
+    path.write_text("1 2 3 0.5\nnan nan nan 0.5\n4 5 6 nan\n")
+    cloud = read_ascii_cloud(str(path), (0, 0, 0)).read()
+    assert cloud.xyz_m.tolist() == [[1, 2, 3], [0, 0, 0], [4, 5, 6]]
+    assert cloud.intensity.tolist() == [0.5, 0.5, 0.0]
+
+
 @pytest.mark.parametrize("body, message", [
     ("1 2 3 4 5\n", "has 5 numbers"),
     ("1 2 3\n4 5 six\n", "not numbers"),

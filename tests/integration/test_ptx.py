@@ -152,6 +152,17 @@ def test_ptx_header_variants(tmp_path):
     assert np.abs(scan.points.read().xyz_m - expected).max() < 3e-6
 
 
+def test_ptx_coordinates_that_are_not_numbers_are_no_returns(tmp_path):
+    path = tmp_path / "gaps.ptx"
+    header = ["2", "2", "10 0 0", "1 0 0", "0 1 0", "0 0 1",
+              "1 0 0 0", "0 1 0 0", "0 0 1 0", "10 0 0 1"]
+    path.write_text("\n".join(header + ["1 2 3 0.5", "nan nan nan 0.5", "0 0 0 0.5",
+                                         "4 5 6 nan"]) + "\n")
+    cloud = read_ptx(str(path))[0].points.read()
+    assert cloud.xyz_m.tolist() == [[1, 2, 3], [0, 0, 0], [0, 0, 0], [4, 5, 6]]
+    assert cloud.intensity.tolist() == [0.5, 0.5, 0.5, 0.0]
+
+
 @pytest.mark.parametrize("damage, message", [
     ("truncate", "the file ends after 7 of the scan's 12 points"),
     ("bad-line", "line 15: expected 4 numbers"),

@@ -1248,8 +1248,8 @@ class PtxPoints(PointSource):
     FARO SCENE, Trimble RealWorks and CloudCompare), read chunk by chunk.
 
     A PTX scan is a full range grid: `columns` × `rows` lines, column after column, each
-    ``x y z intensity [r g b]``; a cell without a return is ``0 0 0``, which is sent as the
-    scanners' "no return" marker (the server skips it), so the point count is the grid's and
+    ``x y z intensity [r g b]``; a cell without a return is ``0 0 0`` (or, from some writers, a
+    coordinate that is not a number), which is sent as the scanners' "no return" marker (the server skips it), so the point count is the grid's and
     each point's row and column are its place in the file. Coordinates are read in float64 and
     taken through `to_world` (the file's 4x4 transform: x_world = R p + t) and then into the
     sensor frame of `pose` (p_sensor = Rᵀ(x_world − o)), before they become float32; where the
@@ -1292,15 +1292,16 @@ class PtxPoints(PointSource):
                     raise ValueError(self._bad_line(lines, done, n))
                 values = values.reshape(n, self.fields)
                 xyz = values[:, :3]
-                missing = np.all(xyz == 0.0, axis=1)
+                # No return: 0 0 0, or a coordinate that is not a number (kept as the marker).
+                missing = np.all(xyz == 0.0, axis=1) | ~np.all(np.isfinite(xyz), axis=1)
                 if not self.as_stored:
                     xyz = world_to_sensor(xyz @ r_world.T + t_world, self.pose)
-                    xyz[missing] = 0.0
+                xyz[missing] = 0.0
                 intensity = rgb = None
                 if self.has_intensity:
-                    intensity = np.clip(values[:, 3], 0.0, 1.0).astype(np.float32)
+                    intensity = np.clip(np.nan_to_num(values[:, 3]), 0.0, 1.0).astype(np.float32)
                 if self.has_rgb:
-                    rgb = srgb_to_linear(np.clip(values[:, 4:7], 0.0, 255.0) / 255.0)
+                    rgb = srgb_to_linear(np.clip(np.nan_to_num(values[:, 4:7]), 0.0, 255.0) / 255.0)
                 cell = np.arange(done, done + n, dtype=np.int64)
                 grid = np.stack([cell % self.rows, cell // self.rows], axis=1).astype(np.uint32)
                 done += n
@@ -1506,7 +1507,7 @@ class AsciiPoints(PointSource):
     Columns: 3 (x y z), 4 (x y z intensity), 6 (x y z r g b) or 7 (x y z intensity r g b), the
     same on every line. A line that holds one whole number alone is a count (PTS writes one
     before each block of points) and is skipped, as is a first line that is not numbers (a
-    CSV header). Intensity is scaled into [0, 1] by what the first pass over the file finds:
+    CSV header); a point whose coordinate is not a number (nan) is sent as a "no return". Intensity is scaled into [0, 1] by what the first pass over the file finds:
     kept in [0, 1]; Leica PTS's −2048..2047 as (i + 2048) / 4095; 0..255 over 255; 0..65535
     over 65535; any other range by its min..max (noted). Colour 0..255, or 0..1 when no value
     exceeds 1, taken as sRGB and linearised."""
@@ -1571,13 +1572,12 @@ class AsciiPoints(PointSource):
                     raise ValueError(f"{self.path}: a point line has {self.fields} numbers; "
                                      "expected x y z [intensity] [r g b] (3, 4, 6 or 7)")
             t = self._table(start, lines)
-            if not np.all(np.isfinite(t[:, :3])):
-                raise ValueError(f"{self.path}: near line {start}: a coordinate is not finite")
             count += len(t)
-            if self.fields in (4, 7):
-                lo, hi = min(lo, float(t[:, 3].min())), max(hi, float(t[:, 3].max()))
-            if self.fields in (6, 7):
-                top = max(top, float(t[:, -3:].max()))
+            if self.fields in (4, 7) and np.isfinite(t[:, 3]).any():
+                lo = min(lo, float(np.nanmin(t[:, 3])))
+                hi = max(hi, float(np.nanmax(t[:, 3])))
+            if self.fields in (6, 7) and np.isfinite(t[:, -3:]).any():
+                top = max(top, float(np.nanmax(t[:, -3:])))
         if count == 0:
             raise ValueError(f"{self.path}: holds no point")
         self.count = count
@@ -1609,9 +1609,10 @@ class AsciiPoints(PointSource):
         for start, lines in self._lines(chunk_points):
             t = self._table(start, lines)
             xyz = world_to_sensor(t[:, :3], self.pose).astype(np.float32)
-            intensity = (np.clip((t[:, 3] - a) / b, 0.0, 1.0).astype(np.float32)
+            xyz[~np.all(np.isfinite(t[:, :3]), axis=1)] = 0.0  # not a number: no return
+            intensity = (np.clip(np.nan_to_num((t[:, 3] - a) / b), 0.0, 1.0).astype(np.float32)
                          if self.has_intensity else None)
-            rgb = (srgb_to_linear(np.clip(t[:, -3:] / self.colour_full, 0.0, 1.0))
+            rgb = (srgb_to_linear(np.clip(np.nan_to_num(t[:, -3:] / self.colour_full), 0.0, 1.0))
                    .astype(np.float32) if self.has_rgb else None)
             yield PointCloud(np.ascontiguousarray(xyz), intensity, rgb)
 
