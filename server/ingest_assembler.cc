@@ -227,6 +227,12 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
       data.sphere = ingest::SphereWindow{pano.sphere().width_px(), pano.sphere().height_px(),
                                          pano.sphere().left_px(), pano.sphere().top_px()};
     }
+    if (pano.has_cylinder() && !pano.visual_reference()) {
+      data.cylinder = ingest::CylinderImage{pano.cylinder().pixel_width_rad(),
+                                            pano.cylinder().pixel_height_m(),
+                                            pano.cylinder().radius_m(),
+                                            pano.cylinder().principal_y_px()};
+    }
     data.visual_reference = pano.visual_reference();
     scan_.panoramas.push_back(std::move(data));
     expected_image_bytes_.push_back(pano.encoded_size_bytes());

@@ -84,6 +84,14 @@ absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraTex
 std::string SphereCameraText(const ingest::SphereWindow& window);
 absl::StatusOr<std::optional<ingest::SphereWindow>> SphereOfCameraText(
     const store::SourceInfo& source);
+/// A cylindrical panorama's camera text: "equirect cylinder PITCH PIXEL_HEIGHT RADIUS
+/// PRINCIPAL_Y" (ingest::CylinderImage; the sphere it is resampled into is the source's width
+/// and height) and back: nullopt for any other text, DATA_LOSS for a bad cylinder text.
+std::string CylinderCameraText(const ingest::CylinderImage& cylinder);
+absl::StatusOr<std::optional<ingest::CylinderImage>> CylinderOfCameraText(
+    const std::string& camera_text);
+/// True for a camera whose image is part of its sphere (a window or a cylinder).
+bool PartOfTheSphere(const store::SourceInfo& source);
 /// A stored derived source whose image is decoded from its blob on demand. DATA_LOSS for a
 /// camera text or image it cannot read.
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
@@ -132,8 +140,8 @@ void KeepDecodedCamera(const store::SourceInfo& source, int64_t max_image_pixels
                        SourceImageCache* images, ingest::CameraSource& cam,
                        double decode_seconds = 0.0);
 /// A stored camera whose image is decoded from its blob on demand (`load`), its mask applied
-/// (ingest::ApplyMask) when it has one and placed in its sphere (ingest::PlaceInSphere) when it
-/// spans part of it.
+/// (ingest::ApplyMask) when it has one and placed in its sphere when it spans part of it
+/// (ingest::PlaceInSphere; a cylindrical one resampled first, ingest::CylinderToSphere).
 ingest::CameraSource StoredCamera(const store::ProjectStore& store,
                                   const store::SourceInfo& source, int32_t batch,
                                   int64_t max_image_pixels);

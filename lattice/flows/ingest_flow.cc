@@ -117,6 +117,7 @@ absl::StatusOr<store::ScanInfo> StoreScanBlobs(store::ProjectStore& st, const in
     cam.divergence_rad = pano.angular_resolution_rad;
     if (pano.pinhole) cam.camera = DerivedCameraText(true, *pano.pinhole, 0);
     if (pano.sphere) cam.camera = SphereCameraText(*pano.sphere);
+    if (pano.cylinder) cam.camera = CylinderCameraText(*pano.cylinder);
     if (!pano.encoded_mask.empty()) {
       auto mask = st.PutBlob(pano.encoded_mask);
       if (!mask.ok()) return mask.status();

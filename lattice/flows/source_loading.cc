@@ -148,6 +148,11 @@ std::string SphereCameraText(const ingest::SphereWindow& window) {
   return absl::StrFormat("equirect window %d %d", window.left_px, window.top_px);
 }
 
+std::string CylinderCameraText(const ingest::CylinderImage& c) {
+  return absl::StrFormat("equirect cylinder %.17g %.17g %.17g %.17g", c.pixel_width_rad,
+                         c.pixel_height_m, c.radius_m, c.principal_y_px);
+}
+
 absl::StatusOr<std::optional<ingest::SphereWindow>> SphereOfCameraText(
     const store::SourceInfo& src) {
   std::vector<std::string> f = absl::StrSplit(src.camera, ' ', absl::SkipEmpty());
@@ -157,6 +162,24 @@ absl::StatusOr<std::optional<ingest::SphereWindow>> SphereOfCameraText(
     return absl::DataLossError(absl::StrCat("bad camera text '", src.camera, "'"));
   }
   return w;
+}
+
+absl::StatusOr<std::optional<ingest::CylinderImage>> CylinderOfCameraText(
+    const std::string& camera_text) {
+  std::vector<std::string> f = absl::StrSplit(camera_text, ' ', absl::SkipEmpty());
+  if (f.size() < 2 || f[0] != "equirect" || f[1] != "cylinder") return std::nullopt;
+  ingest::CylinderImage c;
+  if (f.size() != 6 || !absl::SimpleAtod(f[2], &c.pixel_width_rad) ||
+      !absl::SimpleAtod(f[3], &c.pixel_height_m) || !absl::SimpleAtod(f[4], &c.radius_m) ||
+      !absl::SimpleAtod(f[5], &c.principal_y_px)) {
+    return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
+  }
+  return c;
+}
+
+bool PartOfTheSphere(const store::SourceInfo& src) {
+  return absl::StartsWith(src.camera, "equirect window") ||
+         absl::StartsWith(src.camera, "equirect cylinder");
 }
 
 absl::StatusOr<ingest::DerivedSource> LoadDerived(const store::ProjectStore& store,
@@ -196,8 +219,12 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
       return absl::DataLossError(absl::StrCat("source ", src.id, ": ", k.status().message()));
     }
     absl::StatusOr<std::optional<ingest::SphereWindow>> sphere = SphereOfCameraText(src);
-    if (!sphere.ok()) {
-      return absl::DataLossError(absl::StrCat("source ", src.id, ": ", sphere.status().message()));
+    absl::StatusOr<std::optional<ingest::CylinderImage>> cylinder =
+        CylinderOfCameraText(src.camera);
+    if (!sphere.ok() || !cylinder.ok()) {
+      return absl::DataLossError(absl::StrCat(
+          "source ", src.id, ": ",
+          (sphere.ok() ? cylinder.status() : sphere.status()).message()));
     }
     absl::StatusOr<std::string> bytes = st->ReadBlob(src.blob_sha256);
     if (!bytes.ok()) return bytes.status();
@@ -215,8 +242,10 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
             absl::StrCat("stored mask ", src.mask_sha256, ": ", s.message()));
       }
     }
-    if (*sphere) {  // as the ingest placed it (ingest::DecodePanorama)
-      if (absl::Status s = ingest::PlaceInSphere(**sphere, max_pixels, *image); !s.ok()) {
+    if (*sphere || *cylinder) {  // as the ingest placed it (ingest::DecodePanorama)
+      if (absl::Status s = *cylinder ? ingest::CylinderToSphere(**cylinder, max_pixels, *image)
+                                     : ingest::PlaceInSphere(**sphere, max_pixels, *image);
+          !s.ok()) {
         return absl::DataLossError(
             absl::StrCat("stored image ", src.blob_sha256, ": ", s.message()));
       }
@@ -227,8 +256,7 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store, const store:
 }
 
 int64_t DecodedImageBytes(const store::SourceInfo& src) {
-  const bool opaque =
-      src.mask_sha256.empty() && !absl::StartsWith(src.camera, "equirect window");
+  const bool opaque = src.mask_sha256.empty() && !PartOfTheSphere(src);
   const int64_t floats = opaque ? 3 : 4;
   return int64_t(src.width_px) * src.height_px * floats * int64_t(sizeof(float));
 }
@@ -237,7 +265,7 @@ std::string DecodedImageKey(const store::SourceInfo& src) {
   std::string key = src.mask_sha256.empty()
                         ? src.blob_sha256
                         : absl::StrCat(src.blob_sha256, " mask ", src.mask_sha256);
-  if (absl::StartsWith(src.camera, "equirect window")) {
+  if (PartOfTheSphere(src)) {
     absl::StrAppend(&key, " ", src.camera, " of ", src.width_px, "x", src.height_px);
   }
   return key;

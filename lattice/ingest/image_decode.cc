@@ -421,4 +421,78 @@ absl::Status PlaceInSphere(const SphereWindow& window, int64_t max_pixels, Linea
   return absl::OkStatus();
 }
 
+absl::StatusOr<CylinderPlacement> CylinderWindow(const CylinderImage& c, int width_px,
+                                                 int height_px) {
+  if (!(c.pixel_width_rad > 0.0 && c.pixel_width_rad <= 0.1) ||
+      !(c.pixel_height_m > 0.0 && std::isfinite(c.pixel_height_m)) ||
+      !(c.radius_m > 0.0 && std::isfinite(c.radius_m)) || !std::isfinite(c.principal_y_px)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "a cylinder needs pixel_width_rad in (0, 0.1], pixel_height_m and radius_m > 0 and a "
+        "finite principal_y_px; got ", c.pixel_width_rad, ", ", c.pixel_height_m, ", ",
+        c.radius_m, ", ", c.principal_y_px));
+  }
+  const int rows = std::max(1, int(std::lround(M_PI / c.pixel_width_rad)));
+  const int columns = 2 * rows;
+  if (width_px > columns) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the cylindrical image's ", width_px, " columns of ", c.pixel_width_rad,
+        " rad span more than 360°"));
+  }
+  const double pitch = M_PI / rows;
+  const double top = std::atan(c.principal_y_px * c.pixel_height_m / c.radius_m);
+  const double bottom = std::atan((c.principal_y_px - height_px) * c.pixel_height_m / c.radius_m);
+  // The sphere's row j has its centre at elevation π/2 − (j + 0.5)·pitch (§2.1).
+  const int j0 = std::max(0, int(std::ceil((M_PI / 2 - top) / pitch - 0.5)));
+  const int j1 = std::min(rows - 1, int(std::floor((M_PI / 2 - bottom) / pitch - 0.5)));
+  if (j1 < j0) {
+    return absl::InvalidArgumentError("the cylindrical image covers no row of the sphere");
+  }
+  return CylinderPlacement{SphereWindow{columns, rows, (columns - width_px) / 2, j0},
+                           j1 - j0 + 1};
+}
+
+absl::Status CylinderToSphere(const CylinderImage& c, int64_t max_pixels, LinearImage& image) {
+  absl::StatusOr<CylinderPlacement> placed = CylinderWindow(c, image.width_px, image.height_px);
+  if (!placed.ok()) return placed.status();
+  const SphereWindow& window = placed->window;
+  if (int64_t(window.width_px) * window.height_px > max_pixels) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "its ", window.width_px, "x", window.height_px, " sphere has ",
+        int64_t(window.width_px) * window.height_px, " pixels, above the limit of ", max_pixels));
+  }
+  const int w = image.width_px, h = image.height_px, rows = placed->rows;
+  const size_t C = size_t(image.channels), row_values = size_t(w) * C;
+  LinearImage out;
+  out.width_px = w;
+  out.height_px = rows;
+  out.channels = image.channels;
+  out.clip_value = image.clip_value;
+  memory::AssignOnHugePages(out.pixels, size_t(rows) * row_values, 0.0f);
+  if (!image.alpha.empty()) memory::AssignOnHugePages(out.alpha, size_t(rows) * size_t(w), 0.0f);
+  const double pitch = M_PI / window.height_px;
+  tbb::parallel_for(tbb::blocked_range<int>(0, rows, 16), [&](const tbb::blocked_range<int>& r) {
+    for (int k = r.begin(); k != r.end(); ++k) {
+      const double psi = M_PI / 2 - (window.top_px + k + 0.5) * pitch;
+      // The cylinder's row coordinate at that elevation; its pixel centres lie at i + 0.5.
+      const double y = std::clamp(
+          c.principal_y_px - c.radius_m * std::tan(psi) / c.pixel_height_m - 0.5, 0.0,
+          double(h - 1));
+      const int i0 = int(std::floor(y)), i1 = std::min(i0 + 1, h - 1);
+      const float f = float(y - i0), g = 1.0f - f;
+      const float* a = &image.pixels[size_t(i0) * row_values];
+      const float* b = &image.pixels[size_t(i1) * row_values];
+      float* o = &out.pixels[size_t(k) * row_values];
+      for (size_t v = 0; v < row_values; ++v) o[v] = g * a[v] + f * b[v];
+      if (!image.alpha.empty()) {
+        const float* aa = &image.alpha[size_t(i0) * size_t(w)];
+        const float* ba = &image.alpha[size_t(i1) * size_t(w)];
+        float* oa = &out.alpha[size_t(k) * size_t(w)];
+        for (int i = 0; i < w; ++i) oa[i] = g * aa[i] + f * ba[i];
+      }
+    }
+  });
+  image = std::move(out);  // resampled: no codec blocks, no coded window
+  return PlaceInSphere(window, max_pixels, image);
+}
+
 }  // namespace vasl::ingest

@@ -35,6 +35,19 @@ struct SphereWindow {
   int left_px = 0, top_px = 0;
 };
 
+/// A cylindrical panorama (an E57 cylindricalRepresentation): columns every `pixel_width_rad`
+/// of azimuth, centred on the camera's x axis as an equirect panorama's are (§2.1); rows every
+/// `pixel_height_m` up a cylinder of `radius_m` around the camera's z axis, the horizon (z = 0)
+/// at row coordinate `principal_y_px` (pixel i spans [i, i + 1)), so row coordinate v looks at
+/// elevation atan((principal_y_px − v)·pixel_height_m / radius_m). Resampled at decode into the
+/// equirect part of the sphere it covers (ingest::CylinderToSphere).
+struct CylinderImage {
+  double pixel_width_rad = 0.0;
+  double pixel_height_m = 0.0;
+  double radius_m = 0.0;
+  double principal_y_px = 0.0;
+};
+
 /// One image of a scan with its own pose: an equirectangular panorama (§2.1) or, with
 /// `pinhole`, a pinhole photo (§2.2).
 struct PanoramaData {
@@ -54,6 +67,9 @@ struct PanoramaData {
   /// Set: an equirect panorama of part of the sphere, placed there as decoded; unset: the
   /// image is the whole sphere. Not for a pinhole photo; ignored for a visual reference.
   std::optional<SphereWindow> sphere;
+  /// Set: a cylindrical panorama, resampled into its part of the sphere as decoded. Neither
+  /// with `pinhole` nor with `sphere`; ignored for a visual reference.
+  std::optional<CylinderImage> cylinder;
   /// True: a visual reference, a photo kept with the scan as a blob (provenance) for people to
   /// look at; no projection, no source, no records. Its modality, angular resolution and
   /// pinhole are ignored.

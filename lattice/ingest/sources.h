@@ -56,6 +56,27 @@ absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearIm
 /// it does not fit (CheckSphereWindow); RESOURCE_EXHAUSTED above `max_pixels`.
 absl::Status PlaceInSphere(const SphereWindow& window, int64_t max_pixels, LinearImage& image);
 
+/// The whole sphere's panorama a cylindrical image of `width_px` × `height_px` is resampled
+/// into (its azimuth pitch: π / pixel_width_rad rows, twice as many columns) and where the rows
+/// it covers lie: `window` (the image's columns centred, its rows those whose elevation lies
+/// within the cylinder's). INVALID_ARGUMENT for a cylinder that is not one (a pitch outside
+/// (0, 0.1] rad, a pixel height or radius not > 0, a principal row not finite) or an image
+/// wider than 360°.
+struct CylinderPlacement {
+  SphereWindow window;
+  int rows = 0;  ///< the sphere's rows it covers, from window.top_px
+};
+absl::StatusOr<CylinderPlacement> CylinderWindow(const CylinderImage& cylinder, int width_px,
+                                                 int height_px);
+
+/// `image` (a decoded cylindrical panorama, after its mask) resampled into the equirect rows of
+/// its CylinderWindow (each row read at its elevation's cylinder row, linearly between the two
+/// nearest; columns as they are) and placed there (PlaceInSphere). The image is no longer its
+/// file's pixels: its codec's blocks are gone (`coding` null: no codec map). INVALID_ARGUMENT
+/// as CylinderWindow; RESOURCE_EXHAUSTED above `max_pixels`.
+absl::Status CylinderToSphere(const CylinderImage& cylinder, int64_t max_pixels,
+                              LinearImage& image);
+
 /// Whether an image of `width_px` × `height_px` fits `window`: the sphere twice as wide as high
 /// (within 2.5%) and the image within it. INVALID_ARGUMENT saying why not.
 absl::Status CheckSphereWindow(const SphereWindow& window, int width_px, int height_px);

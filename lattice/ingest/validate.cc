@@ -144,6 +144,10 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
     if (!(pano.angular_resolution_rad >= 0.0 && pano.angular_resolution_rad < 0.1)) {
       return bad(what + ": angular_resolution_rad must lie in [0, 0.1) (0: from the image size)");
     }
+    if (pano.cylinder && (pano.pinhole || pano.sphere)) {
+      return bad(what + ": a cylindrical panorama is neither a pinhole photo nor given a sphere "
+                        "window (its window follows from its cylinder)");
+    }
     if (pano.pinhole) {
       if (pano.sphere) {
         return bad(what + ": a pinhole photo has no sphere (a sphere window is for an "
@@ -155,20 +159,29 @@ absl::StatusOr<std::vector<ImageHeader>> ValidateScan(const ScanInput& scan, con
       images.push_back(*image);
       continue;
     }
-    if (pano.sphere) {  // a part of the sphere: the panorama is the whole sphere's
-      if (absl::Status s = CheckSphereWindow(*pano.sphere, image->width_px, image->height_px);
-          !s.ok()) {
-        return bad(absl::StrCat(what, ": ", s.message()));
+    if (pano.sphere || pano.cylinder) {  // a part of the sphere: the panorama is the sphere's
+      SphereWindow window;
+      if (pano.cylinder) {
+        absl::StatusOr<CylinderPlacement> placed =
+            CylinderWindow(*pano.cylinder, image->width_px, image->height_px);
+        if (!placed.ok()) return bad(absl::StrCat(what, ": ", placed.status().message()));
+        window = placed->window;
+      } else {
+        window = *pano.sphere;
+        if (absl::Status s = CheckSphereWindow(window, image->width_px, image->height_px);
+            !s.ok()) {
+          return bad(absl::StrCat(what, ": ", s.message()));
+        }
       }
-      const int64_t pixels = int64_t(pano.sphere->width_px) * pano.sphere->height_px;
+      const int64_t pixels = int64_t(window.width_px) * window.height_px;
       if (pixels > limits.max_image_pixels) {
         return absl::ResourceExhaustedError(absl::StrCat(
-            what, ": its ", pano.sphere->width_px, "x", pano.sphere->height_px, " sphere has ",
-            pixels, " pixels, above the limit of ", limits.max_image_pixels));
+            what, ": its ", window.width_px, "x", window.height_px, " sphere has ", pixels,
+            " pixels, above the limit of ", limits.max_image_pixels));
       }
       ImageHeader sphere = *image;
-      sphere.width_px = pano.sphere->width_px;
-      sphere.height_px = pano.sphere->height_px;
+      sphere.width_px = window.width_px;
+      sphere.height_px = window.height_px;
       images.push_back(sphere);
       continue;
     }
@@ -201,8 +214,11 @@ absl::StatusOr<LinearImage> DecodePanorama(const ScanInput& scan, size_t index,
                                                  pano.name, "': ", s.message()));
     }
   }
-  if (pano.sphere && !pano.visual_reference && !pano.pinhole) {
-    if (absl::Status s = PlaceInSphere(*pano.sphere, max_image_pixels, *image); !s.ok()) {
+  if ((pano.sphere || pano.cylinder) && !pano.visual_reference && !pano.pinhole) {
+    if (absl::Status s = pano.cylinder
+                             ? CylinderToSphere(*pano.cylinder, max_image_pixels, *image)
+                             : PlaceInSphere(*pano.sphere, max_image_pixels, *image);
+        !s.ok()) {
       return absl::Status(s.code(), absl::StrCat("scan '", scan.scan_name, "', panorama '",
                                                  pano.name, "': ", s.message()));
     }

@@ -546,5 +546,123 @@ TEST(AlphaMaskTest, APlacedJpegKeepsItsCodecBlocks) {
   EXPECT_GT(moved, size_t(alone.soft_pixels) / 10);
 }
 
+// A cylindrical panorama (an E57 cylindricalRepresentation) is resampled into the part of the
+// sphere it covers: its records agree with those of the equirect panorama of the same view
+// where both see (up to the resampling of a textured scene), and the rows beyond the cylinder
+// give none (invalidated). Taking the same image for an equirect part (its rows linear in
+// elevation) puts the colours off by up to the cylinder's stretch, which the figures show.
+TEST(AlphaMaskTest, ACylindricalPanoramaIsResampledIntoItsSphere) {
+  const scenes::SyntheticRoom room = scenes::SyntheticRoom::Default();
+  const geometry::Pose pose = scenes::CameraPoseForStation(room.Stations()[0]);
+  const scenes::Panorama fine = scenes::RenderPanorama(room, pose, 4 * kPanoW, 4 * kPanoH, 2);
+  const scenes::Panorama whole = scenes::RenderPanorama(room, pose, kPanoW, kPanoH, 2);
+  // 360° in kPanoW columns; rows of square pixels at the horizon up to ±55° of elevation.
+  const double pw = 2 * M_PI / kPanoW, radius = 2.0, ph = radius * pw;
+  const int h = 2 * int(std::ceil(std::tan(55.0 * M_PI / 180) / pw));
+  const double ppy = h / 2.0;
+  const int FW = 4 * kPanoW, FH = 4 * kPanoH;
+  std::vector<float> cyl(size_t(kPanoW) * h * 3);
+  for (int v = 0; v < h; ++v) {
+    const double psi = std::atan((ppy - (v + 0.5)) * ph / radius);
+    for (int u = 0; u < kPanoW; ++u) {
+      const double phi = 2 * M_PI * (0.5 - (u + 0.5) / kPanoW);
+      // §2.1 in the fine panorama, read bilinearly between pixel centres.
+      const double x = FW * (0.5 - phi / (2 * M_PI)) - 0.5, y = FH * (0.5 - psi / M_PI) - 0.5;
+      const int x0 = int(std::floor(x)), y0 = std::clamp(int(std::floor(y)), 0, FH - 2);
+      const double fx = x - x0, fy = std::clamp(y - y0, 0.0, 1.0);
+      for (int c = 0; c < 3; ++c) {
+        auto at = [&](int i, int j) {
+          return fine.rgb[(size_t(j) * FW + size_t((i + FW) % FW)) * 3 + size_t(c)];
+        };
+        cyl[(size_t(v) * kPanoW + size_t(u)) * 3 + size_t(c)] =
+            float((1 - fy) * ((1 - fx) * at(x0, y0) + fx * at(x0 + 1, y0)) +
+                  fy * ((1 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1)));
+      }
+    }
+  }
+  const fs::path root = fs::temp_directory_path() / ("vasl-cyl-" + std::to_string(::getpid()));
+  const std::string cylinder_png = Encode(cyl, kPanoW, h, 3, "cyl.png", OIIO::TypeDesc::UINT8);
+  std::vector<float> whole_rgb(whole.rgb.begin(), whole.rgb.end());
+  const RecordsByVossel truth =
+      RgbRecords(root, room, Encode(whole_rgb, kPanoW, kPanoH, 3, "w.png", OIIO::TypeDesc::UINT8))
+          .records;
+  auto ingest_cylinder = [&](bool as_cylinder) {
+    fs::remove_all(root);
+    auto engine = Engine::Open(root);
+    EXPECT_TRUE(engine.ok()) << engine.status();
+    store::ProjectSettings settings;
+    settings.vossel_size_m = 0.05;
+    EXPECT_TRUE((*engine)->CreateProject("p", settings).ok());
+    auto scan = scenes::MakeScanInput(room, 0, scenes::LidarSettings::Small(1), 0);
+    ingest::PanoramaData pano;
+    pano.name = "cam0";
+    pano.pose = pose;
+    pano.encoded_image = cylinder_png;
+    if (as_cylinder) {
+      pano.cylinder = ingest::CylinderImage{pw, ph, radius, ppy};
+    } else {  // its rows taken as equirect ones, centred
+      pano.sphere = ingest::SphereWindow{kPanoW, kPanoH, 0, (kPanoH - h) / 2};
+    }
+    scan->panoramas.push_back(pano);
+    auto r = (*engine)->IngestScan("p", *scan);
+    EXPECT_TRUE(r.ok()) << r.status();
+    // The rebuild reads the stored image back through the camera's text (StoredCamera).
+    auto rebuilt = (*engine)->Rebuild("p");
+    EXPECT_TRUE(rebuilt.ok()) << rebuilt.status();
+    auto st = store::ProjectStore::Open(root / "p");
+    RecordsByVossel out[2];
+    for (int version : {1, 2}) {
+      auto snap = (*st)->LoadSnapshot(version);
+      const records::RecordSet& rec = (*snap)->records;
+      for (size_t i = 0; i < rec.size(); ++i) {
+        if (rec.modality[i] != int8_t(records::Modality::kRgb)) continue;
+        const openvdb::Coord k = (*snap)->geometry.coord[size_t(rec.vossel[i])];
+        Rgb& v = out[version - 1][{k.x(), k.y(), k.z()}];
+        for (int c = 0; c < 3; ++c) v.v[c] = rec.value[records::kValueChannels * i + size_t(c)];
+        v.invalid = (rec.flags[i] & records::kFlagInvalidated) != 0;
+      }
+    }
+    size_t differ = 0;
+    for (const auto& [key, r] : out[0]) {
+      auto it = out[1].find(key);
+      differ += it == out[1].end() || it->second.invalid != r.invalid ||
+                std::memcmp(it->second.v, r.v, sizeof r.v) != 0;
+    }
+    EXPECT_EQ(out[0].size(), out[1].size());
+    EXPECT_EQ(differ, 0u) << "the rebuild from the stored image differs from the ingest";
+    fs::remove_all(root);
+    return out[0];
+  };
+  auto compare = [&](const RecordsByVossel& got, const char* what) {
+    std::vector<float> diff;
+    size_t invalid = 0;
+    for (const auto& [key, r] : truth) {
+      auto it = got.find(key);
+      if (it == got.end()) continue;
+      if (it->second.invalid) {
+        ++invalid;
+        continue;
+      }
+      if (r.invalid) continue;
+      float d = 0.0f;
+      for (int c = 0; c < 3; ++c) d = std::max(d, std::abs(it->second.v[c] - r.v[c]));
+      diff.push_back(d);
+    }
+    std::sort(diff.begin(), diff.end());
+    const float median = diff[diff.size() / 2], p95 = diff[diff.size() * 95 / 100];
+    std::printf("%s: %zu records compared, |Δ| median %.4f, 95th percentile %.4f; %zu "
+                "invalidated (beyond the cylinder)\n",
+                what, diff.size(), median, p95, invalid);
+    return std::make_tuple(median, p95, invalid);
+  };
+  const auto [median, p95, invalid] = compare(ingest_cylinder(true), "cylinder resampled");
+  const float p95_linear =
+      std::get<1>(compare(ingest_cylinder(false), "the same rows taken as equirect"));
+  EXPECT_LT(median, 0.01f);
+  EXPECT_LT(p95, 0.05f);
+  EXPECT_GT(invalid, 1000u);  // the floor and ceiling beyond ±55°
+  EXPECT_GT(p95_linear, 10 * p95);
+}
+
 }  // namespace
 }  // namespace vasl

@@ -89,8 +89,9 @@ def write_e57(path: str, n: int, chunks: Iterator[Dict[str, np.ndarray]], *,
     doubles with `scale_m` None; `pose` is (translation, quaternion w x y z) or None (no pose).
     Intensity (limits 0..65535), colour (0..255) and the invalid state are written as asked.
     `images`: spherical images taken with the scan (images2D), each a dict {name, png (bytes),
-    width, height, pose (as `pose`), and optionally mask (the imageMask's bytes) and pixel_rad
-    (the pixels' angle; default: the whole sphere's, 2π / width by π / height)}."""
+    width, height, pose (as `pose`), and optionally mask (the imageMask's bytes), pixel_rad
+    (the pixels' angle; default: the whole sphere's, 2π / width by π / height) and cylinder
+    ({pixel_height_m, radius_m, principal_y_px}: a cylindrical image instead)}."""
     import pye57
     from pye57 import libe57
 
@@ -195,14 +196,20 @@ def _write_e57_spherical(imf, scan_guid: str, image: dict) -> None:
     width, height = image["width"], image["height"]
     rep.set("imageWidth", libe57.IntegerNode(imf, width, 0, 1 << 30))
     rep.set("imageHeight", libe57.IntegerNode(imf, height, 0, 1 << 30))
+    cylinder = image.get("cylinder")
     rep.set("pixelWidth", libe57.FloatNode(imf, image.get("pixel_rad", 2 * np.pi / width)))
-    rep.set("pixelHeight", libe57.FloatNode(imf, image.get("pixel_rad", np.pi / height)))
+    if cylinder:
+        rep.set("pixelHeight", libe57.FloatNode(imf, cylinder["pixel_height_m"]))
+        rep.set("radius", libe57.FloatNode(imf, cylinder["radius_m"]))
+        rep.set("principalPointY", libe57.FloatNode(imf, cylinder["principal_y_px"]))
+    else:
+        rep.set("pixelHeight", libe57.FloatNode(imf, image.get("pixel_rad", np.pi / height)))
     blobs = []
     for key in ("pngImage", "imageMask") if image.get("mask") else ("pngImage",):
         data = image["png" if key == "pngImage" else "mask"]
         blobs.append((libe57.BlobNode(imf, len(data)), data))
         rep.set(key, blobs[-1][0])
-    node.set("sphericalRepresentation", rep)
+    node.set("cylindricalRepresentation" if cylinder else "sphericalRepresentation", rep)
     imf.root()["images2D"].append(node)
     for blob, data in blobs:
         blob.write(np.frombuffer(data, dtype=np.uint8).copy(), 0, len(data))

@@ -288,3 +288,53 @@ def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
     assert not any(r["invalidated"] for r in wall_part.values())
     assert len(floor) >= 100 and invalidated == len(floor)
     assert not any(r["invalidated"] for r in records["whole"][FLOOR_BOX].values())
+
+
+def test_e57_cylindrical_image_is_resampled_into_its_sphere(client, server, tmp_path):
+    """An E57 cylindrical image (columns every 2π/1024 of azimuth, rows on a cylinder of 2 m up
+    to ±50°) of the same smooth scene as the whole panorama is ingested, resampled by the
+    server into the part of the sphere it covers: on the walls at the station's height its
+    records agree with the whole panorama's within the 8-bit coding of the two images; under
+    the station, beyond the cylinder, they are invalidated."""
+    radius = 2.0
+    pw = 2 * np.pi / WIDTH
+    ph = radius * pw
+    rows = 2 * int(np.ceil(np.tan(np.radians(50)) / pw))
+    ppy = rows / 2
+    # The whole panorama's colour (_panorama) at each cylinder pixel's direction: its columns
+    # are the panorama's, its rows at the equirect row coordinate of their elevation.
+    v = np.arange(rows) + 0.5
+    y = HEIGHT * (0.5 - np.arctan((ppy - v) * ph / radius) / np.pi) - 0.5
+    jj, ii = np.meshgrid(y, np.arange(WIDTH), indexing="ij")
+    linear = np.stack([0.05 + 0.6 * ii / WIDTH, 0.05 + 0.6 * jj / HEIGHT,
+                       0.3 + 0.2 * np.sin(8 * np.pi * ii / WIDTH)], axis=-1)
+    rgb8 = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
+    png = png_bytes(WIDTH, rows, b"".join(b"\x00" + rgb8[j].tobytes() for j in range(rows)))
+    pose = (STATION, (1.0, 0.0, 0.0, 0.0))
+    records = {}
+    for name, image in (
+            ("whole", {"png": _panorama(), "width": WIDTH, "height": HEIGHT}),
+            ("cylinder", {"png": png, "width": WIDTH, "height": rows,
+                          "cylinder": {"pixel_height_m": ph, "radius_m": radius,
+                                       "principal_y_px": ppy}})):
+        path = str(tmp_path / f"{name}.e57")
+        write_e57(path, POINTS, room_chunks(POINTS, seed=53), pose=pose,
+                  images=[{"name": "pano", "pose": pose, **image}])
+        client.create_project(f"cyl-{name}", vossel_size_m=VOSSEL_M)
+        r = run_cli(server, "ingest", "--project", f"cyl-{name}", "--quiet", path)
+        print("\n" + r.stdout.strip())
+        records[name] = {box: _camera_records(client, f"cyl-{name}", box)
+                         for box in (WALL_BOX, FLOOR_BOX)}
+    assert "cylindrical: resampled by the server" in r.stdout
+    wall_whole, wall_cyl = records["whole"][WALL_BOX], records["cylinder"][WALL_BOX]
+    assert len(wall_whole) >= 100 and wall_whole.keys() == wall_cyl.keys()
+    worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_cyl[k]["value"]))))
+                for k in wall_whole)
+    floor = records["cylinder"][FLOOR_BOX]
+    invalidated = sum(r["invalidated"] for r in floor.values())
+    print(f"wall at the station's height: {len(wall_cyl)} camera records, max |Δ| {worst:.4f} "
+          f"against the whole panorama's; floor under the station: {invalidated} of "
+          f"{len(floor)} invalidated (beyond the cylinder's ±50°)")
+    assert worst <= 0.01
+    assert not any(r["invalidated"] for r in wall_cyl.values())
+    assert len(floor) >= 100 and invalidated == len(floor)

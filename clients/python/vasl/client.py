@@ -18,9 +18,10 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
-from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource, is_ascii_cloud,
-                      is_las, is_ptx, pinhole_from_json, read_ascii_cloud, read_e57, read_las,
-                      read_manifest, read_ply, read_ptx, sphere_from_json)
+from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource,
+                      cylinder_from_json, is_ascii_cloud, is_las, is_ptx, pinhole_from_json,
+                      read_ascii_cloud, read_e57, read_las, read_manifest, read_ply, read_ptx,
+                      sphere_from_json)
 from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, CameraConfidence,
                     ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult,
                     LensEstimate, LensMap, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
@@ -668,14 +669,16 @@ class Client:
         PointSource (a file's points read chunk by chunk: `read_e57(...)[i].points`,
         `read_las(path, pose)`), `pose` (see Pose.parse), `panoramas` as dicts {name, image
         (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole, mask,
-        sphere}
+        sphere, cylinder}
         (`pinhole`: a pinhole photo's intrinsics {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1,
         p2]}; absent: an equirect panorama; `mask`: bytes or path of an image of the image's
         size whose first channel, over its largest value, is the share of each pixel the
         camera reports, 0 where a tripod, rig or operator is masked out; absent: none;
         `sphere`: for an equirect panorama of part of the sphere, {width_px, height_px} of the
         whole sphere's panorama at the image's pixel pitch and {left_px, top_px} of the image
-        in it; absent: the image is the whole sphere). Points
+        in it; absent: the image is the whole sphere; `cylinder`: a cylindrical panorama's
+        {pixel_width_rad, pixel_height_m, radius_m, principal_y_px}, resampled by the server
+        into the part of the sphere it covers). Points
         are packed and sent chunk by chunk as the upload proceeds, so a file's scan is never in
         memory whole. Without `points` (and with panoramas) the scan is camera-only: its images
         colour the geometry the project already has. `progress(dict)` is called with keys
@@ -704,7 +707,7 @@ class Client:
                           "modality": p.modality,
                           "angular_resolution_rad": p.angular_resolution_rad,
                           "pinhole": p.pinhole, "visual_reference": p.visual_reference,
-                          "mask": p.mask_path, "sphere": p.sphere}
+                          "mask": p.mask_path, "sphere": p.sphere, "cylinder": p.cylinder}
                          for p in m.panoramas]
         if not scan:
             raise ValueError("scan: give the scan an id (or pass a manifest)")
@@ -761,6 +764,9 @@ class Client:
             if p.get("sphere") is not None and not reference:  # a part of the sphere
                 desc.sphere.CopyFrom(pb.SphereWindow(
                     **sphere_from_json(p["sphere"], f"panoramas[{i}].sphere")))
+            if p.get("cylinder") is not None and not reference:  # a cylindrical panorama
+                desc.cylinder.CopyFrom(pb.CylinderImage(
+                    **cylinder_from_json(p["cylinder"], f"panoramas[{i}].cylinder")))
             images.append(image)
             masks.append(mask)
         point_total = 0 if source is None else source.count * point_stride(source)
@@ -781,7 +787,7 @@ class Client:
         mask. A scan of images only is a camera-only scan."""
         panoramas = [{"name": im.name, "image": im.data, "pose": im.pose, "modality": "rgb",
                       "pinhole": im.pinhole, "visual_reference": im.kind == "visual",
-                      "mask": im.mask or None, "sphere": im.sphere}
+                      "mask": im.mask or None, "sphere": im.sphere, "cylinder": im.cylinder}
                      for im in scan.ingestible_images]
         names = [p["name"] for p in panoramas]
         for i, p in enumerate(panoramas):  # E57 names need not be unique

@@ -304,6 +304,32 @@ def sphere_from_json(obj, where: str) -> Dict[str, int]:
     return out
 
 
+CYLINDER_KEYS = ("pixel_width_rad", "pixel_height_m", "radius_m", "principal_y_px")
+
+
+def cylinder_from_json(obj, where: str) -> Dict[str, float]:
+    """A cylindrical panorama's projection (an E57 cylindricalRepresentation): columns every
+    pixel_width_rad of azimuth, centred on the camera's x axis; rows every pixel_height_m up a
+    cylinder of radius_m, the horizon at row coordinate principal_y_px. ValueError naming the
+    field."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object with {', '.join(CYLINDER_KEYS)}")
+    unknown = sorted(set(obj) - set(CYLINDER_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
+                         f"expected {', '.join(CYLINDER_KEYS)}")
+    out = {}
+    for key in CYLINDER_KEYS:
+        value = obj.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not math.isfinite(value):
+            raise ValueError(f"{where}.{key}: expected a finite number, got {value!r}")
+        out[key] = float(value)
+    if min(out["pixel_width_rad"], out["pixel_height_m"], out["radius_m"]) <= 0:
+        raise ValueError(f"{where}: pixel_width_rad, pixel_height_m and radius_m must be > 0")
+    return out
+
+
 @dataclass
 class PanoramaEntry:
     """One image of a manifest: an equirect panorama, or a pinhole photo with `pinhole`."""
@@ -321,6 +347,8 @@ class PanoramaEntry:
     #: an equirect panorama of part of the sphere: where it lies in the whole sphere's
     #: (SPHERE_KEYS); None: the image is the whole sphere
     sphere: Optional[Dict[str, int]] = None
+    #: a cylindrical panorama's projection (CYLINDER_KEYS); None: not cylindrical
+    cylinder: Optional[Dict[str, float]] = None
 
 
 @dataclass
@@ -429,6 +457,8 @@ def read_manifest(path: str) -> Manifest:
             mask_path=mask,
             sphere=(sphere_from_json(p["sphere"], f"{path}: panoramas[{i}].sphere")
                     if p.get("sphere") is not None else None),
+            cylinder=(cylinder_from_json(p["cylinder"], f"{path}: panoramas[{i}].cylinder")
+                      if p.get("cylinder") is not None else None),
         ))
     return Manifest(
         path=os.path.abspath(path),
@@ -465,6 +495,8 @@ class E57Image:
     #: a spherical image of part of the sphere: where it lies in the whole sphere's panorama
     #: (sphere_from_json's keys); None: the whole sphere, or not spherical
     sphere: Optional[Dict[str, int]] = None
+    #: a cylindrical image's projection (cylinder_from_json's keys); None: not cylindrical
+    cylinder: Optional[Dict[str, float]] = None
 
 
 @dataclass
@@ -923,7 +955,7 @@ _IMAGE_KINDS = (("pinholeRepresentation", "pinhole"), ("sphericalRepresentation"
 
 def _read_e57_images(e57, path: str) -> List[E57Image]:
     """Every image of an E57 file (images2D), each with the reason it cannot be ingested when
-    it cannot: a cylindrical image, a spherical image that is not a whole 360° x 180° panorama,
+    it cannot: a cylinder that is not one, a partial sphere of pixels that are not square,
     bytes that are neither JPEG nor PNG, or an imageMask that is not a PNG (the server would
     refuse the whole scan for it). A camera image's imageMask (the pixels with valid data) is
     read with it and sent as its mask; a visual reference (no projection) is kept with its scan
@@ -958,7 +990,20 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
                                if kind != "visual" and rep.isDefined("imageMask") else b""))
         problems = []
         if kind == "cylindrical":
-            problems.append("cylindrical images are not supported (only spherical and pinhole)")
+            try:
+                image.cylinder = cylinder_from_json(
+                    {"pixel_width_rad": number("pixelWidth"),
+                     "pixel_height_m": number("pixelHeight"), "radius_m": number("radius"),
+                     "principal_y_px": number("principalPointY")}, where)
+            except ValueError as e:
+                problems.append(f"its cylinder is not one: {str(e).split(': ', 2)[-1]}")
+            else:
+                if image.width * image.cylinder["pixel_width_rad"] > 2 * math.pi * 1.02:
+                    problems.append("the cylindrical image spans more than 360°")
+                    image.cylinder = None
+                else:
+                    notes.append("cylindrical: resampled by the server into the part of the "
+                                 "sphere it covers")
         elif kind == "spherical":
             place = _e57_sphere(image.width, image.height, number("pixelWidth"),
                                 number("pixelHeight"))
@@ -990,7 +1035,7 @@ def _read_e57_images(e57, path: str) -> List[E57Image]:
                     image.pose = Pose.make(image.pose.position_m, turned, where=where)
             else:
                 problems.append("focalLength, pixelWidth and pixelHeight must be > 0")
-        if kind in ("spherical", "pinhole", "visual") and not problems:
+        if kind in ("spherical", "cylindrical", "pinhole", "visual") and not problems:
             if not (data.startswith(_PNG_SIGNATURE) or data.startswith(b"\xff\xd8")):
                 problems.append("its bytes are neither a JPEG nor a PNG image")
             elif image.mask and not image.mask.startswith(_PNG_SIGNATURE):
