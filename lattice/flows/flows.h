@@ -149,8 +149,8 @@ ingest::CameraSource StoredCamera(const store::ProjectStore& store,
 /// where it lies in its sphere.
 std::string DecodedImageKey(const store::SourceInfo& source);
 /// The bytes a stored camera's decoded image takes, as far as the catalog tells: 3 floats a
-/// pixel, 4 with a mask or a sphere window (its coverage; an image's own alpha is known only
-/// once decoded).
+/// pixel, 4 with a mask or as part of the sphere (a window or a cylinder: its coverage; an
+/// image's own alpha is known only once decoded).
 int64_t DecodedImageBytes(const store::SourceInfo& source);
 
 /// FAILED_PRECONDITION: a camera-only scan (images, no points) sent to a project without

@@ -56,16 +56,17 @@ absl::Status ApplyMask(std::string_view mask_bytes, int64_t max_pixels, LinearIm
 /// it does not fit (CheckSphereWindow); RESOURCE_EXHAUSTED above `max_pixels`.
 absl::Status PlaceInSphere(const SphereWindow& window, int64_t max_pixels, LinearImage& image);
 
-/// The whole sphere's panorama a cylindrical image of `width_px` × `height_px` is resampled
-/// into (its azimuth pitch: π / pixel_width_rad rows, twice as many columns) and where the rows
-/// it covers lie: `window` (the image's columns centred, its rows those whose elevation lies
-/// within the cylinder's). INVALID_ARGUMENT for a cylinder that is not one (a pitch outside
-/// (0, 0.1] rad, a pixel height or radius not > 0, a principal row not finite) or an image
-/// wider than 360°.
+/// Where a cylindrical image lies once resampled into its sphere.
 struct CylinderPlacement {
-  SphereWindow window;
-  int rows = 0;  ///< the sphere's rows it covers, from window.top_px
+  SphereWindow window;  ///< the sphere, and the resampled image's top-left pixel in it
+  int rows = 0;         ///< the sphere's rows it covers, from window.top_px
 };
+/// The whole sphere's panorama a cylindrical image of `width_px` × `height_px` is resampled
+/// into (at its azimuth pitch: π / pixel_width_rad rows, twice as many columns) and where it
+/// lies there: its columns centred, its rows those whose centre's elevation lies within the
+/// cylinder's. INVALID_ARGUMENT for a cylinder that is not one (a pitch outside (0, 0.1] rad, a
+/// pixel height or radius not > 0, a principal row not finite), an image wider than 360°, or
+/// one that covers no row of the sphere.
 absl::StatusOr<CylinderPlacement> CylinderWindow(const CylinderImage& cylinder, int width_px,
                                                  int height_px);
 

@@ -47,7 +47,7 @@ def test_pts_and_csv_come_in_the_scanners_frame(tmp_path):
     _write_pts(pts, world, leica, rgb)
     points = read_ascii_cloud(pts, pose)
     assert points.count == N and points.has_intensity and points.has_rgb
-    assert "intensity -2048..2047 (Leica PTS): (i + 2048) / 4095" in points.notes
+    assert "intensity -2048..2047 (Leica): (i + 2048) / 4095" in points.notes
     cloud = points.read()
     err = float(np.abs(cloud.xyz_m - local).max())
     print(f"\nPTS at x ≈ 500 km: {N} points, sensor-frame error {err * 1000:.3f} mm; {points.notes}")
@@ -103,7 +103,7 @@ def test_pts_ingests_with_its_pose_and_renders_from_the_scanner(server, client, 
                 "--pose", ",".join(repr(v) for v in SCANNER + QUATERNION))
     print("\n" + r.stdout.strip())
     assert f"room: version 1, {N} points" in r.stdout
-    assert "(Leica PTS)" in r.stdout
+    assert "(Leica)" in r.stdout
     assert [s.name for s in client.list_scans("pts")[0].sources] == ["lidar", "point-colour"]
     width, height = 2048, 1024
     render = client.render("pts", {"position": SCANNER, "quaternion": QUATERNION}, width,

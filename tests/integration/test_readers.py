@@ -111,6 +111,11 @@ def test_ply_colour_and_intensity_come_in_zero_to_one(tmp_path):
                  "\nproperty float z\nproperty float scalar_Intensity\nend_header\n"
                  "1 0 0 -2048\n0 1 0 0\n0 0 1 2047\n")
     np.testing.assert_allclose(read_ply(str(p)).intensity, [0.0, 2048 / 4095, 1.0], atol=1e-6)
+    # A signed integer intensity of Leica's range: (i + 2048) / 4095, as a PTS file's.
+    p.write_text(p.read_text().replace("float scalar_Intensity", "short scalar_Intensity")
+                 .replace("-2048\n0 1 0 0\n0 0 1 2047", "-2048\n0 1 0 0\n0 0 1 1000"))
+    np.testing.assert_allclose(read_ply(str(p)).intensity, [0.0, 2048 / 4095, 3048 / 4095],
+                               atol=1e-6)
     assert read_ply(str(p)).rgb is None
 
 

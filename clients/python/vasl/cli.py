@@ -120,9 +120,9 @@ def _ingest_summary(r, seconds: float) -> str:
 def _cmd_ingest(client: Client, args) -> int:
     # Read and validate every input before sending any: manifests, E57 files (each of whose
     # scans is ingested with its spherical and pinhole images; images of no scan make a
-    # camera-only scan), PTX files (every scan, each with its scanner's pose) and LAS/LAZ files
-    # (world coordinates: --pose places the scanner). The points themselves are read as they
-    # are sent, chunk by chunk.
+    # camera-only scan), PTX files (every scan, each with its scanner's pose), and LAS/LAZ files
+    # and ASCII point clouds (world coordinates: --pose places the scanner). The points
+    # themselves are read as they are sent, chunk by chunk.
     pose = Pose.parse(args.pose) if args.pose else None
     las = [p for p in args.manifest if is_las(p) or is_ascii_cloud(p)]  # world coordinates
     if pose is not None and len(las) > 1:
@@ -188,8 +188,7 @@ def _cmd_ingest(client: Client, args) -> int:
                                                                 request_id=args.request_id)))
     if pose is not None and not pose_used:
         raise ValueError("--pose is for LAS/LAZ files, ASCII point clouds and E57 scans stored "
-                         "without a pose; a "
-                         "manifest gives its scan's pose itself")
+                         "without a pose; a manifest gives its scan's pose itself")
     if args.request_id and len(jobs) != 1:
         raise ValueError(f"--request-id names one change, but {len(jobs)} scans were given")
     existing = set()

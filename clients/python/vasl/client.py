@@ -667,7 +667,8 @@ class Client:
         Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
         (N, 3) linear per-point colour, which becomes a "point-colour" source], or a
         PointSource (a file's points read chunk by chunk: `read_e57(...)[i].points`,
-        `read_las(path, pose)`), `pose` (see Pose.parse), `panoramas` as dicts {name, image
+        `read_ptx(path)[i].points`, `read_las(path, pose)`, `read_ascii_cloud(path, pose)`),
+        `pose` (see Pose.parse), `panoramas` as dicts {name, image
         (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole, mask,
         sphere, cylinder}
         (`pinhole`: a pinhole photo's intrinsics {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1,

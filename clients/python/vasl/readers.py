@@ -6,10 +6,11 @@ PLY: ASCII, binary little endian and binary big endian; the ``vertex`` element's
 are ignored. The manifest is the JSON file ``vasl_scene`` writes (documented in README.md); its
 paths are relative to the manifest file.
 
-E57, PTX, LAS/LAZ and ASCII scans can be far larger than memory (a terrestrial scan holds up to a few hundred
-million points), so their points are a `PointSource`: read chunk by chunk (`CHUNK_POINTS` at a
-time) whenever they are wanted, with everything the ingest header needs (the point count, whether
-there is intensity and colour, the normalisation limits) settled before the first point is sent.
+E57, PTX, LAS/LAZ and ASCII scans can be far larger than memory (a terrestrial scan holds up to a
+few hundred million points), so their points are a `PointSource`: read chunk by chunk
+(`CHUNK_POINTS` at a time) whenever they are wanted, with everything the ingest header needs (the
+point count, whether there is intensity and colour, the normalisation limits) settled before the
+first point is sent.
 """
 from __future__ import annotations
 
@@ -232,24 +233,38 @@ def _ply_colour_names(names: Sequence[str]) -> Optional[Tuple[str, str, str]]:
     return None
 
 
+def intensity_scale(lo: float, hi: float) -> Tuple[float, float, str]:
+    """How intensities found between `lo` and `hi` (a file that gives no limits) come into
+    [0, 1], as (i − a) / b: (a, b) and what was decided. Kept in [0, 1]; Leica's −2048..2047
+    as (i + 2048) / 4095; 0..255 and 0..65535 over their top; any other range by itself."""
+    if lo >= 0.0 and hi <= 1.0:
+        return 0.0, 1.0, "intensity in [0, 1], kept"
+    if lo >= -2048.0 and hi <= 2047.0 and lo < 0.0:
+        return -2048.0, 4095.0, "intensity -2048..2047 (Leica): (i + 2048) / 4095"
+    if lo >= 0.0 and hi <= 255.0:
+        return 0.0, 255.0, "intensity 0..255: over 255"
+    if lo >= 0.0 and hi <= 65535.0:
+        return 0.0, 65535.0, "intensity 0..65535: over 65535"
+    return lo, (hi - lo if hi > lo else 1.0), f"intensity scaled by the data's range {lo:g}..{hi:g}"
+
+
 def _ply_unit(values: np.ndarray, ply_type: str, colour: bool = False) -> np.ndarray:
-    """A PLY intensity or colour channel in [0, 1] (float64): an integer type over its largest
-    value (uchar 255, ushort 65535, ...); floats as they are when they lie in [0, 1], else (a
-    float colour of 0..255, an intensity of another range) colour over 255 or 65535 by its
-    largest value, intensity by the data's min..max."""
+    """A PLY intensity or colour channel in [0, 1] (float64): an unsigned integer type over its
+    largest value (uchar 255, ushort 65535, ...); a colour of floats as they are in [0, 1], else
+    over 255 or 65535 by its largest value; any other intensity by the range its values span
+    (intensity_scale)."""
     v = np.asarray(values, dtype=np.float64)
     kind = np.dtype(_PLY_TYPES[ply_type])
-    if kind.kind in "iu":
-        full = float(np.iinfo(kind).max)
-        return np.clip(v / full, 0.0, 1.0)
+    if kind.kind == "u":
+        return np.clip(v / float(np.iinfo(kind).max), 0.0, 1.0)
     finite = v[np.isfinite(v)]
     lo = float(finite.min()) if finite.size else 0.0
     hi = float(finite.max()) if finite.size else 1.0
-    if lo >= 0.0 and hi <= 1.0:
-        return np.nan_to_num(v, nan=0.0)
     if colour:
-        return np.clip(np.nan_to_num(v, nan=0.0) / (255.0 if hi <= 255.0 else 65535.0), 0, 1)
-    return np.clip(np.nan_to_num((v - lo) / (hi - lo) if hi > lo else v * 0.0, nan=0.0), 0, 1)
+        top = 1.0 if hi <= 1.0 else 255.0 if hi <= 255.0 else 65535.0
+        return np.clip(np.nan_to_num(v, nan=0.0) / top, 0.0, 1.0)
+    a, b, _ = intensity_scale(lo, hi)
+    return np.clip(np.nan_to_num((v - a) / b, nan=0.0), 0.0, 1.0)
 
 
 PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
@@ -1552,10 +1567,10 @@ class AsciiPoints(PointSource):
     Columns: 3 (x y z), 4 (x y z intensity), 6 (x y z r g b) or 7 (x y z intensity r g b), the
     same on every line. A line that holds one whole number alone is a count (PTS writes one
     before each block of points) and is skipped, as is a first line that is not numbers (a
-    CSV header); a point whose coordinate is not a number (nan) is sent as a "no return". Intensity is scaled into [0, 1] by what the first pass over the file finds:
-    kept in [0, 1]; Leica PTS's −2048..2047 as (i + 2048) / 4095; 0..255 over 255; 0..65535
-    over 65535; any other range by its min..max (noted). Colour 0..255, or 0..1 when no value
-    exceeds 1, taken as sRGB and linearised."""
+    CSV header); a point whose coordinate is not a number (nan) is sent as a "no return".
+    Intensity is scaled into [0, 1] by the range the file's first pass finds (intensity_scale:
+    Leica PTS's −2048..2047 among the ranges it knows; noted). Colour 0..255, or 0..1 when no
+    value exceeds 1, taken as sRGB and linearised."""
 
     def __init__(self, path: str, pose: Pose):
         super().__init__()
@@ -1630,18 +1645,8 @@ class AsciiPoints(PointSource):
         self.has_rgb = self.fields in (6, 7)
         self.intensity_scale = (0.0, 1.0)  # i → (i − a) / b
         if self.has_intensity:
-            if lo >= 0.0 and hi <= 1.0:
-                what = "intensity in [0, 1], kept"
-            elif lo >= -2048.0 and hi <= 2047.0 and lo < 0.0:
-                self.intensity_scale, what = (-2048.0, 4095.0), \
-                    "intensity -2048..2047 (Leica PTS): (i + 2048) / 4095"
-            elif lo >= 0.0 and hi <= 255.0:
-                self.intensity_scale, what = (0.0, 255.0), "intensity 0..255: over 255"
-            elif lo >= 0.0 and hi <= 65535.0:
-                self.intensity_scale, what = (0.0, 65535.0), "intensity 0..65535: over 65535"
-            else:
-                self.intensity_scale = (lo, hi - lo if hi > lo else 1.0)
-                what = f"intensity scaled by the data's range {lo:g}..{hi:g}"
+            a, b, what = intensity_scale(lo, hi)
+            self.intensity_scale = (a, b)
             self.notes.append(what)
         self.colour_full = 1.0 if top <= 1.0 else 255.0
         if self.has_rgb:
