@@ -196,20 +196,45 @@ void ExpectRebuildEquals(Engine& engine, const fs::path& root, int64_t increment
   ExpectSame(d);
 }
 
+// The 8-bit RGB codes of PNG bytes, row-major, and their size; empty on failure (asserted).
+std::vector<uint8_t> ReadRgb8(const std::string& png, int* w, int* h) {
+  OIIO::Filesystem::IOMemReader reader(png.data(), png.size());
+  OIIO::ImageSpec config;
+  OIIO::Filesystem::IOProxy* proxy = &reader;
+  config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
+  auto in = OIIO::ImageInput::open("in.png", &config);
+  EXPECT_TRUE(in != nullptr) << OIIO::geterror();
+  if (!in) return {};
+  *w = in->spec().width;
+  *h = in->spec().height;
+  std::vector<uint8_t> rgb(size_t(*w) * size_t(*h) * 3);
+  EXPECT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
+  return rgb;
+}
+
+// 8-bit `pixels` (w × h × channels; with 4 channels the last is unassociated alpha) as PNG bytes.
+std::string WritePng8(const std::vector<uint8_t>& pixels, int w, int h, int channels) {
+  std::vector<unsigned char> buffer;
+  OIIO::Filesystem::IOVecOutput out_proxy(buffer);
+  auto out = OIIO::ImageOutput::create("out.png", &out_proxy);
+  OIIO::ImageSpec spec(w, h, channels, OIIO::TypeDesc::UINT8);
+  if (channels == 4) {
+    spec.alpha_channel = 3;
+    spec.attribute("oiio:UnassociatedAlpha", 1);
+  }
+  EXPECT_TRUE(out && out->open("out.png", spec) &&
+              out->write_image(OIIO::TypeDesc::UINT8, pixels.data()) && out->close());
+  return std::string(buffer.begin(), buffer.end());
+}
+
 // `pano`'s image (an 8-bit RGB PNG) with its nadir masked as a stitcher masks its tripod:
 // transparent from row 0.75·H down, coverage ramping to it over the 6 rows above. `beside`: the
 // image stays as it is and the coverage comes as a mask image beside it (a rig's mask); else
 // the image becomes RGBA, black under the transparent pixels.
 void MaskNadir(ingest::PanoramaData& pano, bool beside) {
-  OIIO::Filesystem::IOMemReader reader(pano.encoded_image.data(), pano.encoded_image.size());
-  OIIO::ImageSpec config;
-  OIIO::Filesystem::IOProxy* proxy = &reader;
-  config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
-  auto in = OIIO::ImageInput::open("in.png", &config);
-  ASSERT_TRUE(in != nullptr) << OIIO::geterror();
-  const int w = in->spec().width, h = in->spec().height;
-  std::vector<uint8_t> rgb(size_t(w) * h * 3);
-  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
+  int w = 0, h = 0;
+  const std::vector<uint8_t> rgb = ReadRgb8(pano.encoded_image, &w, &h);
+  ASSERT_FALSE(rgb.empty());
   const int channels = beside ? 1 : 4;
   std::vector<uint8_t> out_pixels(size_t(w) * h * size_t(channels));
   const int cut = h * 3 / 4;
@@ -223,38 +248,18 @@ void MaskNadir(ingest::PanoramaData& pano, bool beside) {
     for (int c = 0; c < 3; ++c) out_pixels[4 * p + size_t(c)] = a > 0 ? rgb[3 * p + size_t(c)] : 0;
     out_pixels[4 * p + 3] = uint8_t(a);
   }
-  std::vector<unsigned char> buffer;
-  OIIO::Filesystem::IOVecOutput out_proxy(buffer);
-  auto out = OIIO::ImageOutput::create("out.png", &out_proxy);
-  OIIO::ImageSpec spec(w, h, channels, OIIO::TypeDesc::UINT8);
-  if (!beside) {
-    spec.alpha_channel = 3;
-    spec.attribute("oiio:UnassociatedAlpha", 1);
-  }
-  ASSERT_TRUE(out && out->open("out.png", spec) &&
-              out->write_image(OIIO::TypeDesc::UINT8, out_pixels.data()) && out->close());
-  (beside ? pano.encoded_mask : pano.encoded_image) = std::string(buffer.begin(), buffer.end());
+  (beside ? pano.encoded_mask : pano.encoded_image) = WritePng8(out_pixels, w, h, channels);
 }
 
 // `pano`'s image (an 8-bit RGB PNG) cut to its top three quarters, sent as that part of its
 // sphere (a camera without a nadir).
 void KeepTopOfSphere(ingest::PanoramaData& pano) {
-  OIIO::Filesystem::IOMemReader reader(pano.encoded_image.data(), pano.encoded_image.size());
-  OIIO::ImageSpec config;
-  OIIO::Filesystem::IOProxy* proxy = &reader;
-  config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy);
-  auto in = OIIO::ImageInput::open("in.png", &config);
-  ASSERT_TRUE(in != nullptr) << OIIO::geterror();
-  const int w = in->spec().width, h = in->spec().height, kept = h * 3 / 4;
-  std::vector<uint8_t> rgb(size_t(w) * h * 3);
-  ASSERT_TRUE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, rgb.data()));
-  std::vector<unsigned char> buffer;
-  OIIO::Filesystem::IOVecOutput out_proxy(buffer);
-  auto out = OIIO::ImageOutput::create("out.png", &out_proxy);
-  OIIO::ImageSpec spec(w, kept, 3, OIIO::TypeDesc::UINT8);
-  ASSERT_TRUE(out && out->open("out.png", spec) &&
-              out->write_image(OIIO::TypeDesc::UINT8, rgb.data()) && out->close());
-  pano.encoded_image = std::string(buffer.begin(), buffer.end());
+  int w = 0, h = 0;
+  std::vector<uint8_t> rgb = ReadRgb8(pano.encoded_image, &w, &h);
+  ASSERT_FALSE(rgb.empty());
+  const int kept = h * 3 / 4;
+  rgb.resize(size_t(w) * size_t(kept) * 3);  // row-major: the top rows
+  pano.encoded_image = WritePng8(rgb, w, kept, 3);
   pano.sphere = ingest::SphereWindow{w, h, 0, 0};
 }
 

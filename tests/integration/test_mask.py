@@ -245,6 +245,20 @@ def test_e57_image_mask_is_sent_as_the_mask(client, server, tmp_path):
     assert len(floor) >= 100 and invalidated == len(floor)
 
 
+def _e57_camera_records(client, server, tmp_path, project: str, image: dict, seed: int):
+    """Ingests the room scanned from STATION with one E57 image (write_e57's `images` entry,
+    posed at the station) through the CLI into a new project; the camera's records on the wall
+    at the station's height and on the floor under it, and what the CLI printed."""
+    pose = (STATION, (1.0, 0.0, 0.0, 0.0))
+    path = str(tmp_path / f"{project}.e57")
+    write_e57(path, POINTS, room_chunks(POINTS, seed=seed), pose=pose,
+              images=[{"name": "pano", "pose": pose, **image}])
+    client.create_project(project, vossel_size_m=VOSSEL_M)
+    r = run_cli(server, "ingest", "--project", project, "--quiet", path)
+    print("\n" + r.stdout.strip())
+    return {box: _camera_records(client, project, box) for box in (WALL_BOX, FLOOR_BOX)}, r.stdout
+
+
 def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
     """An E57 spherical image of part of the sphere (here 253° x 105° of a 1024 x 512 sphere,
     centred, as E57 has a spherical image's centre on the camera's x axis) is sent as that part
@@ -261,19 +275,12 @@ def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
     left, top = (WIDTH - w) // 2, (HEIGHT - h) // 2
     part = rgb8[top:top + h, left:left + w]
     part_png = png_bytes(w, h, b"".join(b"\x00" + part[j].tobytes() for j in range(h)))
-    pose = (STATION, (1.0, 0.0, 0.0, 0.0))
     records = {}
     for name, png, size in (("whole", whole, (WIDTH, HEIGHT)), ("part", part_png, (w, h))):
-        path = str(tmp_path / f"{name}.e57")
-        write_e57(path, POINTS, room_chunks(POINTS, seed=47), pose=pose,
-                  images=[{"name": "pano", "png": png, "width": size[0], "height": size[1],
-                           "pose": pose, "pixel_rad": np.pi / HEIGHT}])
-        client.create_project(f"sphere-{name}", vossel_size_m=VOSSEL_M)
-        r = run_cli(server, "ingest", "--project", f"sphere-{name}", "--quiet", path)
-        print("\n" + r.stdout.strip())
-        records[name] = {box: _camera_records(client, f"sphere-{name}", box)
-                         for box in (WALL_BOX, FLOOR_BOX)}
-    assert "part of a 1024x512 panorama of the sphere" in r.stdout
+        records[name], printed = _e57_camera_records(
+            client, server, tmp_path, f"sphere-{name}",
+            {"png": png, "width": size[0], "height": size[1], "pixel_rad": np.pi / HEIGHT}, 47)
+    assert "part of a 1024x512 panorama of the sphere" in printed
     wall_whole, wall_part = records["whole"][WALL_BOX], records["part"][WALL_BOX]
     assert len(wall_whole) >= 100 and wall_whole.keys() == wall_part.keys()
     worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_part[k]["value"]))))
@@ -310,22 +317,15 @@ def test_e57_cylindrical_image_is_resampled_into_its_sphere(client, server, tmp_
                        0.3 + 0.2 * np.sin(8 * np.pi * ii / WIDTH)], axis=-1)
     rgb8 = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
     png = png_bytes(WIDTH, rows, b"".join(b"\x00" + rgb8[j].tobytes() for j in range(rows)))
-    pose = (STATION, (1.0, 0.0, 0.0, 0.0))
     records = {}
     for name, image in (
             ("whole", {"png": _panorama(), "width": WIDTH, "height": HEIGHT}),
             ("cylinder", {"png": png, "width": WIDTH, "height": rows,
                           "cylinder": {"pixel_height_m": ph, "radius_m": radius,
                                        "principal_y_px": ppy}})):
-        path = str(tmp_path / f"{name}.e57")
-        write_e57(path, POINTS, room_chunks(POINTS, seed=53), pose=pose,
-                  images=[{"name": "pano", "pose": pose, **image}])
-        client.create_project(f"cyl-{name}", vossel_size_m=VOSSEL_M)
-        r = run_cli(server, "ingest", "--project", f"cyl-{name}", "--quiet", path)
-        print("\n" + r.stdout.strip())
-        records[name] = {box: _camera_records(client, f"cyl-{name}", box)
-                         for box in (WALL_BOX, FLOOR_BOX)}
-    assert "cylindrical: resampled by the server" in r.stdout
+        records[name], printed = _e57_camera_records(client, server, tmp_path, f"cyl-{name}",
+                                                     image, 53)
+    assert "cylindrical: resampled by the server" in printed
     wall_whole, wall_cyl = records["whole"][WALL_BOX], records["cylinder"][WALL_BOX]
     assert len(wall_whole) >= 100 and wall_whole.keys() == wall_cyl.keys()
     worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_cyl[k]["value"]))))

@@ -297,17 +297,24 @@ def pinhole_from_json(obj, where: str) -> Dict[str, float]:
 SPHERE_KEYS = ("width_px", "height_px", "left_px", "top_px")
 
 
+def _json_object(obj, keys: Sequence[str], where: str) -> dict:
+    """`obj` when it is a JSON object of no other fields than `keys`; ValueError naming `where`
+    otherwise."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object with {', '.join(keys)}")
+    unknown = sorted(set(obj) - set(keys))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
+                         f"expected {', '.join(keys)}")
+    return obj
+
+
 def sphere_from_json(obj, where: str) -> Dict[str, int]:
     """Where an equirect panorama of part of the sphere lies in the whole sphere's panorama
     (at the image's pixel pitch, twice as wide as high): {width_px, height_px} of the sphere
     and {left_px, top_px} of the image's top-left pixel in it, whole numbers. ValueError naming
     the field (the server checks that the image lies within it)."""
-    if not isinstance(obj, dict):
-        raise ValueError(f"{where}: expected an object with {', '.join(SPHERE_KEYS)}")
-    unknown = sorted(set(obj) - set(SPHERE_KEYS))
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
-                         f"expected {', '.join(SPHERE_KEYS)}")
+    _json_object(obj, SPHERE_KEYS, where)
     out = {}
     for key in SPHERE_KEYS:
         value = obj.get(key, 0 if key in ("left_px", "top_px") else None)
@@ -327,12 +334,7 @@ def cylinder_from_json(obj, where: str) -> Dict[str, float]:
     pixel_width_rad of azimuth, centred on the camera's x axis; rows every pixel_height_m up a
     cylinder of radius_m, the horizon at row coordinate principal_y_px. ValueError naming the
     field."""
-    if not isinstance(obj, dict):
-        raise ValueError(f"{where}: expected an object with {', '.join(CYLINDER_KEYS)}")
-    unknown = sorted(set(obj) - set(CYLINDER_KEYS))
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
-                         f"expected {', '.join(CYLINDER_KEYS)}")
+    _json_object(obj, CYLINDER_KEYS, where)
     out = {}
     for key in CYLINDER_KEYS:
         value = obj.get(key)
