@@ -259,6 +259,19 @@ def _e57_camera_records(client, server, tmp_path, project: str, image: dict, see
     return {box: _camera_records(client, project, box) for box in (WALL_BOX, FLOOR_BOX)}, r.stdout
 
 
+def _wall_and_floor(records: dict, name: str) -> Tuple[float, int, int, int]:
+    """Of `records[name]` against `records["whole"]` (_e57_camera_records' boxes): the largest
+    difference of a wall record's value (asserting the two saw the same wall vossels, at least
+    100), the wall records it holds, and of its floor records the invalidated ones and all."""
+    wall_whole, wall = records["whole"][WALL_BOX], records[name][WALL_BOX]
+    assert len(wall_whole) >= 100 and wall_whole.keys() == wall.keys()
+    assert not any(r["invalidated"] for r in wall.values())
+    worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall[k]["value"]))))
+                for k in wall_whole)
+    floor = records[name][FLOOR_BOX]
+    return worst, len(wall), sum(r["invalidated"] for r in floor.values()), len(floor)
+
+
 def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
     """An E57 spherical image of part of the sphere (here 253° x 105° of a 1024 x 512 sphere,
     centred, as E57 has a spherical image's centre on the camera's x axis) is sent as that part
@@ -281,19 +294,13 @@ def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
             client, server, tmp_path, f"sphere-{name}",
             {"png": png, "width": size[0], "height": size[1], "pixel_rad": np.pi / HEIGHT}, 47)
     assert "part of a 1024x512 panorama of the sphere" in printed
-    wall_whole, wall_part = records["whole"][WALL_BOX], records["part"][WALL_BOX]
-    assert len(wall_whole) >= 100 and wall_whole.keys() == wall_part.keys()
-    worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_part[k]["value"]))))
-                for k in wall_whole)
-    floor = records["part"][FLOOR_BOX]
-    invalidated = sum(r["invalidated"] for r in floor.values())
-    print(f"wall at the station's height: {len(wall_part)} camera records, max |Δ| {worst} "
-          f"against the whole panorama's; floor under the station: {invalidated} of "
-          f"{len(floor)} invalidated (the part does not reach it), "
+    worst, wall, invalidated, floor = _wall_and_floor(records, "part")
+    print(f"wall at the station's height: {wall} camera records, max |Δ| {worst} against the "
+          f"whole panorama's; floor under the station: {invalidated} of {floor} invalidated "
+          "(the part does not reach it), "
           f"{sum(r['invalidated'] for r in records['whole'][FLOOR_BOX].values())} with the whole")
     assert worst == 0.0
-    assert not any(r["invalidated"] for r in wall_part.values())
-    assert len(floor) >= 100 and invalidated == len(floor)
+    assert floor >= 100 and invalidated == floor
     assert not any(r["invalidated"] for r in records["whole"][FLOOR_BOX].values())
 
 
@@ -326,15 +333,9 @@ def test_e57_cylindrical_image_is_resampled_into_its_sphere(client, server, tmp_
         records[name], printed = _e57_camera_records(client, server, tmp_path, f"cyl-{name}",
                                                      image, 53)
     assert "cylindrical: resampled by the server" in printed
-    wall_whole, wall_cyl = records["whole"][WALL_BOX], records["cylinder"][WALL_BOX]
-    assert len(wall_whole) >= 100 and wall_whole.keys() == wall_cyl.keys()
-    worst = max(float(np.max(np.abs(np.subtract(wall_whole[k]["value"], wall_cyl[k]["value"]))))
-                for k in wall_whole)
-    floor = records["cylinder"][FLOOR_BOX]
-    invalidated = sum(r["invalidated"] for r in floor.values())
-    print(f"wall at the station's height: {len(wall_cyl)} camera records, max |Δ| {worst:.4f} "
-          f"against the whole panorama's; floor under the station: {invalidated} of "
-          f"{len(floor)} invalidated (beyond the cylinder's ±50°)")
+    worst, wall, invalidated, floor = _wall_and_floor(records, "cylinder")
+    print(f"wall at the station's height: {wall} camera records, max |Δ| {worst:.4f} against "
+          f"the whole panorama's; floor under the station: {invalidated} of {floor} "
+          "invalidated (beyond the cylinder's ±50°)")
     assert worst <= 0.01
-    assert not any(r["invalidated"] for r in wall_cyl.values())
-    assert len(floor) >= 100 and invalidated == len(floor)
+    assert floor >= 100 and invalidated == floor

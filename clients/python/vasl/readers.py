@@ -270,15 +270,22 @@ def _ply_unit(values: np.ndarray, ply_type: str, colour: bool = False) -> np.nda
 PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
+def _json_object(obj, keys: Sequence[str], where: str) -> dict:
+    """`obj` when it is a JSON object of no other fields than `keys`; ValueError naming `where`
+    otherwise."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object with {', '.join(keys)}")
+    unknown = sorted(set(obj) - set(keys))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
+                         f"expected {', '.join(keys)}")
+    return obj
+
+
 def pinhole_from_json(obj, where: str) -> Dict[str, float]:
     """A pinhole camera's intrinsics (VASL-MODEL §2.2: x right, y down, z forward; pixels;
     Brown-Conrady k1 k2 k3 p1 p2, default 0) from a JSON object. ValueError naming the field."""
-    if not isinstance(obj, dict):
-        raise ValueError(f"{where}: expected an object with fx_px, fy_px, cx_px, cy_px")
-    unknown = sorted(set(obj) - set(PINHOLE_KEYS))
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
-                         f"expected {', '.join(PINHOLE_KEYS)}")
+    _json_object(obj, PINHOLE_KEYS, where)
     out = {}
     for key in PINHOLE_KEYS:
         if key not in obj and key in ("fx_px", "fy_px", "cx_px", "cy_px"):
@@ -296,17 +303,6 @@ def pinhole_from_json(obj, where: str) -> Dict[str, float]:
 
 SPHERE_KEYS = ("width_px", "height_px", "left_px", "top_px")
 
-
-def _json_object(obj, keys: Sequence[str], where: str) -> dict:
-    """`obj` when it is a JSON object of no other fields than `keys`; ValueError naming `where`
-    otherwise."""
-    if not isinstance(obj, dict):
-        raise ValueError(f"{where}: expected an object with {', '.join(keys)}")
-    unknown = sorted(set(obj) - set(keys))
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; "
-                         f"expected {', '.join(keys)}")
-    return obj
 
 
 def sphere_from_json(obj, where: str) -> Dict[str, int]:
