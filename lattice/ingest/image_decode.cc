@@ -431,6 +431,12 @@ absl::StatusOr<CylinderPlacement> CylinderWindow(const CylinderImage& c, int wid
         "finite principal_y_px; got ", c.pixel_width_rad, ", ", c.pixel_height_m, ", ",
         c.radius_m, ", ", c.principal_y_px));
   }
+  // A sphere of at most 2^20 rows (its pixels are checked against the limit after).
+  if (M_PI / c.pixel_width_rad > double(1 << 20)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "a cylinder's pixel_width_rad of ", c.pixel_width_rad,
+        " makes a sphere of more than 2^20 rows"));
+  }
   const int rows = std::max(1, int(std::lround(M_PI / c.pixel_width_rad)));
   const int columns = 2 * rows;
   if (width_px > columns) {

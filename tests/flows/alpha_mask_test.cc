@@ -490,12 +490,15 @@ TEST(AlphaMaskTest, APartOfTheSphereIsItsPanoramaWithTheRestUncovered) {
   both.sphere = ingest::SphereWindow{512, 256, 0, 0};
   both.cylinder = ingest::CylinderImage{2 * M_PI / 512, 0.01, 1.0, 96.0};
   flat.cylinder = ingest::CylinderImage{2 * M_PI / 512, 0.0, 1.0, 96.0};
+  ingest::PanoramaData fine = grey;  // a pitch whose sphere would overflow its row count
+  fine.cylinder = ingest::CylinderImage{1e-9, 0.01, 1.0, 96.0};
   ExpectRefused(root, room,
                 {{off, "does not lie within its 512x256 sphere"},
                  {square, "width must be twice its height"},
                  {pinhole, "a pinhole photo has no sphere"},
                  {both, "neither a pinhole photo nor given a sphere window"},
-                 {flat, "pixel_height_m and radius_m > 0"}});
+                 {flat, "pixel_height_m and radius_m > 0"},
+                 {fine, "more than 2^20 rows"}});
 }
 
 // A JPEG panorama of part of the sphere keeps its codec's blocks where the file had them: the

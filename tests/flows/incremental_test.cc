@@ -330,8 +330,9 @@ TEST(IncrementalTest, IngestOfScansWithRangeGridsEqualsRebuild) {
 }
 
 // Claim (flows.h, sample.h): the same with panoramas whose nadir is transparent (alpha, a mask
-// beside the image, or an image of part of the sphere), their coverage read alike on every path (the scan's own cameras,
-// revisits through the image cache, the rebuild from the stored image and mask blobs).
+// beside the image, or an image of part of the sphere), their coverage read alike on every
+// path (the scan's own cameras, revisits through the image cache, the rebuild from the stored
+// image and mask blobs).
 TEST(IncrementalTest, IngestOfMaskedPanoramasEqualsRebuild) {
   IngestRoomThenRebuild(TestRoot("masked"), false, "masked room: incremental v4 vs rebuild v5",
                         false, true);

@@ -50,7 +50,8 @@ def test_pts_and_csv_come_in_the_scanners_frame(tmp_path):
     assert "intensity -2048..2047 (Leica): (i + 2048) / 4095" in points.notes
     cloud = points.read()
     err = float(np.abs(cloud.xyz_m - local).max())
-    print(f"\nPTS at x ≈ 500 km: {N} points, sensor-frame error {err * 1000:.3f} mm; {points.notes}")
+    print(f"\nPTS at x ≈ 500 km: {N} points, sensor-frame error {err * 1000:.3f} mm; "
+          f"{points.notes}")
     assert err < 1e-4  # the file's 0.1 mm, float64 through the pose
     np.testing.assert_allclose(cloud.intensity, (leica + 2048) / 4095, atol=1e-6)
     srgb = rgb / 255.0

@@ -1,5 +1,6 @@
-"""Leica's lens extension of E57 pinhole images (http://www.libe57.org/E57_LEICA_Camera_Distortion.txt,
-written by Leica's software for the BLK cameras): the calibrated fx, fy, cx, cy (scaled from the
+"""Leica's lens extension of E57 pinhole images
+(http://www.libe57.org/E57_LEICA_Camera_Distortion.txt, written by Leica's software for the BLK
+cameras): the calibrated fx, fy, cx, cy (scaled from the
 calibration's image size to the image's) and OpenCV's k1-k3, p1, p2 become the pinhole photo's
 §2.2 lens, in place of the nominal focal length with k = 0. A rational lens (k4-k6) is refitted
 as §2.2's polynomial when the fit stays within RATIONAL_FIT_MAX_PX of it over the whole image,

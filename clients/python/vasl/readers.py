@@ -1134,6 +1134,8 @@ def _e57_sphere(width: int, height: int, pixel_width: float, pixel_height: float
     if abs(span_w - 2 * math.pi) <= 0.02 * 2 * math.pi and \
             abs(span_h - math.pi) <= 0.02 * math.pi:
         return None
+    if math.pi / pixel_height > (1 << 20):
+        return (f"its pixels of {pixel_height:g} rad make a sphere of more than 2^20 rows")
     rows = int(round(math.pi / pixel_height))
     columns = 2 * rows
     if abs(columns * pixel_width - 2 * math.pi) > 0.02 * 2 * math.pi:
@@ -1307,8 +1309,9 @@ class PtxPoints(PointSource):
 
     A PTX scan is a full range grid: `columns` × `rows` lines, column after column, each
     ``x y z intensity [r g b]``; a cell without a return is ``0 0 0`` (or, from some writers, a
-    coordinate that is not a number), which is sent as the scanners' "no return" marker (the server skips it), so the point count is the grid's and
-    each point's row and column are its place in the file. Coordinates are read in float64 and
+    coordinate that is not a number), which is sent as the scanners' "no return" marker (the
+    server skips it), so the point count is the grid's and each point's row and column are its
+    place in the file. Coordinates are read in float64 and
     taken through `to_world` (the file's 4x4 transform: x_world = R p + t) and then into the
     sensor frame of `pose` (p_sensor = Rᵀ(x_world − o)), before they become float32; where the
     two are one (the usual file), the points are already in the sensor frame and are kept as
@@ -1457,8 +1460,8 @@ def read_ptx(path: str, pose=None) -> List[PtxScan]:
     position and axes are the identity while its transform is not is one that left them out,
     and the transform is the scanner's pose. `pose` (a manifest's, for a file of one scan)
     places the scanner instead, in the registered frame. ValueError naming the file and line
-    for a file that is not PTX, a header that is not a rigid pose, a point line without 3, 4 or 7 numbers, or a
-    scan with fewer point lines than its grid has cells."""
+    for a file that is not PTX, a header that is not a rigid pose, a point line without 3, 4 or
+    7 numbers, or a scan with fewer point lines than its grid has cells."""
     stem = os.path.splitext(os.path.basename(path))[0]
     given = None if pose is None else Pose.parse(pose)
     found = []
