@@ -154,6 +154,9 @@ void ScanToProto(const store::ScanInfo& scan, v1::Scan* out) {
     PoseToProto(src.pose, s->mutable_pose());
     s->set_blob_sha256(src.blob_sha256);
     s->set_mask_sha256(src.mask_sha256);
+    if (src.modality != records::Modality::kLidar) {
+      s->set_projection(src.camera.empty() ? "equirect" : src.camera);
+    }
     s->set_width_px(src.width_px);
     s->set_height_px(src.height_px);
     s->set_divergence_rad(src.divergence_rad);

@@ -294,6 +294,10 @@ def test_e57_partial_sphere_is_placed_in_its_sphere(client, server, tmp_path):
             client, server, tmp_path, f"sphere-{name}",
             {"png": png, "width": size[0], "height": size[1], "pixel_rad": np.pi / HEIGHT}, 47)
     assert "part of a 1024x512 panorama of the sphere" in printed
+    camera = next(s for s in client.list_scans("sphere-part")[0].sources if s.name == "pano")
+    assert camera.projection == "equirect window 152 106" and camera.kind == "part of the sphere"
+    assert "pano(rgb, part of the sphere)" in run_cli(server, "scans", "--project",
+                                                      "sphere-part").stdout
     worst, wall, invalidated, floor = _wall_and_floor(records, "part")
     print(f"wall at the station's height: {wall} camera records, max |Δ| {worst} against the "
           f"whole panorama's; floor under the station: {invalidated} of {floor} invalidated "
@@ -333,6 +337,11 @@ def test_e57_cylindrical_image_is_resampled_into_its_sphere(client, server, tmp_
         records[name], printed = _e57_camera_records(client, server, tmp_path, f"cyl-{name}",
                                                      image, 53)
     assert "cylindrical: resampled by the server" in printed
+    camera = next(s for s in client.list_scans("cyl-cylinder")[0].sources if s.name == "pano")
+    assert camera.projection.startswith("equirect cylinder ") and camera.kind == "cylindrical"
+    assert (camera.width_px, camera.height_px) == (WIDTH, HEIGHT)  # its sphere's
+    assert "pano(rgb, cylindrical)" in run_cli(server, "scans", "--project",
+                                               "cyl-cylinder").stdout
     worst, wall, invalidated, floor = _wall_and_floor(records, "cylinder")
     print(f"wall at the station's height: {wall} camera records, max |Δ| {worst:.4f} against "
           f"the whole panorama's; floor under the station: {invalidated} of {floor} "

@@ -306,8 +306,10 @@ def _cmd_scans(client: Client, args) -> int:
     for s in scans:
         points = sum(src.point_count for src in s.sources)
         pos = ",".join(f"{v:.3f}" for v in s.pose.position_m)
-        sources = " ".join(f"{src.name}({src.modality}{', masked' if src.mask_sha256 else ''})"
-                           for src in s.sources)
+        sources = " ".join(
+            src.name + "(" + ", ".join([src.modality] + ([src.kind] if src.kind else [])
+                                       + (["masked"] if src.mask_sha256 else [])) + ")"
+            for src in s.sources)
         print(f"{s.id:>4} {s.name:<20} {s.version:>7} {points:>10}  {pos:<26} {sources}")
         for src in s.sources:
             if src.calibration:

@@ -571,7 +571,7 @@ class Client:
                               _pose_from_pb(x.pose), x.blob_sha256, x.width_px, x.height_px,
                               x.divergence_rad, x.point_count,
                               _calibration(x.calibration) if x.HasField("calibration") else None,
-                              x.mask_sha256)
+                              x.mask_sha256, x.projection)
                        for x in s.sources]
             refs = [VisualReference(r.name, _pose_from_pb(r.pose), r.blob_sha256, r.width_px,
                                     r.height_px, r.size_bytes) for r in s.visual_references]
