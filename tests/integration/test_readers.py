@@ -3,6 +3,7 @@ paths relative to themselves and reject malformed fields with ValueError."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -251,3 +252,19 @@ def test_pose_parse_forms():
     for bad in ["1,2", [1, 2, 3, 4], "a,b,c", [0, 0, 0, 0, 0, 0, 0]]:
         with pytest.raises(ValueError):
             Pose.parse(bad)
+
+
+def test_e57_sphere_placement_and_its_refusals():
+    """Where an E57 spherical image goes (its centre on the camera's x axis): the whole sphere
+    as it is; a part centred in the sphere of its pitch; and, said why, pixels that are not
+    square (the server takes an equirect panorama twice as wide as high, and would refuse the
+    whole scan for one that is not) or too small for a sphere of 2^20 rows."""
+    from vasl.readers import _e57_sphere
+
+    p = math.pi / 512
+    assert _e57_sphere(1024, 512, p, p) is None
+    assert _e57_sphere(720, 300, p, p) == {"width_px": 1024, "height_px": 512,
+                                           "left_px": 152, "top_px": 106}
+    assert "square pixels" in _e57_sphere(1024, 384, p, math.pi / 384)
+    assert "square pixels" in _e57_sphere(500, 300, 2 * p, p)
+    assert "2^20 rows" in _e57_sphere(100, 100, 1e-9, 1e-9)

@@ -1133,6 +1133,9 @@ def _e57_sphere(width: int, height: int, pixel_width: float, pixel_height: float
     span_w, span_h = width * pixel_width, height * pixel_height
     if abs(span_w - 2 * math.pi) <= 0.02 * 2 * math.pi and \
             abs(span_h - math.pi) <= 0.02 * math.pi:
+        if not 1.95 <= width / height <= 2.05:  # the server's rule: it would refuse the scan
+            return (f"a whole sphere of {width}x{height} pixels: an equirect panorama needs "
+                    "square pixels, twice as wide as high")
         return None
     if math.pi / pixel_height > (1 << 20):
         return (f"its pixels of {pixel_height:g} rad make a sphere of more than 2^20 rows")
