@@ -1285,6 +1285,8 @@ def quaternion_from_matrix(r: np.ndarray) -> Tuple[float, float, float, float]:
     return tuple(float(c / n) for c in q)
 
 
+#: The fields of a PTX point line, as many as it has (3, 4 or 7).
+_PTX_FIELDS = ("x", "y", "z", "intensity", "r", "g", "b")
 #: How far from a rotation a PTX header's 3x3 may be (|RᵀR − I|, |det R − 1|): the files print
 #: six or so decimals.
 _PTX_RIGID_TOL = 1e-3
@@ -1351,10 +1353,16 @@ class PtxPoints(PointSource):
             while done < self.count:
                 n = min(chunk_points, self.count - done)
                 lines = list(itertools.islice(f, n))
-                values = _parse_numbers(b" ".join(lines))
-                if len(lines) < n or values is None or values.size != n * self.fields:
-                    raise ValueError(self._bad_line(lines, done, n))
-                values = values.reshape(n, self.fields)
+                values, bad = _number_table(lines, self.fields)
+                if values is None and bad < len(lines):
+                    line = lines[bad].decode("latin-1").strip()[:80]
+                    raise ValueError(f"{self.where}: line {self.first_line + done + bad}: "
+                                     f"expected {self.fields} numbers "
+                                     f"({' '.join(_PTX_FIELDS[:self.fields])}), got {line!r}")
+                if values is None or len(lines) < n:
+                    raise ValueError(f"{self.where}: the file ends after {done + len(lines)} of "
+                                     f"the scan's {self.count} points ({self.columns} columns x "
+                                     f"{self.rows} rows)")
                 xyz = values[:, :3]
                 # No return: 0 0 0, or a coordinate that is not a number (kept as the marker).
                 missing = np.all(xyz == 0.0, axis=1) | ~np.all(np.isfinite(xyz), axis=1)
@@ -1372,17 +1380,6 @@ class PtxPoints(PointSource):
                 yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity,
                                  None if rgb is None else rgb.astype(np.float32), grid)
 
-    def _bad_line(self, lines: List[bytes], done: int, n: int) -> str:
-        """What is wrong with a chunk whose numbers do not fill `n` lines of `fields`."""
-        for i, line in enumerate(lines):
-            got = _parse_numbers(line)
-            if got is None or got.size != self.fields or len(line.split()) != self.fields:
-                return (f"{self.where}: line {self.first_line + done + i}: expected "
-                        f"{self.fields} numbers (x y z intensity{' r g b' if self.has_rgb else ''})"
-                        f", got {line.decode('latin-1').strip()[:80]!r}")
-        return (f"{self.where}: the file ends after {done + len(lines)} of the scan's "
-                f"{self.count} points ({self.columns} columns x {self.rows} rows)")
-
 
 def _parse_numbers(text: bytes) -> Optional[np.ndarray]:
     """The whitespace-separated numbers of `text` as float64 (numpy's C parser); None when a
@@ -1395,6 +1392,20 @@ def _parse_numbers(text: bytes) -> Optional[np.ndarray]:
             return np.fromstring(text, sep=" ")
         except (ValueError, DeprecationWarning):
             return None
+
+
+def _number_table(lines: List[bytes], fields: int) -> Tuple[Optional[np.ndarray], int]:
+    """The lines' numbers as a (len(lines), fields) float64 table and -1; or None and the index
+    of the first line that does not hold `fields` numbers (len(lines) when each does alone but
+    not together, which whitespace inside a number cannot make: kept for safety)."""
+    values = _parse_numbers(b" ".join(lines))
+    if values is not None and values.size == len(lines) * fields:
+        return values.reshape(len(lines), fields), -1
+    for i, line in enumerate(lines):
+        got = _parse_numbers(line)
+        if got is None or got.size != fields:
+            return None, i
+    return None, len(lines)
 
 
 def _ptx_numbers(line: bytes, count: int, what: str, where: str) -> List[float]:
@@ -1613,17 +1624,16 @@ class AsciiPoints(PointSource):
                     yield start, kept
 
     def _table(self, start: int, lines: List[bytes]) -> np.ndarray:
-        values = _parse_numbers(b" ".join(lines))
-        if values is None or values.size != len(lines) * self.fields:
-            for i, line in enumerate(lines):
-                got = _parse_numbers(line)
-                if got is None or got.size != self.fields:
-                    raise ValueError(f"{self.path}: a line holds "
-                                     f"{'words that are not numbers' if got is None else got.size}"
-                                     f" where the first point line has {self.fields} numbers: "
-                                     f"{line.decode('latin-1').strip()[:80]!r}")
+        values, bad = _number_table(lines, self.fields)
+        if values is not None:
+            return values
+        if bad == len(lines):
             raise ValueError(f"{self.path}: near line {start}: lines of different lengths")
-        return values.reshape(len(lines), self.fields)
+        got = _parse_numbers(lines[bad])
+        raise ValueError(f"{self.path}: a line holds "
+                         f"{'words that are not numbers' if got is None else got.size}"
+                         f" where the first point line has {self.fields} numbers: "
+                         f"{lines[bad].decode('latin-1').strip()[:80]!r}")
 
     def _survey(self) -> None:
         """One pass over the file: the column count, the point count and the ranges that
