@@ -14,8 +14,8 @@ import time
 from typing import List, Optional
 
 from .client import DEFAULT_SERVER, Client, VaslError
-from .readers import (is_ascii_cloud, is_las, is_ptx, read_ascii_cloud, read_e57, read_las,
-                      read_manifest, read_ptx)
+from .readers import (is_ascii_cloud, is_las, is_pcd, is_ptx, read_ascii_cloud, read_e57,
+                      read_las, read_manifest, read_pcd, read_ptx)
 from .types import CONFIDENCE_FACTORS
 from .types import Pose
 
@@ -120,15 +120,16 @@ def _ingest_summary(r, seconds: float) -> str:
 def _cmd_ingest(client: Client, args) -> int:
     # Read and validate every input before sending any: manifests, E57 files (each of whose
     # scans is ingested with its spherical and pinhole images; images of no scan make a
-    # camera-only scan), PTX files (every scan, each with its scanner's pose), and LAS/LAZ files
-    # and ASCII point clouds (world coordinates: --pose places the scanner). The points
-    # themselves are read as they are sent, chunk by chunk.
+    # camera-only scan), PTX files (every scan, each with its scanner's pose), PCD files (the
+    # scanner at the file's VIEWPOINT, or where --pose places it), and LAS/LAZ files and ASCII
+    # point clouds (world coordinates: --pose places the scanner). The points themselves are
+    # read as they are sent, chunk by chunk.
     pose = Pose.parse(args.pose) if args.pose else None
-    las = [p for p in args.manifest if is_las(p) or is_ascii_cloud(p)]  # world coordinates
+    las = [p for p in args.manifest if is_las(p) or is_ascii_cloud(p) or is_pcd(p)]
     if pose is not None and len(las) > 1:
-        raise ValueError(f"--pose places one scanner, but {len(las)} LAS/LAZ or ASCII point "
-                         "cloud files were given: ingest them one at a time, or give each a "
-                         "manifest with its pose")
+        raise ValueError(f"--pose places one scanner, but {len(las)} LAS/LAZ, PCD or ASCII "
+                         "point cloud files were given: ingest them one at a time, or give "
+                         "each a manifest with its pose")
     e57 = [p for p in args.manifest if p.lower().endswith(".e57")]
     if pose is not None and not las and len(e57) > 1:
         raise ValueError(f"--pose places one scanner, but {len(e57)} E57 files were given")
@@ -168,6 +169,15 @@ def _cmd_ingest(client: Client, args) -> int:
                     args.project, scan=s.scan, points=s.points, pose=s.pose,
                     divergence_rad=args.divergence_rad, rig=f"ptx:{os.path.basename(p)}",
                     progress=bar, request_id=args.request_id)))
+        elif is_pcd(path):  # the scanner at its VIEWPOINT, or where --pose places it
+            scan = read_pcd(path, pose)
+            pose_used = pose_used or pose is not None
+            for note in scan.notes:
+                print(f"{path}: {note}")
+            jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest(
+                args.project, scan=s.scan, points=s.points, pose=s.pose,
+                divergence_rad=args.divergence_rad, rig=f"pcd:{os.path.basename(p)}",
+                progress=bar, request_id=args.request_id)))
         elif path.lower().endswith(".ply"):
             raise ValueError(f"{path}: a PLY file records no scanner pose: name it in a scan "
                              "manifest's lidar.points, whose pose places the scanner (README, "
@@ -187,8 +197,8 @@ def _cmd_ingest(client: Client, args) -> int:
             jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar,
                                                                 request_id=args.request_id)))
     if pose is not None and not pose_used:
-        raise ValueError("--pose is for LAS/LAZ files, ASCII point clouds and E57 scans stored "
-                         "without a pose; a manifest gives its scan's pose itself")
+        raise ValueError("--pose is for LAS/LAZ and PCD files, ASCII point clouds and E57 "
+                         "scans stored without a pose; a manifest gives its scan's pose itself")
     if args.request_id and len(jobs) != 1:
         raise ValueError(f"--request-id names one change, but {len(jobs)} scans were given")
     existing = set()
@@ -749,24 +759,28 @@ def build_parser() -> argparse.ArgumentParser:
     get = psub.add_parser("get", help="show a project")
     get.add_argument("name")
 
-    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57, PTX, LAS/LAZ or ASCII "
-                                           "point cloud files")
+    ingest = sub.add_parser("ingest", help="ingest scans: manifest, E57, PTX, PCD, LAS/LAZ or "
+                                           "ASCII point cloud files")
     ingest.add_argument("manifest", nargs="+",
-                        metavar="MANIFEST.json|SCAN.e57|SCAN.ptx|SCAN.las|SCAN.laz|SCAN.pts",
+                        metavar="MANIFEST.json|SCAN.e57|SCAN.ptx|SCAN.pcd|SCAN.las|SCAN.laz|"
+                                "SCAN.pts",
                         help="scan manifest JSON file(s), E57 and PTX files (every scan of the "
                              "file is ingested as a LiDAR scan named after the file, -<n> when "
-                             "it holds several) and/or a LAS/LAZ file or an ASCII point cloud "
-                             "(.pts, .xyz, .txt, .asc, .csv: x y z [intensity] [r g b] a line) "
-                             "in world coordinates (one scan named after the file, placed by "
-                             "--pose)")
+                             "it holds several), PCD files (one scan named after the file, its "
+                             "scanner at the file's VIEWPOINT) and/or a LAS/LAZ file or an "
+                             "ASCII point cloud (.pts, .xyz, .txt, .asc, .csv: x y z "
+                             "[intensity] [r g b] a line) in world coordinates (one scan named "
+                             "after the file, placed by --pose)")
     ingest.add_argument("--pose", metavar="x,y,z[,qx,qy,qz,qw]",
                         help="the scanner's pose in the points' world coordinates: required for "
                              "a LAS/LAZ file or an ASCII point cloud (neither records a scanner "
-                             "position), and for an E57 file of one scan stored in world "
-                             "coordinates without a pose")
+                             "position), for a PCD file stored in world coordinates, and for an "
+                             "E57 file of one scan stored in world coordinates without a pose; "
+                             "for a PCD file in its sensor's frame, where that sensor stood in "
+                             "the project (default: the file's VIEWPOINT)")
     ingest.add_argument("--divergence-rad", type=float, default=0.0003,
-                        help="LiDAR beam divergence for E57, PTX, LAS/LAZ and ASCII scans (none "
-                             "of them records it)")
+                        help="LiDAR beam divergence for E57, PTX, PCD, LAS/LAZ and ASCII scans "
+                             "(none of them records it)")
     ingest.add_argument("--project", required=True)
     ingest.add_argument("--skip-existing", action="store_true",
                         help="skip scans whose id is already in the project")

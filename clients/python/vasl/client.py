@@ -19,9 +19,9 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from ._proto import vasl_pb2 as pb
 from ._proto import vasl_pb2_grpc as pb_grpc
 from .readers import (CHUNK_POINTS, E57Scan, Manifest, PointCloud, PointSource,
-                      cylinder_from_json, is_ascii_cloud, is_las, is_ptx, pinhole_from_json,
-                      read_ascii_cloud, read_e57, read_las, read_manifest, read_ply, read_ptx,
-                      sphere_from_json)
+                      cylinder_from_json, is_ascii_cloud, is_las, is_pcd, is_ptx,
+                      pinhole_from_json, read_ascii_cloud, read_e57, read_las, read_manifest,
+                      read_pcd, read_ply, read_ptx, sphere_from_json)
 from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, CameraConfidence,
                     ChangeResult, ChangeStats, ExportResult, Inspection, IngestResult,
                     LensEstimate, LensMap, NormaliseResult, Pose, Project, RecordAttribute, RecordsQuery, RenderResult,
@@ -667,7 +667,8 @@ class Client:
         Arrays: `points` (N, 3) or (N, 4) sensor-frame metres [+ `intensity` (N,)] [+ `rgb`
         (N, 3) linear per-point colour, which becomes a "point-colour" source], or a
         PointSource (a file's points read chunk by chunk: `read_e57(...)[i].points`,
-        `read_ptx(path)[i].points`, `read_las(path, pose)`, `read_ascii_cloud(path, pose)`),
+        `read_ptx(path)[i].points`, `read_pcd(path).points`, `read_las(path, pose)`,
+        `read_ascii_cloud(path, pose)`),
         `pose` (see Pose.parse), `panoramas` as dicts {name, image
         (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole, mask,
         sphere, cylinder}
@@ -697,6 +698,8 @@ class Client:
                 points = read_ascii_cloud(m.points_path, m.pose)
             elif m.points_path is not None and is_ptx(m.points_path):
                 points = read_ptx(m.points_path, pose=m.pose)[0].points
+            elif m.points_path is not None and is_pcd(m.points_path):
+                points = read_pcd(m.points_path, pose=m.pose).points
             elif m.points_path is not None:
                 cloud = read_ply(m.points_path)
                 points, intensity = cloud.xyz_m, cloud.intensity

@@ -1,12 +1,12 @@
-"""Readers for what a capture rig leaves on disk: PLY, E57, PTX, LAS/LAZ and ASCII (PTS, XYZ,
-CSV) point clouds and the scan manifest.
+"""Readers for what a capture rig leaves on disk: PLY, E57, PTX, PCD, LAS/LAZ and ASCII (PTS,
+XYZ, CSV) point clouds and the scan manifest.
 
 PLY: ASCII, binary little endian and binary big endian; the ``vertex`` element's ``x, y, z``
 (float or double) and an optional ``intensity`` (any numeric type); other properties and elements
 are ignored. The manifest is the JSON file ``vasl_scene`` writes (documented in README.md); its
 paths are relative to the manifest file.
 
-E57, PTX, LAS/LAZ and ASCII scans can be far larger than memory (a terrestrial scan holds up to a
+E57, PTX, PCD, LAS/LAZ and ASCII scans can be far larger than memory (a terrestrial scan holds up to a
 few hundred million points), so their points are a `PointSource`: read chunk by chunk
 (`CHUNK_POINTS` at a time) whenever they are wanted, with everything the ingest header needs (the
 point count, whether there is intensity and colour, the normalisation limits) settled before the
@@ -1700,3 +1700,409 @@ def read_ascii_cloud(path: str, pose=None) -> AsciiPoints:
 def is_ascii_cloud(path: str) -> bool:
     """Whether a path names an ASCII point cloud (by its extension)."""
     return path.lower().endswith(ASCII_CLOUD_EXTENSIONS)
+
+
+#: PCD field types (TYPE letter, SIZE bytes) as numpy reads them; the data is little endian.
+_PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2",
+              ("I", 4): "<i4", ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2",
+              ("U", 4): "<u4", ("U", 8): "<u8"}
+#: PCD header lines a file may hold before DATA (comments aside), and the bytes read for it.
+_PCD_HEADER_BYTES = 1 << 16
+
+
+@dataclass
+class PcdField:
+    """One field of a PCD file: its name, numpy type and count (values per point)."""
+
+    name: str
+    dtype: str
+    count: int
+
+
+class PcdScan:
+    """A PCD file's scan: its scanner pose and its points (a streaming `PcdPoints` in the
+    scanner's frame)."""
+
+    scan: str  #: scan id: the file stem
+    pose: Pose  #: T_world_scanner
+    points: "PcdPoints"
+
+    def __init__(self, scan: str, pose: Pose, points: "PcdPoints"):
+        self.scan, self.pose, self.points = scan, pose, points
+
+    @property
+    def notes(self) -> List[str]:
+        return self.points.notes
+
+
+class PcdPoints(PointSource):
+    """The points of a PCD file (the Point Cloud Library's format, read and written by ROS,
+    Open3D, CloudCompare and most robotics stacks), read chunk by chunk.
+
+    The header's FIELDS, SIZE, TYPE and COUNT lay out a point; WIDTH × HEIGHT points (HEIGHT
+    > 1: an organised cloud, a grid of rows × columns, which is sent as the scan's range grid);
+    VIEWPOINT ``tx ty tz qw qx qy qz`` the pose of the sensor that acquired them in the
+    points' frame. DATA ``ascii`` (a point a line), ``binary`` (points packed one after the
+    other) or ``binary_compressed`` (LZF-compressed, field after field: decompressed whole, so
+    its memory is the points' bytes). Coordinates ``x y z`` (float or double) go into the
+    sensor frame through the viewpoint, p = Rᵀ(x − t), in float64 before they become float32
+    (kept as they are under the identity viewpoint, the usual file); a point whose coordinate
+    is not a number (an organised cloud's empty cell) is sent as the scanners' "no return".
+    ``intensity`` an unsigned integer type over its largest value, else by the range its
+    values span (intensity_scale); ``rgb`` or ``rgba`` (a float or unsigned 32-bit field
+    holding 0xRRGGBB, PCL's packing) as sRGB, linearised. Other fields (normals, labels,
+    curvature, padding ``_``) are skipped."""
+
+    def __init__(self, path: str, fields: List[PcdField], width: int, height: int,
+                 data: str, offset: int, first_line: int, viewpoint: Pose):
+        super().__init__()
+        self.path = path
+        self.first_line = first_line  #: the data's first line number (ascii), for errors
+        self.fields = fields
+        self.width, self.height = width, height
+        self.count = width * height
+        self.data = data
+        self.offset = offset  #: byte offset of the data (after the DATA line)
+        #: the pose through which the points go into the sensor frame: the VIEWPOINT, or the
+        #: scanner's pose for points stored in a world frame (read_pcd)
+        self.to_sensor = viewpoint
+        names = [f.name for f in fields]
+        for axis in "xyz":
+            if axis not in names:
+                raise ValueError(f"{path}: the PCD fields ({' '.join(names)}) have no {axis}")
+            f = fields[names.index(axis)]
+            if f.count != 1 or not f.dtype.lstrip("<").startswith("f"):
+                raise ValueError(f"{path}: PCD field {axis} must be one float or double")
+        self._intensity = next((f for f in fields if f.name == "intensity" and f.count == 1),
+                               None)
+        self._rgb = next((f for f in fields if f.name in ("rgb", "rgba") and f.count == 1
+                          and f.dtype.lstrip("<") in ("f4", "u4")), None)
+        self.has_intensity = self._intensity is not None
+        self.has_rgb = self._rgb is not None
+        self.grid_shape = (height, width) if height > 1 else None
+        self.intensity_scale = (0.0, 1.0)  # i → (i − a) / b
+        self._columns: Optional[Dict[str, np.ndarray]] = None  # binary_compressed, decoded
+        self._ascii_fields = sum(f.count for f in fields)
+        self._survey()
+
+    @property
+    def as_stored(self) -> bool:
+        """Whether the points are in the sensor frame as stored (an identity `to_sensor`)."""
+        return (not any(self.to_sensor.position_m)
+                and np.allclose(rotation_matrix(self.to_sensor.quaternion_xyzw), np.eye(3),
+                                rtol=0.0, atol=1e-12))
+
+    def _record_dtype(self) -> np.dtype:
+        return np.dtype([(f"f{i}", f.dtype, (f.count,)) for i, f in enumerate(self.fields)])
+
+    def _decompressed(self) -> Dict[str, np.ndarray]:
+        """binary_compressed: every field's values (points × count), decompressed once."""
+        if self._columns is None:
+            with open(self.path, "rb") as f:
+                f.seek(self.offset)
+                sizes = f.read(8)
+                if len(sizes) < 8:
+                    raise ValueError(f"{self.path}: the PCD file ends before its compressed "
+                                     "data's sizes")
+                packed, unpacked = (int(v) for v in np.frombuffer(sizes, "<u4"))
+                need = sum(np.dtype(fl.dtype).itemsize * fl.count for fl in self.fields)
+                if unpacked != need * self.count:
+                    raise ValueError(f"{self.path}: the compressed data unpacks to {unpacked} "
+                                     f"bytes, but {self.count} points of {need} bytes take "
+                                     f"{need * self.count}")
+                data = f.read(packed)
+                if len(data) < packed:
+                    raise ValueError(f"{self.path}: the PCD file ends inside its compressed "
+                                     f"data ({len(data)} of {packed} bytes)")
+            raw = lzf_decompress(data, unpacked, self.path)
+            columns, at = {}, 0
+            for fl in self.fields:
+                size = np.dtype(fl.dtype).itemsize * fl.count * self.count
+                columns[fl.name] = np.frombuffer(raw, fl.dtype, fl.count * self.count, at) \
+                    .reshape(self.count, fl.count)
+                at += size
+            self._columns = columns
+        return self._columns
+
+    def _tables(self, chunk_points: int) -> Iterator[Dict[str, np.ndarray]]:
+        """Per chunk of points in the file's order: each field's values (points × count)."""
+        if self.data == "binary_compressed":
+            columns = self._decompressed()
+            for at in range(0, self.count, chunk_points):
+                yield {name: v[at:at + chunk_points] for name, v in columns.items()}
+            return
+        with open(self.path, "rb") as f:
+            f.seek(self.offset)
+            done = 0
+            if self.data == "binary":
+                dtype = self._record_dtype()
+                while done < self.count:
+                    n = min(chunk_points, self.count - done)
+                    raw = f.read(n * dtype.itemsize)
+                    if len(raw) < n * dtype.itemsize:
+                        raise ValueError(f"{self.path}: the PCD file ends after "
+                                         f"{done + len(raw) // dtype.itemsize} of its "
+                                         f"{self.count} points")
+                    rec = np.frombuffer(raw, dtype, n)
+                    done += n
+                    yield {fl.name: rec[f"f{i}"] for i, fl in enumerate(self.fields)}
+                return
+            import itertools
+            line_no = self.first_line
+            while done < self.count:
+                n = min(chunk_points, self.count - done)
+                lines = [ln for ln in itertools.islice(f, n) if ln.strip()]
+                while len(lines) < n:  # blank lines skipped: read on for the rest
+                    more = [ln for ln in itertools.islice(f, n - len(lines)) if ln.strip()]
+                    if not more:
+                        raise ValueError(f"{self.path}: the PCD file ends after "
+                                         f"{done + len(lines)} of its {self.count} points")
+                    lines += more
+                values, bad = _number_table(lines, self._ascii_fields)
+                if values is None:
+                    at = min(bad, len(lines) - 1)
+                    raise ValueError(f"{self.path}: near line {line_no + at}: a point has "
+                                     f"{self._ascii_fields} numbers "
+                                     f"({' '.join(fl.name for fl in self.fields)}), got "
+                                     f"{lines[at].decode('latin-1').strip()[:80]!r}")
+                out, col = {}, 0
+                for fl in self.fields:
+                    v = values[:, col:col + fl.count]
+                    kind = fl.dtype.lstrip("<")
+                    if fl.name in ("rgb", "rgba") and kind == "f4":
+                        # ascii writes the packed colour's float: its bits are the colour.
+                        v = v.astype(np.float32)
+                    elif kind[0] in "iu":
+                        v = np.nan_to_num(v).astype(kind)
+                    out[fl.name] = v
+                    col += fl.count
+                done += n
+                line_no += n
+                yield out
+
+    def _survey(self) -> None:
+        """The intensity's range, when its type does not settle the scale (one pass)."""
+        notes = [f"{self.count} points ({self.data}), fields {' '.join(f.name for f in self.fields)}"]
+        if self.has_intensity:
+            kind = np.dtype(self._intensity.dtype)
+            if kind.kind == "u":
+                self.intensity_scale = (0.0, float(np.iinfo(kind).max))
+                notes.append(f"intensity over {np.iinfo(kind).max} ({kind.name})")
+            else:
+                lo, hi = math.inf, -math.inf
+                for t in self._tables(CHUNK_POINTS):
+                    v = t["intensity"].astype(np.float64).ravel()
+                    v = v[np.isfinite(v)]
+                    if v.size:
+                        lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+                a, b, what = intensity_scale(lo if lo <= hi else 0.0, hi if lo <= hi else 1.0)
+                self.intensity_scale = (a, b)
+                notes.append(what)
+        if self.has_rgb:
+            notes.append(f"colour from {self._rgb.name} (0xRRGGBB), as sRGB")
+        if self.grid_shape is not None:
+            notes.append(f"organised {self.height} x {self.width}: sent as the scan's range "
+                         "grid (the server fills the gaps between neighbouring returns on one "
+                         "surface)")
+        self.notes.extend(notes)
+
+    def chunks(self, chunk_points: int = CHUNK_POINTS) -> Iterator[PointCloud]:
+        a, b = self.intensity_scale
+        done = 0
+        for t in self._tables(chunk_points):
+            xyz = np.concatenate([t[axis].astype(np.float64) for axis in "xyz"], axis=1)
+            n = len(xyz)
+            missing = ~np.all(np.isfinite(xyz), axis=1)
+            if not self.as_stored:
+                xyz = world_to_sensor(xyz, self.to_sensor)
+            xyz[missing] = 0.0
+            intensity = rgb = grid = None
+            if self.has_intensity:
+                i = t["intensity"].astype(np.float64).ravel()
+                intensity = np.clip(np.nan_to_num((i - a) / b), 0.0, 1.0).astype(np.float32)
+            if self.has_rgb:
+                packed = np.ascontiguousarray(t[self._rgb.name].ravel()).view(np.uint32)
+                codes = np.stack([(packed >> s) & 0xFF for s in (16, 8, 0)], axis=1)
+                rgb = srgb_to_linear(codes.astype(np.float64) / 255.0).astype(np.float32)
+            if self.grid_shape is not None:
+                cell = np.arange(done, done + n, dtype=np.int64)
+                grid = np.stack([cell // self.width, cell % self.width],
+                                axis=1).astype(np.uint32)
+            done += n
+            yield PointCloud(np.ascontiguousarray(xyz, dtype=np.float32), intensity, rgb, grid)
+
+
+def lzf_decompress(data: bytes, size: int, where: str = "LZF data") -> bytes:
+    """LZF (liblzf, the compression of PCD's binary_compressed data) decompressed to exactly
+    `size` bytes. A control byte below 32 starts a run of that many plus one literal bytes;
+    any other copies (its top 3 bits, 7 meaning one more length byte follows) + 2 bytes from
+    ((its low 5 bits) << 8 | next byte) + 1 bytes back. ValueError naming `where` for data
+    that runs past either end."""
+    out = bytearray(size)
+    src = memoryview(data)
+    ip, op, n = 0, 0, len(data)
+    try:
+        while ip < n:
+            ctrl = src[ip]
+            ip += 1
+            if ctrl < 32:
+                run = ctrl + 1
+                if ip + run > n or op + run > size:
+                    raise IndexError
+                out[op:op + run] = src[ip:ip + run]
+                ip += run
+                op += run
+                continue
+            length = ctrl >> 5
+            if length == 7:
+                length += src[ip]
+                ip += 1
+            back = ((ctrl & 0x1F) << 8 | src[ip]) + 1
+            ip += 1
+            length += 2
+            ref = op - back
+            if ref < 0 or op + length > size:
+                raise IndexError
+            if back >= length:
+                out[op:op + length] = out[ref:ref + length]
+            else:  # the copy overlaps what it writes: the last `back` bytes, repeated
+                pattern = bytes(out[ref:op])
+                out[op:op + length] = (pattern * (length // back + 1))[:length]
+            op += length
+    except IndexError:
+        raise ValueError(f"{where}: the LZF data is corrupt (it runs past its "
+                         f"{'input' if ip >= n else 'output'} at byte {ip})") from None
+    if op != size:
+        raise ValueError(f"{where}: the LZF data unpacks to {op} bytes, not {size}")
+    return bytes(out)
+
+
+def _pcd_header(path: str) -> Tuple[Dict[str, List[str]], int, int]:
+    """A PCD file's header lines by keyword, the data's byte offset and its first line
+    number. ValueError for a file that is not PCD or ends before DATA."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_PCD_HEADER_BYTES)
+    except OSError as e:
+        raise ValueError(f"{path}: cannot be read: {e.strerror}") from e
+    keys: Dict[str, List[str]] = {}
+    at, line_no = 0, 0
+    while True:
+        end = head.find(b"\n", at)
+        if end < 0:
+            raise ValueError(f"{path}: not a PCD file (no DATA line in its first "
+                             f"{_PCD_HEADER_BYTES} bytes)" if keys else
+                             f"{path}: not a PCD file" + ("" if head else " (it is empty)"))
+        line = head[at:end].decode("latin-1").strip()
+        at, line_no = end + 1, line_no + 1
+        if not line or line.startswith("#"):
+            continue
+        words = line.split()
+        key = words[0].upper()
+        if key not in ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH",
+                       "HEIGHT", "VIEWPOINT", "POINTS", "DATA"):
+            raise ValueError(f"{path}: line {line_no}: not a PCD header line: {line[:80]!r}")
+        keys["FIELDS" if key == "COLUMNS" else key] = words[1:]
+        if key == "DATA":
+            return keys, at, line_no + 1
+
+
+def read_pcd(path: str, pose=None) -> PcdScan:
+    """A PCD file's scan (see PcdPoints): its points streamed in the scanner's frame, which the
+    file's VIEWPOINT gives (the sensor's pose in the points' frame; the identity when the
+    header has none). The scan's pose is `pose` when given (a manifest's or --pose: where
+    that sensor stood in the project, the points following it), else the VIEWPOINT, so that
+    the points keep the file's coordinates. ValueError naming the file for one that is not
+    PCD, a header whose lines disagree, a type PCD does not have, or data that ends early."""
+    keys, offset, first_line = _pcd_header(path)
+
+    def need(key: str) -> List[str]:
+        if key not in keys:
+            raise ValueError(f"{path}: the PCD header has no {key} line")
+        return keys[key]
+
+    def whole(key: str, words: List[str]) -> List[int]:
+        try:
+            return [int(w) for w in words]
+        except ValueError:
+            raise ValueError(f"{path}: PCD {key} must be whole numbers, got "
+                             f"{' '.join(words)[:80]!r}") from None
+
+    names = need("FIELDS")
+    sizes = whole("SIZE", need("SIZE"))
+    types = [t.upper() for t in need("TYPE")]
+    counts = whole("COUNT", keys["COUNT"]) if "COUNT" in keys else [1] * len(names)
+    if not (len(names) == len(sizes) == len(types) == len(counts)) or not names:
+        raise ValueError(f"{path}: the PCD header's FIELDS, SIZE, TYPE and COUNT disagree "
+                         f"({len(names)}, {len(sizes)}, {len(types)}, {len(counts)} entries)")
+    fields = []
+    for name, size, kind, count in zip(names, sizes, types, counts):
+        dtype = _PCD_TYPES.get((kind, size))
+        if dtype is None or count < 1:
+            raise ValueError(f"{path}: PCD field {name}: TYPE {kind} SIZE {size} COUNT {count} "
+                             "is not a PCD field (F 4/8, I or U 1/2/4/8, a positive count)")
+        if name != "_" and any(f.name == name for f in fields):
+            raise ValueError(f"{path}: PCD field {name} is named twice")
+        fields.append(PcdField(name, dtype, count))
+    width_words = whole("WIDTH", need("WIDTH"))
+    height_words = whole("HEIGHT", keys.get("HEIGHT", ["1"]))
+    if len(width_words) != 1 or len(height_words) != 1:
+        raise ValueError(f"{path}: PCD WIDTH and HEIGHT are one number each")
+    width, height = width_words[0], height_words[0]
+    if width < 0 or height < 1 or width * height > MAX_GRID_CELLS:
+        raise ValueError(f"{path}: a PCD of {width} x {height} points is out of bounds")
+    if "POINTS" in keys and whole("POINTS", keys["POINTS"]) != [width * height]:
+        raise ValueError(f"{path}: PCD POINTS {' '.join(keys['POINTS'])} is not WIDTH x HEIGHT "
+                         f"= {width * height}")
+    if width * height == 0:
+        raise ValueError(f"{path}: the PCD file holds no point")
+    data = " ".join(keys["DATA"]).lower()
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise ValueError(f"{path}: PCD DATA {data!r} is not ascii, binary or binary_compressed")
+    notes = []
+    viewpoint = Pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    if "VIEWPOINT" in keys:
+        try:
+            v = [float(w) for w in keys["VIEWPOINT"]]
+        except ValueError:
+            v = []
+        if len(v) != 7:
+            raise ValueError(f"{path}: PCD VIEWPOINT is tx ty tz qw qx qy qz, got "
+                             f"{' '.join(keys['VIEWPOINT'])[:80]!r}")
+        viewpoint = Pose.make(v[:3], (v[4], v[5], v[6], v[3]), where=f"{path}: VIEWPOINT")
+    points = PcdPoints(path, fields, width, height, data, offset, first_line, viewpoint)
+    # Points farther from the viewpoint than any scanner measures are stored in a world
+    # (georeferenced) frame, and the viewpoint is not where they were measured from.
+    first = next(points._tables(CHUNK_POINTS))
+    xyz = np.concatenate([first[axis].astype(np.float64) for axis in "xyz"], axis=1)
+    xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+    far = float(np.median(np.linalg.norm(xyz - np.asarray(viewpoint.position_m), axis=1))) \
+        if len(xyz) else 0.0
+    if far > GEOREFERENCED_M:
+        if pose is None:
+            raise ValueError(f"{path}: the points lie {far / 1000:.0f} km from the file's "
+                             "VIEWPOINT: they are stored in a world (georeferenced) frame "
+                             "without the scanner's position, which visibility needs: give the "
+                             "scanner's pose in the file's coordinates (vasl ingest --pose "
+                             "x,y,z[,qx,qy,qz,qw], or a manifest whose lidar.points names the "
+                             "file)")
+        points.to_sensor = pose = Pose.parse(pose)
+        notes.append(f"points {far / 1000:.0f} km from the VIEWPOINT, in a world frame: turned "
+                     "into the scanner's frame with the given pose (float64)")
+    elif pose is not None:
+        pose = Pose.parse(pose)
+        notes.append("the scanner placed by the given pose (the points follow it)")
+    else:
+        pose = viewpoint
+        notes.append("the scanner's pose is the file's VIEWPOINT" if "VIEWPOINT" in keys else
+                     "no VIEWPOINT in the header: the scanner at the file's origin")
+    if not points.as_stored and points.to_sensor is viewpoint:
+        notes.append("points turned into the scanner's frame through the file's VIEWPOINT "
+                     "(float64)")
+    points.notes.extend(notes)
+    return PcdScan(os.path.splitext(os.path.basename(path))[0], pose, points)
+
+
+def is_pcd(path: str) -> bool:
+    """Whether a path names a PCD file (by its extension)."""
+    return path.lower().endswith(".pcd")
