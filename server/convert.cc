@@ -262,13 +262,27 @@ absl::StatusOr<render::RenderRequest> RenderRequestFromProto(const v1::RenderReq
   out.layers = std::max(1, request.layers());
   if (request.has_pinhole()) {
     out.projection = render::Projection::kPinhole;
-    out.pinhole = PinholeFromProto(request.pinhole());
+    absl::StatusOr<geometry::PinholeIntrinsics> k = PinholeFromProto(request.pinhole(), "pinhole");
+    if (!k.ok()) return k.status();
+    out.pinhole = *k;
   }
   return out;
 }
 
-geometry::PinholeIntrinsics PinholeFromProto(const v1::PinholeCamera& c) {
-  return {0, 0, c.fx_px(), c.fy_px(), c.cx_px(), c.cy_px(), c.k1(), c.k2(), c.k3(), c.p1(), c.p2()};
+absl::StatusOr<geometry::PinholeIntrinsics> PinholeFromProto(const v1::PinholeCamera& c,
+                                                             absl::string_view field) {
+  geometry::PinholeIntrinsics k{0,      0,      c.fx_px(), c.fy_px(), c.cx_px(), c.cy_px(),
+                                c.k1(), c.k2(), c.k3(),    c.p1(),    c.p2()};
+  switch (c.lens()) {
+    case v1::LENS_BROWN_CONRADY: break;
+    case v1::LENS_FISHEYE: k.lens = geometry::Lens::kFisheye; break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat(
+          field, ".lens ", int(c.lens()), " is not a lens this server knows (0: Brown-Conrady, "
+          "1: fisheye)"));
+  }
+  k.k4 = c.k4();
+  return k;
 }
 
 absl::StatusOr<fusion::WeightingProfile> ProfileFromProto(const v1::WeightingProfile& p) {

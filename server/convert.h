@@ -25,8 +25,10 @@ absl::StatusOr<std::string> TimestampToIso(const google::protobuf::Timestamp& ts
 
 absl::StatusOr<geometry::Pose> PoseFromProto(const v1::Pose& pose, absl::string_view field);
 void PoseToProto(const geometry::Pose& pose, v1::Pose* out);
-/// The intrinsics of a pinhole camera message (width and height 0: the image's own).
-geometry::PinholeIntrinsics PinholeFromProto(const v1::PinholeCamera& camera);
+/// The intrinsics of a pinhole camera message (width and height 0: the image's own);
+/// INVALID_ARGUMENT naming `field` for a lens value this server does not know.
+absl::StatusOr<geometry::PinholeIntrinsics> PinholeFromProto(const v1::PinholeCamera& camera,
+                                                             absl::string_view field);
 
 /// MODALITY_RGB / MODALITY_IR for panoramas; anything else is INVALID_ARGUMENT.
 absl::StatusOr<records::Modality> PanoramaModalityFromProto(v1::Modality modality,

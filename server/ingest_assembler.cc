@@ -222,7 +222,12 @@ absl::Status IngestAssembler::AddHeader(const v1::ScanHeader& header) {
     data.pose = *pano_pose;
     data.modality = *modality;
     data.angular_resolution_rad = pano.angular_resolution_rad();
-    if (pano.has_pinhole() && !pano.visual_reference()) data.pinhole = PinholeFromProto(pano.pinhole());
+    if (pano.has_pinhole() && !pano.visual_reference()) {
+      absl::StatusOr<geometry::PinholeIntrinsics> k =
+          PinholeFromProto(pano.pinhole(), absl::StrCat(field, ".pinhole"));
+      if (!k.ok()) return k.status();
+      data.pinhole = *k;
+    }
     if (pano.has_sphere() && !pano.visual_reference()) {
       data.sphere = ingest::SphereWindow{pano.sphere().width_px(), pano.sphere().height_px(),
                                          pano.sphere().left_px(), pano.sphere().top_px()};

@@ -163,7 +163,10 @@ class BackProjectReactor final : public grpc::ServerReadReactor<v1::BackProjectR
       input_.render_id = h.render_id();
       if (h.has_pinhole()) {
         input_.pinhole = true;
-        input_.intrinsics = PinholeFromProto(h.pinhole());
+        absl::StatusOr<geometry::PinholeIntrinsics> k =
+            PinholeFromProto(h.pinhole(), "header.pinhole");
+        if (!k.ok()) return k.status();
+        input_.intrinsics = *k;
       }
       const int64_t limit = service_->engine()->limits().max_image_bytes;
       if (h.image_size_bytes() <= 0 || h.image_size_bytes() > limit) {

@@ -70,12 +70,14 @@ struct FlowResult {
 ingest::LidarSource LidarOf(const store::SourceInfo& source, int32_t batch);
 ingest::CameraSource CameraOf(const store::SourceInfo& source, int32_t batch);
 
-/// A derived source's camera text (SourceInfo::camera) and back: "equirect" or "pinhole fx fy
-/// cx cy k1 k2 k3 p1 p2", then " render ID" when it cites a render. A camera's is empty (an
-/// equirect panorama) or the same pinhole text (a pinhole photo).
+/// A derived source's camera text (SourceInfo::camera) and back: "equirect", "pinhole fx fy
+/// cx cy k1 k2 k3 p1 p2" or "fisheye fx fy cx cy k1 k2 k3 k4" (geometry::Lens::kFisheye), then
+/// " render ID" when it cites a render. A camera's is empty (an equirect panorama) or the same
+/// pinhole or fisheye text (a photo).
 std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k, int64_t render_id);
 /// The projection a camera text names: nullopt for an equirect one ("" or "equirect"), the
-/// intrinsics (width and height 0) for "pinhole …". DATA_LOSS for any other text.
+/// intrinsics (width and height 0) for "pinhole …" and "fisheye …". DATA_LOSS for any other
+/// text.
 absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraText(
     const std::string& camera_text);
 /// A camera's text for an equirect panorama of part of the sphere: "equirect window LEFT TOP"

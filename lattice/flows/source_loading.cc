@@ -118,11 +118,13 @@ absl::StatusOr<ingest::LidarSource> LoadPointColour(const store::ProjectStore& s
 
 std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k,
                               int64_t render_id) {
-  std::string s = pinhole ? absl::StrFormat("pinhole %.17g %.17g %.17g %.17g %.17g %.17g %.17g "
-                                            "%.17g %.17g",
-                                            k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3,
-                                            k.p1, k.p2)
-                          : std::string("equirect");
+  std::string s =
+      !pinhole ? std::string("equirect")
+      : k.lens == geometry::Lens::kFisheye
+          ? absl::StrFormat("fisheye %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g", k.fx_px,
+                            k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.k4)
+          : absl::StrFormat("pinhole %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g",
+                            k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2);
   if (render_id > 0) absl::StrAppend(&s, " render ", render_id);
   return s;
 }
@@ -131,12 +133,15 @@ absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraTex
     const std::string& camera_text) {
   std::vector<std::string> f = absl::StrSplit(camera_text, ' ', absl::SkipEmpty());
   if (f.empty() || f[0] == "equirect") return std::nullopt;
-  if (f[0] != "pinhole" || f.size() < 10) {
+  const bool fisheye = f[0] == "fisheye";
+  if ((f[0] != "pinhole" || f.size() < 10) && (!fisheye || f.size() < 9)) {
     return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
   }
   geometry::PinholeIntrinsics k;
-  double* v[] = {&k.fx_px, &k.fy_px, &k.cx_px, &k.cy_px, &k.k1, &k.k2, &k.k3, &k.p1, &k.p2};
-  for (int i = 0; i < 9; ++i) {
+  if (fisheye) k.lens = geometry::Lens::kFisheye;
+  double* v[] = {&k.fx_px, &k.fy_px, &k.cx_px, &k.cy_px, &k.k1, &k.k2, &k.k3,
+                 fisheye ? &k.k4 : &k.p1, &k.p2};
+  for (int i = 0; i < (fisheye ? 8 : 9); ++i) {
     if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
       return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
     }

@@ -8,20 +8,70 @@
 namespace vasl::geometry {
 
 absl::Status ValidatePinhole(const PinholeIntrinsics& k) {
-  for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2}) {
+  for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2, k.k4}) {
     if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
   }
   if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "pinhole focal lengths must be > 0 pixels, got fx ", k.fx_px, ", fy ", k.fy_px));
   }
-  if (std::max({std::abs(k.k1), std::abs(k.k2), std::abs(k.k3)}) > 10.0 ||
+  if (std::max({std::abs(k.k1), std::abs(k.k2), std::abs(k.k3), std::abs(k.k4)}) > 10.0 ||
       std::max(std::abs(k.p1), std::abs(k.p2)) > 1.0) {
     return absl::InvalidArgumentError(
-        "pinhole distortion out of range (|k1|, |k2|, |k3| <= 10, |p1|, |p2| <= 1)");
+        "pinhole distortion out of range (|k1|, |k2|, |k3|, |k4| <= 10, |p1|, |p2| <= 1)");
+  }
+  if (k.lens == Lens::kBrownConrady && k.k4 != 0.0) {
+    return absl::InvalidArgumentError("k4 is a fisheye lens's coefficient: a Brown-Conrady "
+                                      "lens has k1-k3, p1, p2");
+  }
+  if (k.lens == Lens::kFisheye) {
+    if (k.p1 != 0.0 || k.p2 != 0.0) {
+      return absl::InvalidArgumentError("a fisheye lens (Kannala-Brandt) has k1-k4 and no "
+                                        "tangential p1, p2");
+    }
   }
   return absl::OkStatus();
 }
+
+namespace {
+
+// Kannala–Brandt: θ_d(θ) and its derivative.
+double FisheyeRadius(double theta, const PinholeIntrinsics& k) {
+  const double t2 = theta * theta;
+  return theta * (1.0 + t2 * (k.k1 + t2 * (k.k2 + t2 * (k.k3 + t2 * k.k4))));
+}
+double FisheyeSlope(double theta, const PinholeIntrinsics& k) {
+  const double t2 = theta * theta;
+  return 1.0 + t2 * (3.0 * k.k1 + t2 * (5.0 * k.k2 + t2 * (7.0 * k.k3 + t2 * 9.0 * k.k4)));
+}
+
+}  // namespace
+
+double FisheyeMaxAngleRad(const PinholeIntrinsics& k) {
+  if (k.lens != Lens::kFisheye) return M_PI;
+  // The last lens asked, per thread: projections ask for one lens many times over.
+  thread_local double cached[5] = {NAN, NAN, NAN, NAN, M_PI};
+  if (cached[0] == k.k1 && cached[1] == k.k2 && cached[2] == k.k3 && cached[3] == k.k4) {
+    return cached[4];
+  }
+  // The first θ where the slope stops being positive, on steps of 0.05° then bisected.
+  constexpr int kSteps = 3600;
+  double max = M_PI;
+  for (int i = 1; i <= kSteps; ++i) {
+    const double theta = M_PI * i / kSteps;
+    if (FisheyeSlope(theta, k) > 0.0) continue;
+    double lo = M_PI * (i - 1) / kSteps, hi = theta;
+    for (int it = 0; it < 60; ++it) {
+      const double mid = 0.5 * (lo + hi);
+      (FisheyeSlope(mid, k) > 0.0 ? lo : hi) = mid;
+    }
+    max = lo;
+    break;
+  }
+  cached[0] = k.k1, cached[1] = k.k2, cached[2] = k.k3, cached[3] = k.k4, cached[4] = max;
+  return max;
+}
+
 namespace {
 
 // Brown–Conrady: normalised undistorted (x, y) to normalised distorted coordinates.
@@ -37,6 +87,14 @@ Eigen::Vector2d Distort(const Eigen::Vector2d& xy, const PinholeIntrinsics& k) {
 
 std::optional<Eigen::Vector2d> PinholeProject(const Eigen::Vector3d& p_cam,
                                               const PinholeIntrinsics& k) {
+  if (k.lens == Lens::kFisheye) {
+    const double r = std::hypot(p_cam.x(), p_cam.y());
+    const double theta = std::atan2(r, p_cam.z());
+    if (!(theta <= FisheyeMaxAngleRad(k))) return std::nullopt;  // NaN too
+    if (!(r > 0.0)) return Eigen::Vector2d(k.cx_px, k.cy_px);   // on the axis
+    const double s = FisheyeRadius(theta, k) / r;
+    return Eigen::Vector2d(k.fx_px * s * p_cam.x() + k.cx_px, k.fy_px * s * p_cam.y() + k.cy_px);
+  }
   if (!(p_cam.z() > 0.0)) return std::nullopt;
   const Eigen::Vector2d xd = Distort({p_cam.x() / p_cam.z(), p_cam.y() / p_cam.z()}, k);
   return Eigen::Vector2d(k.fx_px * xd.x() + k.cx_px, k.fy_px * xd.y() + k.cy_px);
@@ -44,6 +102,27 @@ std::optional<Eigen::Vector2d> PinholeProject(const Eigen::Vector3d& p_cam,
 
 Eigen::Vector3d PinholeUnproject(const Eigen::Vector2d& uv_px, const PinholeIntrinsics& k) {
   const Eigen::Vector2d xd((uv_px.x() - k.cx_px) / k.fx_px, (uv_px.y() - k.cy_px) / k.fy_px);
+  if (k.lens == Lens::kFisheye) {
+    const double rd = xd.norm();
+    if (!(rd > 0.0)) return Eigen::Vector3d::UnitZ();
+    // θ_d is increasing on [0, max]: Newton from θ = θ_d, kept inside the bracket.
+    double lo = 0.0, hi = FisheyeMaxAngleRad(k);
+    double theta = std::min(rd, hi);
+    if (FisheyeRadius(hi, k) <= rd) {
+      theta = hi;  // beyond the lens's image circle: its rim
+    } else {
+      for (int it = 0; it < 60; ++it) {
+        const double f = FisheyeRadius(theta, k) - rd;
+        (f > 0.0 ? hi : lo) = theta;
+        double next = theta - f / FisheyeSlope(theta, k);
+        if (!(next > lo && next < hi)) next = 0.5 * (lo + hi);
+        if (std::abs(next - theta) < 1e-15) break;
+        theta = next;
+      }
+    }
+    const double s = std::sin(theta) / rd;
+    return Eigen::Vector3d(s * xd.x(), s * xd.y(), std::cos(theta)).normalized();
+  }
   Eigen::Vector2d x = xd;
   for (int it = 0; it < 50; ++it) {  // x ← x + (xd − D(x)): contraction for mild distortion
     const Eigen::Vector2d step = xd - Distort(x, k);

@@ -1,7 +1,15 @@
 /// @file pinhole.h
-/// @brief Pinhole cameras with Brown–Conrady distortion (VASL-MODEL §2.2).
+/// @brief Pinhole cameras with Brown–Conrady distortion (VASL-MODEL §2.2), and fisheye lenses
+///        in the same camera frame.
 /// @details Camera frame: x right, y down, z forward. Pixel (i, j) has its centre at
-///          (i + 0.5, j + 0.5) when cx, cy follow that convention.
+///          (i + 0.5, j + 0.5) when cx, cy follow that convention. A fisheye lens *(choice: an
+///          extension of §2.2, which models perspective lenses alone)* is Kannala–Brandt's
+///          equidistant model as OpenCV's cv::fisheye and ROS's "equidistant" camera_info
+///          calibrate it: a direction at angle θ from the optical axis and azimuth (x, y)/r
+///          about it lands at distorted radius θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸), pixel
+///          (fx·θ_d·x/r + cx, fy·θ_d·y/r + cy). It sees beyond 90° (θ up to π), as far as θ_d
+///          grows with θ (FisheyeMaxAngleRad): beyond that the polynomial folds back and
+///          would put a direction behind the lens on the image, so nothing projects there.
 #pragma once
 
 #include <optional>
@@ -12,6 +20,12 @@
 
 namespace vasl::geometry {
 
+/// The lens model of a camera in the pinhole camera frame.
+enum class Lens {
+  kBrownConrady,  ///< §2.2: perspective, radial k1-k3 and tangential p1, p2
+  kFisheye,       ///< Kannala–Brandt equidistant: θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸)
+};
+
 /// Intrinsics of a pinhole camera, pixels; distortion coefficients are unitless.
 struct PinholeIntrinsics {
   int width_px = 0;    ///< image columns
@@ -21,24 +35,36 @@ struct PinholeIntrinsics {
   double cx_px = 0.0;  ///< principal point x, pixels
   double cy_px = 0.0;  ///< principal point y, pixels
   double k1 = 0.0, k2 = 0.0, k3 = 0.0;  ///< radial distortion
-  double p1 = 0.0, p2 = 0.0;            ///< tangential distortion
+  double p1 = 0.0, p2 = 0.0;            ///< tangential distortion (Brown–Conrady only)
+  Lens lens = Lens::kBrownConrady;
+  double k4 = 0.0;                      ///< fisheye only: θ⁹'s coefficient
 };
 
 /// INVALID_ARGUMENT unless the intrinsics are finite, the focal lengths positive and the
-/// distortion moderate (|k1|, |k2|, |k3| ≤ 10, |p1|, |p2| ≤ 1): what renders and
-/// back-projection accept. The image size is not checked (callers take it from elsewhere).
+/// distortion moderate (|k1|, |k2|, |k3|, |k4| ≤ 10, |p1|, |p2| ≤ 1), with k4 = 0 for a
+/// Brown–Conrady lens and p1 = p2 = 0 for a fisheye (whose θ_d, with such k, grows at least to
+/// 10° from its axis): what ingest, renders and back-projection accept. The image size is not
+/// checked (callers take it from elsewhere).
 absl::Status ValidatePinhole(const PinholeIntrinsics& k);
 
+/// A fisheye's widest angle from the optical axis (radians, at most π) up to which θ_d grows
+/// with θ; π for a Brown–Conrady lens (whose own limit is z > 0).
+double FisheyeMaxAngleRad(const PinholeIntrinsics& k);
+
 /// §2.2 forward: camera-frame point to continuous pixel coordinates; nullopt behind the camera
-/// (Z ≤ 0). The pixel may fall outside the image; callers test the bounds.
+/// (Z ≤ 0; a fisheye: beyond FisheyeMaxAngleRad). The pixel may fall outside the image;
+/// callers test the bounds.
 std::optional<Eigen::Vector2d> PinholeProject(const Eigen::Vector3d& p_cam,
                                               const PinholeIntrinsics& k);
 
 /// §2.2 inverse: continuous pixel coordinates to a unit camera-frame ray, undistorted by
-/// fixed-point iteration (converges for the moderate distortion of survey cameras).
+/// fixed-point iteration (converges for the moderate distortion of survey cameras); a
+/// fisheye's θ solved from θ_d by safeguarded Newton steps, and held at FisheyeMaxAngleRad for
+/// a pixel beyond it (outside the lens's image circle).
 Eigen::Vector3d PinholeUnproject(const Eigen::Vector2d& uv_px, const PinholeIntrinsics& k);
 
-/// §3: angular sampling of one pinhole pixel, θ_pix = pixel_pitch / focal_length, radians.
+/// §3: angular sampling of one pinhole pixel, θ_pix = pixel_pitch / focal_length, radians (a
+/// fisheye's on its axis, where dθ_d/dθ = 1).
 inline double PinholePixelAngleRad(const PinholeIntrinsics& k) {
   return 1.0 / (0.5 * (k.fx_px + k.fy_px));
 }

@@ -199,7 +199,8 @@ class NearRanges {
           // The eye lies within the box's bounding sphere: any direction.
         } else if (pinhole) {
           double u_lo = HUGE_VAL, u_hi = -HUGE_VAL, v_lo = HUGE_VAL, v_hi = -HUGE_VAL;
-          bool front = true;
+          // A fisheye bends a box's edges outward past its corners' pixels: the whole image.
+          bool front = k.lens != geometry::Lens::kFisheye;
           for (int c = 0; c < 8 && front; ++c) {
             const Eigen::Vector3d x((c & 1) ? box.max_m.x() : box.min_m.x(),
                                     (c & 2) ? box.max_m.y() : box.min_m.y(),

@@ -61,6 +61,39 @@ class CameraOnlyTest : public ::testing::Test {
                 (long long)r->sources_computed, (long long)r->sources_revisited,
                 (long long)r->tiles_changed, r->seconds);
     cameras_ = new ingest::ScanInput(std::move(cameras));
+
+    // A fisheye photo (its field 2 × 110° across its width) where the photo stood: a
+    // camera-only scan of its own, after the first.
+    ingest::ScanInput fisheye;
+    fisheye.scan_name = "fisheye";
+    fisheye.rig = "handheld";
+    fisheye.pose = scenes::LookAt(room_->NovelViews()[0].o_world, {3.0, 3.3, 0.9});
+    ingest::PanoramaData photo;
+    photo.name = "fisheye";
+    photo.pose = fisheye.pose;
+    photo.pinhole = FisheyeIntrinsics();
+    auto png = scenes::EncodePng(scenes::RenderPinhole(*room_, photo.pose, *photo.pinhole, 2));
+    ASSERT_TRUE(png.ok()) << png.status();
+    photo.encoded_image = std::move(*png);
+    fisheye.panoramas = {std::move(photo)};
+    auto f = engine_->IngestScan("room", fisheye);
+    ASSERT_TRUE(f.ok()) << f.status();
+    fisheye_result_ = new IngestResult(*f);
+  }
+  // A 640 × 640 fisheye: Kannala–Brandt, 160 px per radian on its axis, a field of 2 × 110°
+  // across its width (the corners 2 × 150°).
+  static geometry::PinholeIntrinsics FisheyeIntrinsics() {
+    geometry::PinholeIntrinsics k;
+    k.width_px = k.height_px = 640;
+    k.fx_px = k.fy_px = 160.0;
+    k.cx_px = 320.5;
+    k.cy_px = 318.0;
+    k.lens = geometry::Lens::kFisheye;
+    k.k1 = 0.021;
+    k.k2 = -0.0048;
+    k.k3 = 0.0011;
+    k.k4 = 0.00005;
+    return k;
   }
   static void TearDownTestSuite() {
     delete engine_;
@@ -69,6 +102,7 @@ class CameraOnlyTest : public ::testing::Test {
     delete room_;
     delete result_;
     delete cameras_;
+    delete fisheye_result_;
   }
 
   // Figures of one camera source's records against the analytic scene.
@@ -90,16 +124,25 @@ class CameraOnlyTest : public ::testing::Test {
     }
   };
 
-  // CheckSource on HEAD for camera `index` of the camera-only scan (its last scan).
-  static Check CheckCamera(size_t index, const geometry::PinholeIntrinsics* k) {
+  // CheckSource on HEAD for camera `index` of the camera-only scan `scan`.
+  static Check CheckCamera(size_t index, const geometry::PinholeIntrinsics* k,
+                           const std::string& scan = "cameras") {
     auto st = store::ProjectStore::Open(*dir_ / "room");
     EXPECT_TRUE(st.ok()) << st.status();
     auto snap = (*st)->LoadSnapshot((*st)->head_version());
     EXPECT_TRUE(snap.ok()) << snap.status();
-    auto scans = (*st)->ListScans();
-    EXPECT_TRUE(scans.ok()) << scans.status();
-    const store::SourceInfo& camera = scans->back().sources.at(index);
+    const store::ScanInfo info = ScanNamed(scan);
+    const store::SourceInfo& camera = info.sources.at(index);
     return CheckSource(**snap, camera.id, camera.pose, k);
+  }
+  static store::ScanInfo ScanNamed(const std::string& name) {
+    auto scans = engine_->ListScans("room");
+    EXPECT_TRUE(scans.ok()) << scans.status();
+    for (const store::ScanInfo& s : *scans) {
+      if (s.name == name) return s;
+    }
+    ADD_FAILURE() << "no scan " << name;
+    return {};
   }
 
   // Every record of `source` and every vossel of the geometry, against the scene seen from
@@ -159,9 +202,12 @@ class CameraOnlyTest : public ::testing::Test {
       ++c.records;
       const size_t v = size_t(rec.vossel[i]);
       recorded[v] = 1;
-      if (k != nullptr) {
-        c.outside += rec.uv_px[2 * i] < 0.0f || rec.uv_px[2 * i] > float(k->width_px) ||
-                     rec.uv_px[2 * i + 1] < 0.0f || rec.uv_px[2 * i + 1] > float(k->height_px);
+      if (k != nullptr) {  // within half the uv codec's step (records.h: ≈ 0.25 px)
+        constexpr float kHalfStep = 0.125f;
+        c.outside += rec.uv_px[2 * i] < -kHalfStep ||
+                     rec.uv_px[2 * i] > float(k->width_px) + kHalfStep ||
+                     rec.uv_px[2 * i + 1] < -kHalfStep ||
+                     rec.uv_px[2 * i + 1] > float(k->height_px) + kHalfStep;
       }
       // Hidden: a surface lies more than 2h in front of its whole cell (the centre and the 8
       // corners of the lattice cell, which holds every surface the vossel stands for).
@@ -201,6 +247,7 @@ class CameraOnlyTest : public ::testing::Test {
   static inline Engine* engine_ = nullptr;
   static inline scenes::SyntheticRoom* room_ = nullptr;
   static inline IngestResult* result_ = nullptr;
+  static inline IngestResult* fisheye_result_ = nullptr;
   static inline ingest::ScanInput* cameras_ = nullptr;
   static inline int64_t vossels_before_ = 0;
 };
@@ -211,10 +258,7 @@ TEST_F(CameraOnlyTest, AddsNoGeometryAndRevisitsNothing) {
   EXPECT_EQ(result_->vossel_count, vossels_before_);
   EXPECT_EQ(result_->sources_computed, 2);
   EXPECT_EQ(result_->sources_revisited, 0);
-  auto scans = engine_->ListScans("room");
-  ASSERT_TRUE(scans.ok()) << scans.status();
-  const store::ScanInfo& last = scans->back();
-  ASSERT_EQ(last.name, "cameras");
+  const store::ScanInfo last = ScanNamed("cameras");
   ASSERT_EQ(last.sources.size(), 2u);  // no LiDAR source
   EXPECT_EQ(last.sources[0].name, "photo");
   EXPECT_EQ(last.sources[0].width_px, 640);
@@ -233,6 +277,43 @@ TEST_F(CameraOnlyTest, PinholePhotoColoursWhatItSeesAndNothingHidden) {
   c.Print("pinhole photo");
   EXPECT_EQ(c.outside, 0u);
   EXPECT_EQ(c.hidden, 0u) << "a vossel hidden from the photo took its colour";
+  EXPECT_GE(c.SeenShare(), 0.97);
+  EXPECT_LT(c.ColourQuantile(0.5), 0.02);
+  EXPECT_LT(c.ColourQuantile(0.99), 0.08);
+}
+
+// Claim (pinhole.h, fisheye lens): the same for a fisheye photo, through its Kannala–Brandt
+// lens, on the walls it sees beyond 90° from its axis too; it adds no geometry and is stored
+// as a fisheye.
+TEST_F(CameraOnlyTest, FisheyePhotoColoursWhatItSeesAndNothingHidden) {
+  EXPECT_EQ(fisheye_result_->vossel_count, vossels_before_);
+  EXPECT_EQ(fisheye_result_->sources_revisited, 0);
+  const store::ScanInfo scan = ScanNamed("fisheye");
+  ASSERT_EQ(scan.sources.size(), 1u);
+  EXPECT_EQ(scan.sources[0].camera.rfind("fisheye 160 160 320.5 318 ", 0), 0u)
+      << scan.sources[0].camera;
+  const geometry::PinholeIntrinsics k = FisheyeIntrinsics();
+  const Check c = CheckCamera(0, &k, "fisheye");
+  ASSERT_GT(c.colour_error.size(), 5000u);
+  c.Print("fisheye photo");
+  // Records beyond 90° from the axis: the lens sees behind its image plane.
+  auto snap_records = [&] {
+    auto st = store::ProjectStore::Open(*dir_ / "room");
+    auto snap = (*st)->LoadSnapshot((*st)->head_version());
+    size_t behind = 0;
+    for (size_t i = 0; i < (*snap)->records.size(); ++i) {
+      if ((*snap)->records.scan[i] != scan.sources[0].id) continue;
+      const Eigen::Vector3d x =
+          (*snap)->geometry.FrameCentroid(size_t((*snap)->records.vossel[i])).cast<double>();
+      behind += scan.sources[0].pose.WorldToSensor(x).z() < 0.0;
+    }
+    return behind;
+  };
+  const size_t behind = snap_records();
+  std::printf("fisheye photo: %zu records beyond 90 degrees from its axis\n", behind);
+  EXPECT_GT(behind, 500u);
+  EXPECT_EQ(c.outside, 0u);
+  EXPECT_LE(double(c.hidden) / c.records, 0.002) << "vossels hidden from the fisheye took colour";
   EXPECT_GE(c.SeenShare(), 0.97);
   EXPECT_LT(c.ColourQuantile(0.5), 0.02);
   EXPECT_LT(c.ColourQuantile(0.99), 0.08);

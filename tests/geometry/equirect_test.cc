@@ -152,6 +152,72 @@ TEST(PinholeTest, ForwardInverseRoundTrip) {
   EXPECT_FALSE(PinholeProject({0, 0, -1}, k).has_value());
 }
 
+// Claim (pinhole.h, fisheye lens): a direction at angle θ from the axis lands at Kannala–Brandt's
+// θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸) along its azimuth, beyond 90° too; unproject inverts
+// it to 1e-9 rad; a lens whose θ_d folds back projects nothing past the fold, and intrinsics
+// that mix the two lens models are refused.
+TEST(PinholeTest, FisheyeIsKannalaBrandtBeyondNinetyDegrees) {
+  PinholeIntrinsics k;
+  k.width_px = k.height_px = 1280;
+  k.fx_px = 400.0;
+  k.fy_px = 401.5;
+  k.cx_px = 641.0;
+  k.cy_px = 638.5;
+  k.lens = Lens::kFisheye;
+  k.k1 = 0.021;  // an OpenCV cv::fisheye calibration of a 200° lens
+  k.k2 = -0.0048;
+  k.k3 = 0.0011;
+  k.k4 = 0.00005;
+  ASSERT_TRUE(ValidatePinhole(k).ok());
+  EXPECT_EQ(FisheyeMaxAngleRad(k), M_PI);  // this lens's θ_d grows all the way round
+  // The formula written out, at θ = 100° and azimuth 30° (behind the image plane: z < 0).
+  const double theta = 100.0 * M_PI / 180.0, azimuth = 30.0 * M_PI / 180.0;
+  const Eigen::Vector3d d(std::sin(theta) * std::cos(azimuth), std::sin(theta) * std::sin(azimuth),
+                          std::cos(theta));
+  const double t2 = theta * theta;
+  const double rd = theta * (1 + 0.021 * t2 - 0.0048 * t2 * t2 + 0.0011 * t2 * t2 * t2 +
+                             0.00005 * t2 * t2 * t2 * t2);
+  const auto uv = PinholeProject(d * 3.0, k);
+  ASSERT_TRUE(uv.has_value());
+  EXPECT_NEAR(uv->x(), 400.0 * rd * std::cos(azimuth) + 641.0, 1e-9);
+  EXPECT_NEAR(uv->y(), 401.5 * rd * std::sin(azimuth) + 638.5, 1e-9);
+  EXPECT_LT(AngleBetween(PinholeUnproject(*uv, k), d), 1e-12);
+  // Round trips over the image circle of 110° from the axis.
+  std::mt19937_64 rng(12);
+  std::uniform_real_distribution<double> angle(0.0, 110.0 * M_PI / 180.0), turn(-M_PI, M_PI);
+  double worst = 0.0;
+  for (int i = 0; i < 20000; ++i) {
+    const double a = angle(rng), b = turn(rng);
+    const Eigen::Vector3d ray(std::sin(a) * std::cos(b), std::sin(a) * std::sin(b), std::cos(a));
+    const auto px = PinholeProject(ray * 5.0, k);
+    ASSERT_TRUE(px.has_value());
+    worst = std::max(worst, AngleBetween(ray, PinholeUnproject(*px, k)));
+  }
+  std::printf("fisheye round trip to 110 degrees: worst angular error %.3g rad\n", worst);
+  EXPECT_LT(worst, 1e-9);
+  EXPECT_LT(AngleBetween(PinholeUnproject({641.0, 638.5}, k), Eigen::Vector3d::UnitZ()), 1e-15);
+
+  // A lens whose θ_d folds back at the θ where 1 + 3k1θ² = 0 (k1 = −0.2: 74.5°).
+  PinholeIntrinsics folded = k;
+  folded.k1 = -0.2;
+  folded.k2 = folded.k3 = folded.k4 = 0.0;
+  const double fold = FisheyeMaxAngleRad(folded);
+  EXPECT_NEAR(fold, std::sqrt(1.0 / 0.6), 1e-9);
+  auto at = [](double a) { return Eigen::Vector3d(std::sin(a), 0.0, std::cos(a)); };
+  EXPECT_TRUE(PinholeProject(at(fold - 1e-6), folded).has_value());
+  EXPECT_FALSE(PinholeProject(at(fold + 1e-6), folded).has_value());
+  // A pixel beyond the fold's radius (outside the image circle) looks along its rim.
+  EXPECT_NEAR(std::acos(PinholeUnproject({641.0 + 2000.0, 638.5}, folded).z()), fold, 1e-9);
+
+  PinholeIntrinsics mixed = k;
+  mixed.p1 = 1e-4;
+  EXPECT_FALSE(ValidatePinhole(mixed).ok());
+  PinholeIntrinsics brown;
+  brown.fx_px = brown.fy_px = 500.0;
+  brown.k4 = 0.01;  // a fisheye's coefficient on a Brown–Conrady lens
+  EXPECT_FALSE(ValidatePinhole(brown).ok());
+}
+
 // Claim (§2): a pose maps sensor to world and back; NaN in a pose is rejected.
 TEST(PoseTest, RoundTripAndValidation) {
   auto pose = MakePose({1, 2, 3}, {0.1, -0.2, 0.3, 0.9});

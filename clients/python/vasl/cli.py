@@ -250,7 +250,7 @@ def _cmd_render(client: Client, args) -> int:
     out = args.output
     if not out.lower().endswith(".exr"):
         raise ValueError(f"-o must name an .exr file, got {out}")
-    pinhole = _parse_pinhole(args.pinhole)
+    pinhole = _parse_pinhole(args.pinhole, args.fisheye)
     png = out[:-4] + ".png"
     deep = out[:-4] + "-deep.exr"
     files = {"exr": out, "png": png}
@@ -272,7 +272,9 @@ def _cmd_render(client: Client, args) -> int:
     if "deep" in files:
         print(f"wrote {deep} (deep: up to {args.layers} surfaces per pixel, R,G,B,A,Z)")
     total = r.width_px * r.height_px
-    print(f"render {r.render_id}: {'pinhole' if pinhole else 'equirect'} "
+    projection = ("equirect" if pinhole is None
+                  else "fisheye" if pinhole.get("lens") == "fisheye" else "pinhole")
+    print(f"render {r.render_id}: {projection} "
           f"{r.width_px}x{r.height_px} from version {r.version}: "
           f"{r.hit_pixels}/{total} pixels hit ({100.0 * r.hit_pixels / max(1, total):.1f}%), "
           f"{r.render_seconds:.2f} s ({r.encode_seconds:.2f} s of it encoding), "
@@ -633,21 +635,31 @@ def _cmd_rollback(client: Client, args) -> int:
     return 0
 
 
-def _parse_pinhole(text):
-    if not text:
+def _parse_pinhole(text, fisheye=None):
+    """--pinhole fx,fy,cx,cy[,k1,k2,k3,p1,p2] or --fisheye fx,fy,cx,cy[,k1,k2,k3,k4] as the
+    client's pinhole dict; None for neither."""
+    if text and fisheye:
+        raise ValueError("--pinhole and --fisheye name one camera: give one of them")
+    if not text and not fisheye:
         return None
     try:
-        v = [float(x) for x in text.split(",")]
+        v = [float(x) for x in (text or fisheye).split(",")]
     except ValueError:
         v = []
-    if len(v) not in (4, 9):
-        raise ValueError("--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
+    if len(v) not in (4, 8 if fisheye else 9):
+        raise ValueError("--fisheye takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,k4 (pixels)"
+                         if fisheye else
+                         "--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
+    if fisheye:
+        return {"lens": "fisheye",
+                **dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "k4"), v))}
     return dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"), v))
 
 
 def _cmd_backproject(client: Client, args) -> int:
     r = client.back_project(args.project, args.image, Pose.parse(args.pose), name=args.name,
-                            pinhole=_parse_pinhole(args.pinhole), render_id=args.render)
+                            pinhole=_parse_pinhole(args.pinhole, args.fisheye),
+                            render_id=args.render)
     print(f"back-projected {args.image} as batch {r['name']}: version {r['version']}, "
           f"{r['pixels_back_projected']} pixels -> derived records, {r['pixels_outside']} "
           f"pixels outside the lattice, {r['record_count']} records, {r['seconds']:.2f} s")
@@ -807,6 +819,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
                         help="a pinhole render (pixels; camera x right, y down, z forward) "
                              "instead of an equirectangular panorama")
+    render.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4]",
+                        help="a fisheye render (Kannala-Brandt, as OpenCV's cv::fisheye; "
+                             "pixels, the pinhole's camera frame)")
     render.add_argument("--layers", type=int, default=1, metavar="L",
                         help="also write OUT-deep.exr with up to L successive surfaces per pixel")
     render.add_argument("--colour-detail", choices=("vossel", "images"), default="vossel",
@@ -926,6 +941,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the image's camera pose (a render's pose)")
     bp.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
                     help="a pinhole image (default: equirectangular)")
+    bp.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4]",
+                    help="a fisheye image (Kannala-Brandt, as a --fisheye render's)")
     bp.add_argument("--render", type=int, default=0, metavar="ID", help="the render it came from")
     bp.add_argument("--name", default="", help="the batch's name (default backproject-<batch>)")
 

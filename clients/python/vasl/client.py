@@ -28,6 +28,15 @@ from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, Cam
                     ReweightResult, Scan, Source, Version, VisualReference)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
+
+
+def pinhole_to_pb(pinhole: dict, where: str) -> "pb.PinholeCamera":
+    """A pinhole camera's intrinsics (a dict as `pinhole_from_json` reads them: fx_px, fy_px,
+    cx_px, cy_px, optional k1-k3, p1, p2, or with "lens": "fisheye" k1-k4) as the proto
+    message. ValueError naming `where` for missing or unknown keys and bad values."""
+    k = pinhole_from_json(pinhole, where)
+    lens = pb.LENS_FISHEYE if k.pop("lens") == "fisheye" else pb.LENS_BROWN_CONRADY
+    return pb.PinholeCamera(lens=lens, **k)
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
 CHUNK_BYTES = 1 << 20
 #: Largest message the client accepts (render chunks are 1 MiB by default).
@@ -763,8 +772,7 @@ class Client:
                 encoded_size_bytes=len(image), visual_reference=reference,
                 mask_size_bytes=len(mask))
             if p.get("pinhole") is not None and not reference:  # a pinhole photo (VASL-MODEL §2.2)
-                desc.pinhole.CopyFrom(pb.PinholeCamera(
-                    **pinhole_from_json(p["pinhole"], f"panoramas[{i}].pinhole")))
+                desc.pinhole.CopyFrom(pinhole_to_pb(p["pinhole"], f"panoramas[{i}].pinhole"))
             if p.get("sphere") is not None and not reference:  # a part of the sphere
                 desc.sphere.CopyFrom(pb.SphereWindow(
                     **sphere_from_json(p["sphere"], f"panoramas[{i}].sphere")))
@@ -1070,7 +1078,7 @@ class Client:
                                       render_id=int(render_id), image_size_bytes=len(image),
                                       request_id=request_id or new_request_id())
         if pinhole is not None:
-            header.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
+            header.pinhole.CopyFrom(pinhole_to_pb(pinhole, "pinhole"))
 
         def requests():
             yield pb.BackProjectRequest(header=header)
@@ -1272,12 +1280,7 @@ class Client:
                                    profile_revision=int(profile_revision), layers=int(layers),
                                    colour_detail=_COLOUR_DETAIL[colour_detail])
         if pinhole is not None:
-            keys = {"fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"}
-            unknown = set(pinhole) - keys
-            if unknown or not {"fx_px", "fy_px", "cx_px", "cy_px"} <= set(pinhole):
-                raise ValueError(f"pinhole needs fx_px, fy_px, cx_px, cy_px (and optionally k1, "
-                                 f"k2, k3, p1, p2); got {sorted(pinhole)}")
-            request.pinhole.CopyFrom(pb.PinholeCamera(**{k: float(v) for k, v in pinhole.items()}))
+            request.pinhole.CopyFrom(pinhole_to_pb(pinhole, "pinhole"))
         request.stream_rows = bool(stream_rows)
         files = dict(files or {})
         unknown = set(files) - set(formats)

@@ -267,7 +267,10 @@ def _ply_unit(values: np.ndarray, ply_type: str, colour: bool = False) -> np.nda
     return np.clip(np.nan_to_num((v - a) / b, nan=0.0), 0.0, 1.0)
 
 
-PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
+PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2", "k4")
+#: A pinhole camera's `lens`: Brown-Conrady (VASL-MODEL §2.2, k1-k3, p1, p2; the default) or a
+#: fisheye (Kannala-Brandt equidistant, OpenCV's cv::fisheye and ROS's "equidistant": k1-k4).
+LENSES = ("brown-conrady", "fisheye")
 
 
 def _json_object(obj, keys: Sequence[str], where: str) -> dict:
@@ -282,11 +285,12 @@ def _json_object(obj, keys: Sequence[str], where: str) -> dict:
     return obj
 
 
-def pinhole_from_json(obj, where: str) -> Dict[str, float]:
+def pinhole_from_json(obj, where: str) -> Dict[str, object]:
     """A pinhole camera's intrinsics (VASL-MODEL §2.2: x right, y down, z forward; pixels;
-    Brown-Conrady k1 k2 k3 p1 p2, default 0) from a JSON object. ValueError naming the field."""
-    _json_object(obj, PINHOLE_KEYS, where)
-    out = {}
+    Brown-Conrady k1 k2 k3 p1 p2, default 0; or with "lens": "fisheye", Kannala-Brandt k1 k2 k3
+    k4) from a JSON object: the numbers as floats and "lens". ValueError naming the field."""
+    _json_object(obj, PINHOLE_KEYS + ("lens",), where)
+    out: Dict[str, object] = {}
     for key in PINHOLE_KEYS:
         if key not in obj and key in ("fx_px", "fy_px", "cx_px", "cy_px"):
             raise ValueError(f"{where}: missing '{key}'")
@@ -298,6 +302,16 @@ def pinhole_from_json(obj, where: str) -> Dict[str, float]:
             raise ValueError(f"{where}.{key}: must be finite")
     if out["fx_px"] <= 0 or out["fy_px"] <= 0:
         raise ValueError(f"{where}: fx_px and fy_px must be > 0 pixels")
+    lens = obj.get("lens", "brown-conrady")
+    if lens not in LENSES:
+        raise ValueError(f"{where}.lens: 'brown-conrady' (the default) or 'fisheye', got "
+                         f"{lens!r}")
+    if lens == "fisheye" and (out["p1"] or out["p2"]):
+        raise ValueError(f"{where}: a fisheye lens has k1-k4 and no tangential p1, p2")
+    if lens != "fisheye" and out["k4"]:
+        raise ValueError(f"{where}: k4 is a fisheye's coefficient (\"lens\": \"fisheye\"); a "
+                         "Brown-Conrady lens has k1-k3, p1, p2")
+    out["lens"] = lens
     return out
 
 

@@ -126,20 +126,20 @@ class Source:
     calibration: Optional[CalibrationHealth] = None  #: a camera of a scan with LiDAR
     mask_sha256: str = ""  #: a camera sent with a mask: sha256 (hex) of the stored mask image
     #: a camera's projection as stored ("equirect", "equirect window L T", "equirect cylinder
-    #: …", "pinhole …", "points SHA"; proto Source.projection); "" for a LiDAR
+    #: …", "pinhole …", "fisheye …", "points SHA"; proto Source.projection); "" for a LiDAR
     projection: str = ""
 
     @property
     def kind(self) -> str:
         """What `vasl scans` calls the source's projection: "" for a whole equirect panorama,
-        a LiDAR or a point-colour source, else "part of the sphere", "cylindrical" or
-        "pinhole"."""
+        a LiDAR or a point-colour source, else "part of the sphere", "cylindrical",
+        "pinhole" or "fisheye"."""
         words = self.projection.split()
         if words[:2] == ["equirect", "window"]:
             return "part of the sphere"
         if words[:2] == ["equirect", "cylinder"]:
             return "cylindrical"
-        return "pinhole" if words[:1] == ["pinhole"] else ""
+        return words[0] if words[:1] in (["pinhole"], ["fisheye"]) else ""
 
 
 @dataclass
