@@ -63,6 +63,22 @@ def equirect_pixels(p: np.ndarray, width: int, height: int
     return u, v, rng
 
 
+def render_agreement(client, project: str, pose, local: np.ndarray, vossel_m: float,
+                     width: int = 2048, height: int = 1024) -> float:
+    """Renders `project` from a scanner's `pose` (position, quaternion x y z w); the share of its
+    returns `local` (N, 3, sensor frame) whose pixel holds their range within two vossels
+    (VASL-MODEL §2.1, §8), printing the figures."""
+    render = client.render(project, {"position": list(pose[0]), "quaternion": list(pose[1])},
+                           width, height, formats=("exr",))
+    u, v, rng = equirect_pixels(local, width, height)
+    depth = render.depth_m[v, u]
+    close = np.abs(depth - rng) < 2 * vossel_m
+    print(f"{project}: depth within 2 vossels of the range for {close.mean():.2%} of "
+          f"{len(local)} returns; median |Z - r| "
+          f"{np.nanmedian(np.abs(depth - rng)) * 1000:.1f} mm")
+    return float(close.mean())
+
+
 def room_chunks(n: int, chunk: int = 1 << 18, seed: int = 7) -> Iterator[Dict[str, np.ndarray]]:
     """The room's points in chunks: "xyz" (sensor frame, float64), "intensity" (0..65535,
     by height), "rgb" (uint8 by wall), "invalid" (every 97th point flagged invalid, its

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from synth_scans import equirect_pixels, room_points
+from synth_scans import render_agreement, room_points
 from vasl import Pose
 from vasl.readers import read_ascii_cloud, rotation_matrix, world_to_sensor
 
@@ -106,13 +106,7 @@ def test_pts_ingests_with_its_pose_and_renders_from_the_scanner(server, client, 
     assert f"room: version 1, {N} points" in r.stdout
     assert "(Leica)" in r.stdout
     assert [s.name for s in client.list_scans("pts")[0].sources] == ["lidar", "point-colour"]
-    width, height = 2048, 1024
-    render = client.render("pts", {"position": SCANNER, "quaternion": QUATERNION}, width,
-                           height, formats=("exr",))
     p = world_to_sensor(world, Pose.make(SCANNER, QUATERNION))
-    u, v, rng = equirect_pixels(p, width, height)
-    close = np.abs(render.depth_m[v, u] - rng) < 2 * VOSSEL_M
-    print(f"depth within 2 vossels of the range for {close.mean():.2%} of {N} points")
-    assert close.mean() >= 0.95
+    assert render_agreement(client, "pts", (SCANNER, QUATERNION), p, VOSSEL_M) >= 0.95
     r = run_cli(server, "ingest", pts, "--project", "pts", check=False)
     assert r.returncode == 2 and "records no scanner position" in r.stderr

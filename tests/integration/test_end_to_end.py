@@ -7,10 +7,14 @@ import re
 import subprocess
 import sys
 
+import grpc
 import numpy as np
 import pytest
 
 from conftest import E2E_PROJECT, VOSSEL_M, manifests
+from vasl import Pose
+from vasl._proto import vasl_pb2 as pb
+from vasl.client import pose_to_pb
 
 
 def _render_view(client, scene_dir, view):
@@ -169,10 +173,22 @@ def test_pinhole_renders_alpha_and_render_ids(ingested, client, server, views, t
     assert np.all(a.alpha[~hit] == 0) and np.all(a.alpha[hit & ~colourless] == 1)
     print(f"pinhole 160x120: {int(hit.sum())} hit pixels, {a.colourless_pixels} without colour; "
           f"render ids {a.render_id}, {b.render_id}")
+    # Impossible intrinsics: the CLI refuses them before sending (its usage error, 2), and the
+    # server refuses them (and a lens it does not know) when they come all the same.
     bad = subprocess.run([sys.executable, "-m", "vasl.cli", "--server", server.address, "render",
                           "--project", E2E_PROJECT, "--pose", pose, "--pinhole", "0,100,80,60",
                           "-o", str(out)], capture_output=True, text=True)
-    assert bad.returncode == 1 and "INVALID_ARGUMENT" in bad.stderr, bad.stderr
+    assert bad.returncode == 2 and "fx_px and fy_px must be > 0" in bad.stderr, bad.stderr
+    for camera, message in ((pb.PinholeCamera(fx_px=0, fy_px=100, cx_px=80, cy_px=60),
+                             "focal lengths must be > 0"),
+                            (pb.PinholeCamera(fx_px=100, fy_px=100, cx_px=80, cy_px=60, lens=7),
+                             "pinhole.lens 7 is not a lens")):
+        request = pb.RenderRequest(project=E2E_PROJECT, width_px=160, height_px=120,
+                                   pinhole=camera, pose=pose_to_pb(Pose.parse(pose)))
+        with pytest.raises(grpc.RpcError) as e:
+            list(client.stub.Render(request, timeout=30))
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, e.value
+        assert message in e.value.details(), e.value.details()
 
 
 def test_deep_render_from_the_cli(ingested, client, server, views, tmp_path):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from synth_scans import equirect_pixels, room_grid
+from synth_scans import render_agreement, room_grid
 from vasl.readers import lzf_decompress, quaternion_from_matrix, read_pcd, rotation_matrix
 
 ROWS, COLUMNS = 180, 360
@@ -184,6 +184,21 @@ def test_pcd_layouts_give_the_scanners_points(tmp_path):
         assert np.array_equal(other.rgb, clouds[0].rgb)
 
 
+def test_pcd_unsigned_reflectivity_is_its_intensity(tmp_path):
+    """An Ouster-style cloud: no intensity field, a 16-bit `reflectivity` over 65535; a
+    version 0.5 header (no COUNT, VIEWPOINT or POINTS) reads with their defaults."""
+    path = tmp_path / "ouster.pcd"
+    path.write_text("VERSION .5\nFIELDS x y z reflectivity\nSIZE 4 4 4 2\nTYPE F F F U\n"
+                    "WIDTH 3\nHEIGHT 1\nDATA ascii\n"
+                    "1 0 0 0\n0 2 0 65535\nnan nan nan 9\n")
+    scan = read_pcd(str(path))
+    cloud = scan.points.read()
+    assert np.array_equal(cloud.xyz_m, [[1, 0, 0], [0, 2, 0], [0, 0, 0]])
+    assert np.allclose(cloud.intensity, [0.0, 1.0, 9 / 65535])
+    assert "reflectivity over 65535 (uint16)" in scan.notes
+    assert any("no VIEWPOINT" in n for n in scan.notes)
+
+
 @pytest.mark.parametrize("damage, message", [
     ("no_z", "have no z"),
     ("data", "is not ascii, binary or binary_compressed"),
@@ -232,21 +247,6 @@ def test_malformed_pcd_is_refused_naming_the_file(tmp_path, damage, message):
     assert str(path) in str(e.value)
 
 
-def _agreement(client, project: str, pose, local: np.ndarray, valid: np.ndarray) -> float:
-    """Renders from the scanner's pose; the share of its returns whose pixel holds their range
-    within two vossels (printing the figures)."""
-    width, height = 2048, 1024
-    render = client.render(project, {"position": list(pose[0]), "quaternion": pose[1]}, width,
-                           height, formats=("exr",))
-    u, v, rng = equirect_pixels(local[valid], width, height)
-    depth = render.depth_m[v, u]
-    close = np.abs(depth - rng) < 2 * VOSSEL_M
-    print(f"{project}: depth within 2 vossels of the range for {close.mean():.2%} of "
-          f"{int(valid.sum())} returns; median |Z - r| "
-          f"{np.nanmedian(np.abs(depth - rng)) * 1000:.1f} mm")
-    return float(close.mean())
-
-
 def test_pcd_ingests_and_renders_from_its_scanner(server, client, tmp_path):
     local, missing, intensity, codes = _room()
     valid = ~missing
@@ -265,7 +265,7 @@ def test_pcd_ingests_and_renders_from_its_scanner(server, client, tmp_path):
     assert "organised 180 x 360" in r.stdout and "VIEWPOINT" in r.stdout
     scans = {s.name: s for s in client.list_scans("pcd")}
     assert [s.name for s in scans["map"].sources] == ["lidar", "point-colour"]
-    assert _agreement(client, "pcd", pose, local, valid) >= 0.95
+    assert render_agreement(client, "pcd", pose, local[valid], VOSSEL_M) >= 0.95
 
     # A sensor-frame PCD (identity VIEWPOINT) placed by a manifest's pose.
     pose2 = _pose([-2.5, 4.0, 1.1], -120.0)
@@ -279,7 +279,7 @@ def test_pcd_ingests_and_renders_from_its_scanner(server, client, tmp_path):
     client.create_project("pcd-manifest", vossel_size_m=VOSSEL_M)
     r = run_cli(server, "ingest", str(manifest), "--project", "pcd-manifest", "--quiet")
     assert f"raw: version 1, {ROWS * COLUMNS} points" in r.stdout
-    assert _agreement(client, "pcd-manifest", pose2, local, valid) >= 0.95
+    assert render_agreement(client, "pcd-manifest", pose2, local[valid], VOSSEL_M) >= 0.95
 
     # Survey coordinates in doubles (identity VIEWPOINT): --pose places the scanner in them.
     pose3 = _pose([500_012.345, 5_000_067.891, 101.6], 75.0)
@@ -291,4 +291,4 @@ def test_pcd_ingests_and_renders_from_its_scanner(server, client, tmp_path):
     r = run_cli(server, "ingest", str(tmp_path / "survey.pcd"), "--project", "pcd-survey",
                 "--pose", given, "--quiet")
     assert "in a world frame" in r.stdout
-    assert _agreement(client, "pcd-survey", pose3, local, valid) >= 0.95
+    assert render_agreement(client, "pcd-survey", pose3, local[valid], VOSSEL_M) >= 0.95

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from synth_scans import equirect_pixels, room_grid, write_ptx
+from synth_scans import render_agreement, room_grid, write_ptx
 from vasl import Pose
 from vasl.readers import read_ptx, rotation_matrix
 
@@ -192,21 +192,6 @@ def test_malformed_ptx_is_refused_naming_the_place(tmp_path, damage, message):
     assert str(path) in str(e.value)
 
 
-def _agreement(client, project: str, pose, local: np.ndarray, valid: np.ndarray) -> float:
-    """Renders from the scanner's pose; the share of its returns whose pixel holds their range
-    within two vossels (printing the figures)."""
-    width, height = 2048, 1024
-    render = client.render(project, {"position": pose[0], "quaternion": pose[1]}, width, height,
-                           formats=("exr",))
-    u, v, rng = equirect_pixels(local[valid], width, height)
-    depth = render.depth_m[v, u]
-    close = np.abs(depth - rng) < 2 * VOSSEL_M
-    print(f"{project}: depth within 2 vossels of the range for {close.mean():.2%} of "
-          f"{int(valid.sum())} returns; median |Z - r| "
-          f"{np.nanmedian(np.abs(depth - rng)) * 1000:.1f} mm")
-    return float(close.mean())
-
-
 def test_ptx_ingests_and_renders_from_its_scanners(server, client, tmp_path):
     path = str(tmp_path / "site.ptx")
     poses, locals_, missing, _, _ = _write_two_scans(path)
@@ -219,7 +204,7 @@ def test_ptx_ingests_and_renders_from_its_scanners(server, client, tmp_path):
     assert set(scans) == {"site-1", "site-2"}
     assert [s.name for s in scans["site-1"].sources] == ["lidar", "point-colour"]
     for pose, local in zip(poses, locals_):
-        assert _agreement(client, "ptx", pose, local, ~missing) >= 0.95
+        assert render_agreement(client, "ptx", pose, local[~missing], VOSSEL_M) >= 0.95
 
     # A manifest whose lidar.points names a PTX file of one scan, its pose the scanner's.
     one = tmp_path / "one.ptx"
@@ -233,4 +218,5 @@ def test_ptx_ingests_and_renders_from_its_scanners(server, client, tmp_path):
     client.create_project("ptx-manifest", vossel_size_m=VOSSEL_M)
     r = run_cli(server, "ingest", str(manifest), "--project", "ptx-manifest", "--quiet")
     assert f"one: version 1, {ROWS * COLUMNS} points" in r.stdout
-    assert _agreement(client, "ptx-manifest", poses[1], locals_[1], ~missing) >= 0.95
+    assert render_agreement(client, "ptx-manifest", poses[1], locals_[1][~missing],
+                            VOSSEL_M) >= 0.95

@@ -135,6 +135,14 @@ def _cmd_ingest(client: Client, args) -> int:
         raise ValueError(f"--pose places one scanner, but {len(e57)} E57 files were given")
     pose_used = False
     jobs = []
+
+    def points_job(name: str, points, scan_pose, rig: str):
+        """The ingest of one point file's scan, run when its turn comes."""
+        return (name, lambda bar: client.ingest(
+            args.project, scan=name, points=points, pose=scan_pose,
+            divergence_rad=args.divergence_rad, rig=rig, progress=bar,
+            request_id=args.request_id))
+
     for path in args.manifest:
         if path.lower().endswith(".e57"):
             stored_without_pose = pose is not None and not las
@@ -165,19 +173,15 @@ def _cmd_ingest(client: Client, args) -> int:
             for scan in read_ptx(path):
                 for note in scan.notes:
                     print(f"{path}: {scan.scan}: {note}")
-                jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest(
-                    args.project, scan=s.scan, points=s.points, pose=s.pose,
-                    divergence_rad=args.divergence_rad, rig=f"ptx:{os.path.basename(p)}",
-                    progress=bar, request_id=args.request_id)))
+                jobs.append(points_job(scan.scan, scan.points, scan.pose,
+                                       f"ptx:{os.path.basename(path)}"))
         elif is_pcd(path):  # the scanner at its VIEWPOINT, or where --pose places it
             scan = read_pcd(path, pose)
             pose_used = pose_used or pose is not None
             for note in scan.notes:
                 print(f"{path}: {note}")
-            jobs.append((scan.scan, lambda bar, s=scan, p=path: client.ingest(
-                args.project, scan=s.scan, points=s.points, pose=s.pose,
-                divergence_rad=args.divergence_rad, rig=f"pcd:{os.path.basename(p)}",
-                progress=bar, request_id=args.request_id)))
+            jobs.append(points_job(scan.scan, scan.points, scan.pose,
+                                   f"pcd:{os.path.basename(path)}"))
         elif path.lower().endswith(".ply"):
             raise ValueError(f"{path}: a PLY file records no scanner pose: name it in a scan "
                              "manifest's lidar.points, whose pose places the scanner (README, "
@@ -188,10 +192,9 @@ def _cmd_ingest(client: Client, args) -> int:
             name = os.path.splitext(os.path.basename(path))[0]
             for note in points.notes:
                 print(f"{path}: {note}")
-            jobs.append((name, lambda bar, n=name, s=points, p=path: client.ingest(
-                args.project, scan=n, points=s, pose=s.pose, divergence_rad=args.divergence_rad,
-                rig=f"{'las' if is_las(p) else 'ascii'}:{os.path.basename(p)}", progress=bar,
-                request_id=args.request_id)))
+            jobs.append(points_job(name, points, points.pose,
+                                   f"{'las' if is_las(path) else 'ascii'}:"
+                                   f"{os.path.basename(path)}"))
         else:
             m = read_manifest(path)
             jobs.append((m.scan, lambda bar, m=m: client.ingest(args.project, m, progress=bar,

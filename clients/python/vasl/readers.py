@@ -1720,6 +1720,9 @@ def is_ascii_cloud(path: str) -> bool:
 _PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2",
               ("I", 4): "<i4", ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2",
               ("U", 4): "<u4", ("U", 8): "<u8"}
+#: PCD fields that give a point's intensity, the first found (Ouster's calibrated reflectivity
+#: after the usual intensity).
+_PCD_INTENSITY_NAMES = ("intensity", "reflectivity", "reflectance")
 #: PCD header lines a file may hold before DATA (comments aside), and the bytes read for it.
 _PCD_HEADER_BYTES = 1 << 16
 
@@ -1762,8 +1765,8 @@ class PcdPoints(PointSource):
     sensor frame through the viewpoint, p = Rᵀ(x − t), in float64 before they become float32
     (kept as they are under the identity viewpoint, the usual file); a point whose coordinate
     is not a number (an organised cloud's empty cell) is sent as the scanners' "no return".
-    ``intensity`` an unsigned integer type over its largest value, else by the range its
-    values span (intensity_scale); ``rgb`` or ``rgba`` (a float or unsigned 32-bit field
+    ``intensity`` (or ``reflectivity``, ``reflectance``) an unsigned integer type over its
+    largest value, else by the range its values span (intensity_scale); ``rgb`` or ``rgba`` (a float or unsigned 32-bit field
     holding 0xRRGGBB, PCL's packing) as sRGB, linearised. Other fields (normals, labels,
     curvature, padding ``_``) are skipped."""
 
@@ -1787,8 +1790,8 @@ class PcdPoints(PointSource):
             f = fields[names.index(axis)]
             if f.count != 1 or not f.dtype.lstrip("<").startswith("f"):
                 raise ValueError(f"{path}: PCD field {axis} must be one float or double")
-        self._intensity = next((f for f in fields if f.name == "intensity" and f.count == 1),
-                               None)
+        self._intensity = next((f for name in _PCD_INTENSITY_NAMES for f in fields
+                                if f.name == name and f.count == 1), None)
         self._rgb = next((f for f in fields if f.name in ("rgb", "rgba") and f.count == 1
                           and f.dtype.lstrip("<") in ("f4", "u4")), None)
         self.has_intensity = self._intensity is not None
@@ -1901,11 +1904,11 @@ class PcdPoints(PointSource):
             kind = np.dtype(self._intensity.dtype)
             if kind.kind == "u":
                 self.intensity_scale = (0.0, float(np.iinfo(kind).max))
-                notes.append(f"intensity over {np.iinfo(kind).max} ({kind.name})")
+                notes.append(f"{self._intensity.name} over {np.iinfo(kind).max} ({kind.name})")
             else:
                 lo, hi = math.inf, -math.inf
                 for t in self._tables(CHUNK_POINTS):
-                    v = t["intensity"].astype(np.float64).ravel()
+                    v = t[self._intensity.name].astype(np.float64).ravel()
                     v = v[np.isfinite(v)]
                     if v.size:
                         lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
@@ -1932,7 +1935,7 @@ class PcdPoints(PointSource):
             xyz[missing] = 0.0
             intensity = rgb = grid = None
             if self.has_intensity:
-                i = t["intensity"].astype(np.float64).ravel()
+                i = t[self._intensity.name].astype(np.float64).ravel()
                 intensity = np.clip(np.nan_to_num((i - a) / b), 0.0, 1.0).astype(np.float32)
             if self.has_rgb:
                 packed = np.ascontiguousarray(t[self._rgb.name].ravel()).view(np.uint32)
