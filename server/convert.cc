@@ -282,6 +282,7 @@ absl::StatusOr<geometry::PinholeIntrinsics> PinholeFromProto(const v1::PinholeCa
           "1: fisheye)"));
   }
   k.k4 = c.k4();
+  k.field_of_view_rad = c.field_of_view_deg() * M_PI / 180.0;
   return k;
 }
 

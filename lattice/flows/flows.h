@@ -71,7 +71,8 @@ ingest::LidarSource LidarOf(const store::SourceInfo& source, int32_t batch);
 ingest::CameraSource CameraOf(const store::SourceInfo& source, int32_t batch);
 
 /// A derived source's camera text (SourceInfo::camera) and back: "equirect", "pinhole fx fy
-/// cx cy k1 k2 k3 p1 p2" or "fisheye fx fy cx cy k1 k2 k3 k4" (geometry::Lens::kFisheye), then
+/// cx cy k1 k2 k3 p1 p2" or "fisheye fx fy cx cy k1 k2 k3 k4[ field RAD]" (geometry::Lens::
+/// kFisheye, its field of view when it has one), then
 /// " render ID" when it cites a render. A camera's is empty (an equirect panorama) or the same
 /// pinhole or fisheye text (a photo).
 std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k, int64_t render_id);

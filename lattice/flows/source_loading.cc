@@ -121,8 +121,11 @@ std::string DerivedCameraText(bool pinhole, const geometry::PinholeIntrinsics& k
   std::string s =
       !pinhole ? std::string("equirect")
       : k.lens == geometry::Lens::kFisheye
-          ? absl::StrFormat("fisheye %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g", k.fx_px,
-                            k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.k4)
+          ? absl::StrFormat("fisheye %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g%s",
+                            k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.k4,
+                            k.field_of_view_rad > 0.0
+                                ? absl::StrFormat(" field %.17g", k.field_of_view_rad)
+                                : std::string())
           : absl::StrFormat("pinhole %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g",
                             k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2);
   if (render_id > 0) absl::StrAppend(&s, " render ", render_id);
@@ -145,6 +148,10 @@ absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraTex
     if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
       return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
     }
+  }
+  if (fisheye && f.size() >= 11 && f[9] == "field" &&
+      !absl::SimpleAtod(f[10], &k.field_of_view_rad)) {
+    return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
   }
   return k;
 }

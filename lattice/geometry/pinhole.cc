@@ -8,7 +8,8 @@
 namespace vasl::geometry {
 
 absl::Status ValidatePinhole(const PinholeIntrinsics& k) {
-  for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2, k.k4}) {
+  for (double v : {k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.k1, k.k2, k.k3, k.p1, k.p2, k.k4,
+                   k.field_of_view_rad}) {
     if (!std::isfinite(v)) return absl::InvalidArgumentError("pinhole intrinsics must be finite");
   }
   if (!(k.fx_px > 0.0 && k.fy_px > 0.0)) {
@@ -20,9 +21,14 @@ absl::Status ValidatePinhole(const PinholeIntrinsics& k) {
     return absl::InvalidArgumentError(
         "pinhole distortion out of range (|k1|, |k2|, |k3|, |k4| <= 10, |p1|, |p2| <= 1)");
   }
-  if (k.lens == Lens::kBrownConrady && k.k4 != 0.0) {
-    return absl::InvalidArgumentError("k4 is a fisheye lens's coefficient: a Brown-Conrady "
-                                      "lens has k1-k3, p1, p2");
+  if (k.lens == Lens::kBrownConrady && (k.k4 != 0.0 || k.field_of_view_rad != 0.0)) {
+    return absl::InvalidArgumentError("k4 and a field of view are a fisheye lens's: a "
+                                      "Brown-Conrady lens has k1-k3, p1, p2");
+  }
+  if (!(k.field_of_view_rad >= 0.0 && k.field_of_view_rad <= 2.0 * M_PI)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "a fisheye's field of view lies in (0, 360] degrees (0: unlimited), got ",
+        k.field_of_view_rad * 180.0 / M_PI));
   }
   if (k.lens == Lens::kFisheye) {
     if (k.p1 != 0.0 || k.p2 != 0.0) {
@@ -49,10 +55,11 @@ double FisheyeSlope(double theta, const PinholeIntrinsics& k) {
 
 double FisheyeMaxAngleRad(const PinholeIntrinsics& k) {
   if (k.lens != Lens::kFisheye) return M_PI;
+  const double field = k.field_of_view_rad > 0.0 ? 0.5 * k.field_of_view_rad : M_PI;
   // The last lens asked, per thread: projections ask for one lens many times over.
   thread_local double cached[5] = {NAN, NAN, NAN, NAN, M_PI};
   if (cached[0] == k.k1 && cached[1] == k.k2 && cached[2] == k.k3 && cached[3] == k.k4) {
-    return cached[4];
+    return std::min(cached[4], field);
   }
   // The first θ where the slope stops being positive, on steps of 0.05° then bisected.
   constexpr int kSteps = 3600;
@@ -69,7 +76,13 @@ double FisheyeMaxAngleRad(const PinholeIntrinsics& k) {
     break;
   }
   cached[0] = k.k1, cached[1] = k.k2, cached[2] = k.k3, cached[3] = k.k4, cached[4] = max;
-  return max;
+  return std::min(max, field);
+}
+
+bool PinholeSees(const Eigen::Vector2d& uv_px, const PinholeIntrinsics& k) {
+  if (k.lens != Lens::kFisheye) return true;
+  const double rd = std::hypot((uv_px.x() - k.cx_px) / k.fx_px, (uv_px.y() - k.cy_px) / k.fy_px);
+  return rd <= FisheyeRadius(FisheyeMaxAngleRad(k), k);
 }
 
 namespace {

@@ -38,18 +38,27 @@ struct PinholeIntrinsics {
   double p1 = 0.0, p2 = 0.0;            ///< tangential distortion (Brown–Conrady only)
   Lens lens = Lens::kBrownConrady;
   double k4 = 0.0;                      ///< fisheye only: θ⁹'s coefficient
+  /// Fisheye only: the lens's field of view, radians across (a circular fisheye's image
+  /// circle, 2θ_max); 0: as far as θ_d grows. Nothing beyond half of it projects.
+  double field_of_view_rad = 0.0;
 };
 
 /// INVALID_ARGUMENT unless the intrinsics are finite, the focal lengths positive and the
 /// distortion moderate (|k1|, |k2|, |k3|, |k4| ≤ 10, |p1|, |p2| ≤ 1), with k4 = 0 for a
 /// Brown–Conrady lens and p1 = p2 = 0 for a fisheye (whose θ_d, with such k, grows at least to
-/// 10° from its axis): what ingest, renders and back-projection accept. The image size is not
+/// 10° from its axis), and a field of view only for a fisheye, in (0, 2π]: what ingest, renders and back-projection accept. The image size is not
 /// checked (callers take it from elsewhere).
 absl::Status ValidatePinhole(const PinholeIntrinsics& k);
 
-/// A fisheye's widest angle from the optical axis (radians, at most π) up to which θ_d grows
-/// with θ; π for a Brown–Conrady lens (whose own limit is z > 0).
+/// A fisheye's widest angle from the optical axis (radians, at most π) that it sees: up to
+/// where θ_d stops growing with θ, and within half its field of view when it gives one; π for
+/// a Brown–Conrady lens (whose own limit is z > 0).
 double FisheyeMaxAngleRad(const PinholeIntrinsics& k);
+
+/// Whether continuous pixel coordinates lie where the lens sees: within the radius of
+/// FisheyeMaxAngleRad for a fisheye (a circular fisheye's image circle); always for a
+/// Brown–Conrady lens (the image's bounds are the caller's).
+bool PinholeSees(const Eigen::Vector2d& uv_px, const PinholeIntrinsics& k);
 
 /// §2.2 forward: camera-frame point to continuous pixel coordinates; nullopt behind the camera
 /// (Z ≤ 0; a fisheye: beyond FisheyeMaxAngleRad). The pixel may fall outside the image;

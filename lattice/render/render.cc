@@ -588,6 +588,13 @@ class PixelRays {
     }
   }
 
+  /// Whether pixel (i, j)'s centre lies where the camera sees: outside a fisheye's image
+  /// circle (geometry::PinholeSees) its ray is not marched and the pixel stays empty.
+  bool Seen(int i, int j) const {
+    return request_.projection != Projection::kPinhole ||
+           geometry::PinholeSees(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics_);
+  }
+
   /// The ray through pixel (i, j)'s centre.
   Eigen::Vector3d operator()(int i, int j) const {
     Eigen::Vector3d d_sensor;
@@ -764,7 +771,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const size_t p = static_cast<size_t>(j) * width + i;
         double start_m = request.start_range_m ? (*request.start_range_m)[p] : 0.0;
         if (near) start_m = std::max(start_m, (*near)(i, j));
-        if (!(start_m < std::numeric_limits<double>::infinity())) continue;
+        if (!(start_m < std::numeric_limits<double>::infinity()) || !rays.Seen(i, j)) continue;
         const Eigen::Vector3d d_world = rays(i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;

@@ -135,6 +135,24 @@ class CameraOnlyTest : public ::testing::Test {
     const store::SourceInfo& camera = info.sources.at(index);
     return CheckSource(**snap, camera.id, camera.pose, k);
   }
+  // The records of the first camera of scan `scan` on vossels behind its image plane (more
+  // than 90° from its axis).
+  static size_t RecordsBehind(const std::string& scan) {
+    const store::SourceInfo camera = ScanNamed(scan).sources.at(0);
+    auto st = store::ProjectStore::Open(*dir_ / "room");
+    EXPECT_TRUE(st.ok()) << st.status();
+    auto snap = (*st)->LoadSnapshot((*st)->head_version());
+    EXPECT_TRUE(snap.ok()) << snap.status();
+    const records::RecordSet& rec = (*snap)->records;
+    size_t behind = 0;
+    for (size_t i = 0; i < rec.size(); ++i) {
+      if (rec.scan[i] != camera.id) continue;
+      const Eigen::Vector3d x =
+          (*snap)->geometry.FrameCentroid(size_t(rec.vossel[i])).cast<double>();
+      behind += camera.pose.WorldToSensor(x).z() < 0.0;
+    }
+    return behind;
+  }
   static store::ScanInfo ScanNamed(const std::string& name) {
     auto scans = engine_->ListScans("room");
     EXPECT_TRUE(scans.ok()) << scans.status();
@@ -297,19 +315,7 @@ TEST_F(CameraOnlyTest, FisheyePhotoColoursWhatItSeesAndNothingHidden) {
   ASSERT_GT(c.colour_error.size(), 5000u);
   c.Print("fisheye photo");
   // Records beyond 90° from the axis: the lens sees behind its image plane.
-  auto snap_records = [&] {
-    auto st = store::ProjectStore::Open(*dir_ / "room");
-    auto snap = (*st)->LoadSnapshot((*st)->head_version());
-    size_t behind = 0;
-    for (size_t i = 0; i < (*snap)->records.size(); ++i) {
-      if ((*snap)->records.scan[i] != scan.sources[0].id) continue;
-      const Eigen::Vector3d x =
-          (*snap)->geometry.FrameCentroid(size_t((*snap)->records.vossel[i])).cast<double>();
-      behind += scan.sources[0].pose.WorldToSensor(x).z() < 0.0;
-    }
-    return behind;
-  };
-  const size_t behind = snap_records();
+  const size_t behind = RecordsBehind("fisheye");
   std::printf("fisheye photo: %zu records beyond 90 degrees from its axis\n", behind);
   EXPECT_GT(behind, 500u);
   EXPECT_EQ(c.outside, 0u);
@@ -317,6 +323,62 @@ TEST_F(CameraOnlyTest, FisheyePhotoColoursWhatItSeesAndNothingHidden) {
   EXPECT_GE(c.SeenShare(), 0.97);
   EXPECT_LT(c.ColourQuantile(0.5), 0.02);
   EXPECT_LT(c.ColourQuantile(0.99), 0.08);
+}
+
+// Claim (pinhole.h, a fisheye's field of view): a circular fisheye, black beyond its 180° image
+// circle, sent with its field of view records nothing beyond 90° from its axis and only true
+// colours; the same image without it would paint what lies beyond the circle black.
+TEST_F(CameraOnlyTest, ACircularFisheyeSeesOnlyWithinItsFieldOfView) {
+  geometry::PinholeIntrinsics k = FisheyeIntrinsics();
+  k.field_of_view_rad = M_PI;
+  const geometry::Pose pose = scenes::LookAt(room_->NovelViews()[1].o_world, {3.0, 3.3, 0.9});
+  scenes::Panorama photo = scenes::RenderPinhole(*room_, pose, k, 2);
+  size_t black = 0;
+  for (int j = 0; j < k.height_px; ++j) {
+    for (int i = 0; i < k.width_px; ++i) {
+      if (geometry::PinholeSees(Eigen::Vector2d(i + 0.5, j + 0.5), k)) continue;
+      std::fill_n(&photo.rgb[3 * (size_t(j) * size_t(k.width_px) + size_t(i))], 3, 0.0f);
+      ++black;
+    }
+  }
+  auto png = scenes::EncodePng(photo);
+  ASSERT_TRUE(png.ok()) << png.status();
+  auto ingest = [&](const std::string& name, const geometry::PinholeIntrinsics& lens) {
+    ingest::ScanInput scan;
+    scan.scan_name = name;
+    scan.rig = "handheld";
+    scan.pose = pose;
+    ingest::PanoramaData data;
+    data.name = name;
+    data.pose = pose;
+    data.pinhole = lens;
+    data.encoded_image = *png;
+    scan.panoramas = {std::move(data)};
+    auto r = engine_->IngestScan("room", scan);
+    ASSERT_TRUE(r.ok()) << r.status();
+  };
+  geometry::PinholeIntrinsics unbounded = k;
+  unbounded.field_of_view_rad = 0.0;
+  ingest("circular", k);
+  ingest("circular-unbounded", unbounded);
+  EXPECT_NE(ScanNamed("circular").sources.at(0).camera.find(" field 3.14159"), std::string::npos)
+      << ScanNamed("circular").sources.at(0).camera;
+  const Check c = CheckCamera(0, &k, "circular");
+  const Check u = CheckCamera(0, &unbounded, "circular-unbounded");
+  std::printf("circular fisheye, %zu of %d pixels black beyond its image circle:\n", black,
+              k.width_px * k.height_px);
+  c.Print("  with its 180-degree field");
+  u.Print("  without it");
+  const size_t behind = RecordsBehind("circular"), behind_unbounded =
+                                                       RecordsBehind("circular-unbounded");
+  std::printf("  records beyond 90 degrees: %zu with its field, %zu without\n", behind,
+              behind_unbounded);
+  EXPECT_GT(black, 50000u);
+  EXPECT_EQ(behind, 0u);
+  EXPECT_GT(behind_unbounded, 500u);
+  EXPECT_LT(c.ColourQuantile(0.5), 0.02);
+  EXPECT_LT(c.ColourQuantile(0.99), 0.08);
+  EXPECT_GT(u.ColourQuantile(0.99), 0.2) << "the black surround should have painted vossels";
 }
 
 // Claim (§2.1, §5): the same for an equirect panorama that came without a LiDAR.

@@ -209,12 +209,31 @@ TEST(PinholeTest, FisheyeIsKannalaBrandtBeyondNinetyDegrees) {
   // A pixel beyond the fold's radius (outside the image circle) looks along its rim.
   EXPECT_NEAR(std::acos(PinholeUnproject({641.0 + 2000.0, 638.5}, folded).z()), fold, 1e-9);
 
+  // A field of view of 180° (a circular fisheye's image circle): nothing beyond 90° projects,
+  // and a pixel sees within the circle's radius θ_d(90°) alone.
+  PinholeIntrinsics circular = k;
+  circular.field_of_view_rad = M_PI;
+  EXPECT_DOUBLE_EQ(FisheyeMaxAngleRad(circular), M_PI / 2);
+  EXPECT_TRUE(PinholeProject(at(M_PI / 2 - 1e-6), circular).has_value());
+  EXPECT_FALSE(PinholeProject(at(M_PI / 2 + 1e-6), circular).has_value());
+  const double half = M_PI / 2, h2 = half * half;
+  const double rim_px =
+      400.0 * half * (1 + h2 * (0.021 + h2 * (-0.0048 + h2 * (0.0011 + h2 * 0.00005))));
+  EXPECT_TRUE(PinholeSees({641.0 + rim_px - 0.01, 638.5}, circular));
+  EXPECT_FALSE(PinholeSees({641.0 + rim_px + 0.01, 638.5}, circular));
+  EXPECT_TRUE(PinholeSees({641.0 + rim_px + 0.01, 638.5}, k));  // no field: the fold's radius
+  circular.field_of_view_rad = 7.0;
+  EXPECT_FALSE(ValidatePinhole(circular).ok());  // beyond 360°
+
   PinholeIntrinsics mixed = k;
   mixed.p1 = 1e-4;
   EXPECT_FALSE(ValidatePinhole(mixed).ok());
   PinholeIntrinsics brown;
   brown.fx_px = brown.fy_px = 500.0;
   brown.k4 = 0.01;  // a fisheye's coefficient on a Brown–Conrady lens
+  EXPECT_FALSE(ValidatePinhole(brown).ok());
+  brown.k4 = 0.0;
+  brown.field_of_view_rad = 2.0;  // and its field of view
   EXPECT_FALSE(ValidatePinhole(brown).ok());
 }
 

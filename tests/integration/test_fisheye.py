@@ -70,6 +70,18 @@ def test_fisheye_render_looks_where_the_lens_says(client, ingested, views):
     assert close[hit & behind].mean() >= 0.97
     assert np.median(colour[hit]) < 0.02
 
+    # With a 180-degree field of view (a circular fisheye), the pixels beyond its image circle
+    # stay empty and those within it are the same render's.
+    circle = client.render("e2e", pose, SIZE, SIZE, formats=("exr",),
+                           pinhole=dict(LENS, field_of_view_deg=180.0))
+    inside = (rays[:, 2] >= 0.0).reshape(SIZE, SIZE)
+    rim = np.abs(rays[:, 2]).reshape(SIZE, SIZE) < 1e-3  # on the circle: either side
+    print(f"field of view 180: {int((~inside).sum())} pixels beyond the image circle, "
+          f"{int(np.isfinite(circle.depth_m[~inside & ~rim]).sum())} of them hit")
+    assert not np.isfinite(circle.depth_m[~inside & ~rim]).any()
+    assert np.all(circle.alpha[~inside & ~rim] == 0)
+    assert np.array_equal(circle.depth_m[inside & ~rim], fish.depth_m[inside & ~rim])
+
 
 def test_fisheye_photo_colours_the_lidar_geometry(client, server, scene_dir, ingested, views,
                                                    tmp_path):

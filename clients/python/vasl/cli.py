@@ -639,8 +639,8 @@ def _cmd_rollback(client: Client, args) -> int:
 
 
 def _parse_pinhole(text, fisheye=None):
-    """--pinhole fx,fy,cx,cy[,k1,k2,k3,p1,p2] or --fisheye fx,fy,cx,cy[,k1,k2,k3,k4] as the
-    client's pinhole dict; None for neither."""
+    """--pinhole fx,fy,cx,cy[,k1,k2,k3,p1,p2] or --fisheye fx,fy,cx,cy[,k1,k2,k3,k4[,fov]] as
+    the client's pinhole dict; None for neither."""
     if text and fisheye:
         raise ValueError("--pinhole and --fisheye name one camera: give one of them")
     if not text and not fisheye:
@@ -649,13 +649,13 @@ def _parse_pinhole(text, fisheye=None):
         v = [float(x) for x in (text or fisheye).split(",")]
     except ValueError:
         v = []
-    if len(v) not in (4, 8 if fisheye else 9):
-        raise ValueError("--fisheye takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,k4 (pixels)"
-                         if fisheye else
+    if len(v) not in ((4, 8, 9) if fisheye else (4, 9)):
+        raise ValueError("--fisheye takes fx,fy,cx,cy, fx,fy,cx,cy,k1,k2,k3,k4 or those and the "
+                         "field of view in degrees (pixels)" if fisheye else
                          "--pinhole takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,k3,p1,p2 (pixels)")
     if fisheye:
-        return {"lens": "fisheye",
-                **dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "k4"), v))}
+        return {"lens": "fisheye", **dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2",
+                                               "k3", "k4", "field_of_view_deg"), v))}
     return dict(zip(("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"), v))
 
 
@@ -822,9 +822,10 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
                         help="a pinhole render (pixels; camera x right, y down, z forward) "
                              "instead of an equirectangular panorama")
-    render.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4]",
+    render.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4[,fov]]",
                         help="a fisheye render (Kannala-Brandt, as OpenCV's cv::fisheye; "
-                             "pixels, the pinhole's camera frame)")
+                             "pixels, the pinhole's camera frame; fov: its field of view in "
+                             "degrees, pixels beyond it empty)")
     render.add_argument("--layers", type=int, default=1, metavar="L",
                         help="also write OUT-deep.exr with up to L successive surfaces per pixel")
     render.add_argument("--colour-detail", choices=("vossel", "images"), default="vossel",
@@ -944,7 +945,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the image's camera pose (a render's pose)")
     bp.add_argument("--pinhole", metavar="fx,fy,cx,cy[,k1,k2,k3,p1,p2]",
                     help="a pinhole image (default: equirectangular)")
-    bp.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4]",
+    bp.add_argument("--fisheye", metavar="fx,fy,cx,cy[,k1,k2,k3,k4[,fov]]",
                     help="a fisheye image (Kannala-Brandt, as a --fisheye render's)")
     bp.add_argument("--render", type=int, default=0, metavar="ID", help="the render it came from")
     bp.add_argument("--name", default="", help="the batch's name (default backproject-<batch>)")

@@ -267,7 +267,8 @@ def _ply_unit(values: np.ndarray, ply_type: str, colour: bool = False) -> np.nda
     return np.clip(np.nan_to_num((v - a) / b, nan=0.0), 0.0, 1.0)
 
 
-PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2", "k4")
+PINHOLE_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2", "k4",
+                "field_of_view_deg")
 #: A pinhole camera's `lens`: Brown-Conrady (VASL-MODEL §2.2, k1-k3, p1, p2; the default) or a
 #: fisheye (Kannala-Brandt equidistant, OpenCV's cv::fisheye and ROS's "equidistant": k1-k4).
 LENSES = ("brown-conrady", "fisheye")
@@ -288,7 +289,8 @@ def _json_object(obj, keys: Sequence[str], where: str) -> dict:
 def pinhole_from_json(obj, where: str) -> Dict[str, object]:
     """A pinhole camera's intrinsics (VASL-MODEL §2.2: x right, y down, z forward; pixels;
     Brown-Conrady k1 k2 k3 p1 p2, default 0; or with "lens": "fisheye", Kannala-Brandt k1 k2 k3
-    k4) from a JSON object: the numbers as floats and "lens". ValueError naming the field."""
+    k4 and optionally its field_of_view_deg, a circular fisheye's image circle) from a JSON
+    object: the numbers as floats and "lens". ValueError naming the field."""
     _json_object(obj, PINHOLE_KEYS + ("lens",), where)
     out: Dict[str, object] = {}
     for key in PINHOLE_KEYS:
@@ -308,9 +310,12 @@ def pinhole_from_json(obj, where: str) -> Dict[str, object]:
                          f"{lens!r}")
     if lens == "fisheye" and (out["p1"] or out["p2"]):
         raise ValueError(f"{where}: a fisheye lens has k1-k4 and no tangential p1, p2")
-    if lens != "fisheye" and out["k4"]:
-        raise ValueError(f"{where}: k4 is a fisheye's coefficient (\"lens\": \"fisheye\"); a "
-                         "Brown-Conrady lens has k1-k3, p1, p2")
+    if lens != "fisheye" and (out["k4"] or out["field_of_view_deg"]):
+        raise ValueError(f"{where}: k4 and field_of_view_deg are a fisheye's (\"lens\": "
+                         "\"fisheye\"); a Brown-Conrady lens has k1-k3, p1, p2")
+    if not 0.0 <= out["field_of_view_deg"] <= 360.0:
+        raise ValueError(f"{where}.field_of_view_deg: degrees across, in (0, 360] (0 or absent: "
+                         f"unlimited), got {out['field_of_view_deg']}")
     out["lens"] = lens
     return out
 
