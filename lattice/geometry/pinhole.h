@@ -44,10 +44,11 @@ struct PinholeIntrinsics {
 };
 
 /// INVALID_ARGUMENT unless the intrinsics are finite, the focal lengths positive and the
-/// distortion moderate (|k1|, |k2|, |k3|, |k4| ≤ 10, |p1|, |p2| ≤ 1), with k4 = 0 for a
-/// Brown–Conrady lens and p1 = p2 = 0 for a fisheye (whose θ_d, with such k, grows at least to
-/// 10° from its axis), and a field of view only for a fisheye, in (0, 2π]: what ingest, renders and back-projection accept. The image size is not
-/// checked (callers take it from elsewhere).
+/// distortion moderate (|k1|, |k2|, |k3|, |k4| ≤ 10, |p1|, |p2| ≤ 1), with k4 = 0 and no field
+/// of view for a Brown–Conrady lens, p1 = p2 = 0 for a fisheye (whose θ_d, with such k, grows
+/// at least to 10° from its axis) and its field of view, if any, in (0, 2π]: what ingest,
+/// renders and back-projection accept. The image size is not checked (callers take it from
+/// elsewhere).
 absl::Status ValidatePinhole(const PinholeIntrinsics& k);
 
 /// A fisheye's widest angle from the optical axis (radians, at most π) that it sees: up to

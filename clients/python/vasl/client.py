@@ -28,15 +28,6 @@ from .types import (CONFIDENCE_FACTORS, ArtefactCoverage, CalibrationHealth, Cam
                     ReweightResult, Scan, Source, Version, VisualReference)
 
 DEFAULT_SERVER = "127.0.0.1:50051"
-
-
-def pinhole_to_pb(pinhole: dict, where: str) -> "pb.PinholeCamera":
-    """A pinhole camera's intrinsics (a dict as `pinhole_from_json` reads them: fx_px, fy_px,
-    cx_px, cy_px, optional k1-k3, p1, p2, or with "lens": "fisheye" k1-k4) as the proto
-    message. ValueError naming `where` for missing or unknown keys and bad values."""
-    k = pinhole_from_json(pinhole, where)
-    lens = pb.LENS_FISHEYE if k.pop("lens") == "fisheye" else pb.LENS_BROWN_CONRADY
-    return pb.PinholeCamera(lens=lens, **k)
 #: Payload bytes per streamed chunk (a multiple of 16, well below the server's 8 MiB messages).
 CHUNK_BYTES = 1 << 20
 #: Largest message the client accepts (render chunks are 1 MiB by default).
@@ -53,6 +44,16 @@ _COLOUR_DETAIL = {"vossel": pb.COLOUR_DETAIL_VOSSEL, "images": pb.COLOUR_DETAIL_
 FLAG_DERIVED = 1
 FLAG_INVALIDATED = 2
 
+
+
+def pinhole_to_pb(pinhole: dict, where: str) -> "pb.PinholeCamera":
+    """A pinhole camera's intrinsics (a dict as `pinhole_from_json` reads them: fx_px, fy_px,
+    cx_px, cy_px, optional k1-k3, p1, p2, or with "lens": "fisheye" k1-k4 and optionally
+    field_of_view_deg) as the proto message. ValueError naming `where` for missing or unknown
+    keys and bad values."""
+    k = pinhole_from_json(pinhole, where)
+    lens = pb.LENS_FISHEYE if k.pop("lens") == "fisheye" else pb.LENS_BROWN_CONRADY
+    return pb.PinholeCamera(lens=lens, **k)
 
 class VaslError(Exception):
     """A failed RPC: `code` is the grpc.StatusCode, `details` the server's message."""
@@ -682,7 +683,8 @@ class Client:
         (bytes or path), pose, modality "rgb"|"ir", angular_resolution_rad, pinhole, mask,
         sphere, cylinder}
         (`pinhole`: a pinhole photo's intrinsics {fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, p1,
-        p2]}; absent: an equirect panorama; `mask`: bytes or path of an image of the image's
+        p2]}, or a fisheye's {"lens": "fisheye", fx_px, fy_px, cx_px, cy_px[, k1, k2, k3, k4,
+        field_of_view_deg]}; absent: an equirect panorama; `mask`: bytes or path of an image of the image's
         size whose first channel, over its largest value, is the share of each pixel the
         camera reports, 0 where a tripod, rig or operator is masked out; absent: none;
         `sphere`: for an equirect panorama of part of the sphere, {width_px, height_px} of the
@@ -1255,7 +1257,9 @@ class Client:
         `formats` and `decode`, the EXR is decoded into rgb / depth_m / normal / uncertainty.
         `profile` names the weighting profile (default: the project's active one). `pinhole`
         ({"fx_px", "fy_px", "cx_px", "cy_px"} and optional "k1", "k2", "k3", "p1", "p2") makes a
-        pinhole render of width_px × height_px in the camera frame x right, y down, z forward.
+        pinhole render of width_px × height_px in the camera frame x right, y down, z forward;
+        with "lens": "fisheye" (and optional "k1"-"k4", "field_of_view_deg") a fisheye render,
+        its pixels beyond the field of view empty.
         `colour_detail` "vossel" shows one colour per vossel; "images" reads each colour record
         again where the pixel's own point projects into its camera's image (sharper, slower).
         `stream_rows` has the server send each format's bytes as bands of rows finish, with
