@@ -43,7 +43,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 modules="grpc, grpc_tools, grpc_health.v1, grpc_reflection, numpy, pytest, pye57, OpenEXR"
-modules="$modules, tqdm, laspy, lazrs, e57"
+modules="$modules, tqdm, laspy, lazrs, e57, yaml"
 if ! .venv/bin/python -c "import $modules" 2>/dev/null; then
   echo "setup: installing Python packages into .venv (clients/python/requirements.txt)"
   .venv/bin/pip install -q --upgrade pip

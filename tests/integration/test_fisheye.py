@@ -4,7 +4,7 @@ CLI on a real vasld. A fisheye render looks where an independent numpy implement
 lens says each pixel looks, beyond 90 degrees from its axis too: it agrees with the equirect
 render from the same pose. A fisheye photo sent in a manifest (`pinhole.lens: "fisheye"`)
 colours the geometry that LiDAR-only scans left colourless, and a fisheye render from its pose
-gives the photo back."""
+gives the photo back; so does one whose lens comes as ROS's camera_info YAML."""
 from __future__ import annotations
 
 import dataclasses
@@ -91,11 +91,18 @@ def test_fisheye_photo_colours_the_lidar_geometry(client, server, scene_dir, ing
     srgb = np.round(linear_to_srgb(truth.rgb) * 255).astype(np.uint8)
     rows = b"".join(b"\0" + srgb[j].tobytes() for j in range(SIZE))
     (tmp_path / "fisheye.png").write_bytes(png_bytes(SIZE, SIZE, rows))
+    # Its calibration as ROS's camera_calibration writes it (camera_info YAML, equidistant).
+    (tmp_path / "fisheye.yaml").write_text(
+        f"image_width: {SIZE}\nimage_height: {SIZE}\ncamera_name: fisheye\n"
+        "camera_matrix:\n  rows: 3\n  cols: 3\n"
+        f"  data: [{LENS['fx_px']}, 0, {LENS['cx_px']}, 0, {LENS['fy_px']}, {LENS['cy_px']}, "
+        "0, 0, 1]\ndistortion_model: equidistant\ndistortion_coefficients:\n  rows: 1\n"
+        f"  cols: 4\n  data: [{LENS['k1']}, {LENS['k2']}, {LENS['k3']}, {LENS['k4']}]\n")
     manifest = tmp_path / "fisheye.json"
     manifest.write_text(json.dumps({
         "scan": "fisheye", "pose": pose,
         "panoramas": [{"name": "fisheye", "image": "fisheye.png", "pose": pose,
-                       "modality": "rgb", "pinhole": LENS}]}))
+                       "modality": "rgb", "camera_info": "fisheye.yaml"}]}))
 
     project = "fisheye-photo"
     client.create_project(project, vossel_size_m=VOSSEL_M)

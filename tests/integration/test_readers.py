@@ -268,3 +268,49 @@ def test_e57_sphere_placement_and_its_refusals():
     assert "square pixels" in _e57_sphere(1024, 384, p, math.pi / 384)
     assert "square pixels" in _e57_sphere(500, 300, 2 * p, p)
     assert "2^20 rows" in _e57_sphere(100, 100, 1e-9, 1e-9)
+
+
+def _camera_info(path, model: str, d, k=(500.0, 0.0, 320.5, 0.0, 501.0, 240.25, 0, 0, 1)):
+    path.write_text("image_width: 640\nimage_height: 480\ncamera_name: cam0\n"
+                    f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {list(k)}\n"
+                    f"distortion_model: {model}\ndistortion_coefficients:\n  rows: 1\n"
+                    f"  cols: {len(d)}\n  data: {list(d)}\n")
+    return str(path)
+
+
+def test_ros_camera_info_gives_the_lens(tmp_path):
+    """ROS camera_info YAML: plumb_bob's [k1, k2, p1, p2, k3] (OpenCV's order, not ours),
+    equidistant as a fisheye, a rational lens refitted as k1-k3 when that holds; what is not a
+    lens the model holds is refused naming the file."""
+    from vasl.readers import RATIONAL_FIT_MAX_PX, pinhole_from_camera_info
+
+    k = pinhole_from_camera_info(_camera_info(tmp_path / "a.yaml", "plumb_bob",
+                                              [-0.1, 0.02, 0.001, -0.002, 0.003]))
+    assert k == {"fx_px": 500.0, "fy_px": 501.0, "cx_px": 320.5, "cy_px": 240.25, "k1": -0.1,
+                 "k2": 0.02, "k3": 0.003, "p1": 0.001, "p2": -0.002, "k4": 0.0,
+                 "field_of_view_deg": 0.0, "lens": "brown-conrady"}
+    k = pinhole_from_camera_info(_camera_info(tmp_path / "b.yaml", "equidistant",
+                                              [0.02, -0.005, 0.001, 0.00005]))
+    assert k["lens"] == "fisheye" and (k["k1"], k["k4"], k["p1"]) == (0.02, 0.00005, 0.0)
+    # A rational lens: k4-k6 that a k1-k3 polynomial follows closely over the image.
+    k = pinhole_from_camera_info(_camera_info(tmp_path / "c.yaml", "rational_polynomial",
+                                              [-0.1, 0.01, 0, 0, 0, 0.01, 0, 0]))
+    assert abs(k["k1"] - (-0.1 - 0.01)) < 1e-3  # refitted: 1/(1 + k4 r²) ≈ 1 − k4 r²
+    r2 = ((640 - 320.5) / 500.0) ** 2 + ((480 - 240.25) / 501.0) ** 2
+    poly = 1 + k["k1"] * r2 + k["k2"] * r2 ** 2 + k["k3"] * r2 ** 3
+    rational = (1 - 0.1 * r2 + 0.01 * r2 ** 2) / (1 + 0.01 * r2)
+    print(f"\nrational refit at the corner: {abs(poly - rational) * r2 ** 0.5 * 500:.4f} px")
+    assert abs(poly - rational) * r2 ** 0.5 * 500 <= RATIONAL_FIT_MAX_PX
+    for name, model, d, message in (
+            ("d.yaml", "rational_polynomial", [0.5, 0, 0, 0, 0, 5.0, 0, 0], "fits"),
+            ("e.yaml", "kannala_brandt_unified", [0.1, 0, 0, 0], "is not one vasl reads"),
+            ("f.yaml", "plumb_bob", [0.1, 0.2], "must hold 4 or 5 numbers")):
+        with pytest.raises(ValueError, match=message) as e:
+            pinhole_from_camera_info(_camera_info(tmp_path / name, model, d))
+        assert name in str(e.value)
+    with pytest.raises(ValueError, match="skew"):
+        pinhole_from_camera_info(_camera_info(tmp_path / "g.yaml", "plumb_bob", [0, 0, 0, 0],
+                                              k=(500, 3.0, 320, 0, 500, 240, 0, 0, 1)))
+    (tmp_path / "h.yaml").write_text("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n")
+    with pytest.raises(ValueError, match="h.yaml"):
+        pinhole_from_camera_info(str(tmp_path / "h.yaml"))

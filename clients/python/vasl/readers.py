@@ -437,6 +437,18 @@ def _mask_path(panorama: dict, base: str, reference: bool, where: str) -> Option
     return resolved
 
 
+def _panorama_lens(p: dict, base: str, where: str) -> Optional[Dict[str, object]]:
+    """A manifest panorama's lens: its `pinhole` object, or its `camera_info` (a ROS
+    camera_info YAML file, relative to the manifest); None for an equirect panorama."""
+    if "pinhole" in p and "camera_info" in p:
+        raise ValueError(f"{where}: give the lens as pinhole or as camera_info, not both")
+    if "camera_info" in p:
+        if not isinstance(p["camera_info"], str):
+            raise ValueError(f"{where}.camera_info: expected a path")
+        return pinhole_from_camera_info(os.path.join(base, p["camera_info"]))
+    return pinhole_from_json(p["pinhole"], f"{where}.pinhole") if "pinhole" in p else None
+
+
 def read_manifest(path: str) -> Manifest:
     """Reads a scan manifest (JSON). ValueError naming the field for a malformed one."""
     with open(path, "r", encoding="utf-8") as f:
@@ -483,8 +495,7 @@ def read_manifest(path: str) -> Manifest:
                   _pose_from_json(need(p, "pose", f"panoramas[{i}]."),
                                   f"{path}: panoramas[{i}].pose")),
             angular_resolution_rad=float(p.get("angular_resolution_rad", 0.0)),
-            pinhole=(pinhole_from_json(p["pinhole"], f"{path}: panoramas[{i}].pinhole")
-                     if "pinhole" in p else None),
+            pinhole=_panorama_lens(p, base, f"{path}: panoramas[{i}]"),
             visual_reference=reference,
             mask_path=mask,
             sphere=(sphere_from_json(p["sphere"], f"{path}: panoramas[{i}].sphere")
@@ -1122,23 +1133,99 @@ def _leica_distortion(e57, node, image: "E57Image", nominal: Optional[Dict[str, 
     what = "Leica distortion extension: calibrated intrinsics and k1-k3, p1, p2"
     k456 = (cv("K4"), cv("K5"), cv("K6"))
     if any(k456):
-        corners = [((u - lens["cx_px"]) / lens["fx_px"], (v - lens["cy_px"]) / lens["fy_px"])
-                   for u in (0, image.width) for v in (0, image.height)]
-        r = np.linspace(0.0, max(math.hypot(*c) for c in corners), 256)[1:]
-        r2 = r * r
-        rational = (1 + lens["k1"] * r2 + lens["k2"] * r2 ** 2 + lens["k3"] * r2 ** 3) / \
-            (1 + k456[0] * r2 + k456[1] * r2 ** 2 + k456[2] * r2 ** 3)
-        basis = np.stack([r * r2, r * r2 ** 2, r * r2 ** 3], axis=1)
-        k, *_ = np.linalg.lstsq(basis, r * (rational - 1), rcond=None)
-        worst = float(np.abs(basis @ k - r * (rational - 1)).max()) * max(lens["fx_px"],
-                                                                             lens["fy_px"])
+        worst = _refit_rational(lens, k456, image.width, image.height)
         if not worst <= RATIONAL_FIT_MAX_PX:
             return (f"its Leica lens is rational (k4-k6) and §2.2's k1-k3 fit it only within "
                     f"{worst:.2g} px (at most {RATIONAL_FIT_MAX_PX} px)")
-        lens.update(k1=float(k[0]), k2=float(k[1]), k3=float(k[2]))
         what += f"; its rational k4-k6 refitted as k1-k3 within {worst:.2g} px"
     notes.append(what)
     return lens
+
+
+def _refit_rational(lens: Dict[str, float], k456, width: int, height: int) -> float:
+    """OpenCV's rational radial distortion (k1-k3 over k4-k6) refitted as §2.2's k1-k3 by least
+    squares over the radii of a width x height image: `lens`'s k1-k3 replaced when the fit
+    holds within RATIONAL_FIT_MAX_PX; returns its worst error in pixels."""
+    corners = [((u - lens["cx_px"]) / lens["fx_px"], (v - lens["cy_px"]) / lens["fy_px"])
+               for u in (0, width) for v in (0, height)]
+    r = np.linspace(0.0, max(math.hypot(*c) for c in corners), 256)[1:]
+    r2 = r * r
+    rational = (1 + lens["k1"] * r2 + lens["k2"] * r2 ** 2 + lens["k3"] * r2 ** 3) / \
+        (1 + k456[0] * r2 + k456[1] * r2 ** 2 + k456[2] * r2 ** 3)
+    basis = np.stack([r * r2, r * r2 ** 2, r * r2 ** 3], axis=1)
+    k, *_ = np.linalg.lstsq(basis, r * (rational - 1), rcond=None)
+    worst = float(np.abs(basis @ k - r * (rational - 1)).max()) * max(lens["fx_px"],
+                                                                         lens["fy_px"])
+    if worst <= RATIONAL_FIT_MAX_PX:
+        lens.update(k1=float(k[0]), k2=float(k[1]), k3=float(k[2]))
+    return worst
+
+
+def pinhole_from_camera_info(path: str) -> Dict[str, object]:
+    """A camera's intrinsics from a ROS camera_info YAML file (what camera_calibration and
+    kalibr_bagcreater write: image_width, image_height, camera_matrix.data [fx 0 cx 0 fy cy 0 0
+    1], distortion_model and distortion_coefficients.data), as `pinhole_from_json` gives them:
+    "plumb_bob" / "radtan" ([k1, k2, p1, p2[, k3]], OpenCV's order) as Brown-Conrady,
+    "equidistant" / "fisheye" ([k1, k2, k3, k4]) as a fisheye, "rational_polynomial" ([k1, k2,
+    p1, p2, k3, k4, k5, k6]) refitted as k1-k3 when that holds within RATIONAL_FIT_MAX_PX.
+    The intrinsics are the image's as it is sent, image_width x image_height. ValueError
+    naming the file and the key."""
+    try:
+        import yaml  # imported here: only camera_info users need it
+    except ImportError as e:  # pragma: no cover - setup.sh installs it
+        raise ValueError("reading camera_info needs PyYAML (pip install pyyaml; deploy/setup.sh "
+                         "installs it)") from e
+    try:
+        with open(path, "rb") as f:
+            doc = yaml.safe_load(f)
+    except OSError as e:
+        raise ValueError(f"{path}: cannot be read: {e.strerror}") from e
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: not a YAML file ({str(e).splitlines()[0]})") from None
+
+    def numbers(key: str, counts) -> List[float]:
+        node = doc.get(key) if isinstance(doc, dict) else None
+        data = node.get("data") if isinstance(node, dict) else None
+        if not isinstance(data, list) or len(data) not in counts:
+            raise ValueError(f"{path}: not a ROS camera_info file: {key}.data must hold "
+                             f"{' or '.join(str(c) for c in counts)} numbers")
+        try:
+            out = [float(v) for v in data]
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: {key}.data holds something that is not a number") from None
+        if not all(math.isfinite(v) for v in out):
+            raise ValueError(f"{path}: {key}.data must be finite")
+        return out
+
+    k = numbers("camera_matrix", (9,))
+    model = str(doc.get("distortion_model", "plumb_bob")).lower()
+    lens: Dict[str, object] = {"fx_px": k[0], "fy_px": k[4], "cx_px": k[2], "cy_px": k[5]}
+    if abs(k[1]) > 1e-9 * k[0]:
+        raise ValueError(f"{path}: camera_matrix has a skew ({k[1]:g}), which the pinhole "
+                         "model does not hold")
+    if model in ("plumb_bob", "radtan"):
+        d = numbers("distortion_coefficients", (4, 5)) + [0.0]
+        lens.update(k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4])
+    elif model in ("equidistant", "fisheye"):
+        d = numbers("distortion_coefficients", (4,))
+        lens.update(lens="fisheye", k1=d[0], k2=d[1], k3=d[2], k4=d[3])
+    elif model == "rational_polynomial":
+        d = numbers("distortion_coefficients", (8,))
+        lens.update(k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4])
+        if any(d[5:]):
+            try:
+                width, height = int(doc["image_width"]), int(doc["image_height"])
+            except (KeyError, TypeError, ValueError):
+                raise ValueError(f"{path}: a rational_polynomial lens needs image_width and "
+                                 "image_height to be refitted") from None
+            worst = _refit_rational(lens, d[5:], width, height)
+            if not worst <= RATIONAL_FIT_MAX_PX:
+                raise ValueError(f"{path}: its rational lens (k4-k6) fits §2.2's k1-k3 only "
+                                 f"within {worst:.2g} px (at most {RATIONAL_FIT_MAX_PX} px)")
+    else:
+        raise ValueError(f"{path}: distortion_model {model!r} is not one vasl reads "
+                         "(plumb_bob, radtan, equidistant, fisheye, rational_polynomial)")
+    return pinhole_from_json(lens, path)
 
 
 def _e57_sphere(width: int, height: int, pixel_width: float, pixel_height: float):
