@@ -83,6 +83,31 @@ def test_fisheye_render_looks_where_the_lens_says(client, ingested, views):
     assert np.array_equal(circle.depth_m[inside & ~rim], fish.depth_m[inside & ~rim])
 
 
+def test_cli_renders_through_a_fisheye(server, ingested, views, tmp_path):
+    """`vasl render --fisheye fx,fy,cx,cy,k1,k2,k3,k4,fov`: the file of a fisheye render, its
+    pixels beyond the field empty (alpha 0); --pinhole with it is refused."""
+    import OpenEXR
+
+    pose = _pose(views, "novel-1")
+    given = ",".join(str(v) for v in (*pose["position"], *pose["quaternion"]))
+    lens = ",".join(str(LENS[k]) for k in ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3",
+                                           "k4")) + ",180"
+    out = tmp_path / "fish.exr"
+    r = run_cli(server, "render", "--project", "e2e", "--pose", given, "--width", str(SIZE),
+                "--height", str(SIZE), "--fisheye", lens, "-o", str(out))
+    print("\n" + r.stdout.strip())
+    assert f"fisheye {SIZE}x{SIZE}" in r.stdout
+    alpha = np.asarray(OpenEXR.File(str(out), separate_channels=True).channels()["A"].pixels)
+    rays = fisheye_rays(LENS, SIZE, SIZE)
+    beyond = rays[..., 2] < -1e-3
+    assert beyond.sum() > 100_000 and np.all(alpha[beyond] == 0)
+    assert (alpha[rays[..., 2] > 1e-3] == 1).mean() > 0.9
+    r = run_cli(server, "render", "--project", "e2e", "--pose", given, "--width", "64",
+                "--height", "64", "--fisheye", lens, "--pinhole", "100,100,32,32", "-o",
+                str(out), check=False)
+    assert r.returncode == 2 and "--pinhole and --fisheye" in r.stderr, r.stderr
+
+
 def test_fisheye_photo_colours_the_lidar_geometry(client, server, scene_dir, ingested, views,
                                                    tmp_path):
     pose = _pose(views, "novel-2")
