@@ -314,3 +314,32 @@ def test_ros_camera_info_gives_the_lens(tmp_path):
     (tmp_path / "h.yaml").write_text("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n")
     with pytest.raises(ValueError, match="h.yaml"):
         pinhole_from_camera_info(str(tmp_path / "h.yaml"))
+
+
+def test_kalibr_camchain_camera_gives_the_lens(tmp_path):
+    """A Kalibr camchain (two cameras): path#cam1 picks the equidistant one, [fu, fv, pu, pv]
+    as fx, fy, cx, cy; without a fragment, or with one it lacks, it is refused naming them; an
+    omnidirectional camera model is refused."""
+    from vasl.readers import pinhole_from_camera_info
+
+    chain = tmp_path / "camchain.yaml"
+    chain.write_text(
+        "cam0:\n  camera_model: pinhole\n  intrinsics: [458.6, 457.3, 367.2, 248.4]\n"
+        "  distortion_model: radtan\n  distortion_coeffs: [-0.28, 0.07, 0.0002, 0.00002]\n"
+        "  resolution: [752, 480]\n"
+        "cam1:\n  camera_model: pinhole\n  intrinsics: [190.9, 190.4, 254.9, 256.9]\n"
+        "  distortion_model: equidistant\n  distortion_coeffs: [0.003, 0.0006, -0.007, 0.002]\n"
+        "  resolution: [512, 512]\n  T_cn_cnm1: [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], "
+        "[0, 0, 0, 1]]\n")
+    k = pinhole_from_camera_info(f"{chain}#cam1")
+    assert (k["lens"], k["fx_px"], k["fy_px"], k["cx_px"], k["cy_px"], k["k3"]) == \
+        ("fisheye", 190.9, 190.4, 254.9, 256.9, -0.007)
+    k = pinhole_from_camera_info(f"{chain}#cam0")
+    assert (k["lens"], k["k1"], k["p1"], k["p2"]) == ("brown-conrady", -0.28, 0.0002, 0.00002)
+    with pytest.raises(ValueError, match="a camchain of 2 cameras"):
+        pinhole_from_camera_info(str(chain))
+    with pytest.raises(ValueError, match="no camera 'cam2'"):
+        pinhole_from_camera_info(f"{chain}#cam2")
+    chain.write_text("cam0:\n  camera_model: omni\n  intrinsics: [0.8, 458.6, 457.3, 367.2]\n")
+    with pytest.raises(ValueError, match="camera_model 'omni'"):
+        pinhole_from_camera_info(str(chain))

@@ -444,7 +444,8 @@ def _panorama_lens(p: dict, base: str, where: str) -> Optional[Dict[str, object]
         raise ValueError(f"{where}: give the lens as pinhole or as camera_info, not both")
     if "camera_info" in p:
         if not isinstance(p["camera_info"], str):
-            raise ValueError(f"{where}.camera_info: expected a path")
+            raise ValueError(f"{where}.camera_info: expected a path (a Kalibr camchain's camera "
+                             "as path#cam1)")
         return pinhole_from_camera_info(os.path.join(base, p["camera_info"]))
     return pinhole_from_json(p["pinhole"], f"{where}.pinhole") if "pinhole" in p else None
 
@@ -1162,14 +1163,17 @@ def _refit_rational(lens: Dict[str, float], k456, width: int, height: int) -> fl
 
 
 def pinhole_from_camera_info(path: str) -> Dict[str, object]:
-    """A camera's intrinsics from a ROS camera_info YAML file (what camera_calibration and
-    kalibr_bagcreater write: image_width, image_height, camera_matrix.data [fx 0 cx 0 fy cy 0 0
-    1], distortion_model and distortion_coefficients.data), as `pinhole_from_json` gives them:
-    "plumb_bob" / "radtan" ([k1, k2, p1, p2[, k3]], OpenCV's order) as Brown-Conrady,
-    "equidistant" / "fisheye" ([k1, k2, k3, k4]) as a fisheye, "rational_polynomial" ([k1, k2,
-    p1, p2, k3, k4, k5, k6]) refitted as k1-k3 when that holds within RATIONAL_FIT_MAX_PX.
-    The intrinsics are the image's as it is sent, image_width x image_height. ValueError
-    naming the file and the key."""
+    """A camera's intrinsics from a ROS camera_info YAML file (what camera_calibration writes:
+    image_width, image_height, camera_matrix.data [fx 0 cx 0 fy cy 0 0 1], distortion_model
+    and distortion_coefficients.data), as `pinhole_from_json` gives them: "plumb_bob" /
+    "radtan" ([k1, k2, p1, p2[, k3]], OpenCV's order) as Brown-Conrady, "equidistant" /
+    "fisheye" ([k1, k2, k3, k4]) as a fisheye, "rational_polynomial" ([k1, k2, p1, p2, k3, k4,
+    k5, k6]) refitted as k1-k3 when that holds within RATIONAL_FIT_MAX_PX. Or one camera of a
+    Kalibr camchain YAML (`path#cam1`; the file's only camera without a fragment): its
+    camera_model pinhole, intrinsics [fu, fv, pu, pv], distortion_model radtan or equidistant
+    and distortion_coeffs, resolution [w, h]. The intrinsics are the image's as it is sent.
+    ValueError naming the file and the key."""
+    path, _, camera = path.partition("#")
     try:
         import yaml  # imported here: only camera_info users need it
     except ImportError as e:  # pragma: no cover - setup.sh installs it
@@ -1182,6 +1186,31 @@ def pinhole_from_camera_info(path: str) -> Dict[str, object]:
         raise ValueError(f"{path}: cannot be read: {e.strerror}") from e
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not a YAML file ({str(e).splitlines()[0]})") from None
+
+    if isinstance(doc, dict) and "camera_matrix" not in doc:  # a Kalibr camchain?
+        cams = {k: v for k, v in doc.items() if isinstance(v, dict) and "intrinsics" in v}
+        if camera and camera not in cams:
+            raise ValueError(f"{path}: no camera {camera!r} (it holds "
+                             f"{', '.join(sorted(cams)) or 'none'})")
+        if not camera and len(cams) != 1:
+            raise ValueError(f"{path}: not a ROS camera_info file (no camera_matrix)" if not cams
+                             else f"{path}: a camchain of {len(cams)} cameras "
+                             f"({', '.join(sorted(cams))}): name one, {path}#cam0")
+        cam = cams[camera or next(iter(cams))]
+        if cam.get("camera_model", "pinhole") != "pinhole":
+            raise ValueError(f"{path}: camera_model {cam.get('camera_model')!r} is not one vasl "
+                             "reads (pinhole, with radtan or equidistant distortion)")
+        resolution = cam.get("resolution") or [0, 0]
+        f = cam["intrinsics"]  # [fu, fv, pu, pv]
+        matrix = ([f[0], 0, f[2], 0, f[1], f[3], 0, 0, 1]
+                  if isinstance(f, list) and len(f) == 4 else None)
+        doc = {"camera_matrix": {"data": matrix},
+               "distortion_model": cam.get("distortion_model", "radtan"),
+               "distortion_coefficients": {"data": cam.get("distortion_coeffs")},
+               "image_width": resolution[0], "image_height": resolution[1]}
+    elif camera:
+        raise ValueError(f"{path}: a camera_info file holds one camera; #{camera} names one of a "
+                         "Kalibr camchain")
 
     def numbers(key: str, counts) -> List[float]:
         node = doc.get(key) if isinstance(doc, dict) else None
