@@ -186,13 +186,16 @@ def test_pcd_layouts_give_the_scanners_points(tmp_path):
 
 def test_pcd_unsigned_reflectivity_is_its_intensity(tmp_path):
     """An Ouster-style cloud: no intensity field, a 16-bit `reflectivity` over 65535; a
-    version 0.5 header (no COUNT, VIEWPOINT or POINTS) reads with their defaults."""
+    version 0.5 header (no COUNT, VIEWPOINT or POINTS) reads with their defaults; blank lines
+    among the points are skipped."""
     path = tmp_path / "ouster.pcd"
     path.write_text("VERSION .5\nFIELDS x y z reflectivity\nSIZE 4 4 4 2\nTYPE F F F U\n"
                     "WIDTH 3\nHEIGHT 1\nDATA ascii\n"
-                    "1 0 0 0\n0 2 0 65535\nnan nan nan 9\n")
+                    "1 0 0 0\n\n\n0 2 0 65535\nnan nan nan 9\n")
     scan = read_pcd(str(path))
     cloud = scan.points.read()
+    # Blank lines between points are skipped, however the points are chunked.
+    assert [len(c) for c in scan.points.chunks(chunk_points=1)] == [1, 1, 1]
     assert np.array_equal(cloud.xyz_m, [[1, 0, 0], [0, 2, 0], [0, 0, 0]])
     assert np.allclose(cloud.intensity, [0.0, 1.0, 9 / 65535])
     assert "reflectivity over 65535 (uint16)" in scan.notes

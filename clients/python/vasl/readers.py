@@ -1887,8 +1887,8 @@ class PcdPoints(PointSource):
     (kept as they are under the identity viewpoint, the usual file); a point whose coordinate
     is not a number (an organised cloud's empty cell) is sent as the scanners' "no return".
     ``intensity`` (or ``reflectivity``, ``reflectance``) an unsigned integer type over its
-    largest value, else by the range its values span (intensity_scale); ``rgb`` or ``rgba`` (a float or unsigned 32-bit field
-    holding 0xRRGGBB, PCL's packing) as sRGB, linearised. Other fields (normals, labels,
+    largest value, else by the range its values span (intensity_scale); ``rgb`` or ``rgba`` (a
+    float or unsigned 32-bit field holding 0xRRGGBB, PCL's packing) as sRGB, linearised. Other fields (normals, labels,
     curvature, padding ``_``) are skipped."""
 
     def __init__(self, path: str, fields: List[PcdField], width: int, height: int,
@@ -1929,6 +1929,19 @@ class PcdPoints(PointSource):
         return (not any(self.to_sensor.position_m)
                 and np.allclose(rotation_matrix(self.to_sensor.quaternion_xyzw), np.eye(3),
                                 rtol=0.0, atol=1e-12))
+
+    @staticmethod
+    def _xyz(table: Dict[str, np.ndarray]) -> np.ndarray:
+        """A chunk's coordinates, (N, 3) float64 (not a number where a cell has none)."""
+        return np.concatenate([table[axis].astype(np.float64) for axis in "xyz"], axis=1)
+
+    def first_xyz(self) -> np.ndarray:
+        """The first chunk's coordinates (_xyz), the file closed again."""
+        tables = self._tables(CHUNK_POINTS)
+        try:
+            return self._xyz(next(tables))
+        finally:
+            tables.close()
 
     def _record_dtype(self) -> np.dtype:
         return np.dtype([(f"f{i}", f.dtype, (f.count,)) for i, f in enumerate(self.fields)])
@@ -1989,13 +2002,13 @@ class PcdPoints(PointSource):
             line_no = self.first_line
             while done < self.count:
                 n = min(chunk_points, self.count - done)
-                lines = [ln for ln in itertools.islice(f, n) if ln.strip()]
+                lines: List[bytes] = []
                 while len(lines) < n:  # blank lines skipped: read on for the rest
-                    more = [ln for ln in itertools.islice(f, n - len(lines)) if ln.strip()]
-                    if not more:
+                    raw = list(itertools.islice(f, n - len(lines)))
+                    if not raw:
                         raise ValueError(f"{self.path}: the PCD file ends after "
                                          f"{done + len(lines)} of its {self.count} points")
-                    lines += more
+                    lines += [ln for ln in raw if ln.strip()]
                 values, bad = _number_table(lines, self._ascii_fields)
                 if values is None:
                     at = min(bad, len(lines) - 1)
@@ -2020,7 +2033,8 @@ class PcdPoints(PointSource):
 
     def _survey(self) -> None:
         """The intensity's range, when its type does not settle the scale (one pass)."""
-        notes = [f"{self.count} points ({self.data}), fields {' '.join(f.name for f in self.fields)}"]
+        names = " ".join(f.name for f in self.fields)
+        notes = [f"{self.count} points ({self.data}), fields {names}"]
         if self.has_intensity:
             kind = np.dtype(self._intensity.dtype)
             if kind.kind == "u":
@@ -2048,7 +2062,7 @@ class PcdPoints(PointSource):
         a, b = self.intensity_scale
         done = 0
         for t in self._tables(chunk_points):
-            xyz = np.concatenate([t[axis].astype(np.float64) for axis in "xyz"], axis=1)
+            xyz = self._xyz(t)
             n = len(xyz)
             missing = ~np.all(np.isfinite(xyz), axis=1)
             if not self.as_stored:
@@ -2211,8 +2225,7 @@ def read_pcd(path: str, pose=None) -> PcdScan:
     points = PcdPoints(path, fields, width, height, data, offset, first_line, viewpoint)
     # Points farther from the viewpoint than any scanner measures are stored in a world
     # (georeferenced) frame, and the viewpoint is not where they were measured from.
-    first = next(points._tables(CHUNK_POINTS))
-    xyz = np.concatenate([first[axis].astype(np.float64) for axis in "xyz"], axis=1)
+    xyz = points.first_xyz()
     xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
     far = float(np.median(np.linalg.norm(xyz - np.asarray(viewpoint.position_m), axis=1))) \
         if len(xyz) else 0.0
