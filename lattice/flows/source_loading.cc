@@ -137,15 +137,16 @@ absl::StatusOr<std::optional<geometry::PinholeIntrinsics>> ProjectionOfCameraTex
   std::vector<std::string> f = absl::StrSplit(camera_text, ' ', absl::SkipEmpty());
   if (f.empty() || f[0] == "equirect") return std::nullopt;
   const bool fisheye = f[0] == "fisheye";
-  if ((f[0] != "pinhole" || f.size() < 10) && (!fisheye || f.size() < 9)) {
+  const size_t numbers = fisheye ? 8 : 9;  // fx fy cx cy k1 k2 k3, then k4 or p1 p2
+  if ((f[0] != "pinhole" && !fisheye) || f.size() < numbers + 1) {
     return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
   }
   geometry::PinholeIntrinsics k;
   if (fisheye) k.lens = geometry::Lens::kFisheye;
   double* v[] = {&k.fx_px, &k.fy_px, &k.cx_px, &k.cy_px, &k.k1, &k.k2, &k.k3,
                  fisheye ? &k.k4 : &k.p1, &k.p2};
-  for (int i = 0; i < (fisheye ? 8 : 9); ++i) {
-    if (!absl::SimpleAtod(f[size_t(i) + 1], v[i])) {
+  for (size_t i = 0; i < numbers; ++i) {
+    if (!absl::SimpleAtod(f[i + 1], v[i])) {
       return absl::DataLossError(absl::StrCat("bad camera text '", camera_text, "'"));
     }
   }
