@@ -234,7 +234,7 @@ RevisitScope ScopeOf(const SourceRef& source, const records::VosselGeometry& g,
            ? 0.0
            : ingest::ProjectionOf(CameraOf(source.info, 0), source.info.width_px,
                                   source.info.height_px)
-                 .PixelAngleRad(Eigen::Vector3d::UnitX())});
+                 .AxisPixelAngleRad()});
   const ingest::DepthView view = ViewOf(source);
   const tiles::CapCells grid({view.size.width_px / tiles::kReachBlockPx,
                               view.size.height_px / tiles::kReachBlockPx},

@@ -33,9 +33,15 @@ bool ImageProjection::Inside(const Eigen::Vector2d& uv) const {
 
 double ImageProjection::PixelAngleRad(const Eigen::Vector3d& d_cam) const {
   if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
-  if (pinhole_) return PinholePixelAngleRad(*pinhole_);  // §3: pitch over focal length
+  if (pinhole_) return PinholePixelAngleRad(*pinhole_, d_cam);  // §3: pitch over focal length
   const double psi = std::asin(std::clamp(d_cam.z() / d_cam.norm(), -1.0, 1.0));
   return EquirectPixelAngleRad(psi, size_);  // §3
+}
+
+double ImageProjection::AxisPixelAngleRad() const {
+  if (angular_resolution_rad_ > 0.0) return angular_resolution_rad_;
+  if (pinhole_) return PinholePixelAngleRad(*pinhole_);
+  return EquirectPixelAngleRad(0.0, size_);
 }
 
 double ImageProjection::PitchRad() const {

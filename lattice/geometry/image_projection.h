@@ -31,8 +31,12 @@ class ImageProjection {
   /// True when pixel coordinates lie on the image (always for a panorama).
   bool Inside(const Eigen::Vector2d& uv_px) const;
   /// §3 θ_pix in direction `d_cam`: the camera's own angular resolution when it gives one,
-  /// else max(Δψ, cosψ·Δφ) (equirect) or pixel pitch over focal length (pinhole).
+  /// else max(Δψ, cosψ·Δφ) (equirect) or PinholePixelAngleRad(k, d_cam) (pixel pitch over
+  /// focal length; a fisheye's grows away from its axis).
   double PixelAngleRad(const Eigen::Vector3d& d_cam) const;
+  /// θ_pix on the equator (equirect) or on the optical axis (pinhole, fisheye): what a
+  /// depth panorama's splats of the camera grow by (§5), one value for the whole source.
+  double AxisPixelAngleRad() const;
   /// The pitch of the camera's depth panorama (its Δ in the visibility tolerance): its angular
   /// resolution, Δψ, or the pinhole pixel angle.
   double PitchRad() const;

@@ -53,6 +53,18 @@ double FisheyeSlope(double theta, const PinholeIntrinsics& k) {
 
 }  // namespace
 
+double PinholePixelAngleRad(const PinholeIntrinsics& k, const Eigen::Vector3d& d_cam) {
+  const double on_axis = PinholePixelAngleRad(k);
+  if (k.lens != Lens::kFisheye) return on_axis;
+  const double theta = std::atan2(d_cam.head<2>().norm(), d_cam.z());
+  if (!(theta > 1e-6)) return on_axis;  // on the axis (NaN too): both pitches are 1/f
+  const double slope = FisheyeSlope(theta, k), rd = FisheyeRadius(theta, k);
+  if (!(slope > 0.0) || !(rd > 0.0)) return kMaxPinholePixelAngleRad;  // at or past the fold
+  const double radial = on_axis / slope;
+  const double across = on_axis * std::sin(theta) / rd;
+  return std::min(std::max(radial, across), kMaxPinholePixelAngleRad);
+}
+
 double FisheyeMaxAngleRad(const PinholeIntrinsics& k) {
   if (k.lens != Lens::kFisheye) return M_PI;
   const double field = k.field_of_view_rad > 0.0 ? 0.5 * k.field_of_view_rad : M_PI;

@@ -79,4 +79,16 @@ inline double PinholePixelAngleRad(const PinholeIntrinsics& k) {
   return 1.0 / (0.5 * (k.fx_px + k.fy_px));
 }
 
+/// The widest θ_pix PinholePixelAngleRad(k, d_cam) gives: a fisheye's pixels near its fold.
+constexpr double kMaxPinholePixelAngleRad = 0.1;
+
+/// §3's θ_pix of the pixel that direction `d_cam` (camera frame) falls in. A Brown–Conrady
+/// lens: pixel pitch over focal length, as §3 writes it, whatever the direction. A fisheye
+/// *(choice: §3's rule for an equirect panorama, the larger of a pixel's two angular pitches,
+/// carried over to the lens that, like a panorama, sees far from its axis)*: at angle θ from
+/// the axis a pixel spans 1/(f·dθ_d/dθ) radially and sin θ/(f·θ_d) across (f the mean focal
+/// length), and θ_pix is the larger: 1/f on the axis, more where θ_d grows slower than θ
+/// (k1 < 0), without bound near the lens's fold, so held at kMaxPinholePixelAngleRad.
+double PinholePixelAngleRad(const PinholeIntrinsics& k, const Eigen::Vector3d& d_cam);
+
 }  // namespace vasl::geometry

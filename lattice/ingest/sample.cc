@@ -402,7 +402,7 @@ DepthView CameraDepthView(const CameraSource& camera, int width_px, int height_p
   const ImageProjection proj = ProjectionOf(camera, width_px, height_px);
   DepthView view;
   view.size = DepthPanoramaSize(proj.PitchRad());
-  view.divergence_rad = proj.PixelAngleRad(Eigen::Vector3d::UnitX());
+  view.divergence_rad = proj.AxisPixelAngleRad();
   view.slope_pixels = 1 + kCameraSampleRadiusPx;
   view.dilate_px = kCameraSampleRadiusPx;
   return view;

@@ -237,6 +237,62 @@ TEST(PinholeTest, FisheyeIsKannalaBrandtBeyondNinetyDegrees) {
   EXPECT_FALSE(ValidatePinhole(brown).ok());
 }
 
+// Claim (§3, a fisheye's θ_pix): the angle a fisheye pixel spans, measured by unprojecting its
+// neighbours one pixel away radially and across, is 1/f on the axis and grows where θ_d grows
+// slower than θ; θ_pix is the larger of the two (within 0.5% of the measured angles), and a
+// Brown–Conrady lens keeps §3's pitch over focal length everywhere.
+TEST(PinholeTest, FisheyePixelAngleFollowsTheLensAwayFromItsAxis) {
+  PinholeIntrinsics k;
+  k.width_px = k.height_px = 2048;
+  k.fx_px = k.fy_px = 600.0;
+  k.cx_px = k.cy_px = 1024.0;
+  k.lens = Lens::kFisheye;
+  k.k1 = -0.03;  // θ_d grows slower than θ away from the axis (fold beyond 180°)
+  k.k2 = 0.001;
+  ASSERT_TRUE(ValidatePinhole(k).ok());
+  const double f = 600.0;
+  EXPECT_DOUBLE_EQ(PinholePixelAngleRad(k, Eigen::Vector3d::UnitZ()), 1.0 / f);
+  const double azimuth = 0.7;
+  double at_100 = 0.0;
+  for (double deg : {5.0, 30.0, 60.0, 90.0, 100.0, 120.0}) {
+    const double theta = deg * M_PI / 180.0;
+    const Eigen::Vector3d d(std::sin(theta) * std::cos(azimuth),
+                            std::sin(theta) * std::sin(azimuth), std::cos(theta));
+    const auto uv = PinholeProject(d, k);
+    ASSERT_TRUE(uv.has_value());
+    const Eigen::Vector2d radial(std::cos(azimuth), std::sin(azimuth));
+    const Eigen::Vector2d across(-std::sin(azimuth), std::cos(azimuth));
+    // One pixel's angle along each direction, as the mean of half a pixel either side.
+    const double measured_radial =
+        AngleBetween(PinholeUnproject(*uv + 0.5 * radial, k), PinholeUnproject(*uv - 0.5 * radial, k));
+    const double measured_across =
+        AngleBetween(PinholeUnproject(*uv + 0.5 * across, k), PinholeUnproject(*uv - 0.5 * across, k));
+    const double theta_pix = PinholePixelAngleRad(k, d);
+    std::printf("fisheye pixel at %5.1f deg: %.3e rad radially, %.3e across, theta_pix %.3e "
+                "(%.3f x the axis's)\n", deg, measured_radial, measured_across, theta_pix,
+                theta_pix * f);
+    EXPECT_NEAR(theta_pix, std::max(measured_radial, measured_across),
+                5e-3 * std::max(measured_radial, measured_across));
+    EXPECT_GE(theta_pix, 1.0 / f);
+    if (deg == 100.0) at_100 = theta_pix;
+  }
+  EXPECT_GT(at_100 * f, 1.2);  // a fifth wider than on the axis there: worth following
+  // Past a lens's fold a pixel spans without bound: held at the cap.
+  PinholeIntrinsics folded = k;
+  folded.k1 = -0.2;
+  folded.k2 = 0.0;
+  const double fold = FisheyeMaxAngleRad(folded);
+  EXPECT_EQ(PinholePixelAngleRad(folded, Eigen::Vector3d(std::sin(fold + 0.01), 0.0,
+                                                         std::cos(fold + 0.01))),
+            kMaxPinholePixelAngleRad);
+  // Brown–Conrady: §3's pitch over focal length at any direction in the image.
+  PinholeIntrinsics brown;
+  brown.fx_px = 500.0;
+  brown.fy_px = 520.0;
+  brown.k1 = -0.1;
+  EXPECT_DOUBLE_EQ(PinholePixelAngleRad(brown, Eigen::Vector3d(0.4, -0.3, 1.0)), 1.0 / 510.0);
+}
+
 // Claim (§2): a pose maps sensor to world and back; NaN in a pose is rejected.
 TEST(PoseTest, RoundTripAndValidation) {
   auto pose = MakePose({1, 2, 3}, {0.1, -0.2, 0.3, 0.9});
