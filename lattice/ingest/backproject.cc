@@ -21,6 +21,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/geometry/equirect.h"
 #include "lattice/geometry/footprint.h"
+#include "lattice/geometry/image_projection.h"
 #include "lattice/geometry/pinhole.h"
 #include "lattice/ingest/image_memory.h"
 #include "lattice/records/record_grid.h"
@@ -268,12 +269,14 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
   const size_t m = starts.size() - 1;
   records::RecordSet out;
   out.Resize(m);
-  const double theta_pix = src.pinhole ? geometry::PinholePixelAngleRad(k)
-                                       : geometry::EquirectPixelAngleRad(0.0, size);
+  // §3's θ_pix where the vossel's pixels look (a fisheye's and a panorama's vary with it).
+  const geometry::ImageProjection projection(
+      src.pinhole ? std::optional<geometry::PinholeIntrinsics>(k) : std::nullopt, W, H);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, m, 256), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t q = r.begin(); q != r.end(); ++q) {
       const int32_t v = order[starts[q]].first;
       double rgb[3] = {0, 0, 0}, range = 0, cos_sum = 0, u = 0, vv = 0, unc = 0;
+      Eigen::Vector3d dir_sum = Eigen::Vector3d::Zero();
       const double count = double(starts[q + 1] - starts[q]);
       const Eigen::Vector3d n_k = g.FrameNormal(size_t(v)).cast<double>();
       for (size_t e = starts[q]; e < starts[q + 1]; ++e) {
@@ -281,6 +284,7 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
         for (int c = 0; c < 3; ++c) rgb[c] += im.rgb[3 * p + c];
         range += im.depth_m[p];
         const Eigen::Vector3d& d = dir[p];
+        dir_sum += d;
         if (!im.normal.empty()) {
           const Eigen::Vector3d np(im.normal[3 * p], im.normal[3 * p + 1], im.normal[3 * p + 2]);
           cos_sum += np.squaredNorm() > 0.25 ? std::abs(np.normalized().dot(d)) : 1.0;
@@ -293,6 +297,7 @@ records::RecordSet BackProjectRecords(const records::VosselGeometry& g, const De
       }
       const double cos_inc = std::clamp(cos_sum / count, 0.0, 1.0);
       const double range_m = range / count;
+      const double theta_pix = projection.PixelAngleRad(src.pose.DirectionToSensor(dir_sum));
       const geometry::SurfaceFootprint foot = geometry::SurfaceFootprintAt(range_m, theta_pix, cos_inc);
       out.vossel[q] = v;
       out.scan[q] = src.id;
