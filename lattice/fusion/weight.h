@@ -70,13 +70,28 @@ struct WeightColumns {
 ///          factor under a positive exponent gives exactly 0.
 class WeightKernel {
  public:
+  /// The instruction sets Evaluate is compiled for, one variant each. Every variant rounds
+  /// every operation alike (the build keeps -ffp-contract=off: no fused multiply-add), so the
+  /// weights are the same bits on every CPU.
+  enum class Isa : int8_t { kBaseline, kAvx2, kX86_64_V4 };
+  /// Whether this CPU runs `isa`'s variant (kBaseline always; the others only in a GCC build).
+  static bool Supports(Isa isa);
   /// `target_m` is s*.
   WeightKernel(const WeightingProfile& profile, double target_m);
-  /// w[i] for the n records of `columns` (range_min_m is needed only with the proximity term).
+  /// w[i] for the n records of `columns` (range_min_m is needed only with the proximity term),
+  /// by the widest variant this CPU runs (x86-64-v4: AVX-512; AVX2; the baseline's SSE2).
   void Evaluate(const WeightColumns& columns, size_t n, float* w) const;
+  /// The same by `isa`'s variant, which the CPU must support (tests and benchmarks compare
+  /// them).
+  void EvaluateOn(Isa isa, const WeightColumns& columns, size_t n, float* w) const;
   bool uses_range_min() const { return proximity_ > 0.0f; }
 
  private:
+  /// Evaluate's body, inlined into one function per Isa (weight.cc).
+  void Body(const WeightColumns& c, size_t n, float* w) const;
+  void EvaluateBaseline(const WeightColumns& c, size_t n, float* w) const;
+  void EvaluateAvx2(const WeightColumns& c, size_t n, float* w) const;
+  void EvaluateX86_64_V4(const WeightColumns& c, size_t n, float* w) const;
   /// How one factor x^e enters: left out, multiplied (e = 1, 2) or through ln x (other e).
   enum class Power : int8_t { kOff, kOne, kTwo, kLog };
   struct Factor {

@@ -5,6 +5,7 @@
 // Run by deploy/bench.sh; figures, not pass/fail tests.
 #include <algorithm>
 #include <cstdint>
+#include <optional>
 #include <random>
 #include <vector>
 
@@ -87,15 +88,24 @@ void Report(benchmark::State& state, double bytes_per_record) {
 }
 
 /// The kernel alone, one thread, records in memory (no offsets, no r_min: the proximity term
-/// reads r as its own minimum).
-void BM_WeightKernelOneThread(benchmark::State& state, vasl::fusion::WeightingProfile p) {
+/// reads r as its own minimum), by the widest variant the CPU runs, or by `isa`'s.
+void BM_WeightKernelOneThread(benchmark::State& state, vasl::fusion::WeightingProfile p,
+                              std::optional<vasl::fusion::WeightKernel::Isa> isa = std::nullopt) {
+  if (isa && !vasl::fusion::WeightKernel::Supports(*isa)) {
+    state.SkipWithError("this CPU does not run that instruction set");
+    return;
+  }
   const RecordSet& r = Records();
   const vasl::fusion::WeightKernel kernel(p, vasl::geometry::TargetResolutionM(kVosselM));
   std::vector<float> w(r.size());
   vasl::fusion::WeightColumns c = vasl::fusion::WeightColumns::Of(r);
   c.range_min_m = r.range_m.data();
   for (auto _ : state) {
-    kernel.Evaluate(c, r.size(), w.data());
+    if (isa) {
+      kernel.EvaluateOn(*isa, c, r.size(), w.data());
+    } else {
+      kernel.Evaluate(c, r.size(), w.data());
+    }
     benchmark::DoNotOptimize(w.data());
   }
   Report(state, kWeightBytes);
@@ -143,6 +153,16 @@ void BM_Triad(benchmark::State& state) {
 BENCHMARK_CAPTURE(BM_WeightKernelOneThread, multiply_only, MultiplyOnly())
     ->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_WeightKernelOneThread, general, General())
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+// Each instruction set's variant of the general kernel (the same bits from each).
+BENCHMARK_CAPTURE(BM_WeightKernelOneThread, general_baseline, General(),
+                  vasl::fusion::WeightKernel::Isa::kBaseline)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_WeightKernelOneThread, general_avx2, General(),
+                  vasl::fusion::WeightKernel::Isa::kAvx2)
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK_CAPTURE(BM_WeightKernelOneThread, general_x86_64_v4, General(),
+                  vasl::fusion::WeightKernel::Isa::kX86_64_V4)
     ->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_RecordWeights, multiply_only, MultiplyOnly())
     ->Unit(benchmark::kMillisecond)->UseRealTime();
