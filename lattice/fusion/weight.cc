@@ -252,12 +252,10 @@ WeightKernel::WeightKernel(const WeightingProfile& p, double target_m)
 
 // The body compiled for the baseline (SSE2, 4 lanes), for AVX2 (8 lanes) and for x86-64-v4
 // (AVX-512: 16 lanes; one core of an AMD EPYC under the general profile, 47 M records/s
-// baseline, 85 M AVX2, 117 M AVX-512: BM_WeightKernelOneThread/general_*), the widest the CPU
-// runs chosen once. The build keeps -ffp-contract=off (GCC contracts a·b + c into a fused
-// multiply-add in C++ even under -std=c++17, which the AVX2 and AVX-512 variants could then
-// use), so every variant rounds every operation alike and the weights do not depend on the
-// CPU (WeightTest.EveryInstructionSetGivesTheSameBits). Clang (deploy/fuzz.sh's harnesses)
-// builds the baseline alone.
+// baseline, 85 M AVX2, 117 M AVX-512: BM_WeightKernelOneThread/general_*), each call taking
+// memory::WidestIsa. Every variant rounds alike (memory/isa.h: -ffp-contract=off), so the
+// weights do not depend on the CPU (WeightTest.EveryInstructionSetGivesTheSameBits). Clang
+// (deploy/fuzz.sh's harnesses) builds the baseline alone.
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define VASL_WEIGHT_VARIANTS 1
 #else
@@ -285,19 +283,6 @@ void WeightKernel::EvaluateX86_64_V4(const WeightColumns& c, size_t n, float* w)
 }
 #endif
 
-bool WeightKernel::Supports(Isa isa) {
-#if VASL_WEIGHT_VARIANTS
-  switch (isa) {
-    case Isa::kBaseline: return true;
-    case Isa::kAvx2: return __builtin_cpu_supports("avx2");
-    case Isa::kX86_64_V4: return __builtin_cpu_supports("x86-64-v4");
-  }
-  return false;
-#else
-  return isa == Isa::kBaseline;
-#endif
-}
-
 void WeightKernel::EvaluateOn(Isa isa, const WeightColumns& c, size_t n, float* w) const {
   switch (isa) {
     case Isa::kX86_64_V4: return EvaluateX86_64_V4(c, n, w);
@@ -308,10 +293,7 @@ void WeightKernel::EvaluateOn(Isa isa, const WeightColumns& c, size_t n, float* 
 }
 
 void WeightKernel::Evaluate(const WeightColumns& c, size_t n, float* w) const {
-  static const Isa widest = Supports(Isa::kX86_64_V4) ? Isa::kX86_64_V4
-                            : Supports(Isa::kAvx2)    ? Isa::kAvx2
-                                                      : Isa::kBaseline;
-  EvaluateOn(widest, c, n, w);
+  EvaluateOn(memory::WidestIsa(), c, n, w);
 }
 
 double RecordWeight(const WeightingProfile& p, const WeightInputs& in, double target_m) {

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "lattice/fusion/profile.h"
+#include "lattice/memory/isa.h"
 #include "lattice/records/records.h"
 
 namespace vasl::fusion {
@@ -70,19 +71,17 @@ struct WeightColumns {
 ///          factor under a positive exponent gives exactly 0.
 class WeightKernel {
  public:
-  /// The instruction sets Evaluate is compiled for, one variant each. Every variant rounds
-  /// every operation alike (the build keeps -ffp-contract=off: no fused multiply-add), so the
-  /// weights are the same bits on every CPU.
-  enum class Isa : int8_t { kBaseline, kAvx2, kX86_64_V4 };
-  /// Whether this CPU runs `isa`'s variant (kBaseline always; the others only in a GCC build).
-  static bool Supports(Isa isa);
+  /// The instruction sets Evaluate is compiled for, one variant each (memory/isa.h): every
+  /// variant rounds every operation alike, so the weights are the same bits on every CPU.
+  using Isa = memory::Isa;
   /// `target_m` is s*.
   WeightKernel(const WeightingProfile& profile, double target_m);
   /// w[i] for the n records of `columns` (range_min_m is needed only with the proximity term),
-  /// by the widest variant this CPU runs (x86-64-v4: AVX-512; AVX2; the baseline's SSE2).
+  /// by the widest variant this CPU runs (memory::WidestIsa: x86-64-v4's AVX-512, AVX2, or the
+  /// baseline's SSE2).
   void Evaluate(const WeightColumns& columns, size_t n, float* w) const;
-  /// The same by `isa`'s variant, which the CPU must support (tests and benchmarks compare
-  /// them).
+  /// The same by `isa`'s variant, which the CPU must support (memory::Supports; tests and
+  /// benchmarks compare them).
   void EvaluateOn(Isa isa, const WeightColumns& columns, size_t n, float* w) const;
   bool uses_range_min() const { return proximity_ > 0.0f; }
 

@@ -91,7 +91,7 @@ void Report(benchmark::State& state, double bytes_per_record) {
 /// reads r as its own minimum), by the widest variant the CPU runs, or by `isa`'s.
 void BM_WeightKernelOneThread(benchmark::State& state, vasl::fusion::WeightingProfile p,
                               std::optional<vasl::fusion::WeightKernel::Isa> isa = std::nullopt) {
-  if (isa && !vasl::fusion::WeightKernel::Supports(*isa)) {
+  if (isa && !vasl::memory::Supports(*isa)) {
     state.SkipWithError("this CPU does not run that instruction set");
     return;
   }

@@ -192,7 +192,7 @@ TEST(WeightTest, EveryInstructionSetGivesTheSameBits) {
     std::vector<float> baseline(n), other(n);
     kernel.EvaluateOn(Isa::kBaseline, c, n, baseline.data());
     for (Isa isa : {Isa::kAvx2, Isa::kX86_64_V4}) {
-      if (!WeightKernel::Supports(isa)) continue;
+      if (!memory::Supports(isa)) continue;
       kernel.EvaluateOn(isa, c, n, other.data());
       size_t differ = 0;
       for (size_t i = 0; i < n; ++i) differ += std::memcmp(&other[i], &baseline[i], 4) != 0;
