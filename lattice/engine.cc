@@ -3,16 +3,11 @@
 #include "lattice/operations.h"
 
 #include <algorithm>
-#include <cctype>
 #include <chrono>
-#include <cmath>
-#include <map>
 #include <mutex>
-#include <set>
 
 #include "absl/strings/str_cat.h"
 #include "lattice/flows/flows.h"
-#include "lattice/flows/tile_budget.h"
 #include "lattice/flows/world_frame.h"
 #include "lattice/fusion/fuse.h"
 #include "lattice/ingest/sources.h"

@@ -254,18 +254,13 @@ WeightKernel::WeightKernel(const WeightingProfile& p, double target_m)
 // (AVX-512: 16 lanes; one core of an AMD EPYC under the general profile, 47 M records/s
 // baseline, 85 M AVX2, 117 M AVX-512: BM_WeightKernelOneThread/general_*), each call taking
 // memory::WidestIsa. Every variant rounds alike (memory/isa.h: -ffp-contract=off), so the
-// weights do not depend on the CPU (WeightTest.EveryInstructionSetGivesTheSameBits). Clang
-// (deploy/fuzz.sh's harnesses) builds the baseline alone.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define VASL_WEIGHT_VARIANTS 1
-#else
-#define VASL_WEIGHT_VARIANTS 0
-#endif
+// weights do not depend on the CPU (WeightTest.EveryInstructionSetGivesTheSameBits). The wider
+// variants exist where VASL_ISA_VARIANTS is 1.
 
 void WeightKernel::EvaluateBaseline(const WeightColumns& c, size_t n, float* w) const {
   Body(c, n, w);
 }
-#if VASL_WEIGHT_VARIANTS
+#if VASL_ISA_VARIANTS
 [[gnu::target("avx2")]] void WeightKernel::EvaluateAvx2(const WeightColumns& c, size_t n,
                                                        float* w) const {
   Body(c, n, w);
@@ -274,21 +269,14 @@ void WeightKernel::EvaluateBaseline(const WeightColumns& c, size_t n, float* w) 
                                                                       size_t n, float* w) const {
   Body(c, n, w);
 }
-#else
-void WeightKernel::EvaluateAvx2(const WeightColumns& c, size_t n, float* w) const {
-  Body(c, n, w);
-}
-void WeightKernel::EvaluateX86_64_V4(const WeightColumns& c, size_t n, float* w) const {
-  Body(c, n, w);
-}
 #endif
 
 void WeightKernel::EvaluateOn(Isa isa, const WeightColumns& c, size_t n, float* w) const {
-  switch (isa) {
-    case Isa::kX86_64_V4: return EvaluateX86_64_V4(c, n, w);
-    case Isa::kAvx2: return EvaluateAvx2(c, n, w);
-    case Isa::kBaseline: break;
-  }
+#if VASL_ISA_VARIANTS
+  if (isa == Isa::kX86_64_V4) return EvaluateX86_64_V4(c, n, w);
+  if (isa == Isa::kAvx2) return EvaluateAvx2(c, n, w);
+#endif
+  (void)isa;
   EvaluateBaseline(c, n, w);
 }
 

@@ -89,6 +89,7 @@ class WeightKernel {
   /// Evaluate's body, inlined into one function per Isa (weight.cc).
   void Body(const WeightColumns& c, size_t n, float* w) const;
   void EvaluateBaseline(const WeightColumns& c, size_t n, float* w) const;
+  /// The wider variants, defined where VASL_ISA_VARIANTS is 1 (memory/isa.h).
   void EvaluateAvx2(const WeightColumns& c, size_t n, float* w) const;
   void EvaluateX86_64_V4(const WeightColumns& c, size_t n, float* w) const;
   /// How one factor x^e enters: left out, multiplied (e = 1, 2) or through ln x (other e).

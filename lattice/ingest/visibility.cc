@@ -105,7 +105,7 @@ using SplatRowFn = void (*)(const RowBasis&, const VosselSplat&, const double*, 
     float* depth) {
   SplatRow(r, s, cos_phi, sin_phi, n, depth);
 }
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if VASL_ISA_VARIANTS
 [[gnu::target("avx2"), gnu::optimize("no-trapping-math")]] void SplatRowAvx2(
     const RowBasis& r, const VosselSplat& s, const double* cos_phi, const double* sin_phi, int n,
     float* depth) {
@@ -115,7 +115,7 @@ using SplatRowFn = void (*)(const RowBasis&, const VosselSplat&, const double*, 
 /// SplatRow compiled for the widest instruction set the CPU runs (memory::WidestIsa): AVX2 or
 /// the baseline (an AVX-512 variant was slower: BM_DepthPanorama/camera_station_12 36 → 41 ms).
 SplatRowFn SplatRowOn(memory::Isa isa) {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if VASL_ISA_VARIANTS
   if (isa >= memory::Isa::kAvx2) return SplatRowAvx2;
 #endif
   (void)isa;

@@ -11,7 +11,7 @@ std::atomic<Isa> g_cap{Isa::kX86_64_V4};
 }  // namespace
 
 bool Supports(Isa isa) {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if VASL_ISA_VARIANTS
   switch (isa) {
     case Isa::kBaseline: return true;
     case Isa::kAvx2: return __builtin_cpu_supports("avx2");

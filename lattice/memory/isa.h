@@ -11,6 +11,14 @@
 
 #include <cstdint>
 
+/// 1 where the wider variants are compiled (an x86-64 GCC build; clang, which builds
+/// deploy/fuzz.sh's harnesses, and other architectures have the baseline alone), else 0.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define VASL_ISA_VARIANTS 1
+#else
+#define VASL_ISA_VARIANTS 0
+#endif
+
 namespace vasl::memory {
 
 enum class Isa : int8_t {

@@ -180,7 +180,7 @@ TEST(WeightTest, KernelMatchesTheFormulaInDouble) {
 // every record, so that a project reweighted or rebuilt on another machine fuses alike.
 TEST(WeightTest, EveryInstructionSetGivesTheSameBits) {
   const size_t n = 100003;
-  records::RecordSet r = RandomRecords(n, 23);
+  const records::RecordSet r = RandomRecords(n, 23);
   std::vector<float> range_min(n);
   for (size_t i = 0; i < n; ++i) range_min[i] = r.range_m[i] * (i % 3 == 0 ? 1.0f : 0.8f);
   WeightColumns c = WeightColumns::Of(r);
