@@ -247,9 +247,9 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
               site.Stations().size(), settings.tile_vossels,
               (long long)((*engine)->limits().max_snapshot_bytes >> 20),
               (long long)((*engine)->limits().max_revisit_image_bytes >> 20));
-  std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %9s %11s %11s\n", "ingest", "seconds",
+  std::printf("%-8s %8s %9s %9s %9s %9s %8s %8s %9s %9s %9s %11s %11s\n", "ingest", "seconds",
               "vossels", "records", "revisited", "refreshed", "pairs", "blocks", "rev_voss%",
-              "peak_MB", "written_MB", "total_MB");
+              "peak_MB", "added_MB", "written_MB", "total_MB");
   std::vector<double> seconds;
   // Bytes of records objects the commits wrote, and what record segments per batch (README
   // "Storage": an LSM-style layout) would have written of them: the records each change
@@ -261,6 +261,10 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
     lidar.seed = uint64_t(n + 1);
     auto scan = scenes::MakeScanInput(site, n, lidar, pano_w, 2);
     if (!scan.ok()) return Fail(scan.status());
+    // The ingest's own memory: its peak over what the process held before it (the engine's
+    // cached HEAD and revisited sources, this scan's input), heap freed earlier returned first.
+    ::malloc_trim(0);
+    const double rss0 = RssMb();
     ResetPeakRss();
     const double cpu0 = CpuSeconds();
     const bool sampled = PerfScan(n + 1);
@@ -286,7 +290,7 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
         rest += absl::StrFormat(" %s %.2f;", stage, sec);
       }
     }
-    std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.1f %9.0f %11.1f %11.1f   "
+    std::printf("%-8s %8.2f %9lld %9lld %9lld %9lld %8lld %8lld %9.1f %9.0f %9.0f %11.1f %11.1f   "
                 "cpu %.2f s (%.2f cores); revisits %.2f; own sources %.2f (%s);%s\n",
                 scan->scan_name.c_str(), r->seconds, (long long)r->vossel_count,
                 (long long)r->record_count, (long long)r->sources_revisited,
@@ -294,7 +298,7 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
                 (long long)r->blocks_revisited,
                 100.0 * double(r->vossels_revisited) /
                     double(std::max<int64_t>(1, r->vossels_in_blocks)),
-                peak,
+                peak, peak - rss0,
                 r->bytes_written / 1e6,
                 versions->back().bytes_total / 1e6, cpu, cpu / std::max(1e-9, r->seconds), revisit, own, each.c_str(),
                 rest.c_str());
