@@ -3,12 +3,21 @@
 #include "server/worker_pool.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <exception>
+
+#include <malloc.h>
 
 #include "absl/strings/str_cat.h"
 
 namespace vasl::server {
+namespace {
+
+/// A task that ran this long returns its freed heap to the kernel when it ends (Loop).
+constexpr std::chrono::milliseconds kTrimAfter{100};
+
+}  // namespace
 
 WorkerPool::WorkerPool(int threads, size_t max_queued) : max_queued_(max_queued) {
   threads = std::max(1, threads);
@@ -57,6 +66,7 @@ void WorkerPool::Loop() {
     }
     // A task that throws must not end the process (std::terminate on a worker thread): the
     // RPC tasks catch their own errors and answer; this is the last line of defence.
+    const auto started = std::chrono::steady_clock::now();
     try {
       task();
     } catch (const std::exception& e) {
@@ -64,6 +74,14 @@ void WorkerPool::Loop() {
     } catch (...) {
       std::fprintf(stderr, "vasld: a worker task threw a non-standard exception\n");
     }
+#if defined(__GLIBC__)
+    // After a long call, the heap it freed goes back to the kernel. An ingest, a reweight or a
+    // large render frees hundreds of MB (decoded images, records, depth panoramas) across the
+    // arenas of TBB's threads, which glibc keeps: an idle server would hold the peak of its
+    // last call, and the next call's peak would come on top of what no arena could reuse.
+    // Short calls skip it: a trim walks every free chunk of a fragmented heap (tens of ms).
+    if (std::chrono::steady_clock::now() - started >= kTrimAfter) ::malloc_trim(0);
+#endif
   }
 }
 
