@@ -105,7 +105,8 @@ void BM_Visibility(benchmark::State& state, size_t station, double pitch_rad,
 }
 
 /// The §8 render's march alone (RenderEquirect, no colour fused): a W×W/2 equirect image from
-/// the corridor's first novel view. Items are rays.
+/// the corridor's first novel view. Items are rays. `image_fnv` (32-bit FNV-1a of the depth
+/// and normal arrays' bytes) tells whether a change to the march kept the image bit for bit.
 void BM_Render(benchmark::State& state, double h, int width_px) {
   const vasl::records::VosselGeometry& g = Geometry(h);
   vasl::render::RenderRequest request;
@@ -114,6 +115,7 @@ void BM_Render(benchmark::State& state, double h, int width_px) {
   request.height_px = width_px / 2;
   const vasl::records::FusedValues none;
   int64_t hits = 0;
+  uint32_t fnv = 2166136261u;
   for (auto _ : state) {
     auto image = vasl::render::RenderEquirect(g, none, request);
     if (!image.ok()) {
@@ -122,10 +124,18 @@ void BM_Render(benchmark::State& state, double h, int width_px) {
     }
     hits = image->hit_pixels;
     benchmark::DoNotOptimize(image->depth_m.data());
+    state.PauseTiming();
+    fnv = 2166136261u;
+    for (const std::vector<float>* a : {&image->depth_m, &image->normal}) {
+      const auto* bytes = reinterpret_cast<const unsigned char*>(a->data());
+      for (size_t i = 0; i < a->size() * sizeof(float); ++i) fnv = (fnv ^ bytes[i]) * 16777619u;
+    }
+    state.ResumeTiming();
   }
   state.SetItemsProcessed(int64_t(state.iterations()) * width_px * (width_px / 2));
   state.counters["vossels"] = double(g.size());
   state.counters["hit_pixels"] = double(hits);
+  state.counters["image_fnv"] = double(fnv);
 }
 
 /// The march's W×W/2 image at h = 2 cm coloured as a render of the site shows it: the site's
