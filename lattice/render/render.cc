@@ -126,6 +126,12 @@ struct Scene {
   /// The transform's map, which it owns: taken once per render, since Transform::baseMap()
   /// returns a shared_ptr whose copy per ray is an atomic count the threads share.
   const openvdb::math::MapBase* map = nullptr;
+  /// The map's inverse scale per axis when it is a scale map (applyInverseJacobian multiplies
+  /// by it: the same products without a virtual call per ray); null for another map.
+  const openvdb::Vec3d* inv_scale = nullptr;
+  /// A render's eye, world, and the same point in the DDA's shifted index space (eye + 0.5):
+  /// every ray of a render starts there, so MarchRay need not map it per ray.
+  openvdb::Vec3d eye_world{std::numeric_limits<double>::quiet_NaN()}, eye_dda;
   const records::VosselGeometry* geometry = nullptr;
   const records::FusedModality* rgb = nullptr;  ///< null: no rgb modality fused
   /// Index-space box of the active voxels in the DDA's corner convention: [min, max + 1].
@@ -378,10 +384,13 @@ bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world
   using InternalT = TreeT::RootNodeType::ChildNodeType::ChildNodeType;  // parent of leaves
   const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
   const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
-  openvdb::Vec3d dir_idx = scene.map->applyInverseJacobian(d);
+  openvdb::Vec3d dir_idx = scene.inv_scale != nullptr ? d * *scene.inv_scale
+                                                      : scene.map->applyInverseJacobian(d);
   const double scale = dir_idx.length();  // index units per metre
   dir_idx /= scale;
-  const openvdb::Vec3d eye_dda = scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
+  const openvdb::Vec3d eye_dda = o == scene.eye_world
+                                     ? scene.eye_dda
+                                     : scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
   RayT ray(eye_dda, dir_idx, std::max(openvdb::math::Delta<double>::value(), min_range_m * scale),
            scene.max_range_m * scale);
   if (!ray.clip(scene.bbox_dda)) return false;
@@ -568,19 +577,22 @@ geometry::PinholeIntrinsics RequestIntrinsics(const RenderRequest& request) {
 }
 
 /// The unit world rays through pixel centres: the projection's inverse (§2.1 or §2.2) rotated
-/// by the pose. An equirect image's azimuth and elevation are turned into cosines and sines
-/// once per column and row, not per pixel (the same directions EquirectUnproject gives).
+/// by the pose. An equirect image's direction (cos ψ cos φ, cos ψ sin φ, sin ψ) is
+/// cos ψ · R(cos φ, sin φ, 0) + sin ψ · R(0, 0, 1): the column's horizontal direction and the
+/// sensor's up axis are rotated once per render, not once per pixel.
 class PixelRays {
  public:
   explicit PixelRays(const RenderRequest& request)
       : request_(request), intrinsics_(RequestIntrinsics(request)) {
     if (request.projection == Projection::kPinhole) return;
     const geometry::EquirectSize size{request.width_px, request.height_px};
+    const Eigen::Matrix3d rotation = request.pose.q_world_sensor.toRotationMatrix();
     column_.resize(size_t(request.width_px));
     for (int i = 0; i < request.width_px; ++i) {
       const double phi = geometry::EquirectAzimuthRad(i + 0.5, size);
-      column_[size_t(i)] = {std::cos(phi), std::sin(phi)};
+      column_[size_t(i)] = rotation * Eigen::Vector3d(std::cos(phi), std::sin(phi), 0.0);
     }
+    up_ = rotation.col(2);
     row_.resize(size_t(request.height_px));
     for (int j = 0; j < request.height_px; ++j) {
       const double psi = geometry::EquirectElevationRad(j + 0.5, size);
@@ -597,15 +609,14 @@ class PixelRays {
 
   /// The ray through pixel (i, j)'s centre.
   Eigen::Vector3d operator()(int i, int j) const {
-    Eigen::Vector3d d_sensor;
     if (request_.projection == Projection::kPinhole) {
-      d_sensor = geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics_);
-    } else {
-      const auto& [cos_phi, sin_phi] = column_[size_t(i)];
-      const auto& [cos_psi, sin_psi] = row_[size_t(j)];
-      d_sensor = geometry::EquirectDirection(cos_phi, sin_phi, cos_psi, sin_psi);
+      return request_.pose
+          .DirectionToWorld(
+              geometry::PinholeUnproject(Eigen::Vector2d(i + 0.5, j + 0.5), intrinsics_))
+          .normalized();
     }
-    return request_.pose.DirectionToWorld(d_sensor).normalized();
+    const auto& [cos_psi, sin_psi] = row_[size_t(j)];
+    return (cos_psi * column_[size_t(i)] + sin_psi * up_).normalized();
   }
 
   /// The request's pinhole intrinsics, of the request's size.
@@ -614,7 +625,9 @@ class PixelRays {
  private:
   const RenderRequest& request_;
   const geometry::PinholeIntrinsics intrinsics_;
-  std::vector<std::pair<double, double>> column_, row_;  ///< equirect: (cos, sin) of φ, of ψ
+  std::vector<Eigen::Vector3d> column_;  ///< equirect: R(cos φ, sin φ, 0) per column
+  Eigen::Vector3d up_;                   ///< equirect: R(0, 0, 1)
+  std::vector<std::pair<double, double>> row_;  ///< equirect: (cos ψ, sin ψ) per row
 };
 
 /// A render of `request` keeps each pixel's vossel index (RenderImage::vossel_index).
@@ -735,6 +748,11 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   scene.tree = &geometry.index_grid->tree();
   scene.xform = &geometry.index_grid->transform();
   scene.map = scene.xform->baseMap().get();
+  const auto* scale_map = dynamic_cast<const openvdb::math::ScaleMap*>(scene.map);
+  if (scale_map != nullptr) scene.inv_scale = &scale_map->getInvScale();
+  const Eigen::Vector3d& eye = request.pose.o_world;
+  scene.eye_world = openvdb::Vec3d(eye.x(), eye.y(), eye.z());
+  scene.eye_dda = scene.xform->worldToIndex(scene.eye_world) + openvdb::Vec3d(0.5);
   scene.geometry = &geometry;
   const auto it = fused.by_modality.find(records::Modality::kRgb);
   scene.rgb = it == fused.by_modality.end() ? nullptr : &it->second;
