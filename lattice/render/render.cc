@@ -129,9 +129,10 @@ struct Scene {
   /// The map's inverse scale per axis when it is a scale map (applyInverseJacobian multiplies
   /// by it: the same products without a virtual call per ray); null for another map.
   const openvdb::Vec3d* inv_scale = nullptr;
-  /// A render's eye, world, and the same point in the DDA's shifted index space (eye + 0.5):
-  /// every ray of a render starts there, so MarchRay need not map it per ray.
-  openvdb::Vec3d eye_world{std::numeric_limits<double>::quiet_NaN()}, eye_dda;
+  /// The render's eye (world), where every ray starts, and the same point in the DDA's shifted
+  /// index space (eye + 0.5), mapped once per render.
+  Eigen::Vector3d eye_world = Eigen::Vector3d::Zero();
+  openvdb::Vec3d eye_dda;
   const records::VosselGeometry* geometry = nullptr;
   const records::FusedModality* rgb = nullptr;  ///< null: no rgb modality fused
   /// Index-space box of the active voxels in the DDA's corner convention: [min, max + 1].
@@ -369,7 +370,8 @@ double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int
   return t;
 }
 
-/// Marches one world ray to its first surface (§8). Returns false for no hit within range.
+/// Marches one world ray, from the render's eye (Scene::eye_world) along the unit `d_world`, to
+/// its first surface (§8). Returns false for no hit within range.
 /// Sets `*bad_index` to an out-of-range index value met in the grid (the caller reports it).
 /// A four-level DDA over the index tree, in the shifted index space where voxel k is
 /// [k, k + 1): a 128³ cell without an internal node, an 8³ cell without a leaf or a 4³ octant
@@ -377,20 +379,16 @@ double CellExit(const RayT& ray, const int step[3], const openvdb::Coord& c, int
 /// testing each active voxel's bit and index in the leaf itself. Every time is taken from the
 /// eye (a face's crossing is (face − eye)/dir), so the voxels a ray visits, their order and the
 /// times it enters them do not depend on where its march began.
-bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world,
-              const Eigen::Vector3d& d_world, double min_range_m, SurfaceHit* hit,
-              int32_t* bad_index) {
+bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& d_world,
+              double min_range_m, SurfaceHit* hit, int32_t* bad_index) {
   using LeafT = TreeT::LeafNodeType;
   using InternalT = TreeT::RootNodeType::ChildNodeType::ChildNodeType;  // parent of leaves
-  const openvdb::Vec3d o(o_world.x(), o_world.y(), o_world.z());
   const openvdb::Vec3d d(d_world.x(), d_world.y(), d_world.z());
   openvdb::Vec3d dir_idx = scene.inv_scale != nullptr ? d * *scene.inv_scale
                                                       : scene.map->applyInverseJacobian(d);
   const double scale = dir_idx.length();  // index units per metre
   dir_idx /= scale;
-  const openvdb::Vec3d eye_dda = o == scene.eye_world
-                                     ? scene.eye_dda
-                                     : scene.xform->worldToIndex(o) + openvdb::Vec3d(0.5);
+  const openvdb::Vec3d eye_dda = scene.eye_dda;
   RayT ray(eye_dda, dir_idx, std::max(openvdb::math::Delta<double>::value(), min_range_m * scale),
            scene.max_range_m * scale);
   if (!ray.clip(scene.bbox_dda)) return false;
@@ -459,7 +457,7 @@ bool MarchRay(const Scene& scene, AccessorT& acc, const Eigen::Vector3d& o_world
             *bad_index = vossel;
             return false;
           }
-          if (CrossesVossel(scene, o_world, d_world, ray, scale, c, vossel, t / scale,
+          if (CrossesVossel(scene, scene.eye_world, d_world, ray, scale, c, vossel, t / scale,
                             min_range_m, hit)) {
             return true;
           }
@@ -750,9 +748,10 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
   scene.map = scene.xform->baseMap().get();
   const auto* scale_map = dynamic_cast<const openvdb::math::ScaleMap*>(scene.map);
   if (scale_map != nullptr) scene.inv_scale = &scale_map->getInvScale();
-  const Eigen::Vector3d& eye = request.pose.o_world;
-  scene.eye_world = openvdb::Vec3d(eye.x(), eye.y(), eye.z());
-  scene.eye_dda = scene.xform->worldToIndex(scene.eye_world) + openvdb::Vec3d(0.5);
+  scene.eye_world = request.pose.o_world;
+  scene.eye_dda = scene.xform->worldToIndex(openvdb::Vec3d(
+                      scene.eye_world.x(), scene.eye_world.y(), scene.eye_world.z())) +
+                  openvdb::Vec3d(0.5);
   scene.geometry = &geometry;
   const auto it = fused.by_modality.find(records::Modality::kRgb);
   scene.rgb = it == fused.by_modality.end() ? nullptr : &it->second;
@@ -793,8 +792,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
         const Eigen::Vector3d d_world = rays(i, j);
         SurfaceHit hit;
         int32_t bad_value = 0;
-        if (!MarchRay(scene, acc, request.pose.o_world, d_world, start_m, &hit,
-                      &bad_value)) {
+        if (!MarchRay(scene, acc, d_world, start_m, &hit, &bad_value)) {
           if (bad_value != 0) {
             bad_index.store(bad_value);
             bad.store(true);
@@ -823,7 +821,7 @@ absl::StatusOr<RenderImage> RenderEquirectWithMargin(const records::VosselGeomet
           for (size_t layer = 1; layer < L; ++layer) {
             SurfaceHit next;
             int32_t bad_next = 0;
-            if (!MarchRay(scene, acc, request.pose.o_world, d_world,
+            if (!MarchRay(scene, acc, d_world,
                           behind.range_m + kLayerGapVox * geometry.vossel_size_m, &next, &bad_next)) {
               break;
             }
