@@ -1,9 +1,11 @@
 #include "lattice/records/records.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <numeric>
 #include <tuple>
+#include <type_traits>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -37,13 +39,14 @@ VosselFrame FrameOf(const openvdb::Coord& k, int32_t count, const VosselSums& s,
   return f;
 }
 
-void DeriveCentroidAndCovariance(VosselGeometry& g) {
+void DeriveCentroidAndCovariance(VosselGeometry& g, const std::vector<uint8_t>* only) {
   const size_t nv = g.size();
   const double h = g.vossel_size_m;
   g.centroid_m.resize(nv);
   g.covariance_m2.resize(nv);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 4096), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t v = r.begin(); v != r.end(); ++v) {
+      if (only != nullptr && !(*only)[v]) continue;
       const VosselFrame all = FrameOf(g.coord[v], g.point_count[v], g.sums[v], h);
       g.centroid_m[v] = all.centroid_m;
       g.covariance_m2[v] = all.covariance_m2;
@@ -56,25 +59,28 @@ namespace {
 // operations below list the fields once.
 template <typename Fn, typename... Sets>
 void ForEachArrayOf(Fn&& fn, Sets&... s) {
-  fn(1, s.vossel...);
-  fn(1, s.scan...);
-  fn(1, s.modality...);
-  fn(kValueChannels, s.value...);
-  fn(1, s.range_m...);
-  fn(1, s.cos_inc...);
-  fn(1, s.foot_major_m...);
-  fn(1, s.foot_minor_m...);
-  fn(2, s.uv_px...);
-  fn(1, s.vis...);
-  fn(kConfidenceCount, s.conf...);
-  fn(1, s.flags...);
-  fn(1, s.batch...);
+  // Strides as types: a copy of one record's values (std::copy_n of a constant count) is then
+  // a few moves, not a call to memmove per record.
+  using One = std::integral_constant<int, 1>;
+  fn(One{}, s.vossel...);
+  fn(One{}, s.scan...);
+  fn(One{}, s.modality...);
+  fn(std::integral_constant<int, kValueChannels>{}, s.value...);
+  fn(One{}, s.range_m...);
+  fn(One{}, s.cos_inc...);
+  fn(One{}, s.foot_major_m...);
+  fn(One{}, s.foot_minor_m...);
+  fn(std::integral_constant<int, 2>{}, s.uv_px...);
+  fn(One{}, s.vis...);
+  fn(std::integral_constant<int, kConfidenceCount>{}, s.conf...);
+  fn(One{}, s.flags...);
+  fn(One{}, s.batch...);
 }
 // `fn(a.member, b.member, stride)` for every array of two RecordSets (pass the same set twice
 // for single-set operations).
 template <typename A, typename B, typename Fn>
 void ForEachArray(A& a, B& b, Fn&& fn) {
-  ForEachArrayOf([&fn](int stride, auto& x, auto& y) { fn(x, y, stride); }, a, b);
+  ForEachArrayOf([&fn](auto stride, auto& x, auto& y) { fn(x, y, stride); }, a, b);
 }
 }  // namespace
 
@@ -141,8 +147,9 @@ void RecordSet::SortByVossel() {
   }
   const size_t first = k;
   tbb::task_group arrays;  // one task per array
-  ForEachArray(*this, *this, [&](auto& a, auto&, int stride) {
-    arrays.run([&a, stride, &rest, &from, first, n] {
+  ForEachArray(*this, *this, [&](auto& a, auto&, auto width) {
+    arrays.run([&a, &rest, &from, first, n] {
+      constexpr size_t stride = decltype(width)::value;
       using Array = std::decay_t<decltype(a)>;
       Array moved(rest.size() * stride);  // the rest's records, sorted, before any is written
       for (size_t r = 0; r < rest.size(); ++r) {
@@ -163,55 +170,91 @@ void RecordSet::SortByVossel() {
 
 RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows,
                           const std::vector<int32_t>& renumber, RecordSet added) {
-  auto kept_key = [&](size_t r) {
-    return std::make_tuple(renumber[size_t(kept.vossel[r])], kept.scan[r], kept.modality[r]);
+  // Every pass below is parallel: a change keeps most of a project's records, so this is the
+  // one step of an ingest whose work is the project's, not the scan's (BM_MergeRenumbered).
+  using Key = std::tuple<int32_t, int32_t, int8_t>;
+  auto kept_key = [&](size_t i) {  // the key of the i-th kept row, renumbered
+    const size_t r = rows[i];
+    return Key(renumber[size_t(kept.vossel[r])], kept.scan[r], kept.modality[r]);
   };
-  for (size_t i = 1; i < rows.size(); ++i) {
-    if (kept_key(rows[i]) < kept_key(rows[i - 1])) {  // out of order: the general path
-      RecordSet out = kept.Select(rows, rows.size() + added.size());
-      for (int32_t& v : out.vossel) v = renumber[size_t(v)];
-      out.Append(added);
-      out.SortByVossel();
-      return out;
+  constexpr size_t kGrain = size_t{1} << 15;
+  std::atomic<bool> ordered{true};
+  tbb::parallel_for(tbb::blocked_range<size_t>(1, std::max<size_t>(rows.size(), 1), kGrain),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t i = r.begin(); i != r.end() && ordered.load(std::memory_order_relaxed); ++i) {
+      if (kept_key(i) < kept_key(i - 1)) ordered.store(false, std::memory_order_relaxed);
     }
+  });
+  if (!ordered) {  // the general path
+    RecordSet out = kept.Select(rows, rows.size() + added.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, out.size(), kGrain),
+                      [&](const tbb::blocked_range<size_t>& r) {
+      for (size_t p = r.begin(); p != r.end(); ++p) out.vossel[p] = renumber[size_t(out.vossel[p])];
+    });
+    out.Append(added);
+    out.SortByVossel();
+    return out;
   }
   added.SortByVossel();
-  // The merged order: entry p names a kept row (< kAdded) or an added record (kAdded + j).
-  constexpr size_t kAdded = size_t{1} << 62;
-  const size_t n = rows.size() + added.size();
-  std::vector<size_t> from(n);
-  {
-    size_t i = 0, j = 0, p = 0;
-    while (i < rows.size() && j < added.size()) {
-      const auto a = std::make_tuple(added.vossel[j], added.scan[j], added.modality[j]);
-      if (a < kept_key(rows[i])) {
-        from[p++] = kAdded + j++;
-      } else {
-        from[p++] = rows[i++];
+  const size_t nk = rows.size(), na = added.size(), n = nk + na;
+  // before[j]: the kept rows merged ahead of added record j, those of keys up to its own (on
+  // equal keys the kept come first); non-decreasing in j, so j's place, before[j] + j, rises.
+  std::vector<size_t> before(na);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, na, 1024), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t j = r.begin(); j != r.end(); ++j) {
+      const Key a(added.vossel[j], added.scan[j], added.modality[j]);
+      size_t lo = 0, hi = nk;
+      while (lo < hi) {
+        const size_t mid = lo + (hi - lo) / 2;
+        if (a < kept_key(mid)) {
+          hi = mid;
+        } else {
+          lo = mid + 1;
+        }
       }
+      before[j] = lo;
     }
-    while (i < rows.size()) from[p++] = rows[i++];
-    while (j < added.size()) from[p++] = kAdded + j++;
-  }
+  });
+  // The merged order: entry p names a kept row (< kAdded) or an added record (kAdded + j). A
+  // run of places starts at the added records placed ahead of it and the kept rows that fill
+  // the rest.
+  constexpr size_t kAdded = size_t{1} << 62;
+  std::vector<size_t> from(n);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain), [&](const tbb::blocked_range<size_t>& r) {
+    size_t j = size_t(std::partition_point(before.begin(), before.end(),
+                                           [&, p0 = r.begin(), b0 = before.data()](const size_t& b) {
+                                             return b + size_t(&b - b0) < p0;
+                                           }) -
+                      before.begin());
+    size_t i = r.begin() - j;
+    for (size_t p = r.begin(); p != r.end(); ++p) {
+      from[p] = j < na && before[j] + j == p ? kAdded + j++ : rows[i++];
+    }
+  });
   RecordSet out;
-  tbb::task_group arrays;  // one task per array, as Select
+  tbb::task_group arrays;  // one task per array, as Select; each copies its runs in parallel
   ForEachArrayOf(
-      [&](int stride, auto& dst, const auto& old, const auto& more) {
-        arrays.run([&dst, &old, &more, stride, &from, n] {
-          dst.resize(n * size_t(stride));
-          for (size_t p = 0; p < n; ++p) {
-            const size_t f = from[p];
-            const auto* src = f >= kAdded ? &more[(f - kAdded) * size_t(stride)]
-                                          : &old[f * size_t(stride)];
-            std::copy_n(src, stride, &dst[p * size_t(stride)]);
-          }
+      [&](auto width, auto& dst, const auto& old, const auto& more) {
+        arrays.run([&dst, &old, &more, &from, n] {
+          constexpr size_t stride = decltype(width)::value;
+          dst.resize(n * stride);
+          tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain),
+                            [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t p = r.begin(); p != r.end(); ++p) {
+              const size_t f = from[p];
+              const auto* src = f >= kAdded ? &more[(f - kAdded) * stride] : &old[f * stride];
+              std::copy_n(src, stride, &dst[p * stride]);
+            }
+          });
         });
       },
       out, std::as_const(kept), std::as_const(added));
   arrays.wait();
-  for (size_t p = 0; p < n; ++p) {  // the kept rows' vossels, renumbered
-    if (from[p] < kAdded) out.vossel[p] = renumber[size_t(out.vossel[p])];
-  }
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain), [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t p = r.begin(); p != r.end(); ++p) {  // the kept rows' vossels, renumbered
+      if (from[p] < kAdded) out.vossel[p] = renumber[size_t(out.vossel[p])];
+    }
+  });
   return out;
 }
 
@@ -220,8 +263,9 @@ RecordSet RecordSet::Select(const std::vector<size_t>& indices, size_t capacity)
   // zeroing resize), which then runs on every thread at once.
   RecordSet out;
   tbb::task_group arrays;
-  ForEachArray(out, *this, [&](auto& dst, const auto& src, int stride) {
-    arrays.run([&dst, &src, stride, &indices, capacity] {
+  ForEachArray(out, *this, [&](auto& dst, const auto& src, auto width) {
+    arrays.run([&dst, &src, &indices, capacity] {
+      constexpr size_t stride = decltype(width)::value;
       dst.reserve(std::max(capacity, indices.size()) * stride);
       dst.resize(indices.size() * stride);
       for (size_t i = 0; i < indices.size(); ++i) {

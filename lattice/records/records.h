@@ -150,8 +150,10 @@ struct VosselGeometry {
 
 /// §1: centroid h·k + Σ/n and covariance Σxxᵀ/n − μμᵀ of every vossel of `geometry`, which
 /// must carry counts and sums, from them (FrameOf): after a merge of scans, and when a geometry
-/// object that keeps the sums alone is read (ReadGeometry).
-void DeriveCentroidAndCovariance(VosselGeometry& geometry);
+/// object that keeps the sums alone is read (ReadGeometry). With `only`, of the vossels it marks
+/// alone (those a merge touched: the others keep what was derived from their sums before).
+void DeriveCentroidAndCovariance(VosselGeometry& geometry,
+                                 const std::vector<uint8_t>* only = nullptr);
 
 /// The observation records of a version (§6), structure of arrays, sorted by (vossel, scan).
 struct RecordSet {

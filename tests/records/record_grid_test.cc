@@ -197,8 +197,9 @@ TEST(RecordSetTest, SortByVosselIsAStableSortByItsKey) {
 TEST(RecordSetTest, MergeRenumberedIsSelectAppendAndStableSort) {
   std::mt19937_64 rng(9);
   for (bool monotonic : {true, false}) {
+    // The last sizes span many of the merge's parallel runs (32 768 places each).
     for (auto [kept_n, added_n] : {std::pair<size_t, size_t>{3000, 400}, {3000, 0}, {0, 500},
-                                   {1, 1}, {0, 0}}) {
+                                   {1, 1}, {0, 0}, {200000, 30000}, {150000, 150000}}) {
       RecordSet kept = KeyedRecords(rng, kept_n, true);
       RecordSet added = KeyedRecords(rng, added_n, false);
       for (size_t i = 0; i < kept.size(); ++i) kept.batch[i] = static_cast<int32_t>(i);
