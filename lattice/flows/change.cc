@@ -813,7 +813,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   const int B = BlockVossels(T);
   const std::vector<tiles::TileKey> tile_of = tiles::TilesOfVossels(g, T);
   const std::vector<tiles::TileKey> block_of = tiles::TilesOfVossels(g, B);
-  const std::set<tiles::TileKey> all_blocks(block_of.begin(), block_of.end());
+  std::set<tiles::TileKey> all_blocks;  // (vossels in lattice order: a block's come in runs)
+  for (size_t v = 0; v < block_of.size(); ++v) {
+    if (v == 0 || block_of[v] != block_of[v - 1]) all_blocks.insert(all_blocks.end(), block_of[v]);
+  }
   auto tile_of_block = [B, T](const tiles::TileKey& b) {
     return tiles::TileOf(openvdb::Coord(b.x * B, b.y * B, b.z * B), T);
   };
@@ -1023,8 +1026,10 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
   result.records_computed += int64_t(fresh.size());
   {
     std::vector<uint8_t> rewritten(g.size(), 0);  // per vossel: its tile is rewritten
-    for (size_t v = 0; v < g.size(); ++v) {
-      rewritten[v] = record_tiles.count(tile_of[v]) || plan.geometry_tiles.count(tile_of[v]);
+    for (size_t v = 0; v < g.size(); ++v) {  // (a tile's vossels come in runs: looked up once)
+      rewritten[v] = v > 0 && tile_of[v] == tile_of[v - 1]
+                         ? rewritten[v - 1]
+                         : record_tiles.count(tile_of[v]) || plan.geometry_tiles.count(tile_of[v]);
     }
     for (int32_t v : next.records.vossel) result.records_rewritten += rewritten[size_t(v)];
   }

@@ -208,7 +208,8 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     for (ingest::LidarSource& c : change.new_sources.point_colours) c.gap_fill = binned->fill;
     change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
     const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
-    records::DeriveCentroidAndCovariance(change.geometry);
+    // The vossels the scan left alone keep their centroids and covariances (the same bits).
+    records::DeriveCentroidAndCovariance(change.geometry, &merged.touched);
     change.old_to_new = merged.old_to_new;
 
     // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.
