@@ -15,6 +15,10 @@
 #include <utility>
 #include <vector>
 
+#if VASL_ISA_VARIANTS
+#include <immintrin.h>
+#endif
+
 #include <OpenEXR/ImfChannelList.h>
 #include <OpenEXR/ImfPartType.h>
 #include <OpenEXR/ImfThreading.h>
@@ -26,12 +30,14 @@
 #include <OpenEXR/ImfDeepFrameBuffer.h>
 #include <OpenEXR/ImfDeepScanLineOutputFile.h>
 #include <OpenEXR/ImfOutputFile.h>
+#include <Imath/half.h>
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <tbb/parallel_for.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
+#include "lattice/memory/isa.h"
 
 namespace vasl::render {
 namespace {
@@ -150,6 +156,32 @@ char* BandBase(const void* band, int row, size_t row_bytes) {
   return const_cast<char*>(static_cast<const char*>(band)) - ptrdiff_t(row) * ptrdiff_t(row_bytes);
 }
 
+/// `n` floats to halves (round to nearest even, as Imath::half): OpenEXR converts pixels only
+/// as it reads them, so a writer of HALF channels hands it halves. With F16C (every CPU with
+/// AVX2) eight at a time, the same bits (EncoderTest.HalfChannelsAreTheSameBitsOnEveryIsa).
+void ToHalvesBaseline(const float* in, size_t n, Imath::half* out) {
+  for (size_t i = 0; i < n; ++i) out[i] = Imath::half(in[i]);
+}
+#if VASL_ISA_VARIANTS
+[[gnu::target("avx2,f16c")]] void ToHalvesF16c(const float* in, size_t n, Imath::half* out) {
+  size_t i = 0;
+  for (; i + 8 <= n; i += 8) {
+    const __m128i h = _mm256_cvtps_ph(_mm256_loadu_ps(in + i), _MM_FROUND_TO_NEAREST_INT);
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + i), h);
+  }
+  ToHalvesBaseline(in + i, n - i, out + i);
+}
+#endif
+void ToHalves(const float* in, size_t n, Imath::half* out) {
+#if VASL_ISA_VARIANTS
+  if (memory::WidestIsa() >= memory::Isa::kAvx2 && __builtin_cpu_supports("f16c")) {
+    ToHalvesF16c(in, n, out);
+    return;
+  }
+#endif
+  ToHalvesBaseline(in, n, out);
+}
+
 /// Threads OpenEXR compresses a file's chunks on: one per core (its global pool, sized once).
 int ExrThreads() {
   static const int threads = [] {
@@ -236,7 +268,8 @@ class OpenExrEncoder : public EncoderBase {
  protected:
   /// Writes the header: the FLOAT `channels` over the whole image, rows top to bottom.
   template <size_t N>
-  absl::Status OpenFile(Imf::Compression compression, const char* const (&channels)[N]) {
+  absl::Status OpenFile(Imf::Compression compression, const char* const (&channels)[N],
+                        bool (*half)(const char*) = nullptr) {
     try {
       Imf::Header header(width_, height_);  // data window (0,0)-(w-1,h-1)
       if constexpr (std::is_same_v<File, Imf::DeepScanLineOutputFile>) {
@@ -245,7 +278,10 @@ class OpenExrEncoder : public EncoderBase {
       header.compression() = compression;
       header.zipCompressionLevel() = kZipLevel;
       header.lineOrder() = Imf::INCREASING_Y;  // row 0 = top
-      for (const char* name : channels) header.channels().insert(name, Imf::Channel(Imf::FLOAT));
+      for (const char* name : channels) {
+        const bool as_half = half != nullptr && half(name);
+        header.channels().insert(name, Imf::Channel(as_half ? Imf::HALF : Imf::FLOAT));
+      }
       file_ = std::make_unique<File>(stream_, header, ExrThreads());
     } catch (const std::exception& e) {
       return Failed("OpenEXR", e.what());
@@ -270,105 +306,95 @@ class OpenExrEncoder : public EncoderBase {
   std::unique_ptr<File> file_;
 };
 
-/// EXR: float channels R, G, B, Z, N.x, N.y, N.z, U, A; PIZ compression, row 0 on top.
-/// PIZ (lossless wavelet and Huffman) rather than ZIP at level 1: a 4096×2048 render of the
-/// corridor site (BM_Encode/exr_4096: the site's albedo with ±3% per vossel) 2.9 → 2.3 s to
-/// encode on 2 cores, its file 106.4 → 105.5 MB; every EXR reader decodes it.
-/// Bands are gathered into runs of PIZ chunks (32 rows each) before OpenEXR writes
-/// them, so that its thread pool compresses those chunks in parallel: a band alone is part of
-/// one chunk, compressed on one thread while the caller waits. The file's bytes are the same
-/// either way (the same chunks, in the same order). Only the bands held back are copied; the
-/// band that completes a run is read by OpenEXR from the image's own arrays (a whole image at
-/// once: BM_Encode/exr_4096's CPU time on the calling thread 0.57 → 0.25 s).
+/// EXR: channels R, G, B, N.x, N.y, N.z, U, A as HALF and Z as FLOAT; RLE, row 0 on top.
+/// Half floats keep 11 significant bits (relative error at most 2^-11: a normal to about
+/// 0.0005; largest finite value 65504; +inf kept): what a linear colour, a normal, a coverage or
+/// an uncertainty needs, and what VFX tools read colour as; the depth keeps full float, so that
+/// a point unprojected from it is as exact as the march. Against float channels with PIZ, as
+/// before (decision, measured on 2 cores): BM_Encode/exr_4096 1.18 s and 105 MB → 0.43 s and
+/// 68 MB; a 4096×2048 render end to end through vasld (tests/bench/e2e_bench.py) 2.65-2.74 →
+/// 1.73-1.76 s. With half channels PIZ took 0.87-0.93 s for 54 MB and ZIP (level 1) 0.99 s for
+/// 50 MB (end to end 2.34-2.38 s with PIZ): the smaller files cost the user more time than
+/// their bytes save. RLE is lossless and every EXR reader decodes it.
+/// Bands are gathered into runs of kRunRows rows per thread of OpenEXR's pool before OpenEXR
+/// writes them, so that the pool compresses their chunks (a row each) in parallel; the file's
+/// bytes are the same however the rows are split. Each band's values are converted as it
+/// comes (ToHalves) and appended to the run.
 class ExrEncoder final : public OpenExrEncoder<Imf::OutputFile> {
  public:
   using OpenExrEncoder::OpenExrEncoder;
 
-  absl::Status Open() { return OpenFile(kCompression, kChannels); }
+  absl::Status Open() {
+    return OpenFile(kCompression, kChannels,
+                    [](const char* name) { return std::strcmp(name, "Z") != 0; });
+  }
   int rows_sent() const override { return pending_row_; }
 
   absl::Status WriteRows(const RenderImage& image, int row_begin, int row_end) override {
     if (absl::Status s = CheckRows(image, row_begin, row_end); !s.ok()) return s;
     const size_t w = size_t(width_);
-    if (row_end - pending_row_ < RowsPerWrite() && row_end < height_) {
-      // Held back: the band's pixels, interleaved as kChannels after the rows gathered before
-      // it, copied (a later band may come in another image).
-      const size_t first = size_t(row_begin) * w, pixels = size_t(row_end - row_begin) * w;
-      const size_t at = pending_.size();
-      pending_.resize(at + pixels * kChannelCount);
-      float* out = pending_.data() + at;
-      for (size_t i = 0; i < pixels; ++i, out += kChannelCount) {
-        const size_t p = first + i;
-        out[0] = image.rgb[3 * p];
-        out[1] = image.rgb[3 * p + 1];
-        out[2] = image.rgb[3 * p + 2];
-        out[3] = image.depth_m[p];
-        out[4] = image.normal[3 * p];
-        out[5] = image.normal[3 * p + 1];
-        out[6] = image.normal[3 * p + 2];
-        out[7] = image.uncertainty[p];
-        out[8] = Coverage(image, p);
-      }
-      return Sent(row_end);
-    }
-    // The rows held back first (a part of a chunk: OpenEXR copies them and compresses nothing
-    // yet), then this band read by OpenEXR straight from the image's arrays, so that the chunks
-    // it completes are compressed together; the same bytes as one write of every row.
-    if (pending_row_ < row_begin) {
-      const size_t row_bytes = kChannelCount * sizeof(float) * w;
-      Imf::FrameBuffer held;
-      for (size_t c = 0; c < kChannelCount; ++c) {
-        held.insert(kChannels[c], Imf::Slice(Imf::FLOAT,
-                                             BandBase(pending_.data() + c, pending_row_, row_bytes),
-                                             kChannelCount * sizeof(float), row_bytes));
-      }
-      if (absl::Status s = WriteFrame(held, pending_row_, row_begin); !s.ok()) return s;
-      pending_.clear();
-    }
-    const float* alpha = nullptr;  // the band's first A
+    const size_t first = size_t(row_begin) * w, pixels = size_t(row_end - row_begin) * w;
+    const size_t at = depth_.size();  // pixels held before this band
+    rgb_.resize(3 * (at + pixels));
+    normal_.resize(3 * (at + pixels));
+    uncertainty_.resize(at + pixels);
+    alpha_.resize(at + pixels);
+    ToHalves(image.rgb.data() + 3 * first, 3 * pixels, rgb_.data() + 3 * at);
+    ToHalves(image.normal.data() + 3 * first, 3 * pixels, normal_.data() + 3 * at);
+    ToHalves(image.uncertainty.data() + first, pixels, uncertainty_.data() + at);
     if (image.alpha.size() == image.depth_m.size()) {
-      alpha = image.alpha.data() + size_t(row_begin) * w;
+      ToHalves(image.alpha.data() + first, pixels, alpha_.data() + at);
     } else {  // an image made before alpha existed
-      coverage_.resize(size_t(row_end - row_begin) * w);
-      for (size_t i = 0; i < coverage_.size(); ++i) {
-        coverage_[i] = Coverage(image, size_t(row_begin) * w + i);
-      }
-      alpha = coverage_.data();
+      for (size_t i = 0; i < pixels; ++i) alpha_[at + i] = Imath::half(Coverage(image, first + i));
     }
-    // Per channel (kChannels' order): its array's first value, and floats between pixels.
-    // OpenEXR's Slice takes a mutable pointer (BandBase); writing only reads through it.
-    const std::pair<const float*, size_t> channel[kChannelCount] = {
-        {image.rgb.data(), 3},         {image.rgb.data() + 1, 3},
-        {image.rgb.data() + 2, 3},     {image.depth_m.data(), 1},
-        {image.normal.data(), 3},      {image.normal.data() + 1, 3},
-        {image.normal.data() + 2, 3},  {image.uncertainty.data(), 1},
-        {nullptr, 1}};  // A: `alpha`, from the band's first row
+    depth_.insert(depth_.end(), image.depth_m.begin() + ptrdiff_t(first),
+                  image.depth_m.begin() + ptrdiff_t(first + pixels));
+    if (row_end - pending_row_ < RowsPerWrite() && row_end < height_) return Sent(row_end);
+
+    // The run [pending_row_, row_end): per channel (kChannels' order) its first value in the
+    // run's arrays and the values between pixels. OpenEXR's Slice takes a mutable pointer
+    // (BandBase); writing only reads through it.
+    struct Channel {
+      const void* values;
+      Imf::PixelType type;
+      size_t x_bytes;
+    };
+    constexpr size_t kHalf = sizeof(Imath::half);
+    const Channel channel[kChannelCount] = {
+        {rgb_.data(), Imf::HALF, 3 * kHalf},        {rgb_.data() + 1, Imf::HALF, 3 * kHalf},
+        {rgb_.data() + 2, Imf::HALF, 3 * kHalf},    {depth_.data(), Imf::FLOAT, sizeof(float)},
+        {normal_.data(), Imf::HALF, 3 * kHalf},     {normal_.data() + 1, Imf::HALF, 3 * kHalf},
+        {normal_.data() + 2, Imf::HALF, 3 * kHalf}, {uncertainty_.data(), Imf::HALF, kHalf},
+        {alpha_.data(), Imf::HALF, kHalf}};
     Imf::FrameBuffer frame;
     for (size_t c = 0; c < kChannelCount; ++c) {
-      const auto [values, stride] = channel[c];
-      const size_t x_bytes = stride * sizeof(float), row_bytes = x_bytes * w;
-      const void* band = c == kChannelCount - 1 ? static_cast<const void*>(alpha)
-                                                : values + size_t(row_begin) * w * stride;
-      frame.insert(kChannels[c],
-                   Imf::Slice(Imf::FLOAT, BandBase(band, row_begin, row_bytes), x_bytes, row_bytes));
+      const size_t row_bytes = channel[c].x_bytes * w;
+      frame.insert(kChannels[c], Imf::Slice(channel[c].type,
+                                            BandBase(channel[c].values, pending_row_, row_bytes),
+                                            channel[c].x_bytes, row_bytes));
     }
-    const absl::Status written = WriteFrame(frame, row_begin, row_end);
+    const absl::Status written = WriteFrame(frame, pending_row_, row_end);
     pending_row_ = row_end;
+    rgb_.clear();
+    normal_.clear();
+    uncertainty_.clear();
+    alpha_.clear();
+    depth_.clear();
     return written;
   }
 
  private:
   static constexpr const char* kChannels[] = {"R", "G", "B", "Z", "N.x", "N.y", "N.z", "U", "A"};
   static constexpr size_t kChannelCount = std::size(kChannels);
-  static constexpr Imf::Compression kCompression = Imf::PIZ_COMPRESSION;
-  static constexpr int kChunkRows = 32;  ///< rows per PIZ chunk (OpenEXR's format)
-  /// Rows OpenEXR is given at once: a chunk per thread of its pool (as many rows as two ZIP
-  /// chunks per thread were), so that a streamed file still grows every 64 rows on 2 cores.
-  static int RowsPerWrite() { return kChunkRows * ExrThreads(); }
+  static constexpr Imf::Compression kCompression = Imf::RLE_COMPRESSION;
+  static constexpr int kRunRows = 32;  ///< rows per thread of OpenEXR's pool in one write
+  /// Rows OpenEXR is given at once, so that a streamed file grows every 64 rows on 2 cores.
+  static int RowsPerWrite() { return kRunRows * ExrThreads(); }
 
-  int pending_row_ = 0;         ///< the first row not yet written
-  std::vector<float> pending_;  ///< rows [pending_row_, next row), kChannels interleaved
-  std::vector<float> coverage_;  ///< A of a band whose image has no alpha array
+  int pending_row_ = 0;  ///< the first row not yet written
+  // The rows [pending_row_, next row) held for OpenEXR, as its channels store them.
+  std::vector<Imath::half> rgb_, normal_, uncertainty_, alpha_;
+  std::vector<float> depth_;
 };
 
 /// Deep EXR: per pixel its surface hits front to back as samples R, G, B, A, Z; ZIPS.
@@ -436,10 +462,15 @@ class DeepExrEncoder final : public OpenExrEncoder<Imf::DeepScanLineOutputFile> 
   std::vector<char*> pointers_[5];      ///< per channel and pixel: its first sample
 };
 
-/// zlib's level for the PNG (OpenImageIO's default is 6), libpng's adaptive row filters kept:
-/// a 4096×2048 render of the corridor site (BM_Encode/png_4096) 0.93 → 0.55 s to encode, its
-/// file 2.6 → 3.3 MB (levels 1 and 2 took the same time; level 3 0.62 s, 3.1 MB).
+/// zlib's level for the PNG (OpenImageIO's default is 6): a 4096×2048 render of the corridor
+/// site (BM_Encode/png_4096) 0.93 → 0.55 s to encode, its file 2.6 → 3.3 MB (levels 1 and 2
+/// took the same time; level 3 0.62 s, 3.1 MB).
 constexpr int kPngZlibLevel = 2;
+/// libpng's row filter: "up" (each byte less the one above it) on every row, rather than its
+/// adaptive choice among all five per row (decision, measured: BM_Encode/png_4096 0.42 s for
+/// 3.30 MB adaptive, 0.28 s for 3.44 MB up, 0.27 s for 3.83 MB unfiltered, 0.29 s for 3.74 MB
+/// sub, 0.32 s for 3.44 MB Paeth). The PNG is the render's last encoder to finish.
+constexpr int kPngFilterUp = 0x20;  // PNG_FILTER_UP
 
 /// PNG: RGBA 8-bit sRGB; alpha 0 where the ray hit nothing (black) or a vossel without colour
 /// (neutral grey 128: a viewer shows it as transparent; one that ignores alpha, as grey).
@@ -462,6 +493,7 @@ class PngEncoder final : public EncoderBase {
     OIIO::ImageSpec spec(width_, height_, 4, OIIO::TypeDesc::UINT8);
     spec.alpha_channel = 3;
     spec.attribute("png:compressionLevel", kPngZlibLevel);
+    spec.attribute("png:filter", kPngFilterUp);
     if (!out_->open("render.png", spec)) return Failed("OpenImageIO", out_->geterror());
     return Sent(0);
   }

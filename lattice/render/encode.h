@@ -63,9 +63,9 @@ class RowEncoder {
 absl::Status WriteRows(const std::vector<RowEncoder*>& encoders, const RenderImage& image,
                        int row_begin, int row_end);
 
-/// EXR bytes: float channels R, G, B (linear), Z (metres, +inf no hit), N.x, N.y, N.z
-/// (world), U (+inf where the hit vossel has no colour) and A (coverage: 1 where the pixel has
-/// a colour); PIZ compression (lossless).
+/// EXR bytes: half-float channels R, G, B (linear), N.x, N.y, N.z (world), U (+inf where the
+/// hit vossel has no colour) and A (coverage: 1 where the pixel has a colour), and a float
+/// channel Z (metres, +inf no hit); RLE compression (lossless).
 absl::StatusOr<std::string> EncodeExr(const RenderImage& image);
 /// Deep OpenEXR bytes (multi-layer depth, §8): per pixel its surface hits front to back as
 /// samples with float channels R, G, B, A (1 where the surface has colour) and Z (metres along

@@ -79,7 +79,7 @@ struct RenderRequest {
 /// (a wall two vossels thick) are not a layer of their own.
 inline constexpr double kLayerGapVox = 1.5;
 /// Rows per band of a render's march: the unit of its work and of RenderRequest::rows_done
-/// (half the 32 rows of an EXR's PIZ chunk; the EXR encoder gathers bands into whole chunks).
+/// (the EXR encoder gathers bands into runs of 32 rows per thread before OpenEXR compresses them).
 inline constexpr int kBandRows = 16;
 
 /// A rendered equirectangular RGBZ + normal + uncertainty image (§8), row-major, row 0 up.

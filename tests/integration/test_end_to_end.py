@@ -290,7 +290,7 @@ def test_large_render_streams_rows_as_they_finish(ingested, client, server, view
     done = [d for d, _ in seen]
     # At least 3 messages: how many depends on the machine, since the bands that finish while
     # one is encoded are handed on together; the EXR's 512 rows go out 64 at a time on 2 cores
-    # (one 32-row PIZ chunk per thread), and 4 runs of this test there gave 4 or 5 messages.
+    # (32 rows per thread of OpenEXR's pool), and 4 runs of this test there gave 4 or 5 messages.
     # That the first comes while most of the file is still to come is asserted below.
     assert done == sorted(done) and done[-1] == h and len(done) >= 3, done
     sizes = [size for _, size in seen]

@@ -1,14 +1,17 @@
 // VASL-MODEL §8 outputs: the multi-channel float EXR (OpenEXR) and the 8-bit sRGB PNG (OIIO).
 #include "lattice/render/encode.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <limits>
 #include <map>
+#include <random>
 #include <string>
 #include <vector>
 
+#include <Imath/half.h>
 #include <OpenEXR/ImfChannelList.h>
 #include <OpenEXR/ImfFrameBuffer.h>
 #include <OpenEXR/ImfHeader.h>
@@ -19,6 +22,8 @@
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <gtest/gtest.h>
+
+#include "lattice/memory/isa.h"
 
 namespace vasl::render {
 namespace {
@@ -62,17 +67,18 @@ RenderImage MakeImage() {
   return img;
 }
 
-// Claim (§8 outputs): the EXR holds exactly the FLOAT channels R, G, B, Z, N.x, N.y, N.z, U, A over
-// a W×H data window, PIZ-compressed (lossless), row 0 = top, and every value reads back bit-exact
-// (including Z = +inf for no-hit pixels).
-TEST(EncodeTest, ExrRoundTripExact) {
+// Claim (§8 outputs, encode.h): the EXR holds exactly the channels R, G, B, N.x, N.y, N.z, U, A
+// as HALF and Z as FLOAT over a W×H data window, RLE-compressed (lossless), row 0 = top; Z reads
+// back bit-exact (+inf for no-hit pixels) and every other value as its nearest half, bit-exact
+// (Imath::half's rounding, to nearest even).
+TEST(EncodeTest, ExrRoundTripKeepsHalvesAndFloatDepth) {
   const RenderImage img = MakeImage();
   auto bytes = EncodeExr(img);
   ASSERT_TRUE(bytes.ok()) << bytes.status();
   StringIStream stream(*bytes);
   Imf::InputFile file(stream);
   const Imf::Header& header = file.header();
-  EXPECT_EQ(header.compression(), Imf::PIZ_COMPRESSION);
+  EXPECT_EQ(header.compression(), Imf::RLE_COMPRESSION);
   EXPECT_EQ(header.lineOrder(), Imf::INCREASING_Y);
   const Imath::Box2i dw = header.dataWindow();
   EXPECT_EQ(dw.min.x, 0);
@@ -82,7 +88,8 @@ TEST(EncodeTest, ExrRoundTripExact) {
   std::vector<std::string> names;
   for (auto it = header.channels().begin(); it != header.channels().end(); ++it) {
     names.push_back(it.name());
-    EXPECT_EQ(it.channel().type, Imf::FLOAT) << it.name();
+    EXPECT_EQ(it.channel().type, it.name() == std::string("Z") ? Imf::FLOAT : Imf::HALF)
+        << it.name();
   }
   // OpenEXR lists channels sorted by name.
   EXPECT_EQ(names, (std::vector<std::string>{"A", "B", "G", "N.x", "N.y", "N.z", "R", "U", "Z"}));
@@ -98,25 +105,87 @@ TEST(EncodeTest, ExrRoundTripExact) {
   file.setFrameBuffer(frame);
   file.readPixels(dw.min.y, dw.max.y);
   int64_t mismatches = 0;
+  double worst_relative = 0.0, worst_small = 0.0;  // of the half channels, against the floats
   auto same = [&](float a, float b) { mismatches += std::memcmp(&a, &b, sizeof(float)) != 0; };
+  auto half = [&](float read, float value) {
+    same(read, float(Imath::half(value)));
+    // Relative to the value within half's normal range (from 2^-14); below it, subnormal
+    // halves keep an absolute step of 2^-24 (half of it at worst).
+    if (std::abs(value) >= std::ldexp(1.0f, -14)) {
+      worst_relative = std::max(worst_relative, double(std::abs(read - value) / std::abs(value)));
+    } else {
+      worst_small = std::max(worst_small, double(std::abs(read - value)));
+    }
+  };
   for (size_t p = 0; p < n; ++p) {
-    same(planes["R"][p], img.rgb[3 * p + 0]);
-    same(planes["G"][p], img.rgb[3 * p + 1]);
-    same(planes["B"][p], img.rgb[3 * p + 2]);
+    half(planes["R"][p], img.rgb[3 * p + 0]);
+    half(planes["G"][p], img.rgb[3 * p + 1]);
+    half(planes["B"][p], img.rgb[3 * p + 2]);
     same(planes["Z"][p], img.depth_m[p]);
-    same(planes["N.x"][p], img.normal[3 * p + 0]);
-    same(planes["N.y"][p], img.normal[3 * p + 1]);
-    same(planes["N.z"][p], img.normal[3 * p + 2]);
-    same(planes["U"][p], img.uncertainty[p]);
+    half(planes["N.x"][p], img.normal[3 * p + 0]);
+    half(planes["N.y"][p], img.normal[3 * p + 1]);
+    half(planes["N.z"][p], img.normal[3 * p + 2]);
+    half(planes["U"][p], img.uncertainty[p]);
     // An image without an alpha array (made before it existed) covers its hit pixels.
     same(planes["A"][p], std::isfinite(img.depth_m[p]) ? 1.0f : 0.0f);
   }
+  std::printf("EXR half channels: worst relative error %.2e (half's bound 2^-11 = %.2e), "
+              "below 2^-14 worst absolute %.2e (bound 2^-25 = %.2e)\n",
+              worst_relative, std::ldexp(1.0, -11), worst_small, std::ldexp(1.0, -25));
+  EXPECT_LE(worst_relative, std::ldexp(1.0, -11));
+  EXPECT_LE(worst_small, std::ldexp(1.0, -25));
   std::printf("EXR %dx%d: %zu bytes, %zu channels, %lld of %zu values differ (bitwise)\n",
               img.width_px, img.height_px, bytes->size(), names.size(), (long long)mismatches,
               9 * n);
   EXPECT_EQ(mismatches, 0);
   EXPECT_TRUE(std::isinf(planes["Z"][0]));
-  EXPECT_EQ(planes["R"][img.width_px], img.rgb[3 * img.width_px]);  // row 1 is the second row
+  // Row 1 is the second row.
+  EXPECT_EQ(planes["R"][img.width_px], float(Imath::half(img.rgb[3 * img.width_px])));
+}
+
+// Claim (encode.cc ToHalves): the EXR's halves are the same bits whichever instruction set
+// converts them (F16C eight at a time, or Imath::half one by one): the same file under every
+// cap, over values that span half's range (subnormals, overflow to infinity, negatives, zeros).
+TEST(EncodeTest, HalfChannelsAreTheSameBitsOnEveryIsa) {
+  RenderImage img;
+  img.width_px = 61;  // not a multiple of 8: each band's tail goes the scalar way
+  img.height_px = 37;
+  const size_t n = size_t(img.width_px) * size_t(img.height_px);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> exponent(-27.0f, 17.0f), unit(-1.0f, 1.0f);
+  auto value = [&] { return std::copysign(std::exp2(exponent(rng)), unit(rng)); };
+  img.rgb.resize(3 * n);
+  img.normal.resize(3 * n);
+  img.depth_m.resize(n);
+  img.uncertainty.resize(n);
+  img.alpha.resize(n);
+  for (size_t i = 0; i < 3 * n; ++i) {
+    img.rgb[i] = value();
+    img.normal[i] = unit(rng);
+  }
+  for (size_t p = 0; p < n; ++p) {
+    img.depth_m[p] = p % 9 == 0 ? std::numeric_limits<float>::infinity() : 0.5f + std::abs(value());
+    img.uncertainty[p] = p % 7 == 0 ? std::numeric_limits<float>::infinity() : std::abs(value());
+    img.alpha[p] = p % 5 == 0 ? 0.0f : (p % 3 == 0 ? -0.0f : 1.0f);
+  }
+  img.rgb[0] = 65504.0f;   // half's largest
+  img.rgb[1] = 65520.0f;   // rounds to +inf
+  img.rgb[2] = 5.96e-8f;   // half's least subnormal
+  img.rgb[3] = 2.98e-8f;   // half of it: to zero (ties to even)
+  std::map<memory::Isa, std::string> files;
+  for (memory::Isa isa : {memory::Isa::kBaseline, memory::Isa::kAvx2, memory::Isa::kX86_64_V4}) {
+    if (!memory::Supports(isa)) continue;
+    memory::SetIsaCap(isa);
+    auto bytes = EncodeExr(img);
+    memory::SetIsaCap(memory::Isa::kX86_64_V4);
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    files[isa] = *bytes;
+  }
+  std::printf("EXR under %zu instruction sets: %zu bytes each\n", files.size(),
+              files.begin()->second.size());
+  for (const auto& [isa, bytes] : files) {
+    EXPECT_EQ(bytes, files.begin()->second) << "cap " << int(isa);
+  }
 }
 
 /// The sRGB OETF written out independently in double precision, then quantised to 8 bits.
