@@ -158,7 +158,7 @@ char* BandBase(const void* band, int row, size_t row_bytes) {
 
 /// `n` floats to halves (round to nearest even, as Imath::half): OpenEXR converts pixels only
 /// as it reads them, so a writer of HALF channels hands it halves. With F16C (every CPU with
-/// AVX2) eight at a time, the same bits (EncoderTest.HalfChannelsAreTheSameBitsOnEveryIsa).
+/// AVX2) eight at a time, the same bits (EncodeTest.HalfChannelsAreTheSameBitsOnEveryIsa).
 void ToHalvesBaseline(const float* in, size_t n, Imath::half* out) {
   for (size_t i = 0; i < n; ++i) out[i] = Imath::half(in[i]);
 }
@@ -266,7 +266,8 @@ class OpenExrEncoder : public EncoderBase {
   }
 
  protected:
-  /// Writes the header: the FLOAT `channels` over the whole image, rows top to bottom.
+  /// Writes the header: `channels` over the whole image, rows top to bottom, each FLOAT or,
+  /// where `half` says so of its name, HALF.
   template <size_t N>
   absl::Status OpenFile(Imf::Compression compression, const char* const (&channels)[N],
                         bool (*half)(const char*) = nullptr) {
