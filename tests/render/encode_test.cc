@@ -1,4 +1,5 @@
-// VASL-MODEL §8 outputs: the multi-channel float EXR (OpenEXR) and the 8-bit sRGB PNG (OIIO).
+// VASL-MODEL §8 outputs: the multi-channel EXR (OpenEXR: half floats, float depth) and the 8-bit
+// sRGB PNG (OIIO).
 #include "lattice/render/encode.h"
 
 #include <algorithm>
