@@ -206,11 +206,13 @@ absl::StatusOr<FlowResult> IngestScan(store::ProjectStore& store, const store::S
     // The gap fill binned here is what the LiDAR's and its colour's records sample.
     change.new_sources.lidars[0].gap_fill = binned->fill;
     for (ingest::LidarSource& c : change.new_sources.point_colours) c.gap_fill = binned->fill;
-    change.geometry = head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : head.geometry;
-    const ingest::MergeResult merged = ingest::MergeBinned(change.geometry, *binned);
+    const records::VosselGeometry empty =
+        head.geometry.size() == 0 ? ingest::EmptyGeometry(h) : records::VosselGeometry{};
+    ingest::MergeResult merged = ingest::MergeBinned(
+        head.geometry.size() == 0 ? empty : head.geometry, *binned, &change.geometry);
     // The vossels the scan left alone keep their centroids and covariances (the same bits).
     records::DeriveCentroidAndCovariance(change.geometry, &merged.touched);
-    change.old_to_new = merged.old_to_new;
+    change.old_to_new = std::move(merged.old_to_new);
 
     // Normals where a neighbourhood changed: the touched vossels and their 26 neighbours.
     if (absl::Status stop = clock.Start("normals", 0.35); !stop.ok()) return stop;

@@ -264,45 +264,29 @@ records::VosselGeometry EmptyGeometry(double h) {
   return g;
 }
 
-MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
-  const size_t before = g.size();
+MergeResult MergeBinned(const records::VosselGeometry& base, const BinnedLidar& add,
+                        records::VosselGeometry* out) {
+  records::VosselInsertion ins = records::InsertVossels(base, add.coord, out);
   MergeResult result;
-  std::vector<int32_t> slot(add.size(), -1);  // index in g (existing or appended)
-  {
-    auto acc = g.index_grid->getConstAccessor();
-    for (size_t i = 0; i < add.size(); ++i) {
-      int32_t k;
-      if (acc.probeValue(add.coord[i], k)) slot[i] = k;
+  result.new_vossels = out->size() - base.size();
+  result.old_to_new = std::move(ins.old_to_new);
+  result.touched.assign(out->size(), 0);
+  for (size_t i = 0; i < add.size(); ++i) {
+    const size_t k = size_t(ins.added_to_new[i]);
+    if (ins.created[i]) {
+      out->frame[k] = records::FrameOf(add.coord[i], add.count[i], add.sums[i], out->vossel_size_m);
     }
+    out->point_count[k] += add.count[i];
+    out->sums[k].Add(add.sums[i]);
+    result.touched[k] = 1;
   }
-  g.sums.resize(before);
-  g.point_count.resize(before);
-  g.frame.resize(before);
-  for (size_t i = 0; i < add.size(); ++i) {
-    if (slot[i] >= 0) continue;
-    slot[i] = int32_t(g.coord.size());
-    g.coord.push_back(add.coord[i]);
-    g.point_count.push_back(0);
-    g.sums.emplace_back();
-    g.frame.push_back(records::FrameOf(add.coord[i], add.count[i], add.sums[i], g.vossel_size_m));
-  }
-  result.new_vossels = g.coord.size() - before;
-  std::vector<uint8_t> touched(g.coord.size(), 0);
-  for (size_t i = 0; i < add.size(); ++i) {
-    g.point_count[slot[i]] += add.count[i];
-    g.sums[slot[i]].Add(add.sums[i]);
-    touched[slot[i]] = 1;
-  }
-  // Per-vossel arrays that are derived later keep their size in step with the vossels.
-  g.centroid_m.resize(g.coord.size(), Eigen::Vector3f::Zero());
-  g.covariance_m2.resize(g.coord.size(), {0, 0, 0, 0, 0, 0});
-  g.normal.resize(g.coord.size(), Eigen::Vector3f::Zero());
-  const std::vector<int32_t> old_to_new = records::CanonicalizeVosselOrder(g);
-  result.old_to_new.assign(old_to_new.begin(), old_to_new.begin() + before);
-  result.touched.assign(g.size(), 0);
-  for (size_t i = 0; i < touched.size(); ++i) {
-    if (touched[i]) result.touched[old_to_new[i]] = 1;
-  }
+  return result;
+}
+
+MergeResult MergeBinned(records::VosselGeometry& g, const BinnedLidar& add) {
+  records::VosselGeometry merged;
+  MergeResult result = MergeBinned(g, add, &merged);
+  g = std::move(merged);
   return result;
 }
 

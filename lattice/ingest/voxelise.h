@@ -87,6 +87,10 @@ struct MergeResult {
 /// renumbered in canonical order. Centroids, covariances and normals are not updated (see
 /// DeriveCentroidAndCovariance, ComputeNormals). `geometry` must carry sums.
 MergeResult MergeBinned(records::VosselGeometry& geometry, const BinnedLidar& add);
+/// The same, leaving `base` as it is and writing the merge to `out` (not `&base`): base's
+/// arrays are read once (records::InsertVossels), not copied first.
+MergeResult MergeBinned(const records::VosselGeometry& base, const BinnedLidar& add,
+                        records::VosselGeometry* out);
 
 /// §1, the whole path: every LiDAR binned and merged in the given order (callers pass source-id
 /// order), centroids and covariances derived, and a PCA normal for every vossel over its

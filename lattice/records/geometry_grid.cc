@@ -19,6 +19,7 @@
 #include <openvdb/tools/Prune.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 #include <tbb/parallel_reduce.h>
 
 #include "absl/strings/numbers.h"
@@ -210,6 +211,35 @@ absl::StatusOr<size_t> CheckCanonicalOrder(const Int32Grid& index, const std::st
 }
 }  // namespace internal
 
+namespace {
+
+/// Numbers the active voxels of `tree` in canonical order: leaf order, then voxel offset.
+void NumberInCanonicalOrder(Int32Tree& tree) {
+  auto leaves = LeavesInOrder(tree);
+  std::vector<int32_t> start(leaves.size() + 1, 0);
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    start[i + 1] = start[i] + static_cast<int32_t>(leaves[i]->onVoxelCount());
+  }
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        int32_t next = start[i];
+                        for (auto it = leaves[i]->beginValueOn(); it; ++it) it.setValue(next++);
+                      }
+                    });
+}
+
+/// The index grid of a numbered tree, over the lattice of edge `h`.
+Int32Grid::Ptr IndexGridOf(Int32Tree::Ptr tree, double h) {
+  auto grid = Int32Grid::create(tree);
+  grid->setTransform(openvdb::math::Transform::createLinearTransform(h));
+  grid->setName("index");
+  grid->setGridClass(openvdb::GRID_UNKNOWN);
+  return grid;
+}
+
+}  // namespace
+
 std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   internal::EnsureOpenVdbInitialized();
   const std::vector<Coord>& coord = geometry.coord;
@@ -231,19 +261,7 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   auto tree = std::make_shared<Int32Tree>(-1);
   tree->topologyUnion(body.tree);
 
-  // Number the vossels in leaf order, then voxel offset.
-  auto leaves = LeavesInOrder(*tree);
-  std::vector<int32_t> start(leaves.size() + 1, 0);
-  for (size_t i = 0; i < leaves.size(); ++i) {
-    start[i + 1] = start[i] + static_cast<int32_t>(leaves[i]->onVoxelCount());
-  }
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 16),
-                    [&](const tbb::blocked_range<size_t>& r) {
-                      for (size_t i = r.begin(); i < r.end(); ++i) {
-                        int32_t next = start[i];
-                        for (auto it = leaves[i]->beginValueOn(); it; ++it) it.setValue(next++);
-                      }
-                    });
+  NumberInCanonicalOrder(*tree);
 
   // old -> new map, then new -> old (first occurrence wins for duplicated coordinates).
   std::vector<int32_t> old_to_new(n);
@@ -254,7 +272,7 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
                         old_to_new[i] = acc.getValue(coord[i]);
                       }
                     });
-  const size_t m = static_cast<size_t>(start.back());
+  const size_t m = static_cast<size_t>(tree->activeVoxelCount());
   std::vector<int32_t> new_to_old(m, -1);
   for (size_t i = 0; i < n; ++i) {
     int32_t& slot = new_to_old[old_to_new[i]];
@@ -269,12 +287,99 @@ std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry) {
   if (geometry.sums.size() == n) Gather(geometry.sums, new_to_old);
   if (geometry.frame.size() == n) Gather(geometry.frame, new_to_old);
 
-  auto grid = Int32Grid::create(tree);
-  grid->setTransform(openvdb::math::Transform::createLinearTransform(geometry.vossel_size_m));
-  grid->setName("index");
-  grid->setGridClass(openvdb::GRID_UNKNOWN);
-  geometry.index_grid = grid;
+  geometry.index_grid = IndexGridOf(tree, geometry.vossel_size_m);
   return old_to_new;
+}
+
+namespace {
+
+/// Appends base[begin, end) to `out`, `fill` where base is shorter.
+template <typename T>
+void AppendRun(std::vector<T>& out, const std::vector<T>& base, size_t begin, size_t end,
+               const T& fill) {
+  const size_t have = std::min(end, std::max(begin, base.size()));
+  out.insert(out.end(), base.begin() + std::ptrdiff_t(begin), base.begin() + std::ptrdiff_t(have));
+  out.insert(out.end(), end - have, fill);
+}
+
+}  // namespace
+
+VosselInsertion InsertVossels(const VosselGeometry& base, const std::vector<Coord>& added,
+                              VosselGeometry* out) {
+  internal::EnsureOpenVdbInitialized();
+  const size_t n = base.size();
+  VosselInsertion ins;
+  ins.added_to_new.assign(added.size(), -1);
+  ins.created.assign(added.size(), 0);
+  auto tree = base.index_grid ? std::make_shared<Int32Tree>(base.index_grid->tree())
+                              : std::make_shared<Int32Tree>(-1);
+  if (size_t(tree->activeVoxelCount()) != n) {
+    // base's index grid does not number its vossels: number them first.
+    VosselGeometry canonical = base;
+    std::vector<int32_t> first = CanonicalizeVosselOrder(canonical);
+    ins = InsertVossels(canonical, added, out);
+    for (int32_t& k : first) k = ins.old_to_new[size_t(k)];
+    ins.old_to_new = std::move(first);
+    return ins;
+  }
+  {
+    Int32Grid::Accessor acc(*tree);
+    for (size_t i = 0; i < added.size(); ++i) {
+      if (acc.isValueOn(added[i])) continue;
+      acc.setValueOn(added[i], -1);
+      ins.created[i] = 1;
+    }
+  }
+  NumberInCanonicalOrder(*tree);
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, added.size(), kGrain),
+                    [&](const tbb::blocked_range<size_t>& r) {
+                      Int32Grid::ConstAccessor acc(*tree);
+                      for (size_t i = r.begin(); i < r.end(); ++i) {
+                        ins.added_to_new[i] = acc.getValue(added[i]);
+                      }
+                    });
+  // The made vossels by their index p_r: base's keep their order, so the r-th made one has
+  // p_r − r of base's before it, and between two made ones lies a run of base's.
+  std::vector<std::pair<int32_t, size_t>> made;  // (index now, coordinate added)
+  for (size_t i = 0; i < added.size(); ++i) {
+    if (ins.created[i]) made.emplace_back(ins.added_to_new[i], i);
+  }
+  std::sort(made.begin(), made.end());
+  const size_t m = n + made.size();
+  ins.old_to_new.resize(n);
+  tbb::parallel_for(size_t(0), made.size() + 1, [&](size_t r) {
+    const size_t begin = r == 0 ? 0 : size_t(made[r - 1].first) - (r - 1);
+    const size_t end = r == made.size() ? n : size_t(made[r].first) - r;
+    for (size_t i = begin; i < end; ++i) ins.old_to_new[i] = int32_t(i + r);
+  });
+  // Each array in one pass: runs of base's values, the made vossels' between them.
+  out->vossel_size_m = base.vossel_size_m;
+  auto spread = [&](auto& into, const auto& from, const auto& fill, const auto& made_value) {
+    into.clear();
+    into.reserve(m);
+    size_t at = 0;
+    for (size_t r = 0; r < made.size(); ++r) {
+      const size_t end = size_t(made[r].first) - r;
+      AppendRun(into, from, at, end, fill);
+      into.push_back(made_value(made[r].second));
+      at = end;
+    }
+    AppendRun(into, from, at, n, fill);
+  };
+  auto as = [&](auto& into, const auto& from, const auto& fill) {
+    spread(into, from, fill, [&](size_t) { return fill; });
+  };
+  const Eigen::Vector3f zero = Eigen::Vector3f::Zero();
+  tbb::parallel_invoke(
+      [&] { spread(out->coord, base.coord, Coord(), [&](size_t i) { return added[i]; }); },
+      [&] { as(out->point_count, base.point_count, int32_t{0}); },
+      [&] { as(out->centroid_m, base.centroid_m, zero); },
+      [&] { as(out->normal, base.normal, zero); },
+      [&] { as(out->covariance_m2, base.covariance_m2, std::array<float, 6>{}); },
+      [&] { as(out->sums, base.sums, VosselSums{}); },
+      [&] { as(out->frame, base.frame, VosselFrame{}); });
+  out->index_grid = IndexGridOf(tree, base.vossel_size_m);
+  return ins;
 }
 
 namespace {

@@ -95,4 +95,21 @@ absl::Status WriteVersionFile(const VosselGeometry& geometry, const RecordSet& r
 /// voxel offset) from `geometry.coord`; returns old→new index map. Arrays are permuted.
 std::vector<int32_t> CanonicalizeVosselOrder(VosselGeometry& geometry);
 
+/// What InsertVossels did: where each vossel went.
+struct VosselInsertion {
+  std::vector<int32_t> old_to_new;    ///< per vossel of the base: its index now (ascending)
+  std::vector<int32_t> added_to_new;  ///< per coordinate added: the index of its vossel
+  std::vector<uint8_t> created;       ///< per coordinate added: 1 where it made the vossel
+};
+
+/// `base`, whose vossels are in canonical order, with a vossel made at each coordinate of
+/// `added` it lacks, written to `out` in canonical order: what CanonicalizeVosselOrder gives of
+/// base's arrays with the new vossels appended, but from a copy of base's index tree (its
+/// topology is not built again) and with each array written once, since inserting vossels
+/// keeps the order of those already there. A made vossel takes zero counts, sums, centroid,
+/// normal and covariance and a default frame. An array of base shorter than its vossels is
+/// filled so (as resizing it would). `out` must not be `&base`.
+VosselInsertion InsertVossels(const VosselGeometry& base,
+                              const std::vector<openvdb::Coord>& added, VosselGeometry* out);
+
 }  // namespace vasl::records

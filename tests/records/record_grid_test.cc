@@ -278,6 +278,101 @@ TEST(CanonicalizeVosselOrderTest, EmptyArraysStayEmpty) {
   EXPECT_EQ(none.index_grid->activeVoxelCount(), 0u);
 }
 
+// Claim (record_grid.h InsertVossels): inserting vossels into a canonical geometry gives what
+// CanonicalizeVosselOrder gives of its arrays with the new vossels appended (zero sums, counts,
+// centroid, normal, covariance, default frame), bit for bit, with each vossel's index in it:
+// with every array present, with sums and frames absent (filled as resizing would), from a
+// geometry without an index grid, and into an empty one.
+TEST(InsertVosselsTest, IsCanonicalizeOfTheAppendedVossels) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::uniform_int_distribution<int> c(-60, 59);
+  for (const char* variant : {"full", "no sums or frames", "no index grid", "empty"}) {
+    SCOPED_TRACE(variant);
+    const std::string v = variant;
+    VosselGeometry base = v == "empty" ? VosselGeometry{} : RandomGeometry(20000, 11);
+    if (v == "full") {
+      for (size_t i = 0; i < base.size(); ++i) {
+        VosselSums sums;
+        sums.sum_m = {u(rng), u(rng), u(rng)};
+        sums.sum_xx_m2 = {u(rng), u(rng), u(rng), u(rng), u(rng), u(rng)};
+        sums.view_sum = {u(rng), u(rng), u(rng)};
+        base.sums.push_back(sums);
+        VosselFrame f;
+        f.count = int32_t(i % 7);
+        f.centroid_m = Eigen::Vector3d(u(rng), u(rng), u(rng)).cast<float>();
+        f.normal = Eigen::Vector3d(u(rng), u(rng), u(rng)).cast<float>();
+        base.frame.push_back(f);
+      }
+    }
+    CanonicalizeVosselOrder(base);
+    // Half of the added coordinates are base's vossels, half new (some twice), shuffled.
+    std::vector<openvdb::Coord> added;
+    std::set<openvdb::Coord> in_base(base.coord.begin(), base.coord.end()), made;
+    for (size_t i = 0; i < base.size(); i += 8) added.push_back(base.coord[i]);
+    while (made.size() < 3000) {
+      const openvdb::Coord k(c(rng), c(rng), c(rng));
+      if (!in_base.count(k) && made.insert(k).second) added.push_back(k);
+    }
+    for (size_t i = 0; i < 200; ++i) added.push_back(added[added.size() - 1 - 2 * i]);
+    std::shuffle(added.begin(), added.end(), rng);
+
+    VosselGeometry expect = base;
+    std::set<openvdb::Coord> appended;
+    for (const openvdb::Coord& k : added) {
+      if (in_base.count(k) || !appended.insert(k).second) continue;
+      expect.coord.push_back(k);
+    }
+    expect.point_count.resize(expect.coord.size(), 0);
+    expect.centroid_m.resize(expect.coord.size(), Eigen::Vector3f::Zero());
+    expect.normal.resize(expect.coord.size(), Eigen::Vector3f::Zero());
+    expect.covariance_m2.resize(expect.coord.size(), {0, 0, 0, 0, 0, 0});
+    expect.sums.resize(base.size());
+    expect.sums.resize(expect.coord.size());
+    expect.frame.resize(base.size());
+    expect.frame.resize(expect.coord.size());
+    const std::vector<int32_t> map = CanonicalizeVosselOrder(expect);
+
+    if (v == "no index grid") base.index_grid.reset();
+    if (v == "empty") base.index_grid.reset();
+    VosselGeometry got;
+    const VosselInsertion ins = InsertVossels(base, added, &got);
+    ASSERT_EQ(got.size(), expect.size());
+    EXPECT_EQ(got.coord, expect.coord);
+    EXPECT_EQ(got.point_count, expect.point_count);
+    EXPECT_EQ(got.centroid_m, expect.centroid_m);
+    EXPECT_EQ(got.normal, expect.normal);
+    EXPECT_EQ(got.covariance_m2, expect.covariance_m2);
+    EXPECT_TRUE(got.sums == expect.sums);
+    EXPECT_TRUE(got.frame == expect.frame);
+    EXPECT_EQ(got.vossel_size_m, base.vossel_size_m);
+    EXPECT_EQ(ins.old_to_new, std::vector<int32_t>(map.begin(), map.begin() + base.size()));
+    ASSERT_EQ(ins.added_to_new.size(), added.size());
+    size_t wrong = 0, created = 0;
+    std::set<openvdb::Coord> seen;
+    for (size_t i = 0; i < added.size(); ++i) {
+      wrong += got.coord[size_t(ins.added_to_new[i])] != added[i];
+      const bool first_new = !in_base.count(added[i]) && seen.insert(added[i]).second;
+      wrong += bool(ins.created[i]) != first_new;
+      created += ins.created[i];
+    }
+    EXPECT_EQ(wrong, 0u);
+    EXPECT_EQ(created, expect.size() - base.size());
+    ASSERT_TRUE(got.index_grid);
+    EXPECT_EQ(got.index_grid->activeVoxelCount(), expect.index_grid->activeVoxelCount());
+    int32_t at = 0;
+    for (auto it = got.index_grid->tree().cbeginValueOn(); it; ++it) {
+      wrong += *it != expect.index_grid->tree().getValue(it.getCoord());
+      ++at;
+    }
+    EXPECT_EQ(wrong, 0u);
+    EXPECT_EQ(size_t(at), expect.size());
+    EXPECT_EQ(got.index_grid->transform(), expect.index_grid->transform());
+    std::printf("%s: %zu vossels + %zu added coordinates -> %zu vossels, %zu made\n", variant,
+                base.size(), added.size(), got.size(), created);
+  }
+}
+
 // Claim (§6): records.vdb reproduces every record within its codec's precision:
 //   scan, modality, flags, batch, range: exact; value, foot: half, |Δ| ≤ 2⁻¹¹·|x| + 6e-8;
 //   cos_inc: 16-bit unit range, |Δ| ≤ 0.5/65535; uv: 16-bit fractions of 16384 px,
