@@ -72,7 +72,7 @@ quickstart: done.
   server      vasld on $address, pid $(cat "$pidfile"), log $root/$log
   data        $root/vasl-data/demo/ (catalog.sqlite, blobs/, objects/<sha256> tile files, HEAD)
   scans       $root/out/scene/scan-*.json (+ .ply, -rgb.png), ground truth in out/scene/truth/
-  render      $root/out/demo.exr (R,G,B,Z,N.x,N.y,N.z,U) and $root/out/demo.png
+  render      $root/out/demo.exr (R,G,B,A,N.x,N.y,N.z,U as half floats, Z as float) and $root/out/demo.png
   CLI         .venv/bin/vasl --server $address scans --project demo
   export      $root/out/demo.vdb: the HEAD version as one OpenVDB file (vdb_print -l out/demo.vdb)
   stop        ./deploy/stop.sh   (or: kill \$(cat vasl-data/vasld.pid))
