@@ -16,6 +16,7 @@
 
 #include "absl/strings/str_format.h"
 #include "lattice/ingest/sample.h"
+#include "lattice/memory/isa.h"
 
 namespace vasl::ingest {
 namespace {
@@ -267,20 +268,6 @@ double NccOfSums(double sa, double sb, double saa, double sbb, double sab, size_
   return (sab - sa * sb / n) / std::sqrt(va * vb);
 }
 
-// Normalised cross-correlation of a (templ) and b (target) over the pairs where both are
-// finite; -inf when fewer than half the template's cells take part or b is flat.
-double Ncc(const std::vector<float>& a, const std::vector<float>& b, size_t min_n) {
-  double sa = 0, sb = 0, saa = 0, sbb = 0, sab = 0;
-  size_t n = 0;
-  for (size_t k = 0; k < a.size(); ++k) {
-    if (std::isnan(a[k]) || std::isnan(b[k])) continue;
-    sa += a[k], sb += b[k], saa += double(a[k]) * a[k], sbb += double(b[k]) * b[k];
-    sab += double(a[k]) * b[k];
-    ++n;
-  }
-  return NccOfSums(sa, sb, saa, sbb, sab, n, min_n);
-}
-
 // The (2R+1)² values of raster img around (cx, cy), NaN off the raster.
 void Patch(const std::vector<float>& img, const Cells& c, int cx, int cy, int R,
            std::vector<float>* out) {
@@ -300,54 +287,230 @@ struct Search {
   double best = -std::numeric_limits<double>::infinity();
   std::vector<double> grid;
 };
+/// W doubles to a vector (GCC's vector extensions: SSE2's width, or AVX2's), and W floats.
+template <int W>
+struct Vectors;
+template <>
+struct Vectors<2> {
+  using Doubles = double __attribute__((vector_size(16)));
+  using Floats = float __attribute__((vector_size(8)));
+};
+template <>
+struct Vectors<4> {
+  using Doubles = double __attribute__((vector_size(32)));
+  using Floats = float __attribute__((vector_size(16)));
+};
+
+/// W consecutive floats at `p`, as doubles, into `out`.
+template <int W>
+[[gnu::always_inline]] inline void LoadDoubles(const float* p, typename Vectors<W>::Doubles& out) {
+  typename Vectors<W>::Floats f;
+  std::memcpy(&f, p, sizeof f);
+  out = __builtin_convertvector(f, typename Vectors<W>::Doubles);
+}
+
+// The correlations (NccOfSums) of `templ` against the window at the L shifts (dx0 + l, dy):
+// each lane sums its own pairs in the template's row-major order, so that interleaving the
+// lanes, which keeps many sums in flight where one shift kept three, gives the same bits.
+// kWhole: the window holds no NaN, and the template's finite cells are `at` (offsets into the
+// window), their sums sa and saa. Otherwise `window` has its NaNs as zeros and `finite` is 1
+// where it had a value, 0 where not: a pair with an empty cell then adds ±0 to each sum, which
+// leaves it as it was (a sum of finite values starting at +0 is never −0), as skipping it did.
+template <int W, int L, bool kWhole>
+[[gnu::always_inline]] inline void CorrelateLanes(const float* templ, const float* window,
+                                                  const float* finite, int patch, int span,
+                                                  int dx0, int dy, const std::vector<size_t>& at,
+                                                  const std::vector<float>& a, double sa_whole,
+                                                  double saa_whole, size_t min_n, double* out) {
+  static_assert(L % W == 0, "lanes come in whole vectors");
+  using Doubles = typename Vectors<W>::Doubles;
+  constexpr int kV = L / W;
+  Doubles sa[kV] = {}, sb[kV] = {}, saa[kV] = {}, sbb[kV] = {}, sab[kV] = {}, n[kV] = {};
+  const auto lane = [](const Doubles* v, int l) { return double(v[l / W][l % W]); };
+  const size_t origin = size_t(dy) * span + dx0;
+  if constexpr (kWhole) {
+    for (size_t k = 0; k < at.size(); ++k) {
+      const float* b = window + origin + at[k];
+      const double ak = a[k];
+      for (int v = 0; v < kV; ++v) {
+        Doubles t;
+        LoadDoubles<W>(b + W * v, t);
+        sb[v] += t, sbb[v] += t * t, sab[v] += ak * t;
+      }
+    }
+    for (int l = 0; l < L; ++l) {
+      out[l] = NccOfSums(sa_whole, lane(sb, l), saa_whole, lane(sbb, l), lane(sab, l), at.size(),
+                         min_n);
+    }
+  } else {
+    for (int j = 0; j < patch; ++j)
+      for (int i = 0; i < patch; ++i) {
+        const float ak = templ[size_t(j) * patch + i];
+        if (std::isnan(ak)) continue;
+        const double a1 = ak, a2 = double(ak) * ak;
+        const size_t offset = origin + size_t(j) * span + i;
+        for (int v = 0; v < kV; ++v) {
+          Doubles t, pair;
+          LoadDoubles<W>(window + offset + W * v, t);
+          LoadDoubles<W>(finite + offset + W * v, pair);
+          sa[v] += a1 * pair, sb[v] += t, saa[v] += a2 * pair, sbb[v] += t * t;
+          sab[v] += a1 * t, n[v] += pair;
+        }
+      }
+    for (int l = 0; l < L; ++l) {
+      out[l] = NccOfSums(lane(sa, l), lane(sb, l), lane(saa, l), lane(sbb, l), lane(sab, l),
+                         size_t(lane(n, l)), min_n);
+    }
+  }
+}
+
+/// One shift (dx, dy), as a lane of CorrelateLanes does it.
+inline double CorrelateOne(const float* templ, const float* window, const float* finite,
+                           int patch, int span, int dx, int dy, const std::vector<size_t>& at,
+                           const std::vector<float>& a, double sa_whole, double saa_whole,
+                           size_t min_n) {
+  double sa = 0, sb = 0, saa = 0, sbb = 0, sab = 0, n = 0;
+  const size_t origin = size_t(dy) * span + dx;
+  if (finite == nullptr) {
+    for (size_t k = 0; k < at.size(); ++k) {
+      const double t = window[origin + at[k]];
+      sb += t, sbb += t * t, sab += double(a[k]) * t;
+    }
+    return NccOfSums(sa_whole, sb, saa_whole, sbb, sab, at.size(), min_n);
+  }
+  for (int j = 0; j < patch; ++j)
+    for (int i = 0; i < patch; ++i) {
+      const float ak = templ[size_t(j) * patch + i];
+      if (std::isnan(ak)) continue;
+      const double a1 = ak, a2 = double(ak) * ak;
+      const size_t offset = origin + size_t(j) * span + i;
+      const double t = window[offset], pair = finite[offset];
+      sa += a1 * pair, sb += t, saa += a2 * pair, sbb += t * t, sab += a1 * t, n += pair;
+    }
+  return NccOfSums(sa, sb, saa, sbb, sab, size_t(n), min_n);
+}
+
+/// CorrelationGrid's window, prepared: with holes, `filled` and `finite` (CorrelateLanes);
+/// whole, the template's finite cells `at`, their values `a` and sums sa, saa.
+struct Correlation {
+  const float* templ;
+  const float* window;  ///< `filled` with holes
+  const float* finite;  ///< null when whole
+  int patch, span, side;
+  std::vector<size_t> at;
+  std::vector<float> a;
+  double sa = 0, saa = 0;
+  size_t min_n;
+};
+
+/// Every shift's correlation into `grid`, row by row, kWholeLanes or kHoleLanes shifts at once
+/// in vectors of W doubles.
+template <int W, int kWholeLanes, int kHoleLanes>
+[[gnu::always_inline]] inline void CorrelateRows(const Correlation& c, double* grid) {
+  for (int dy = 0; dy < c.side; ++dy) {
+    double* row = grid + size_t(dy) * c.side;
+    int dx = 0;
+    if (c.finite == nullptr) {
+      for (; dx + kWholeLanes <= c.side; dx += kWholeLanes) {
+        CorrelateLanes<W, kWholeLanes, true>(c.templ, c.window, nullptr, c.patch, c.span, dx, dy,
+                                          c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
+      }
+      for (; dx < c.side; ++dx) {
+        row[dx] = CorrelateOne(c.templ, c.window, nullptr, c.patch, c.span, dx, dy, c.at, c.a,
+                               c.sa, c.saa, c.min_n);
+      }
+    } else {
+      for (; dx + kHoleLanes <= c.side; dx += kHoleLanes) {
+        CorrelateLanes<W, kHoleLanes, false>(c.templ, c.window, c.finite, c.patch, c.span, dx, dy,
+                                          c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
+      }
+      for (; dx < c.side; ++dx) {
+        row[dx] = CorrelateOne(c.templ, c.window, c.finite, c.patch, c.span, dx, dy, c.at, c.a,
+                               c.sa, c.saa, c.min_n);
+      }
+    }
+  }
+}
+
+// As many lanes as the registers hold the sums of: three a lane whole, six with holes.
+void CorrelateRowsBaseline(const Correlation& c, double* grid) {
+  CorrelateRows<2, 8, 4>(c, grid);
+}
+#if VASL_ISA_VARIANTS
+[[gnu::target("avx2")]] void CorrelateRowsAvx2(const Correlation& c, double* grid) {
+  CorrelateRows<4, 8, 8>(c, grid);
+}
+#endif
+
+}  // namespace
+
+namespace internal {
+
+std::vector<double> CorrelationGrid(const std::vector<float>& templ,
+                                    const std::vector<float>& window, int R, int S,
+                                    size_t min_n) {
+  Correlation c;
+  c.patch = 2 * R + 1;
+  c.span = 2 * (R + S) + 1;
+  c.side = 2 * S + 1;
+  c.templ = templ.data();
+  c.min_n = min_n;
+  // A window without holes (the camera image's, away from a pinhole image's edges): every
+  // shift pairs the template's finite cells, so their sums are taken once and each shift sums
+  // only its own side, in the same order (the same correlations, bit for bit).
+  const bool whole =
+      std::none_of(window.begin(), window.end(), [](float v) { return std::isnan(v); });
+  std::vector<float> filled, finite;
+  if (whole) {
+    c.window = window.data();
+    c.finite = nullptr;
+    for (int j = 0; j < c.patch; ++j)
+      for (int i = 0; i < c.patch; ++i) {
+        const float t = templ[size_t(j) * c.patch + i];
+        if (std::isnan(t)) continue;
+        c.sa += t, c.saa += double(t) * t;
+        c.at.push_back(size_t(j) * c.span + i);
+        c.a.push_back(t);
+      }
+  } else {
+    filled.resize(window.size());
+    finite.resize(window.size());
+    for (size_t k = 0; k < window.size(); ++k) {
+      finite[k] = std::isnan(window[k]) ? 0.0f : 1.0f;
+      filled[k] = std::isnan(window[k]) ? 0.0f : window[k];
+    }
+    c.window = filled.data();
+    c.finite = finite.data();
+  }
+  std::vector<double> grid(size_t(c.side) * c.side);
+#if VASL_ISA_VARIANTS
+  if (memory::WidestIsa() >= memory::Isa::kAvx2) {
+    CorrelateRowsAvx2(c, grid.data());
+    return grid;
+  }
+#endif
+  CorrelateRowsBaseline(c, grid.data());
+  return grid;
+}
+
+}  // namespace internal
+
+namespace {
+
 Search SearchAround(const std::vector<float>& templ, const std::vector<float>& img,
                     const Cells& c, int cx, int cy, int R, int S, size_t min_n) {
-  Search out;
-  const int side = 2 * S + 1, patch = 2 * R + 1, span = 2 * (R + S) + 1;
-  out.grid.assign(size_t(side) * side, -std::numeric_limits<double>::infinity());
-  std::vector<float> window(size_t(span) * span), target(size_t(patch) * patch);
+  const int side = 2 * S + 1, span = 2 * (R + S) + 1;
+  std::vector<float> window(size_t(span) * span);
   for (int j = 0; j < span; ++j)
     for (int i = 0; i < span; ++i) {
       const int64_t at = c.At(cx - R - S + i, cy - R - S + j);
       window[size_t(j) * span + i] = at < 0 ? kEmpty : img[size_t(at)];
     }
-  // A window without holes (the camera image's, away from a pinhole image's edges): every
-  // shift pairs the template's finite cells, so their sums are taken once and each shift sums
-  // only its own side, in the order Ncc would (the same correlations, bit for bit).
-  const bool whole =
-      std::none_of(window.begin(), window.end(), [](float v) { return std::isnan(v); });
-  std::vector<size_t> at;  // the template's finite cells, as offsets into the window
-  std::vector<float> a;
-  double sa = 0, saa = 0;
-  if (whole) {
-    for (int j = 0; j < patch; ++j)
-      for (int i = 0; i < patch; ++i) {
-        const float t = templ[size_t(j) * patch + i];
-        if (std::isnan(t)) continue;
-        sa += t, saa += double(t) * t;
-        at.push_back(size_t(j) * span + i);
-        a.push_back(t);
-      }
-  }
+  Search out;
+  out.grid = internal::CorrelationGrid(templ, window, R, S, min_n);
   for (int dy = 0; dy < side; ++dy)
     for (int dx = 0; dx < side; ++dx) {
-      double v;
-      if (whole) {
-        const float* b = &window[size_t(dy) * span + dx];
-        double sb = 0, sbb = 0, sab = 0;
-        for (size_t k = 0; k < at.size(); ++k) {
-          const float t = b[at[k]];
-          sb += t, sbb += double(t) * t, sab += double(a[k]) * t;
-        }
-        v = NccOfSums(sa, sb, saa, sbb, sab, at.size(), min_n);
-      } else {
-        for (int j = 0; j < patch; ++j) {
-          std::memcpy(&target[size_t(j) * patch], &window[size_t(dy + j) * span + dx],
-                      size_t(patch) * sizeof(float));
-        }
-        v = Ncc(templ, target, min_n);
-      }
-      out.grid[size_t(dy) * side + dx] = v;
+      const double v = out.grid[size_t(dy) * side + dx];
       if (v > out.best) out.best = v, out.bx = dx - S, out.by = dy - S;
     }
   return out;

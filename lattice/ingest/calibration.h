@@ -33,6 +33,9 @@
 ///          camera sees no return, or the LiDAR has neither intensity nor colour.
 #pragma once
 
+#include <cstddef>
+#include <vector>
+
 #include "lattice/ingest/sources.h"
 #include "lattice/records/calibration.h"
 
@@ -54,5 +57,18 @@ struct CalibrationSettings {
 records::CalibrationHealth CheckCalibration(const LidarSource& lidar, const CameraSource& camera,
                                             const LinearImage& image,
                                             const CalibrationSettings& settings = {});
+
+namespace internal {
+
+/// The normalised cross-correlation of a (2R+1)² template (row-major, NaN where empty) against
+/// a (2(R+S)+1)² window at each of its (2S+1)² shifts (row-major, dy then dx): over the cells
+/// where both are finite, -inf where fewer than `min_n` pair or either side is flat. Each
+/// shift's sums are taken in the template's row-major order (the same bits as one shift at a
+/// time); CheckCalibration's patch search.
+std::vector<double> CorrelationGrid(const std::vector<float>& templ,
+                                    const std::vector<float>& window, int R, int S,
+                                    size_t min_n);
+
+}  // namespace internal
 
 }  // namespace vasl::ingest

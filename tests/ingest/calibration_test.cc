@@ -6,12 +6,17 @@
 #include "lattice/ingest/calibration.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
+#include <limits>
+#include <random>
 #include <utility>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <tbb/task_arena.h>
 
+#include "lattice/memory/isa.h"
 #include "tests/scenes/synthetic_scene.h"
 
 namespace vasl::ingest {
@@ -207,6 +212,79 @@ TEST_F(CalibrationTest, FiguresDoNotDependOnTheThreads) {
     EXPECT_EQ(many.verdict, one.verdict);
   }
   EXPECT_GT(one.pixel_mean_px, 0.0);
+}
+
+// The correlation of the template against the window at shift (dx, dy), one shift at a time:
+// the sums over the pairs where both are finite, in the template's row-major order.
+double OneShift(const std::vector<float>& templ, const std::vector<float>& window, int R, int S,
+                int dx, int dy, size_t min_n) {
+  const int patch = 2 * R + 1, span = 2 * (R + S) + 1;
+  double sa = 0, sb = 0, saa = 0, sbb = 0, sab = 0;
+  size_t n = 0;
+  for (int j = 0; j < patch; ++j)
+    for (int i = 0; i < patch; ++i) {
+      const float a = templ[size_t(j) * patch + i];
+      const float b = window[size_t(dy + j) * span + dx + i];
+      if (std::isnan(a) || std::isnan(b)) continue;
+      sa += a, sb += b, saa += double(a) * a, sbb += double(b) * b, sab += double(a) * b;
+      ++n;
+    }
+  const double lowest = -std::numeric_limits<double>::infinity();
+  if (n < min_n) return lowest;
+  const double va = saa - sa * sa / double(n), vb = sbb - sb * sb / double(n);
+  if (!(va > 1e-12) || !(vb > 1e-12)) return lowest;
+  return (sab - sa * sb / double(n)) / std::sqrt(va * vb);
+}
+
+// Claim (calibration.h CorrelationGrid): the patch search's correlations, several shifts at a
+// time, are those of one shift at a time, bit for bit, under every instruction set: with a
+// window without holes and with holes (a LiDAR image's), a template with and without holes, a
+// flat window (-inf), and search rows that are not a multiple of the lanes.
+TEST(CorrelationGridTest, IsEachShiftsCorrelationBitForBit) {
+  int isas = 0;
+  for (memory::Isa isa : {memory::Isa::kBaseline, memory::Isa::kAvx2, memory::Isa::kX86_64_V4}) {
+    if (!memory::Supports(isa)) continue;
+    memory::SetIsaCap(isa);
+    ++isas;
+    std::mt19937 rng(3);
+    std::uniform_real_distribution<float> u(0.0f, 1.0f);
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    size_t shifts = 0, unequal = 0, lowest = 0;
+    for (const auto& [R, S] : {std::pair{7, 8}, std::pair{2, 3}, std::pair{4, 11}}) {
+      for (const double holes : {0.0, 0.1, 0.6}) {
+        for (const bool template_holes : {false, true}) {
+          for (const bool flat : {false, true}) {
+            const int patch = 2 * R + 1, span = 2 * (R + S) + 1, side = 2 * S + 1;
+            std::vector<float> templ(size_t(patch) * patch), window(size_t(span) * span);
+            for (float& t : templ) t = template_holes && u(rng) < 0.2f ? nan : u(rng);
+            for (float& w : window) w = holes > 0 && u(rng) < holes ? nan : flat ? 0.5f : u(rng);
+            const size_t min_n = templ.size() / 2;
+            const std::vector<double> grid = internal::CorrelationGrid(templ, window, R, S, min_n);
+            ASSERT_EQ(grid.size(), size_t(side) * side);
+            for (int dy = 0; dy < side; ++dy)
+              for (int dx = 0; dx < side; ++dx) {
+                const double want = OneShift(templ, window, R, S, dx, dy, min_n);
+                const double got = grid[size_t(dy) * side + dx];
+                ++shifts;
+                lowest += std::isinf(want);
+                if (!(got == want)) {
+                  ++unequal;
+                  ADD_FAILURE() << "R " << R << " S " << S << " holes " << holes << " shift (" << dx
+                                << ", " << dy << "): " << got << " against " << want;
+                }
+              }
+          }
+        }
+      }
+    }
+    memory::SetIsaCap(memory::Isa::kX86_64_V4);
+    std::printf("cap %d: %zu shifts, %zu of them -inf (too few pairs, or flat), %zu unequal\n",
+                int(isa), shifts, lowest, unequal);
+    EXPECT_EQ(unequal, 0u);
+    EXPECT_GT(lowest, 0u);
+    EXPECT_LT(lowest, shifts);
+  }
+  EXPECT_GE(isas, 1);
 }
 
 }  // namespace
