@@ -287,9 +287,15 @@ struct Search {
   double best = -std::numeric_limits<double>::infinity();
   std::vector<double> grid;
 };
-/// W doubles to a vector (GCC's vector extensions: SSE2's width, or AVX2's), and W floats.
+/// W doubles to a vector (GCC's vector extensions: SSE2's width, or AVX2's; or one), and W
+/// floats.
 template <int W>
 struct Vectors;
+template <>
+struct Vectors<1> {
+  using Doubles = double;
+  using Floats = float;
+};
 template <>
 struct Vectors<2> {
   using Doubles = double __attribute__((vector_size(16)));
@@ -304,9 +310,13 @@ struct Vectors<4> {
 /// W consecutive floats at `p`, as doubles, into `out`.
 template <int W>
 [[gnu::always_inline]] inline void LoadDoubles(const float* p, typename Vectors<W>::Doubles& out) {
-  typename Vectors<W>::Floats f;
-  std::memcpy(&f, p, sizeof f);
-  out = __builtin_convertvector(f, typename Vectors<W>::Doubles);
+  if constexpr (W == 1) {
+    out = *p;
+  } else {
+    typename Vectors<W>::Floats f;
+    std::memcpy(&f, p, sizeof f);
+    out = __builtin_convertvector(f, typename Vectors<W>::Doubles);
+  }
 }
 
 // The correlations (NccOfSums) of `templ` against the window at the L shifts (dx0 + l, dy):
@@ -326,7 +336,13 @@ template <int W, int L, bool kWhole>
   using Doubles = typename Vectors<W>::Doubles;
   constexpr int kV = L / W;
   Doubles sa[kV] = {}, sb[kV] = {}, saa[kV] = {}, sbb[kV] = {}, sab[kV] = {}, n[kV] = {};
-  const auto lane = [](const Doubles* v, int l) { return double(v[l / W][l % W]); };
+  const auto lane = [](const Doubles* v, int l) {
+    if constexpr (W == 1) {
+      return v[l];
+    } else {
+      return double(v[l / W][l % W]);
+    }
+  };
   const size_t origin = size_t(dy) * span + dx0;
   if constexpr (kWhole) {
     for (size_t k = 0; k < at.size(); ++k) {
@@ -364,43 +380,17 @@ template <int W, int L, bool kWhole>
   }
 }
 
-/// One shift (dx, dy), as a lane of CorrelateLanes does it.
-inline double CorrelateOne(const float* templ, const float* window, const float* finite,
-                           int patch, int span, int dx, int dy, const std::vector<size_t>& at,
-                           const std::vector<float>& a, double sa_whole, double saa_whole,
-                           size_t min_n) {
-  double sa = 0, sb = 0, saa = 0, sbb = 0, sab = 0, n = 0;
-  const size_t origin = size_t(dy) * span + dx;
-  if (finite == nullptr) {
-    for (size_t k = 0; k < at.size(); ++k) {
-      const double t = window[origin + at[k]];
-      sb += t, sbb += t * t, sab += double(a[k]) * t;
-    }
-    return NccOfSums(sa_whole, sb, saa_whole, sbb, sab, at.size(), min_n);
-  }
-  for (int j = 0; j < patch; ++j)
-    for (int i = 0; i < patch; ++i) {
-      const float ak = templ[size_t(j) * patch + i];
-      if (std::isnan(ak)) continue;
-      const double a1 = ak, a2 = double(ak) * ak;
-      const size_t offset = origin + size_t(j) * span + i;
-      const double t = window[offset], pair = finite[offset];
-      sa += a1 * pair, sb += t, saa += a2 * pair, sbb += t * t, sab += a1 * t, n += pair;
-    }
-  return NccOfSums(sa, sb, saa, sbb, sab, size_t(n), min_n);
-}
-
 /// CorrelationGrid's window, prepared: with holes, `filled` and `finite` (CorrelateLanes);
 /// whole, the template's finite cells `at`, their values `a` and sums sa, saa.
 struct Correlation {
-  const float* templ;
-  const float* window;  ///< `filled` with holes
-  const float* finite;  ///< null when whole
-  int patch, span, side;
+  const float* templ = nullptr;
+  const float* window = nullptr;  ///< `filled` with holes
+  const float* finite = nullptr;  ///< null when whole
+  int patch = 0, span = 0, side = 0;
   std::vector<size_t> at;
   std::vector<float> a;
   double sa = 0, saa = 0;
-  size_t min_n;
+  size_t min_n = 0;
 };
 
 /// Every shift's correlation into `grid`, row by row, kWholeLanes or kHoleLanes shifts at once
@@ -412,21 +402,21 @@ template <int W, int kWholeLanes, int kHoleLanes>
     int dx = 0;
     if (c.finite == nullptr) {
       for (; dx + kWholeLanes <= c.side; dx += kWholeLanes) {
-        CorrelateLanes<W, kWholeLanes, true>(c.templ, c.window, nullptr, c.patch, c.span, dx, dy,
-                                          c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
+        CorrelateLanes<W, kWholeLanes, true>(c.templ, c.window, nullptr, c.patch, c.span, dx,
+                                             dy, c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
       }
       for (; dx < c.side; ++dx) {
-        row[dx] = CorrelateOne(c.templ, c.window, nullptr, c.patch, c.span, dx, dy, c.at, c.a,
-                               c.sa, c.saa, c.min_n);
+        CorrelateLanes<1, 1, true>(c.templ, c.window, nullptr, c.patch, c.span, dx, dy, c.at, c.a,
+                                   c.sa, c.saa, c.min_n, row + dx);
       }
     } else {
       for (; dx + kHoleLanes <= c.side; dx += kHoleLanes) {
-        CorrelateLanes<W, kHoleLanes, false>(c.templ, c.window, c.finite, c.patch, c.span, dx, dy,
-                                          c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
+        CorrelateLanes<W, kHoleLanes, false>(c.templ, c.window, c.finite, c.patch, c.span, dx,
+                                             dy, c.at, c.a, c.sa, c.saa, c.min_n, row + dx);
       }
       for (; dx < c.side; ++dx) {
-        row[dx] = CorrelateOne(c.templ, c.window, c.finite, c.patch, c.span, dx, dy, c.at, c.a,
-                               c.sa, c.saa, c.min_n);
+        CorrelateLanes<1, 1, false>(c.templ, c.window, c.finite, c.patch, c.span, dx, dy, c.at,
+                                    c.a, c.sa, c.saa, c.min_n, row + dx);
       }
     }
   }
