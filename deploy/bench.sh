@@ -5,7 +5,8 @@
 # (tests/bench/kernels_bench.cc: the §7 weight kernel and fusion beside a STREAM triad;
 # tests/bench/visibility_bench.cc: the §5 depth panorama, dilation and visibility test, and the
 # §8 render's march and its EXR and PNG encoding, on the corridor site; tests/bench/image_bench.cc:
-# the PNG decode and §9 artefact detectors every camera load runs, at 4096×2048;
+# the PNG decode and §9 artefact detectors every camera load runs, at 4096×2048, and the §2.3
+# calibration check's patch search under each instruction set;
 # tests/bench/tile_io_bench.cc: encoding and reading the fullest tile's geometry, records and
 # fused objects, what every commit and reweight does per tile), whose medians
 # and spread over 5 runs are also written to build/bench-kernels.json.
