@@ -197,9 +197,9 @@ RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows
   }
   added.SortByVossel();
   const size_t nk = rows.size(), na = added.size(), n = nk + na;
-  // before[j]: the kept rows merged ahead of added record j, those of keys up to its own (on
-  // equal keys the kept come first); non-decreasing in j, so j's place, before[j] + j, rises.
-  std::vector<size_t> before(na);
+  // place[j]: where added record j goes, after the kept rows of keys up to its own (on equal
+  // keys the kept come first) and the j added before it; rising in j.
+  std::vector<size_t> place(na);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, na, 1024), [&](const tbb::blocked_range<size_t>& r) {
     for (size_t j = r.begin(); j != r.end(); ++j) {
       const Key a(added.vossel[j], added.scan[j], added.modality[j]);
@@ -212,7 +212,7 @@ RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows
           lo = mid + 1;
         }
       }
-      before[j] = lo;
+      place[j] = lo + j;
     }
   });
   // The merged order: entry p names a kept row (< kAdded) or an added record (kAdded + j). A
@@ -221,14 +221,10 @@ RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows
   constexpr size_t kAdded = size_t{1} << 62;
   std::vector<size_t> from(n);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain), [&](const tbb::blocked_range<size_t>& r) {
-    size_t j = size_t(std::partition_point(before.begin(), before.end(),
-                                           [&, p0 = r.begin(), b0 = before.data()](const size_t& b) {
-                                             return b + size_t(&b - b0) < p0;
-                                           }) -
-                      before.begin());
-    size_t i = r.begin() - j;
+    size_t j = size_t(std::lower_bound(place.begin(), place.end(), r.begin()) - place.begin());
+    size_t i = r.begin() - j;  // the added records placed ahead of the run, and the kept rows
     for (size_t p = r.begin(); p != r.end(); ++p) {
-      from[p] = j < na && before[j] + j == p ? kAdded + j++ : rows[i++];
+      from[p] = j < na && place[j] == p ? kAdded + j++ : rows[i++];
     }
   });
   RecordSet out;
