@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cmath>
+#include <cstdint>
 
 #include <Eigen/Core>
 
@@ -39,6 +40,27 @@ inline Eigen::Vector3d EquirectDirection(double cos_phi, double sin_phi, double 
   return {cos_psi * cos_phi, cos_psi * sin_phi, sin_psi};
 }
 
+/// atan(t) − t for t in [0, 0.66] by Cephes' rational approximation, into `out`: the
+/// polynomial both Atan2 and Atan2Lanes take (T a double or a GCC vector of doubles, which by
+/// value would change the ABI under the baseline instruction set).
+template <typename T>
+[[gnu::always_inline]] inline void AtanLessT(const T& t, T& out) {
+  const T z = t * t;
+  const T p =
+      (((-8.750608600031904122785e-1 * z - 1.615753718733365076637e1) * z -
+        7.500855792314704667340e1) * z - 1.228866684490136173410e2) * z -
+      6.485021904942025371773e1;
+  const T q =
+      ((((z + 2.485846490142306297962e1) * z + 1.650270098316988542046e2) * z +
+        4.328810604912902668951e2) * z + 4.853903996359136964868e2) * z +
+      1.945506571482613964425e2;
+  out = t * (z * p / q);
+}
+
+/// Atan2's constants: π/2 and π/4 rounded, and π/2 − kAtanPio2.
+inline constexpr double kAtanPio2 = 1.57079632679489661923, kAtanPio4 = 0.78539816339744830962;
+inline constexpr double kAtanMoreBits = 6.123233995736765886130e-17;
+
 /// atan2(y, x) in [−π, π], as the C library's to within 2 ulp of π (8.9e-16 rad; 4.4e-16
 /// measured), signed zeros included, without its rounding-mode guard: the angles of every
 /// sample a visibility test or a splat projects.
@@ -47,8 +69,6 @@ inline double Atan2(double y, double x) {
   // [0, 0.66] after the reduction t → (t − 1)/(t + 1) above 0.66 (relative error ~1e-16 before
   // the reduction's rounding), then the quadrant. No rounding-mode save and restore, which
   // the C library's atan2 pays on every call.
-  constexpr double kPio2 = 1.57079632679489661923, kPio4 = 0.78539816339744830962;
-  constexpr double kMoreBits = 6.123233995736765886130e-17;  // π/2 − kPio2
   if (!(std::isfinite(x) && std::isfinite(y))) return std::atan2(y, x);
   const double ax = std::fabs(x), ay = std::fabs(y);
   if (ax == 0.0 && ay == 0.0) return std::atan2(y, x);  // signed zeros: as the C library
@@ -56,23 +76,40 @@ inline double Atan2(double y, double x) {
   double t = swap ? ax / ay : ay / ax;
   double base = 0.0, more = 0.0;
   if (t > 0.66) {
-    base = kPio4;
-    more = 0.5 * kMoreBits;
+    base = kAtanPio4;
+    more = 0.5 * kAtanMoreBits;
     t = (t - 1.0) / (t + 1.0);
   }
-  const double z = t * t;
-  const double p =
-      (((-8.750608600031904122785e-1 * z - 1.615753718733365076637e1) * z -
-        7.500855792314704667340e1) * z - 1.228866684490136173410e2) * z -
-      6.485021904942025371773e1;
-  const double q =
-      ((((z + 2.485846490142306297962e1) * z + 1.650270098316988542046e2) * z +
-        4.328810604912902668951e2) * z + 4.853903996359136964868e2) * z +
-      1.945506571482613964425e2;
-  double a = base + (t * (z * p / q) + t + more);  // atan(t) in [0, π/4]
-  if (swap) a = (kPio2 - a) + kMoreBits;
-  if (x < 0.0) a = (kPio2 - a) + kPio2 + 2.0 * kMoreBits;  // π − a
+  double atan_less_t;
+  AtanLessT(t, atan_less_t);
+  double a = base + (atan_less_t + t + more);  // atan(t) in [0, π/4]
+  if (swap) a = (kAtanPio2 - a) + kAtanMoreBits;
+  if (x < 0.0) a = (kAtanPio2 - a) + kAtanPio2 + 2.0 * kAtanMoreBits;  // π − a
   return y < 0.0 || (y == 0.0 && std::signbit(y)) ? -a : a;
+}
+
+/// Atan2 of the lanes of GCC vectors of doubles V (I: their 64-bit integer lanes, a compare's
+/// mask) into `out`, for finite (y, x) not both zero: Atan2's operations in its order, its
+/// branches as selects, so that each lane is Atan2's result bit for bit (the build does not
+/// fuse a·b + c). By reference: a vector returned by value would change the ABI under the
+/// baseline instruction set.
+template <typename V, typename I>
+[[gnu::always_inline]] inline void Atan2Lanes(const V& y, const V& x, V& out) {
+  constexpr int64_t kMagnitude = 0x7fffffffffffffffLL;
+  const V ax = (V)((I)x & kMagnitude), ay = (V)((I)y & kMagnitude);
+  const I swap = ay > ax;
+  V t = (swap ? ax : ay) / (swap ? ay : ax);
+  const I big = t > 0.66;
+  t = big ? (t - 1.0) / (t + 1.0) : t;
+  const V zero = {};
+  const V base = big ? zero + kAtanPio4 : zero;
+  const V more = big ? zero + 0.5 * kAtanMoreBits : zero;
+  V atan_less_t;
+  AtanLessT(t, atan_less_t);
+  V a = base + (atan_less_t + t + more);
+  a = swap ? (kAtanPio2 - a) + kAtanMoreBits : a;
+  a = x < 0.0 ? (kAtanPio2 - a) + kAtanPio2 + 2.0 * kAtanMoreBits : a;
+  out = (y < 0.0) | ((y == 0.0) & ((I)y < 0)) ? -a : a;
 }
 
 /// Azimuth φ and elevation ψ (radians) of a sensor-frame direction (§2.1), of any length.
