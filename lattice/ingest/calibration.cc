@@ -17,6 +17,7 @@
 #include "absl/strings/str_format.h"
 #include "lattice/ingest/sample.h"
 #include "lattice/memory/isa.h"
+#include "lattice/memory/lanes.h"
 
 namespace vasl::ingest {
 namespace {
@@ -290,22 +291,7 @@ struct Search {
 /// W doubles to a vector (GCC's vector extensions: SSE2's width, or AVX2's; or one), and W
 /// floats.
 template <int W>
-struct Vectors;
-template <>
-struct Vectors<1> {
-  using Doubles = double;
-  using Floats = float;
-};
-template <>
-struct Vectors<2> {
-  using Doubles = double __attribute__((vector_size(16)));
-  using Floats = float __attribute__((vector_size(8)));
-};
-template <>
-struct Vectors<4> {
-  using Doubles = double __attribute__((vector_size(32)));
-  using Floats = float __attribute__((vector_size(16)));
-};
+using Vectors = memory::Lanes<W>;
 
 /// W consecutive floats at `p`, as doubles, into `out`.
 template <int W>

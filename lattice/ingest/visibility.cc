@@ -14,6 +14,7 @@
 
 #include "lattice/memory/huge_pages.h"
 #include "lattice/memory/isa.h"
+#include "lattice/memory/lanes.h"
 #include "lattice/tiles/tiling.h"
 
 namespace vasl::ingest {
@@ -516,39 +517,20 @@ struct PatchFrame {
   double x[3], t1[3], t2[3], o[3], R[9];
 };
 
-/// Vectors of L doubles and of L 64-bit lanes (their compares' masks).
-template <int L>
-struct Lanes;
-template <>
-struct Lanes<2> {
-  using V = double __attribute__((vector_size(16)));
-  using I = int64_t __attribute__((vector_size(16)));
-};
-template <>
-struct Lanes<4> {
-  using V = double __attribute__((vector_size(32)));
-  using I = int64_t __attribute__((vector_size(32)));
-};
-template <>
-struct Lanes<8> {
-  using V = double __attribute__((vector_size(64)));
-  using I = int64_t __attribute__((vector_size(64)));
-};
-
 /// The lit samples among ComputeVisibility's 16 grid samples of a patch (offsets sa, sb along
-/// t1, t2), L at a time in vectors of doubles (GCC's vector extensions): each lane takes the
-/// operations of the scalar sample (the point, its sensor-frame direction, its range, and
-/// geometry::EquirectProject with geometry::Atan2Lanes) in the same order, so that it reads the pixel
-/// the scalar sample reads and compares the same range: the same count, bit for bit
-/// (VisibilityShortcutTest.GridSamplesCountAsTheScalarSamples). −1 when a sample's direction is not
-/// finite or lies on the sensor's axis (Atan2's special cases): the caller takes the scalar
-/// samples.
+/// t1, t2), L at a time (memory::Lanes): each lane takes the operations of the scalar sample
+/// (the point, its sensor-frame direction, its range, and geometry::EquirectProject with
+/// geometry::Atan2Lanes) in the same order, so that it reads the pixel the scalar sample reads
+/// and compares the same range: the same count, bit for bit
+/// (VisibilityShortcutTest.GridSamplesCountAsTheScalarSamples). −1 when a sample's direction
+/// is not finite or lies on the sensor's axis (Atan2's special cases): the caller takes the
+/// scalar samples.
 template <int L>
 [[gnu::always_inline]] inline int LitGridSamples(const double* sa, const double* sb,
                                                  const PatchFrame& f, const float* depth, int W,
                                                  int H, double tolerance_m) {
-  using V = typename Lanes<L>::V;
-  using I = typename Lanes<L>::I;
+  using V = typename memory::Lanes<L>::Doubles;
+  using I = typename memory::Lanes<L>::Int64s;
   int lit = 0;
   for (int s0 = 0; s0 < 16; s0 += L) {
     V a, b;

@@ -302,9 +302,9 @@ TEST(FuseTest, ConvergesAndValidates) {
 // Claim (§7): per vossel and fused channel, C_k, Σw and U_k are the plain weighted sums of
 // that channel's records with w > 0 (RecordWeights), a_{m,c} applied to each value; kNearest
 // takes the first record of the greatest weight. Bit for bit: the sums taken one record at a
-// time in the records' order, in doubles, as Fuse's vectors take them. Records of several modalities interleave in
-// a vossel (sorted by source), as a stored project's do; some have no weight, some vossels
-// have none at all.
+// time in the records' order, in doubles, as Fuse takes them. Records of several modalities
+// interleave in a vossel (sorted by source), as a stored project's do; some have no weight,
+// some vossels have none at all.
 TEST(FuseTest, EqualsThePlainSumsPerVosselAndChannel) {
   std::mt19937 rng(11);
   std::uniform_real_distribution<float> unit(0.0f, 1.0f);
