@@ -318,15 +318,19 @@ std::string CameraKey(const store::SourceInfo& src, int64_t max_pixels, bool pin
                       pinhole ? " pinhole" : " equirect");
 }
 
-// A camera reading an image kept as its 8-bit codes: they are unpacked when its records are
-// sampled (a table lookup, where a miss decodes its file) and its channel shift corrected on the
-// rows those samples read (ingest::CameraRecords), not on the whole image.
+// A camera reading an image kept as its 8-bit codes: the rows its records read are unpacked
+// when they are sampled (a table lookup, where a miss decodes its file) and its channel shift
+// corrected on those rows (ingest::CameraRecords), not the whole image: a revisit samples a
+// few blocks of it.
 void ReadCodes(std::shared_ptr<const geometry::Srgb8Image> codes,
                std::shared_ptr<const ingest::ArtefactMaps> artefacts, ingest::CameraSource& cam) {
-  cam.image = ingest::LinearImage{};
+  cam.image = codes->header;  // its size, no pixels
   cam.kept_image.reset();
-  cam.load = [codes = std::move(codes)]() -> absl::StatusOr<ingest::LinearImage> {
+  cam.load = [codes]() -> absl::StatusOr<ingest::LinearImage> {
     return geometry::UnpackSrgb8(*codes);
+  };
+  cam.load_rows = [codes](int row_begin, int row_end) -> absl::StatusOr<ingest::LinearImage> {
+    return geometry::UnpackSrgb8Rows(*codes, row_begin, row_end);
   };
   cam.artefacts = std::move(artefacts);
 }

@@ -115,28 +115,42 @@ std::optional<Srgb8Image> PackSrgb8(const LinearImage& image) {
 }
 
 LinearImage UnpackSrgb8(const Srgb8Image& packed) {
+  return UnpackSrgb8Rows(packed, 0, packed.header.height_px);
+}
+
+LinearImage UnpackSrgb8Rows(const Srgb8Image& packed, int row_begin, int row_end) {
   const std::array<float, 256>& table = Srgb8ToLinear();
   LinearImage out = packed.header;
+  const int H = packed.header.height_px;
+  row_begin = std::clamp(row_begin, 0, H);
+  row_end = std::clamp(row_end, row_begin, H);
+  out.row_origin = row_begin;
   out.pixels.clear();
-  const size_t n = packed.codes.size();
+  const size_t stride = size_t(packed.header.width_px) * size_t(packed.header.channels);
+  const size_t first = size_t(row_begin) * stride, n = size_t(row_end - row_begin) * stride;
   memory::AssignOnHugePages(out.pixels, n, 0.0f);
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
                     [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t i = r.begin(); i != r.end(); ++i) out.pixels[i] = table[packed.codes[i]];
+    for (size_t i = r.begin(); i != r.end(); ++i) out.pixels[i] = table[packed.codes[first + i]];
   });
   return out;
 }
 
 namespace {
 
-// The bilinear read of a raster of `C` values per pixel (SampleBilinear's).
-void Bilinear(const float* data, int W, int H, int C, double u, double v, bool wrap, float* out) {
+// The bilinear read of a raster of `C` values per pixel (SampleBilinear's) of H rows, of which
+// `data` holds `rows` from row `origin` (all H from 0 but for a band; rows outside it clamp to
+// it).
+void Bilinear(const float* data, int W, int H, int C, double u, double v, bool wrap, float* out,
+              int origin, int rows) {
   const double x = u - 0.5, y = v - 0.5;
   const int i0 = int(std::floor(x)), j0 = int(std::floor(y));
   const double fx = x - i0, fy = y - j0;
   const int ia = wrap ? WrapColumn(i0, W) : std::clamp(i0, 0, W - 1);
   const int ib = wrap ? WrapColumn(i0 + 1, W) : std::clamp(i0 + 1, 0, W - 1);
-  const int ja = std::clamp(j0, 0, H - 1), jb = std::clamp(j0 + 1, 0, H - 1);
+  const int last = rows - 1;
+  const int ja = std::max(0, std::min(std::clamp(j0, 0, H - 1) - origin, last));
+  const int jb = std::max(0, std::min(std::clamp(j0 + 1, 0, H - 1) - origin, last));
   const float* p00 = &data[(size_t(ja) * W + ia) * C];
   const float* p10 = &data[(size_t(ja) * W + ib) * C];
   const float* p01 = &data[(size_t(jb) * W + ia) * C];
@@ -146,16 +160,26 @@ void Bilinear(const float* data, int W, int H, int C, double u, double v, bool w
   }
 }
 
+// The rows `values` (`per_pixel` per pixel) of `img` hold: height_px for a whole image, fewer
+// for a band.
+int RowsOf(const LinearImage& img, size_t values, int per_pixel) {
+  const size_t row = size_t(std::max(img.width_px, 0)) * size_t(std::max(per_pixel, 0));
+  if (values == row * size_t(std::max(img.height_px, 0))) return img.height_px;  // whole
+  return row > 0 ? int(values / row) : 0;
+}
+
 }  // namespace
 
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
-  Bilinear(img.pixels.data(), img.width_px, img.height_px, img.channels, u, v, wrap, out);
+  Bilinear(img.pixels.data(), img.width_px, img.height_px, img.channels, u, v, wrap, out,
+           img.row_origin, RowsOf(img, img.pixels.size(), img.channels));
 }
 
 float SampleCoverage(const LinearImage& img, double u, double v, bool wrap) {
   if (img.alpha.empty()) return 1.0f;
   float a;
-  Bilinear(img.alpha.data(), img.width_px, img.height_px, 1, u, v, wrap, &a);
+  Bilinear(img.alpha.data(), img.width_px, img.height_px, 1, u, v, wrap, &a, img.row_origin,
+           RowsOf(img, img.alpha.size(), 1));
   return a;
 }
 

@@ -32,7 +32,12 @@ struct LinearImage {
   int width_px = 0;
   int height_px = 0;
   int channels = 0;            ///< 1 or 3
-  std::vector<float> pixels;   ///< width·height·channels values
+  std::vector<float> pixels;   ///< width·height·channels values (a band's: its rows' alone)
+  /// The first row `pixels` holds: 0 for a whole image. A band (UnpackSrgb8Rows) holds rows
+  /// [row_origin, row_origin + pixels.size() / (width·channels)) of its height_px rows: what a
+  /// reader of those rows alone needs (a revisit's samples). Reads (SampleBilinear) index it
+  /// by the image's own rows.
+  int row_origin = 0;
   /// The share of each pixel the image covers (its alpha channel: a stitcher's transparent
   /// nadir, a masked rig or operator), width·height values in [0, 1]; empty: every pixel
   /// whole. Where set, `pixels` hold colour times coverage (associated alpha), so that a
@@ -80,10 +85,14 @@ struct Srgb8Image {
 std::optional<Srgb8Image> PackSrgb8(const LinearImage& image);
 /// The image `packed` holds, bit for bit as packed. Parallel (TBB).
 LinearImage UnpackSrgb8(const Srgb8Image& packed);
+/// Rows [row_begin, row_end) of that image (clamped to it) as a band (LinearImage::
+/// row_origin): each value bit for bit UnpackSrgb8's, for a reader of those rows alone.
+LinearImage UnpackSrgb8Rows(const Srgb8Image& packed, int row_begin, int row_end);
 
 /// Bilinear read of `img` at continuous pixel coordinates (u, v): `img.channels` values into
-/// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp. (Saturation
-/// is read from its own map, ingest::DetectSaturation.)
+/// `out`. Columns wrap across the seam (`wrap`, a panorama) or clamp, rows clamp to the image
+/// (and, of a band, to the rows it holds: its reader reads no others). (Saturation is read from
+/// its own map, ingest::DetectSaturation.)
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out);
 
 /// Bilinear read of `img`'s coverage (`alpha`) at (u, v), as SampleBilinear reads its pixels;

@@ -149,9 +149,15 @@ ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap)
 /// was found). Does nothing unless shift.found and the sizes agree. Parallel over rows (TBB).
 /// With a row range only rows [row_begin, row_end) are corrected (and counted); the others
 /// keep their raw values (a reader of those rows alone, SampledRows).
+/// Of a band of the image (LinearImage::row_origin), rows it holds alone are corrected, and
+/// only when it also holds the ChannelShiftRowPad rows either side that they read (clamped to
+/// the image).
 int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& shift,
                             geometry::LinearImage* changed = nullptr, int row_begin = 0,
                             int row_end = -1);
+/// How many rows beyond a run of rows CorrectChannelShift reads to correct it, in an image of
+/// `height_px` rows.
+int ChannelShiftRowPad(const ChannelShift& shift, int height_px);
 
 /// Codec artefacts (§9): what a JPEG's coding left in the image.
 struct CodecMap {

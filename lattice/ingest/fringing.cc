@@ -197,23 +197,34 @@ ChannelShift EstimateChannelShift(const geometry::LinearImage& image, bool wrap)
   return out;
 }
 
+int ChannelShiftRowPad(const ChannelShift& shift, int height_px) {
+  // A tap lies at most the largest row offset (the field is bilinear between tile offsets) and
+  // 2 rows beyond the row read.
+  float max_dy = 0.0f;
+  for (float dy : shift.tile_dy) max_dy = std::max(max_dy, std::abs(dy));
+  return int(std::min<float>(std::ceil(max_dy), float(height_px))) + 3;
+}
+
 int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& shift,
                             geometry::LinearImage* changed, int row_begin, int row_end) {
   const int W = image.width_px, H = image.height_px, C = image.channels;
   if (changed != nullptr) *changed = geometry::LinearImage{};
   if (!shift.found || C < 3 || shift.width_px != W || shift.height_px != H) return 0;
-  row_begin = std::clamp(row_begin, 0, H);
-  row_end = row_end < 0 ? H : std::clamp(row_end, row_begin, H);
-  if (row_begin == row_end) return 0;
-  // The rows as decoded that the corrected ones read: a tap lies at most the largest row offset
-  // (the field is bilinear between tile offsets) and 2 rows beyond the row read.
-  float max_dy = 0.0f;
-  for (float dy : shift.tile_dy) max_dy = std::max(max_dy, std::abs(dy));
-  const int pad = int(std::min<float>(std::ceil(max_dy), float(H))) + 3;
-  const int band_begin = std::max(0, row_begin - pad), band_end = std::min(H, row_end + pad);
+  // A band of the image (LinearImage::row_origin) holds rows [origin, origin + held).
+  const int origin = image.row_origin;
   const size_t stride = size_t(W) * C;
-  const std::vector<float> raw(image.pixels.begin() + ptrdiff_t(size_t(band_begin) * stride),
-                               image.pixels.begin() + ptrdiff_t(size_t(band_end) * stride));
+  const int held = stride > 0 ? int(image.pixels.size() / stride) : 0;
+  row_begin = std::clamp(row_begin, origin, origin + held);
+  row_end = row_end < 0 ? origin + held : std::clamp(row_end, row_begin, origin + held);
+  if (row_begin == row_end) return 0;
+  // The rows as decoded that the corrected ones read (a band must hold them: as of the whole
+  // image, clamped to its edges).
+  const int pad = ChannelShiftRowPad(shift, H);
+  const int band_begin = std::max(0, row_begin - pad), band_end = std::min(H, row_end + pad);
+  if (band_begin < origin || band_end > origin + held) return 0;  // not held: left raw
+  const std::vector<float> raw(
+      image.pixels.begin() + ptrdiff_t(size_t(band_begin - origin) * stride),
+      image.pixels.begin() + ptrdiff_t(size_t(band_end - origin) * stride));
   auto at = [&](int x, int y, int c) -> const float& {  // y within the band
     return raw[(size_t(y - band_begin) * W + size_t(x)) * C + size_t(c)];
   };
@@ -258,7 +269,7 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
           // The cubic's overshoot at an edge stays within the clip and above 0.
           v = std::clamp(v, 0.0f, image.clip_value);
           moved = std::max(moved, std::abs(v - at(x, y, c)));
-          image.pixels[p * C + size_t(c)] = v;
+          image.pixels[(p - size_t(origin) * W) * C + size_t(c)] = v;
         }
         // What the raw pixel's colour owed to fringing, as a share of its light.
         const float share = moved / std::max(level, 1e-6f * image.clip_value);

@@ -551,9 +551,16 @@ SourceVisibility CameraVisibility(const records::VosselGeometry& g, const Camera
 
 namespace {
 
-// The camera with its image: `stored`'s own, or decoded through its `load` into `loaded`.
+// Whether `cam`'s records load the rows they read alone (CameraSource::load_rows), once they
+// know which (SampleWithArtefacts).
+bool LoadsRows(const CameraSource& cam) {
+  return !cam.kept_image && cam.image.pixels.empty() && cam.load_rows && cam.artefacts;
+}
+
+// The camera with its image: `stored`'s own, or decoded through its `load` into `loaded`; or
+// `stored` still without pixels when its records load their rows alone (LoadsRows).
 absl::StatusOr<const CameraSource*> WithImage(const CameraSource& stored, CameraSource& loaded) {
-  if (stored.kept_image) return &stored;
+  if (stored.kept_image || LoadsRows(stored)) return &stored;
   if (stored.image.pixels.empty() && stored.load) {
     absl::StatusOr<LinearImage> image = stored.load();
     if (!image.ok()) return image.status();
@@ -567,9 +574,11 @@ absl::StatusOr<const CameraSource*> WithImage(const CameraSource& stored, Camera
   return &stored;
 }
 
-// §9 then §3-§6 for a camera with its image at hand (`loaded` when decoded for this call).
-SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const CameraSource& cam,
-                                  CameraSource& loaded, SourceVisibility visibility) {
+// §9 then §3-§6 for a camera with its image at hand (`loaded` when decoded for this call), or
+// whose rows load alone (LoadsRows): the rows its samples read are loaded into `loaded`.
+absl::StatusOr<SourceRecords> SampleWithArtefacts(const records::VosselGeometry& g,
+                                                  const CameraSource& cam, CameraSource& loaded,
+                                                  SourceVisibility visibility) {
   // §9: the artefacts of the image as recorded; then its channels' fringing corrected before
   // any colour is read from it.
   ArtefactMaps detected;
@@ -580,7 +589,24 @@ SourceRecords SampleWithArtefacts(const records::VosselGeometry& g, const Camera
   }
   const CameraSource* sampled = &cam;
   CameraSource corrected;
-  if (artefacts->fringing.found && !cam.kept_image) {  // a kept image is corrected
+  if (LoadsRows(cam)) {
+    // The rows the samples read, with those their correction reads (at least one row: a band
+    // is never empty).
+    const int H = cam.image.height_px;
+    auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
+    if (row_end <= row_begin) row_end = std::min(H, row_begin + 1);
+    const int pad =
+        artefacts->fringing.found ? ChannelShiftRowPad(artefacts->fringing, H) : 0;
+    absl::StatusOr<LinearImage> band = cam.load_rows(row_begin - pad, row_end + pad);
+    if (!band.ok()) return band.status();
+    loaded = cam;
+    loaded.image = std::move(*band);
+    loaded.load_rows = nullptr;
+    if (artefacts->fringing.found) {
+      CorrectChannelShift(loaded.image, artefacts->fringing, nullptr, row_begin, row_end);
+    }
+    sampled = &loaded;
+  } else if (artefacts->fringing.found && !cam.kept_image) {  // a kept image is corrected
     // Only the rows the samples read (a revisit samples a few blocks of a large image).
     const auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
     if (&cam == &loaded) {

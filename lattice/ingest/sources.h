@@ -146,6 +146,11 @@ struct CameraSource {
   /// Decodes the image on demand when `image` is empty, so that a project's panoramas are
   /// held in memory one at a time (a decoded 8192×4096 panorama takes 400 MB).
   std::function<absl::StatusOr<LinearImage>()> load;
+  /// Set with `load` and `artefacts` (an image kept as its 8-bit codes): decodes rows
+  /// [row_begin, row_end) alone, as a band (LinearImage::row_origin), for records that read
+  /// those rows only (CameraRecords: a revisit's few blocks). `image` then holds the image's
+  /// size without pixels.
+  std::function<absl::StatusOr<LinearImage>(int row_begin, int row_end)> load_rows;
   double angular_resolution_rad = 0.0;  ///< 0: θ_pix from the image size (§3)
   /// Set: a pinhole camera (its width and height are the image's); unset: equirectangular.
   std::optional<geometry::PinholeIntrinsics> pinhole;

@@ -5,6 +5,8 @@
 // records of one decoded afresh; and the cache holds no more
 // than its budget, the least recently used going first. A LiDAR read through it is the stored
 // one with its gap fill.
+#include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <memory>
 #include <optional>
@@ -261,24 +263,62 @@ TEST(LoadedCamera, AKeptCorrectedImageGivesTheRecordsOfAFreshDecode) {
   // Kept as its codes (LoadedCamera's 8-bit cameras): unpacked on load, corrected by the records.
   std::optional<geometry::Srgb8Image> packed = geometry::PackSrgb8(*image);
   ASSERT_TRUE(packed.has_value()) << "the synthetic PNG is 8-bit";
+  auto codes = std::make_shared<const geometry::Srgb8Image>(std::move(*packed));
   ingest::CameraSource coded = kept;
   coded.kept_image.reset();
-  coded.load = [codes = std::make_shared<const geometry::Srgb8Image>(std::move(*packed))]()
-      -> absl::StatusOr<ingest::LinearImage> { return geometry::UnpackSrgb8(*codes); };
+  coded.load = [codes]() -> absl::StatusOr<ingest::LinearImage> {
+    return geometry::UnpackSrgb8(*codes);
+  };
+  // And read by rows (LoadedCamera's, for revisits): the rows the samples read, with those
+  // their correction reads, unpacked alone.
+  ingest::CameraSource banded = coded;
+  banded.image = codes->header;
+  int band_rows = -1;
+  banded.load_rows = [codes, &band_rows](int row_begin, int row_end) {
+    geometry::LinearImage band = geometry::UnpackSrgb8Rows(*codes, row_begin, row_end);
+    band_rows = int(band.pixels.size() / (size_t(band.width_px) * size_t(band.channels)));
+    return absl::StatusOr<ingest::LinearImage>(std::move(band));
+  };
 
+  auto same = [](const records::RecordSet& a, const records::RecordSet& b) {
+    EXPECT_EQ(a.vossel, b.vossel);
+    EXPECT_EQ(a.value, b.value);
+    EXPECT_EQ(a.vis, b.vis);
+    EXPECT_EQ(a.conf, b.conf);
+    EXPECT_EQ(a.flags, b.flags);
+  };
   auto a = ingest::CameraRecords(*g, fresh);
   ASSERT_TRUE(a.ok()) << a.status();
   ASSERT_GT(a->records.size(), 1000u);
   a->records.SortByVossel();  // parallel sampling gives them in any order
-  for (const ingest::CameraSource* other : {&kept, &coded}) {
+  for (const ingest::CameraSource* other : {&kept, &coded, &banded}) {
     auto b = ingest::CameraRecords(*g, *other);
     ASSERT_TRUE(b.ok()) << b.status();
     b->records.SortByVossel();
-    EXPECT_EQ(a->records.vossel, b->records.vossel);
-    EXPECT_EQ(a->records.value, b->records.value);
-    EXPECT_EQ(a->records.vis, b->records.vis);
+    same(a->records, b->records);
   }
   EXPECT_EQ(fresh.image.pixels, image->pixels) << "the fresh camera's own image stays as decoded";
+
+  // A revisit's few vossels (those 10° to 15° above the camera's horizon): the band holds a
+  // few of the image's rows, and the records are those of the whole image.
+  std::vector<uint8_t> only(g->size(), 0);
+  for (size_t k = 0; k < g->size(); ++k) {
+    const Eigen::Vector3d d = g->FrameCentroid(k).cast<double>() - fresh.pose.o_world;
+    const double elevation_deg = std::asin(d.z() / d.norm()) * 180.0 / M_PI;
+    only[k] = elevation_deg >= 10.0 && elevation_deg <= 15.0;
+  }
+  auto few = ingest::CameraRecords(*g, fresh, &only, nullptr);
+  auto few_banded = ingest::CameraRecords(*g, banded, &only, nullptr);
+  ASSERT_TRUE(few.ok()) << few.status();
+  ASSERT_TRUE(few_banded.ok()) << few_banded.status();
+  ASSERT_GT(few->records.size(), 50u);
+  few->records.SortByVossel();
+  few_banded->records.SortByVossel();
+  same(few->records, few_banded->records);
+  EXPECT_GT(band_rows, 0);
+  EXPECT_LT(band_rows, image->height_px / 4) << "of " << image->height_px << " rows";
+  std::printf("a revisit of %zu records unpacked %d of %d rows\n", few->records.size(),
+              band_rows, image->height_px);
 }
 
 }  // namespace

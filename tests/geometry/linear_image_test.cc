@@ -1,5 +1,6 @@
 // LinearToSrgb8 (how PNG renders are coded) against its definition, lround(255·LinearToSrgb);
-// an 8-bit image packed as its codes (PackSrgb8) comes back bit for bit, and nothing else packs.
+// an 8-bit image packed as its codes (PackSrgb8) comes back bit for bit, and nothing else packs;
+// a band of its rows (UnpackSrgb8Rows) reads as the whole image.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -7,6 +8,8 @@
 #include <cstring>
 #include <limits>
 #include <optional>
+#include <utility>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -105,6 +108,43 @@ TEST(LinearImageTest, AnImageOfSrgb8CodesPacksAndComesBackBitForBit) {
       LinearImage changed = image;
       changed.pixels[image.pixels.size() / 2] = v;
       EXPECT_FALSE(PackSrgb8(changed).has_value()) << "value " << v;
+    }
+  }
+}
+
+// Claim: a band of an image (UnpackSrgb8Rows) holds its rows bit for bit, and a bilinear read
+// within them is the whole image's read, at the image's edges too.
+TEST(LinearImageTest, ABandReadsAsTheWholeImage) {
+  LinearImage image;
+  image.width_px = 37;
+  image.height_px = 23;
+  image.channels = 3;
+  for (int i = 0; i < image.width_px * image.height_px * 3; ++i) {
+    image.pixels.push_back(Srgb8ToLinear()[size_t((i * 37 + 11) % 256)]);
+  }
+  std::optional<Srgb8Image> packed = PackSrgb8(image);
+  ASSERT_TRUE(packed.has_value());
+  for (const auto& [begin, end] : std::vector<std::pair<int, int>>{{0, 23}, {0, 5}, {9, 14},
+                                                                    {18, 23}, {-4, 40}}) {
+    const LinearImage band = UnpackSrgb8Rows(*packed, begin, end);
+    const int b = std::clamp(begin, 0, 23), e = std::clamp(end, 0, 23);
+    EXPECT_EQ(band.row_origin, b);
+    ASSERT_EQ(band.pixels.size(), size_t(e - b) * 37 * 3);
+    EXPECT_TRUE(std::equal(band.pixels.begin(), band.pixels.end(),
+                           image.pixels.begin() + ptrdiff_t(size_t(b) * 37 * 3)));
+    // Reads whose two rows lie in the band (v − ½ clamped to the image, and the next row).
+    for (double v = -0.7; v <= 23.7; v += 0.35) {
+      const int j0 = std::clamp(int(std::floor(v - 0.5)), 0, 22);
+      const int j1 = std::clamp(int(std::floor(v - 0.5)) + 1, 0, 22);
+      if (j0 < b || j1 >= e) continue;
+      for (double u = -1.3; u <= 38.3; u += 0.9) {
+        for (bool wrap : {false, true}) {
+          float whole[3], from_band[3];
+          SampleBilinear(image, u, v, wrap, whole);
+          SampleBilinear(band, u, v, wrap, from_band);
+          for (int c = 0; c < 3; ++c) ASSERT_EQ(whole[c], from_band[c]) << u << " " << v;
+        }
+      }
     }
   }
 }
