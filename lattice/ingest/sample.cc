@@ -260,15 +260,37 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
   const size_t nv = g.size();
   const double h = g.vossel_size_m;
   const int C = channels;
-  // Per vossel: Σ value per channel, the return count and the clipped count (thread-local).
+  // The vossels sampled (V > 0), numbered in the lattice's order: the sums below are theirs
+  // alone, so that a revisit of a few vossels of a large project sums a few (slot -1: not
+  // sampled). Their box of indices passes most returns over before the tree is probed.
+  std::vector<int32_t> slot(nv, -1);
+  std::vector<int32_t> sampled;
+  openvdb::CoordBBox box;  // empty
+  for (size_t k = 0; k < nv; ++k) {
+    if (!(vis[k] > 0.0f)) continue;
+    slot[k] = int32_t(sampled.size());
+    sampled.push_back(int32_t(k));
+    box.expand(g.coord[k]);
+  }
+  const size_t ns = sampled.size();
+  if (ns == 0) return RecordSet{};
+  // Per sampled vossel: Σ value per channel, the return count and the clipped count
+  // (thread-local).
   struct Sums {
     std::vector<double> sum;
     std::vector<int32_t> count, clipped;
   };
-  tbb::enumerable_thread_specific<Sums> local([nv, C] {
-    return Sums{std::vector<double>(nv * size_t(C), 0.0), std::vector<int32_t>(nv, 0),
-                std::vector<int32_t>(nv, 0)};
+  tbb::enumerable_thread_specific<Sums> local([ns, C] {
+    return Sums{std::vector<double>(ns * size_t(C), 0.0), std::vector<int32_t>(ns, 0),
+                std::vector<int32_t>(ns, 0)};
   });
+  // The slot of the vossel holding position `kf` (vossel index space), or -1.
+  auto slot_at = [&](const Eigen::Vector3d& kf, const auto& acc) -> int32_t {
+    const openvdb::Coord c(int(kf.x()), int(kf.y()), int(kf.z()));
+    int32_t k;
+    if (!box.isInside(c) || !acc.probeValue(c, k)) return -1;
+    return slot[size_t(k)];
+  };
   const Eigen::Matrix3d R = lidar.pose.q_world_sensor.toRotationMatrix();
   const float clip_at = 0.999f * clip;
   tbb::parallel_for(tbb::blocked_range<size_t>(0, lidar.point_count(), 1 << 14), [&](const tbb::blocked_range<size_t>& r) {
@@ -278,10 +300,8 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
       const float* p = &lidar.xyz_sensor_m[3 * i];
       if (p[0] == 0.0f && p[1] == 0.0f && p[2] == 0.0f) continue;  // "no return" marker
       // BinLidar's binning, return for return.
-      const Eigen::Vector3d kf = VosselIndexOf(ReturnPosition(R, lidar.pose.o_world, p), h);
-      const openvdb::Coord c(int(kf.x()), int(kf.y()), int(kf.z()));
-      int32_t k;
-      if (!acc.probeValue(c, k)) continue;
+      const int32_t k = slot_at(VosselIndexOf(ReturnPosition(R, lidar.pose.o_world, p), h), acc);
+      if (k < 0) continue;
       bool clipped = false;
       for (int ch = 0; ch < C; ++ch) {
         const float v = values.empty() ? 1.0f : values[i * size_t(C) + size_t(ch)];
@@ -300,9 +320,8 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
     Sums& s = local.local();
     auto acc = g.index_grid->getConstAccessor();
     for (size_t f = r.begin(); f != r.end(); ++f) {
-      const Eigen::Vector3d kf = VosselIndexOf(fill.x[f], h);
-      int32_t k;
-      if (!acc.probeValue(openvdb::Coord(int(kf.x()), int(kf.y()), int(kf.z())), k)) continue;
+      const int32_t k = slot_at(VosselIndexOf(fill.x[f], h), acc);
+      if (k < 0) continue;
       bool clipped = false;
       for (int ch = 0; ch < C; ++ch) {
         float v = 1.0f;
@@ -319,29 +338,30 @@ RecordSet SampleReturns(const records::VosselGeometry& g, const LidarSource& lid
       s.clipped[k] += clipped ? 1 : 0;
     }
   });
-  std::vector<double> sum(nv * size_t(C), 0.0);
-  std::vector<int32_t> count(nv, 0), clipped(nv, 0);
+  std::vector<double> sum(ns * size_t(C), 0.0);
+  std::vector<int32_t> count(ns, 0), clipped(ns, 0);
   for (const Sums& s : local) {
-    for (size_t k = 0; k < nv; ++k) {
-      count[k] += s.count[k];
-      clipped[k] += s.clipped[k];
+    for (size_t n = 0; n < ns; ++n) {
+      count[n] += s.count[n];
+      clipped[n] += s.clipped[n];
     }
     for (size_t i = 0; i < sum.size(); ++i) sum[i] += s.sum[i];
   }
   tbb::enumerable_thread_specific<RecordSet> parts;
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, nv, 2048), [&](const tbb::blocked_range<size_t>& r) {
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, ns, 2048), [&](const tbb::blocked_range<size_t>& r) {
     RecordSet& out = parts.local();
-    for (size_t k = r.begin(); k != r.end(); ++k) {
-      if (count[k] == 0 || !(vis[k] > 0.0f)) continue;
+    for (size_t n = r.begin(); n != r.end(); ++n) {
+      if (count[n] == 0) continue;
+      const size_t k = size_t(sampled[n]);
       ReturnTerms terms;
       if (!ReturnTermsOf(g, k, lidar.pose, lidar.divergence_rad, depth.size, &terms)) continue;
       float value[records::kValueChannels] = {0, 0, 0};
       for (int ch = 0; ch < C && ch < records::kValueChannels; ++ch) {
-        value[ch] = float(sum[k * C + ch] / count[k]);
+        value[ch] = float(sum[n * C + ch] / count[n]);
       }
       float conf[records::kConfidenceCount];
       std::fill(std::begin(conf), std::end(conf), 1.0f);
-      conf[records::kConfSaturation] = 1.0f - float(clipped[k]) / float(count[k]);
+      conf[records::kConfSaturation] = 1.0f - float(clipped[n]) / float(count[n]);
       PushRecord(out, int32_t(k), source_id, modality, value, C, terms.range_m, terms.cos_inc,
                  terms.foot, terms.uv, vis[k], conf, 0, lidar.batch);
     }
