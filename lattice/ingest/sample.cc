@@ -614,7 +614,10 @@ absl::StatusOr<SourceRecords> SampleWithArtefacts(const records::VosselGeometry&
     // is never empty).
     const int H = cam.image.height_px;
     auto [row_begin, row_end] = SampledRows(g, cam, visibility.vis);
-    if (row_end <= row_begin) row_end = std::min(H, row_begin + 1);
+    if (row_end <= row_begin) {
+      row_begin = std::clamp(row_begin, 0, std::max(H - 1, 0));
+      row_end = row_begin + 1;
+    }
     const int pad =
         artefacts->fringing.found ? ChannelShiftRowPad(artefacts->fringing, H) : 0;
     absl::StatusOr<LinearImage> band = cam.load_rows(row_begin - pad, row_end + pad);
