@@ -160,26 +160,24 @@ void Bilinear(const float* data, int W, int H, int C, double u, double v, bool w
   }
 }
 
-// The rows `values` (`per_pixel` per pixel) of `img` hold: height_px for a whole image, fewer
-// for a band.
-int RowsOf(const LinearImage& img, size_t values, int per_pixel) {
-  const size_t row = size_t(std::max(img.width_px, 0)) * size_t(std::max(per_pixel, 0));
-  if (values == row * size_t(std::max(img.height_px, 0))) return img.height_px;  // whole
-  return row > 0 ? int(values / row) : 0;
-}
-
 }  // namespace
+
+int LinearImage::HeldRows() const {
+  const size_t row = size_t(std::max(width_px, 0)) * size_t(std::max(channels, 0));
+  if (pixels.size() == row * size_t(std::max(height_px, 0))) return height_px;  // whole
+  return row > 0 ? int(pixels.size() / row) : 0;
+}
 
 void SampleBilinear(const LinearImage& img, double u, double v, bool wrap, float* out) {
   Bilinear(img.pixels.data(), img.width_px, img.height_px, img.channels, u, v, wrap, out,
-           img.row_origin, RowsOf(img, img.pixels.size(), img.channels));
+           img.row_origin, img.HeldRows());
 }
 
 float SampleCoverage(const LinearImage& img, double u, double v, bool wrap) {
   if (img.alpha.empty()) return 1.0f;
   float a;
   Bilinear(img.alpha.data(), img.width_px, img.height_px, 1, u, v, wrap, &a, img.row_origin,
-           RowsOf(img, img.alpha.size(), 1));
+           img.HeldRows());
   return a;
 }
 

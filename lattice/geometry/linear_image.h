@@ -52,6 +52,9 @@ struct LinearImage {
 
   /// Bytes its pixels take.
   std::size_t ByteSize() const { return (pixels.size() + alpha.size()) * sizeof(float); }
+  /// The rows `pixels` (and `alpha`, where set) hold from row_origin: height_px for a whole
+  /// image, fewer for a band.
+  int HeldRows() const;
 };
 
 /// The standard sRGB EOTF (IEC 61966-2-1): encoded [0, 1] → linear, c/12.92 up to 0.04045,

@@ -213,7 +213,7 @@ int64_t CorrectChannelShift(geometry::LinearImage& image, const ChannelShift& sh
   // A band of the image (LinearImage::row_origin) holds rows [origin, origin + held).
   const int origin = image.row_origin;
   const size_t stride = size_t(W) * C;
-  const int held = stride > 0 ? int(image.pixels.size() / stride) : 0;
+  const int held = image.HeldRows();
   row_begin = std::clamp(row_begin, origin, origin + held);
   row_end = row_end < 0 ? origin + held : std::clamp(row_end, row_begin, origin + held);
   if (row_begin == row_end) return 0;
