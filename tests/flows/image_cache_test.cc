@@ -276,7 +276,7 @@ TEST(LoadedCamera, AKeptCorrectedImageGivesTheRecordsOfAFreshDecode) {
   int band_rows = -1;
   banded.load_rows = [codes, &band_rows](int row_begin, int row_end) {
     geometry::LinearImage band = geometry::UnpackSrgb8Rows(*codes, row_begin, row_end);
-    band_rows = int(band.pixels.size() / (size_t(band.width_px) * size_t(band.channels)));
+    band_rows = band.HeldRows();
     return absl::StatusOr<ingest::LinearImage>(std::move(band));
   };
 

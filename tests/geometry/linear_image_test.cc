@@ -130,6 +130,7 @@ TEST(LinearImageTest, ABandReadsAsTheWholeImage) {
     const int b = std::clamp(begin, 0, 23), e = std::clamp(end, 0, 23);
     EXPECT_EQ(band.row_origin, b);
     ASSERT_EQ(band.pixels.size(), size_t(e - b) * 37 * 3);
+    EXPECT_EQ(band.HeldRows(), e - b);
     EXPECT_TRUE(std::equal(band.pixels.begin(), band.pixels.end(),
                            image.pixels.begin() + ptrdiff_t(size_t(b) * 37 * 3)));
     // Reads whose two rows lie in the band (v − ½ clamped to the image, and the next row).
