@@ -12,7 +12,7 @@
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 
-#include "lattice/memory/huge_pages.h"
+#include "lattice/memory/buffer_pool.h"
 #include "lattice/memory/isa.h"
 #include "lattice/memory/lanes.h"
 #include "lattice/tiles/tiling.h"
@@ -166,7 +166,7 @@ DepthPanorama RenderDepthPanorama(const records::VosselGeometry& g, const geomet
   const int W = size.width_px, H = size.height_px;
   const size_t npix = size_t(W) * H;
   std::vector<float>& depth = out.depth_m;
-  memory::AssignOnHugePages(depth, npix, std::numeric_limits<float>::infinity());
+  depth = memory::TakeFloats(npix, std::numeric_limits<float>::infinity());
   out.splat_row_begin = H;  // no row splatted yet
   out.splat_row_end = 0;
   // With `cells`: a summed-area table of the flagged cells, so that a splat whose pixels lie

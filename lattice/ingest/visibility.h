@@ -13,6 +13,7 @@
 #include "lattice/geometry/equirect.h"
 #include "lattice/geometry/footprint.h"
 #include "lattice/geometry/pose.h"
+#include "lattice/memory/buffer_pool.h"
 #include "lattice/records/records.h"
 #include "lattice/tiles/tiling.h"
 
@@ -63,6 +64,15 @@ struct DepthPanorama {
   int splat_row_begin = 0, splat_row_end = std::numeric_limits<int>::max();
 
   float At(int i, int j) const { return depth_m[size_t(j) * size.width_px + i]; }
+
+  DepthPanorama() = default;
+  DepthPanorama(const DepthPanorama&) = default;
+  DepthPanorama(DepthPanorama&&) = default;
+  DepthPanorama& operator=(const DepthPanorama&) = default;
+  DepthPanorama& operator=(DepthPanorama&&) = default;
+  /// The depths' storage goes back to memory::GiveFloats: the next panorama of the size,
+  /// taken by RenderDepthPanorama, reuses it without page faults.
+  ~DepthPanorama() { memory::GiveFloats(std::move(depth_m)); }
 };
 
 /// Equirect raster size for a depth panorama whose pixel pitch is about `pitch_rad` (within
