@@ -1020,6 +1020,7 @@ absl::StatusOr<store::Snapshot> Propagate(const store::ProjectStore& store,
     return s;
   }
 
+  if (absl::Status stop = clock.Start("merge records", 0.84); !stop.ok()) return stop;
   next.records.Append(fresh);  // 5.
   next.records = records::MergeRenumbered(*old_records, keep, change.old_to_new,
                                           std::move(next.records));

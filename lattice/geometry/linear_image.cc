@@ -125,10 +125,9 @@ LinearImage UnpackSrgb8Rows(const Srgb8Image& packed, int row_begin, int row_end
   row_begin = std::clamp(row_begin, 0, H);
   row_end = std::clamp(row_end, row_begin, H);
   out.row_origin = row_begin;
-  out.pixels.clear();
   const size_t stride = size_t(packed.header.width_px) * size_t(packed.header.channels);
   const size_t first = size_t(row_begin) * stride, n = size_t(row_end - row_begin) * stride;
-  memory::AssignOnHugePages(out.pixels, n, 0.0f);
+  out.pixels = memory::TakeFloatsForOverwrite(n);  // every value written below
   tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 1 << 16),
                     [&](const tbb::blocked_range<size_t>& r) {
     for (size_t i = r.begin(); i != r.end(); ++i) out.pixels[i] = table[packed.codes[first + i]];

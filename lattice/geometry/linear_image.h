@@ -11,6 +11,8 @@
 #include <optional>
 #include <vector>
 
+#include "lattice/memory/buffer_pool.h"
+
 namespace vasl::geometry {
 
 /// How a block-transform codec (baseline or progressive JPEG) coded an image: its quantisation
@@ -49,6 +51,18 @@ struct LinearImage {
   /// Set when the file decoded is only part of this image (a partial panorama placed in its
   /// sphere, ingest::PlaceInSphere): where it lies, and where its codec's blocks start.
   std::optional<ImageWindow> coded_window;
+
+  LinearImage() = default;
+  LinearImage(const LinearImage&) = default;
+  LinearImage(LinearImage&&) = default;
+  LinearImage& operator=(const LinearImage&) = default;
+  LinearImage& operator=(LinearImage&&) = default;
+  /// Its buffers go back to memory's pool: a revisit unpacks a panorama of tens of megabytes
+  /// per older camera, one after another (UnpackSrgb8Rows takes them again).
+  ~LinearImage() {
+    memory::GiveFloats(std::move(pixels));
+    memory::GiveFloats(std::move(alpha));
+  }
 
   /// Bytes its pixels take.
   std::size_t ByteSize() const { return (pixels.size() + alpha.size()) * sizeof(float); }

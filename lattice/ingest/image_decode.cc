@@ -15,6 +15,7 @@
 #include "absl/strings/str_cat.h"
 #include "lattice/ingest/image_memory.h"
 #include "lattice/ingest/sources.h"
+#include "lattice/memory/buffer_pool.h"
 #include "lattice/memory/huge_pages.h"
 
 namespace vasl::ingest {
@@ -240,7 +241,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
   out.channels = infrared ? 1 : 3;
   out.clip_value = is_float ? 0.0f : 1.0f;
   if (int8) out.coding = ReadJpegCoding(bytes);  // §9 codec: what the JPEG's coding did
-  memory::AssignOnHugePages(out.pixels, n * out.channels, 0.0f);
+  out.pixels = memory::TakeFloatsForOverwrite(n * out.channels);  // every value written below
   const int oc = out.channels;
   // The colour channels: the first three that are not alpha (one, gray, is replicated).
   const int alpha_at = nc > 1 && spec.alpha_channel >= 0 && spec.alpha_channel < nc
@@ -271,7 +272,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
     return v;
   };
   std::vector<float> alpha;
-  if (alpha_at >= 0) memory::AssignOnHugePages(alpha, n, 1.0f);
+  if (alpha_at >= 0) alpha = memory::TakeFloatsForOverwrite(n);  // every value written below
   const bool covered_whole = tbb::parallel_reduce(
       tbb::blocked_range<size_t>(0, n, 1 << 14), true,
       [&](const tbb::blocked_range<size_t>& r, bool whole) {
@@ -292,6 +293,7 @@ absl::StatusOr<LinearImage> DecodeImage(std::string_view bytes, bool infrared,
       },
       [](bool a, bool b) { return a && b; });
   if (alpha_at >= 0 && !covered_whole) out.alpha = std::move(alpha);
+  memory::GiveFloats(std::move(alpha));  // a whole cover's (or none)
   return out;
 }
 

@@ -19,9 +19,9 @@ Pool& ThePool() {
   return *pool;
 }
 
-}  // namespace
-
-std::vector<float> TakeFloats(std::size_t n, float value) {
+// The smallest kept buffer of capacity n to 2n (moved out of the pool), or a new one of
+// capacity n advised for huge pages; its size is what it held, or 0.
+std::vector<float> Reserved(std::size_t n) {
   std::vector<float> out;
   if (n * sizeof(float) >= kPooledMinBytes) {
     Pool& pool = ThePool();
@@ -38,7 +38,20 @@ std::vector<float> TakeFloats(std::size_t n, float value) {
     out.reserve(n);
     AdviseHugePages(out.data(), n * sizeof(float));
   }
+  return out;
+}
+
+}  // namespace
+
+std::vector<float> TakeFloats(std::size_t n, float value) {
+  std::vector<float> out = Reserved(n);
   out.assign(n, value);
+  return out;
+}
+
+std::vector<float> TakeFloatsForOverwrite(std::size_t n) {
+  std::vector<float> out = Reserved(n);
+  out.resize(n);  // writes only the values past what the buffer held
   return out;
 }
 

@@ -1,4 +1,4 @@
-// TakeFloats / GiveFloats: the values promised, storage handed out again to a take it fits,
+// TakeFloats / TakeFloatsForOverwrite / GiveFloats: the values promised, storage handed out again to a take it fits,
 // small and oversized buffers not kept, and the pool's byte bound.
 #include "lattice/memory/buffer_pool.h"
 
@@ -37,6 +37,32 @@ TEST(BufferPool, TakeFillsAndReusesGivenStorage) {
   EXPECT_EQ(PooledBytes(), kFloats * sizeof(float));
   ReleasePooled();
   EXPECT_EQ(PooledBytes(), 0u);
+}
+
+TEST(BufferPool, TakeForOverwriteWritesNothingWithinWhatWasGiven) {
+  ReleasePooled();
+  std::vector<float> a(kFloats, 2.0f);
+  a[5] = -1.0f;
+  const float* storage = a.data();
+  GiveFloats(std::move(a));
+  // Within the size given back, the buffer comes out as it went in (nothing is written).
+  std::vector<float> b = TakeFloatsForOverwrite(kFloats - 10);
+  EXPECT_EQ(b.data(), storage);
+  ASSERT_EQ(b.size(), kFloats - 10);
+  EXPECT_EQ(b[5], -1.0f);
+  EXPECT_EQ(b[kFloats - 11], 2.0f);
+  // Given back shorter, a longer take zeroes only the values past that.
+  b.resize(100);
+  GiveFloats(std::move(b));
+  std::vector<float> c = TakeFloatsForOverwrite(kFloats);
+  EXPECT_EQ(c.data(), storage);
+  EXPECT_EQ(c[5], -1.0f);
+  EXPECT_TRUE(std::all_of(c.begin() + 100, c.end(), [](float v) { return v == 0.0f; }));
+  // None kept: a new buffer, zeroed.
+  std::vector<float> d = TakeFloatsForOverwrite(kFloats);
+  EXPECT_NE(d.data(), storage);
+  EXPECT_TRUE(std::all_of(d.begin(), d.end(), [](float v) { return v == 0.0f; }));
+  ReleasePooled();
 }
 
 TEST(BufferPool, SmallAndOversizedBuffersAreNotKept) {
