@@ -215,40 +215,62 @@ RecordSet MergeRenumbered(const RecordSet& kept, const std::vector<size_t>& rows
       place[j] = lo + j;
     }
   });
-  // The merged order: entry p names a kept row (< kAdded) or an added record (kAdded + j). A
-  // run of places starts at the added records placed ahead of it and the kept rows that fill
-  // the rest.
-  constexpr size_t kAdded = size_t{1} << 62;
-  std::vector<size_t> from(n);
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain), [&](const tbb::blocked_range<size_t>& r) {
-    size_t j = size_t(std::lower_bound(place.begin(), place.end(), r.begin()) - place.begin());
-    size_t i = r.begin() - j;  // the added records placed ahead of the run, and the kept rows
-    for (size_t p = r.begin(); p != r.end(); ++p) {
-      from[p] = j < na && place[j] == p ? kAdded + j++ : rows[i++];
+  // The merged order as runs: a run of consecutive kept rows that no added record falls
+  // between, or of added records placed side by side, each copied by one copy per array (a
+  // change keeps whole stretches of a project's records: a record at a time, through a table
+  // of where each came from, made the merge four times the memory traffic, BM_MergeRenumbered).
+  struct Run {
+    size_t src = 0, dst = 0, len = 0;
+    bool added = false;
+  };
+  std::vector<Run> runs;
+  auto push = [&runs, kGrain](Run run) {  // long runs in pieces, so that threads share them
+    for (; run.len > kGrain; run.src += kGrain, run.dst += kGrain, run.len -= kGrain) {
+      runs.push_back({run.src, run.dst, kGrain, run.added});
     }
-  });
+    runs.push_back(run);
+  };
+  for (size_t i = 0, j = 0, p = 0; i < nk || j < na;) {
+    if (j < na && place[j] == p) {  // added records j.. at places p..
+      const size_t j0 = j;
+      while (j < na && place[j] == p + (j - j0)) ++j;
+      push({j0, p, j - j0, true});
+      p += j - j0;
+      continue;
+    }
+    // Kept rows fill the places up to the next added record's (or the end).
+    const size_t limit = j < na ? place[j] : n;
+    const size_t i0 = i++;
+    while (p + (i - i0) < limit && i < nk && rows[i] == rows[i - 1] + 1) ++i;
+    push({rows[i0], p, i - i0, false});
+    p += i - i0;
+  }
   RecordSet out;
   tbb::task_group arrays;  // one task per array, as Select; each copies its runs in parallel
   ForEachArrayOf(
       [&](auto width, auto& dst, const auto& old, const auto& more) {
-        arrays.run([&dst, &old, &more, &from, n] {
+        arrays.run([&dst, &old, &more, &runs, n] {
           constexpr size_t stride = decltype(width)::value;
           dst.resize(n * stride);
-          tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain),
+          tbb::parallel_for(tbb::blocked_range<size_t>(0, runs.size(), 16),
                             [&](const tbb::blocked_range<size_t>& r) {
-            for (size_t p = r.begin(); p != r.end(); ++p) {
-              const size_t f = from[p];
-              const auto* src = f >= kAdded ? &more[(f - kAdded) * stride] : &old[f * stride];
-              std::copy_n(src, stride, &dst[p * stride]);
+            for (size_t k = r.begin(); k != r.end(); ++k) {
+              const Run& run = runs[k];
+              const auto* src = run.added ? &more[run.src * stride] : &old[run.src * stride];
+              std::copy_n(src, run.len * stride, &dst[run.dst * stride]);
             }
           });
         });
       },
       out, std::as_const(kept), std::as_const(added));
   arrays.wait();
-  tbb::parallel_for(tbb::blocked_range<size_t>(0, n, kGrain), [&](const tbb::blocked_range<size_t>& r) {
-    for (size_t p = r.begin(); p != r.end(); ++p) {  // the kept rows' vossels, renumbered
-      if (from[p] < kAdded) out.vossel[p] = renumber[size_t(out.vossel[p])];
+  tbb::parallel_for(tbb::blocked_range<size_t>(0, runs.size(), 16),
+                    [&](const tbb::blocked_range<size_t>& r) {
+    for (size_t k = r.begin(); k != r.end(); ++k) {  // the kept rows' vossels, renumbered
+      const Run& run = runs[k];
+      if (run.added) continue;
+      int32_t* v = &out.vossel[run.dst];
+      for (size_t t = 0; t < run.len; ++t) v[t] = renumber[size_t(v[t])];
     }
   });
   return out;
