@@ -63,6 +63,47 @@ TEST_F(VisibilityShortcutTest, ShadowByCellsEqualsSampleTests) {
 // Claim (a panorama that does not depend on the machine): the depth panorama splatted by the
 // baseline's instruction set and by every wider one this CPU runs (memory/isa.h) is the same
 // bits, pixel for pixel, from three stations and at a camera's and a LiDAR's splat growth.
+// Claim (ComputeVisibility, `only`): a vossel flagged (any nonzero flag) gets the V of the
+// unmasked computation and every other vossel 0, for a scattered mask as a revisit's: lone
+// flags, short runs and long gaps, enough of them that the shadow-by-cells chunks are taken,
+// and chunks entered at a flag past their first vossel.
+TEST_F(VisibilityShortcutTest, AScatteredMaskTestsExactlyItsVossels) {
+  const size_t n = geometry_->size();
+  const geometry::Pose pose = site_->Stations()[4];
+  DepthPanorama depth =
+      RenderDepthPanorama(*geometry_, pose, DepthPanoramaSize(2.0 * M_PI / 1024), 0.3e-3);
+  const double tau = DepthToleranceM(kVosselM);
+  const std::vector<float> all = ComputeVisibility(*geometry_, depth, tau, nullptr, 1);
+  std::mt19937_64 rng(17);
+  std::vector<uint8_t> only(n, 0);
+  size_t flagged = 0;
+  for (size_t k = 0; k < n;) {
+    const size_t gap = rng() % 4 == 0 ? rng() % 300 : rng() % 9;  // long gaps and short ones
+    k += gap;
+    const size_t run = 1 + rng() % 5;
+    for (size_t e = k; e < std::min(n, k + run); ++e, ++flagged) {
+      only[e] = uint8_t(1 + rng() % 3);  // flags other than 1 count as set
+    }
+    k += run;
+  }
+  ASSERT_GE(flagged, kShadowByCellsMinVossels);
+  ASSERT_LT(flagged, n / 2);
+  const std::vector<float> part = ComputeVisibility(*geometry_, depth, tau, &only, 1);
+  size_t differ = 0, unflagged_nonzero = 0, tested_nonzero = 0;
+  for (size_t k = 0; k < n; ++k) {
+    if (only[k]) {
+      differ += part[k] != all[k] ? 1 : 0;
+      tested_nonzero += part[k] > 0.0f ? 1 : 0;
+    } else {
+      unflagged_nonzero += part[k] != 0.0f ? 1 : 0;
+    }
+  }
+  std::printf("%zu of %zu vossels flagged, %zu of them with V > 0\n", flagged, n, tested_nonzero);
+  EXPECT_EQ(differ, 0u);
+  EXPECT_EQ(unflagged_nonzero, 0u);
+  EXPECT_GT(tested_nonzero, flagged / 50);  // some flagged vossels are lit: not all shadow
+}
+
 TEST_F(VisibilityShortcutTest, EveryInstructionSetSplatsTheSameBits) {
   const geometry::EquirectSize size = DepthPanoramaSize(2.0 * M_PI / 1024);
   int compared = 0;
