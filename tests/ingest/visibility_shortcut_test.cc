@@ -60,9 +60,6 @@ TEST_F(VisibilityShortcutTest, ShadowByCellsEqualsSampleTests) {
   }
 }
 
-// Claim (a panorama that does not depend on the machine): the depth panorama splatted by the
-// baseline's instruction set and by every wider one this CPU runs (memory/isa.h) is the same
-// bits, pixel for pixel, from three stations and at a camera's and a LiDAR's splat growth.
 // Claim (ComputeVisibility, `only`): a vossel flagged (any nonzero flag) gets the V of the
 // unmasked computation and every other vossel 0, for a scattered mask as a revisit's: lone
 // flags, short runs and long gaps, enough of them that the shadow-by-cells chunks are taken,
@@ -104,6 +101,9 @@ TEST_F(VisibilityShortcutTest, AScatteredMaskTestsExactlyItsVossels) {
   EXPECT_GT(tested_nonzero, flagged / 50);  // some flagged vossels are lit: not all shadow
 }
 
+// Claim (a panorama that does not depend on the machine): the depth panorama splatted by the
+// baseline's instruction set and by every wider one this CPU runs (memory/isa.h) is the same
+// bits, pixel for pixel, from three stations and at a camera's and a LiDAR's splat growth.
 TEST_F(VisibilityShortcutTest, EveryInstructionSetSplatsTheSameBits) {
   const geometry::EquirectSize size = DepthPanoramaSize(2.0 * M_PI / 1024);
   int compared = 0;
