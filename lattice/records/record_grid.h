@@ -12,6 +12,8 @@
 ///          pyopenvdb.
 #pragma once
 
+#include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -42,6 +44,12 @@ absl::Status WriteRecords(const VosselGeometry& geometry, const RecordSet& recor
 /// so fusion at ingest reads the same values a later reweight reads from disk and both give the
 /// same bits (VASL-MODEL §7). Idempotent.
 void RoundToStorage(RecordSet& records);
+
+/// The half-precision bits of `n` floats, as Imath's half(float) gives them (to nearest, ties
+/// to even): the records' half attributes (value, footprint) are stored so. With F16C where
+/// the CPU has it, the same bits.
+void EncodeHalves(const float* in, uint16_t* out, size_t n);
+
 /// Reads records.vdb back into flat arrays (sorted by vossel), given the version's geometry.
 absl::StatusOr<RecordSet> ReadRecords(const VosselGeometry& geometry,
                                       const std::filesystem::path& path);
