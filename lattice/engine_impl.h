@@ -163,6 +163,7 @@ struct Engine::Impl {
     result.tiles_changed = flow.tiles_changed;
     result.records_computed = flow.records_computed;
     result.records_rewritten = flow.records_rewritten;
+    result.commit_times = flow.commit_times;
     result.bytes_written = flow.bytes_written;
     result.pixels_back_projected = flow.pixels_back_projected;
     result.pixels_outside = flow.pixels_outside;

@@ -1075,6 +1075,7 @@ absl::Status CommitFlow(store::ProjectStore& store, store::Snapshot next,
                                           : int64_t(written.size());
   absl::StatusOr<store::VersionInfo> info = store.HeadInfo();
   if (info.ok()) result.bytes_written = info->bytes_written;
+  result.commit_times = store.LastCommitTimes();
   result.version = *version;
   // Not a const object: a reweight moves HEAD's arrays out of it when no reader holds it.
   result.snapshot = std::make_shared<store::Snapshot>(std::move(next));

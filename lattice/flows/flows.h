@@ -57,6 +57,7 @@ struct FlowResult {
   /// unchanged (what record segments per batch would not rewrite; README "Storage").
   int64_t records_computed = 0;
   int64_t records_rewritten = 0;
+  store::CommitTimes commit_times;  ///< where its commit's time went (ProjectStore)
   int64_t pixels_back_projected = 0;  ///< back-projection: pixels that became derived records
   int64_t pixels_outside = 0;         ///< back-projection: pixels whose point is in no vossel
   int64_t pixels_invalid = 0;         ///< back-projection: surface pixels with a non-finite colour

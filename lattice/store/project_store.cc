@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <map>
 #include <mutex>
@@ -202,7 +203,17 @@ absl::Status SameVosselSize(const Snapshot& snapshot, const ProjectSettings& set
 struct WrittenTile {
   tiles::TileKey key;
   std::map<std::string, ManifestEntry> layers;  ///< empty: the tile has no vossels any more
+  CommitTimes times;  ///< its steps' thread seconds (cut, encodings, puts)
 };
+
+using SteadyClock = std::chrono::steady_clock;
+
+double SecondsSince(SteadyClock::time_point& t) {
+  const SteadyClock::time_point now = SteadyClock::now();
+  const double s = std::chrono::duration<double>(now - t).count();
+  t = now;
+  return s;
+}
 
 }  // namespace
 
@@ -244,6 +255,7 @@ struct ProjectStore::Impl {
   mutable std::mutex db_mu;  ///< guards `db` (statements are short)
   Db db;
   std::mutex commit_mu;  ///< one commit at a time
+  CommitTimes last_commit_times;  ///< under commit_mu
   std::unique_ptr<ObjectStore> objects;
 
   CommitStage fault_stage = CommitStage::kNone;
@@ -381,25 +393,39 @@ struct ProjectStore::Impl {
       for (size_t i = next++; i < by_work.size(); i = next++) {
         const size_t t = by_work[i];
         const bool with_geometry = t < with_geometry_count;
+        SteadyClock::time_point clock = SteadyClock::now();
+        CommitTimes& times = out[t].times;
         const tiles::TileContents tile = cutter.Cut(ordered[t]);
+        times.cut_s += SecondsSince(clock);
         out[t].key = tile.key;
         if (tile.geometry.size() == 0) continue;
         // Each layer's file is made in memory and put from there (hashed, written once).
-        auto put = [&](const char* layer, const absl::StatusOr<std::string>& bytes) {
+        auto put = [&](const char* layer, const absl::StatusOr<std::string>& bytes,
+                       double& encode_s) {
+          encode_s += SecondsSince(clock);
           if (!bytes.ok()) return bytes.status();
           absl::StatusOr<StoredObject> obj = objects->PutBytes(*bytes);
+          times.put_s += SecondsSince(clock);
           if (!obj.ok()) return obj.status();
           out[t].layers[layer] = {obj->sha256, int64_t(tile.geometry.size()),
                                   int64_t(tile.records.size()), obj->bytes};
           return absl::OkStatus();
         };
         absl::Status s;
-        if (with_geometry) s = put(kLayerGeometry, records::EncodeGeometry(tile.geometry));
-        if (s.ok()) s = put(kLayerRecords, records::EncodeRecords(tile.geometry, tile.records));
-        if (s.ok()) s = put(kLayerFusedDefault, records::EncodeFused(tile.geometry, tile.fused));
+        if (with_geometry) {
+          s = put(kLayerGeometry, records::EncodeGeometry(tile.geometry), times.geometry_s);
+        }
+        if (s.ok()) {
+          s = put(kLayerRecords, records::EncodeRecords(tile.geometry, tile.records),
+                  times.records_s);
+        }
+        if (s.ok()) {
+          s = put(kLayerFusedDefault, records::EncodeFused(tile.geometry, tile.fused),
+                  times.fused_s);
+        }
         for (const auto& [layer, fused] : tile.profile_fused) {
           if (!s.ok()) break;
-          s = put(layer.c_str(), records::EncodeFused(tile.geometry, fused));
+          s = put(layer.c_str(), records::EncodeFused(tile.geometry, fused), times.fused_s);
         }
         status[t] = s;
       }
@@ -1281,6 +1307,8 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
 
   // 1. Objects of the changed tiles and reach rasters, fsynced. Nothing refers to them until
   //    the catalog does, so a failure here leaves only garbage for the next collection.
+  CommitTimes times;
+  SteadyClock::time_point clock = SteadyClock::now();
   std::set<tiles::TileKey> geometry_tiles = plan.geometry_tiles, record_tiles = plan.record_tiles;
   int64_t bytes_written = 0;
   if (!plan.put_tiles.empty()) {
@@ -1302,8 +1330,14 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     absl::StatusOr<std::vector<WrittenTile>> written =
         im.WriteTiles(snapshot, geometry_tiles, record_tiles);
     if (!written.ok()) return written.status();
+    times.tiles_wall_s = SecondsSince(clock);
     for (size_t i = 0; i < written->size(); ++i) {
       WrittenTile& w = (*written)[i];
+      times.cut_s += w.times.cut_s;
+      times.geometry_s += w.times.geometry_s;
+      times.records_s += w.times.records_s;
+      times.fused_s += w.times.fused_s;
+      times.put_s += w.times.put_s;
       const bool with_geometry = i < geometry_tiles.size();
       if (w.layers.empty()) {
         manifest.tiles.erase(w.key);
@@ -1332,6 +1366,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
       }
     }
   }
+  clock = SteadyClock::now();
   std::set<int32_t> reach_sources = plan.reach_sources;
   if (plan.replace_all) {
     manifest.reach.clear();
@@ -1374,7 +1409,9 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
       record_count += RecordsOf(layers).records;
     }
   }
+  times.reach_wall_s = SecondsSince(clock);
   if (absl::Status s = im.objects->Sync(); !s.ok()) return s;
+  times.sync_wall_s = SecondsSince(clock);
   if (fault == CommitStage::kAfterObjects) {
     if (!crash) im.Collect().IgnoreError();
     return injected_error("objects");
@@ -1563,6 +1600,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     im.Collect().IgnoreError();
     return s;
   };
+  times.catalog_wall_s = SecondsSince(clock);
   if (fault == CommitStage::kAfterCatalog) {
     return crash ? injected_error("catalog") : undo_catalog(injected_error("catalog"));
   }
@@ -1580,8 +1618,16 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     std::lock_guard<std::mutex> lock(im.origin_mu);
     im.origin = im.proposed_origin;
   }
+  times.head_wall_s = SecondsSince(clock);
   im.Collect().IgnoreError();  // best effort: a failure leaves garbage for the next one
+  times.collect_wall_s = SecondsSince(clock);
+  im.last_commit_times = times;
   return version;
+}
+
+CommitTimes ProjectStore::LastCommitTimes() const {
+  std::lock_guard<std::mutex> lock(impl_->commit_mu);
+  return impl_->last_commit_times;
 }
 
 absl::StatusOr<std::vector<records::AttributeInfo>> ProjectStore::InspectRecords(

@@ -250,6 +250,25 @@ struct StoredLensMap {
   std::string created_utc;
 };
 
+/// Where a commit's time went (ProjectStore::LastCommitTimes): the seconds of thread time its
+/// tiles' steps took, summed over the threads that wrote them, and the wall seconds of each of
+/// its steps. For benchmarks and diagnostics; nothing reads it to decide.
+struct CommitTimes {
+  // Thread seconds, over every tile written.
+  double cut_s = 0.0;       ///< cutting the tiles' vossels, records and fused values out
+  double geometry_s = 0.0;  ///< encoding geometry objects
+  double records_s = 0.0;   ///< encoding records objects
+  double fused_s = 0.0;     ///< encoding fused objects (every layer)
+  double put_s = 0.0;       ///< hashing and writing the objects (ObjectStore::PutBytes)
+  // Wall seconds, in commit order.
+  double tiles_wall_s = 0.0;    ///< writing the tiles' objects (the steps above, in parallel)
+  double reach_wall_s = 0.0;    ///< writing the reach rasters
+  double sync_wall_s = 0.0;     ///< waiting for every object to be on the disk
+  double catalog_wall_s = 0.0;  ///< the catalog's transaction
+  double head_wall_s = 0.0;     ///< replacing HEAD
+  double collect_wall_s = 0.0;  ///< retention's collection after it
+};
+
 class ProjectStore {
  public:
   /// Creates `dir` (must not exist) with an empty catalog and HEAD = 0.
@@ -271,6 +290,8 @@ class ProjectStore {
   std::optional<Eigen::Vector3d> origin() const;
   /// Catalog summary of the HEAD version (zeros for version 0).
   absl::StatusOr<VersionInfo> HeadInfo() const;
+  /// The times of the last commit that succeeded (zeros before one).
+  CommitTimes LastCommitTimes() const;
 
   /// Stores bytes content-addressed; returns the lowercase sha256 hex. Idempotent, fsynced.
   absl::StatusOr<std::string> PutBlob(std::string_view bytes);

@@ -331,6 +331,13 @@ int Growth(const std::filesystem::path& dir, int pano_w, int tile_vossels, int64
                 "(MB):%s\n",
                 (long long)r->records_computed, (long long)r->records_rewritten, records_mb,
                 records_mb * share, layers_written.c_str());
+    const store::CommitTimes& ct = r->commit_times;
+    std::printf("         commit: thread s cut %.3f, encode geometry %.3f records %.3f fused "
+                "%.3f, put %.3f; wall s tiles %.3f, reach %.3f, sync %.3f, catalog %.3f, HEAD "
+                "%.3f, collect %.3f\n",
+                ct.cut_s, ct.geometry_s, ct.records_s, ct.fused_s, ct.put_s, ct.tiles_wall_s,
+                ct.reach_wall_s, ct.sync_wall_s, ct.catalog_wall_s, ct.head_wall_s,
+                ct.collect_wall_s);
     records_written_mb += records_mb;
     segments_mb += records_mb * share;
     previous = std::move(*manifest);

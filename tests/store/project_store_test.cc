@@ -18,6 +18,7 @@
 #include <vector>
 
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include "lattice/records/record_grid.h"
 #include "lattice/tiles/tile_split.h"
@@ -560,6 +561,14 @@ TEST(ProjectStoreTest, CommitWritesOnlyChangedTiles) {
   plan.record_tiles = {target};
   absl::StatusOr<int64_t> v2 = s.Commit(snap, plan);
   ASSERT_TRUE(v2.ok()) << v2.status();
+  // Its times say what it did: records (and the fused layer beside them) encoded and put, no
+  // geometry; the tiles' steps took no more thread time than their wall time on every thread.
+  const CommitTimes t = s.LastCommitTimes();
+  EXPECT_EQ(t.geometry_s, 0.0);
+  EXPECT_GT(t.records_s, 0.0);
+  EXPECT_GT(t.put_s, 0.0);
+  EXPECT_LE(t.cut_s + t.records_s + t.fused_s + t.put_s,
+            t.tiles_wall_s * double(tbb::this_task_arena::max_concurrency()) + 1e-3);
   const Manifest m2 = *s.LoadManifest(*v2);
   ASSERT_EQ(m2.tiles.size(), m1.tiles.size());
   int shared = 0, rewritten = 0;
