@@ -208,7 +208,8 @@ struct WrittenTile {
 
 using SteadyClock = std::chrono::steady_clock;
 
-double SecondsSince(SteadyClock::time_point& t) {
+// Seconds from `t` to now, and `t` moved to now: a lap of a step timer.
+double Lap(SteadyClock::time_point& t) {
   const SteadyClock::time_point now = SteadyClock::now();
   const double s = std::chrono::duration<double>(now - t).count();
   t = now;
@@ -396,16 +397,16 @@ struct ProjectStore::Impl {
         SteadyClock::time_point clock = SteadyClock::now();
         CommitTimes& times = out[t].times;
         const tiles::TileContents tile = cutter.Cut(ordered[t]);
-        times.cut_s += SecondsSince(clock);
+        times.cut_s += Lap(clock);
         out[t].key = tile.key;
         if (tile.geometry.size() == 0) continue;
         // Each layer's file is made in memory and put from there (hashed, written once).
         auto put = [&](const char* layer, const absl::StatusOr<std::string>& bytes,
                        double& encode_s) {
-          encode_s += SecondsSince(clock);
+          encode_s += Lap(clock);
           if (!bytes.ok()) return bytes.status();
           absl::StatusOr<StoredObject> obj = objects->PutBytes(*bytes);
-          times.put_s += SecondsSince(clock);
+          times.put_s += Lap(clock);
           if (!obj.ok()) return obj.status();
           out[t].layers[layer] = {obj->sha256, int64_t(tile.geometry.size()),
                                   int64_t(tile.records.size()), obj->bytes};
@@ -1330,7 +1331,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     absl::StatusOr<std::vector<WrittenTile>> written =
         im.WriteTiles(snapshot, geometry_tiles, record_tiles);
     if (!written.ok()) return written.status();
-    times.tiles_wall_s = SecondsSince(clock);
+    times.tiles_wall_s = Lap(clock);
     for (size_t i = 0; i < written->size(); ++i) {
       WrittenTile& w = (*written)[i];
       times.cut_s += w.times.cut_s;
@@ -1409,9 +1410,9 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
       record_count += RecordsOf(layers).records;
     }
   }
-  times.reach_wall_s = SecondsSince(clock);
+  times.reach_wall_s = Lap(clock);
   if (absl::Status s = im.objects->Sync(); !s.ok()) return s;
-  times.sync_wall_s = SecondsSince(clock);
+  times.sync_wall_s = Lap(clock);
   if (fault == CommitStage::kAfterObjects) {
     if (!crash) im.Collect().IgnoreError();
     return injected_error("objects");
@@ -1600,7 +1601,7 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     im.Collect().IgnoreError();
     return s;
   };
-  times.catalog_wall_s = SecondsSince(clock);
+  times.catalog_wall_s = Lap(clock);
   if (fault == CommitStage::kAfterCatalog) {
     return crash ? injected_error("catalog") : undo_catalog(injected_error("catalog"));
   }
@@ -1618,9 +1619,9 @@ absl::StatusOr<int64_t> ProjectStore::Commit(const Snapshot& snapshot, const Com
     std::lock_guard<std::mutex> lock(im.origin_mu);
     im.origin = im.proposed_origin;
   }
-  times.head_wall_s = SecondsSince(clock);
+  times.head_wall_s = Lap(clock);
   im.Collect().IgnoreError();  // best effort: a failure leaves garbage for the next one
-  times.collect_wall_s = SecondsSince(clock);
+  times.collect_wall_s = Lap(clock);
   im.last_commit_times = times;
   return version;
 }
